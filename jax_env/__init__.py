@@ -1,0 +1,34 @@
+"""Pure-JAX Overcooked: layouts, the stepper, observations and rendering. No torch in here."""
+
+from jax_env.env import DELIVERY_REWARD, INTERACT, NUM_ACTIONS, STAY, Overcooked, ShapingWeights
+from jax_env.layouts import (
+    CLASSIC_LAYOUTS,
+    COUNTER,
+    EXPANDED_LAYOUTS,
+    FLOOR,
+    GOAL,
+    ONION_PILE,
+    PLATE_PILE,
+    POT,
+    Layout,
+    get_layout,
+    layout_names,
+    parse_layout,
+)
+from jax_env.observation import get_obs
+from jax_env.state import (
+    DISH,
+    EMPTY,
+    EAST,
+    NORTH,
+    ONION,
+    PLATE,
+    POT_EMPTY,
+    POT_FULL,
+    POT_READY,
+    SOUTH,
+    WEST,
+    State,
+    make_state,
+    state_nbytes,
+)

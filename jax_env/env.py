@@ -1,0 +1,180 @@
+"""The Overcooked stepper: pure functions over `State`, matching JaxMARL's Overcooked (v1) step for step."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jax_env.layouts import COUNTER, FLOOR, GOAL, ONION_PILE, PLATE_PILE, POT, Layout, get_layout
+from jax_env.observation import get_obs
+from jax_env.state import (
+    DIR_VECTORS,
+    DISH,
+    EMPTY,
+    ONION,
+    PLATE,
+    POT_EMPTY,
+    POT_FULL,
+    POT_READY,
+    State,
+    make_state,
+)
+
+STAY, INTERACT = 4, 5  # actions 0-3 move (and face) north, south, east, west
+NUM_ACTIONS = 6
+DELIVERY_REWARD = 20.0
+
+
+class ShapingWeights(NamedTuple):
+    """Per-agent shaped rewards (JaxMARL's defaults); reported in `info["shaped_reward"]`, never in `reward`."""
+
+    onion_in_pot: float = 3.0
+    plate_pickup: float = 3.0  # only when useful: no plate on a counter, fewer plates held than busy pots
+    soup_pickup: float = 5.0
+
+
+class Overcooked:
+    """A two-agent Overcooked kitchen with JaxMARL's API.
+
+        env = Overcooked("cramped_room", max_steps=400)
+        obs, state = env.reset(key)                                   # obs uint8 (2, H, W, 26)
+        obs, state, reward, done, info = env.step(key, state, actions)  # actions int32 (2,)
+
+    `step` resets a finished episode in the same call (done=True comes with the new episode's observation),
+    so `jax.vmap(env.step)` runs thousands of kitchens with no Python in the loop. Every method is pure and
+    jittable; the layout and settings are static.
+    """
+
+    def __init__(self, layout: Layout | str, max_steps: int = 400, shaping: ShapingWeights = ShapingWeights()):
+        self.layout = get_layout(layout) if isinstance(layout, str) else layout
+        if max_steps < 1:
+            raise ValueError(f"max_steps must be positive, got {max_steps}")
+        self.max_steps = int(max_steps)
+        self.shaping = ShapingWeights(*shaping)
+        self.height, self.width = self.layout.shape
+        self.obs_shape = (self.height, self.width, 26)
+        self.num_actions = NUM_ACTIONS
+        self._start = make_state(self.layout)
+        # A direction as a step in flat cell indices.
+        self._dir_offsets = jnp.asarray([dx + dy * self.width for dx, dy in DIR_VECTORS], dtype=jnp.int32)
+
+    # ----------------------------------------------------------------------------------------------------
+    # Reset
+    def initial_state(self, key: jax.Array) -> State:
+        """A fresh episode: the layout's start cells, uniformly random facings, empty hands and pots."""
+        # Same key derivation as JaxMARL's reset (its first split draws random start cells), so equal keys
+        # give equal facings.
+        key, _ = jax.random.split(key)
+        _, key_dir = jax.random.split(key)
+        facing = jax.random.randint(key_dir, (2,), 0, 4, dtype=jnp.int32)
+        return self._start.replace(agent_dir=facing)
+
+    def reset(self, key: jax.Array) -> tuple[jax.Array, State]:
+        state = self.initial_state(key)
+        return self.get_obs(state), state
+
+    def get_obs(self, state: State) -> jax.Array:
+        """uint8 (2, H, W, 26), see `jax_env.observation`."""
+        return get_obs(state, self.max_steps)
+
+    # ----------------------------------------------------------------------------------------------------
+    # Step
+    def step(self, key: jax.Array, state: State, actions: jax.Array):
+        """One step with auto-reset: (obs, state, reward float32 (2,), done bool (), info).
+
+        info["shaped_reward"] is float32 (2,). On the terminal step the returned obs and state are the new
+        episode's, the reward the terminal step's.
+        """
+        _, key_reset = jax.random.split(key)
+        next_state, reward, done, info = self.step_env(state, actions)
+        fresh = self.initial_state(key_reset)
+        next_state = jax.tree_util.tree_map(lambda new, old: jnp.where(done, new, old), fresh, next_state)
+        # The observation is built once, from the state that is returned.
+        return self.get_obs(next_state), next_state, reward, done, info
+
+    def step_env(self, state: State, actions: jax.Array):
+        """One step without reset or observation: (state, reward (2,), done (), info)."""
+        actions = jnp.asarray(actions, dtype=jnp.int32)
+        kinds = state.grid.reshape(-1)
+        contents = state.contents.reshape(-1)
+        pos = state.agent_pos
+
+        # Movement: a move into anything but floor is refused; meeting or swapping agents both stay.
+        is_move = actions < STAY
+        target = pos + self._dir_offsets[jnp.minimum(actions, 3)]
+        target = jnp.where(is_move & (kinds[target] == FLOOR), target, pos)
+        collide = target[0] == target[1]
+        swap = (target[0] == pos[1]) & (target[1] == pos[0])
+        new_pos = jnp.where(collide | swap, pos, target)
+        new_dir = jnp.where(is_move, actions, state.agent_dir)
+
+        # Interactions use the cells faced before this step; agent 1 acts on the world agent 0 left.
+        facing = pos + self._dir_offsets[state.agent_dir]
+        inventory = state.agent_inv
+        delivered, shaped = [], []
+        for agent in range(2):
+            contents, inventory, agent_delivered, agent_shaped = self._interact(
+                kinds, contents, inventory, agent, facing[agent], actions[agent] == INTERACT
+            )
+            delivered.append(agent_delivered)
+            shaped.append(agent_shaped)
+
+        # Pots with three onions count down to ready.
+        cooking = (kinds == POT) & (contents >= 1) & (contents <= POT_FULL)
+        contents = jnp.where(cooking, contents - 1, contents).astype(jnp.uint8)
+
+        step = state.step + 1
+        next_state = state.replace(
+            contents=contents.reshape(state.contents.shape),
+            agent_pos=new_pos,
+            agent_dir=new_dir,
+            agent_inv=inventory,
+            step=step,
+        )
+        sparse = DELIVERY_REWARD * (delivered[0].astype(jnp.float32) + delivered[1].astype(jnp.float32))
+        reward = jnp.stack([sparse, sparse])
+        done = step >= self.max_steps
+        return next_state, reward, done, {"shaped_reward": jnp.stack(shaped).astype(jnp.float32)}
+
+    def _interact(self, kinds, contents, inventory, agent, cell, acting):
+        """Agent `agent` interacts with flat cell `cell` if `acting`: (contents, inventory, delivered, shaped)."""
+        kind = kinds[cell]
+        value = contents[cell].astype(jnp.int32)
+        held = inventory[agent]
+        hands_free = held == EMPTY
+
+        take_onion = acting & (kind == ONION_PILE) & hands_free
+        take_plate = acting & (kind == PLATE_PILE) & hands_free
+        pick_up = acting & (kind == COUNTER) & (value != EMPTY) & hands_free
+        put_down = acting & (kind == COUNTER) & (value == EMPTY) & ~hands_free
+        add_onion = acting & (kind == POT) & (value > POT_FULL) & (held == ONION)
+        take_soup = acting & (kind == POT) & (value == POT_READY) & (held == PLATE)
+        deliver = acting & (kind == GOAL) & (held == DISH)
+
+        new_held = jnp.select(
+            [take_onion, take_plate, pick_up, take_soup, put_down | add_onion | deliver],
+            [ONION, PLATE, value, DISH, EMPTY],
+            held,
+        )
+        new_value = jnp.select(
+            [pick_up, put_down, add_onion, take_soup], [EMPTY, held, value - 1, POT_EMPTY], value
+        )
+
+        # A plate pays only when nothing suggests it is surplus, judged before this interaction.
+        plate_on_counter = jnp.any((kinds == COUNTER) & (contents == PLATE))
+        busy_pots = jnp.sum((kinds == POT) & (contents != POT_EMPTY))
+        plates_held = jnp.sum(inventory == PLATE)
+        got_plate = take_plate | (pick_up & (value == PLATE))
+        useful_plate = got_plate & ~plate_on_counter & (plates_held < busy_pots)
+
+        shaped = (
+            self.shaping.onion_in_pot * add_onion
+            + self.shaping.soup_pickup * take_soup
+            + self.shaping.plate_pickup * useful_plate
+        )
+        contents = contents.at[cell].set(new_value.astype(contents.dtype))
+        inventory = inventory.at[agent].set(new_held)
+        return contents, inventory, deliver, shaped

@@ -1,0 +1,319 @@
+"""The Infinite Kitchen level generator: random solvable 7x7 kitchens, in pure JAX.
+
+Every level is a border of counters around a 5x5 interior. `sample_level` draws, with independent keys:
+
+1. Interior walls by one of four predicates: none (p_empty), a 3x3 middle block whose 9 cells are each
+   reopened with p_block_reopen (p_middle), or a continuous wall down column 3 (p_vertical) or along row 3
+   (p_horizontal) that stays whole with p_wall_intact and otherwise has exactly 2 of its 5 interior cells
+   reopened.
+2. One onion pile, plate pile, pot and goal on 4 distinct SAFE cells: border cells that are neither corners
+   nor T-junctions (where a row-3 or column-3 wall meets the border).
+3. For each of those 4 kinds, with p_extra_item, a second copy on a QUESTIONABLE cell that is currently a
+   wall (the middle cross, the 3x3 block, the corners); the extras take distinct cells. They may be
+   unreachable; no task depends on them.
+4. A loose onion, plate and dish, each with its own probability, on distinct plain counters.
+5. Two agents in diagonally opposite quadrants, one uniform cell in each, a fair coin for which agent goes
+   where, uniform facings; hands and pots empty.
+
+Why every level is solvable: every safe cell borders a quadrant cell, and no predicate ever walls a quadrant
+cell or cuts a quadrant from the other quadrant on its side of a wall (the interior ring, rows 1 and 5 and
+columns 1 and 5, is only ever walled at row 3 or column 3). So each agent reaches every required item on its
+side. If a continuous wall separates the agents and all items lie on one side, that side's agent can do the
+whole task; if the items are split, the agents pass items over the wall's counters, which face floor on
+both sides (as in Forced Coordination); in every other case either agent can do the task alone.
+
+Coordinates in this module's constants are (row, col); cells are flat indices `row * 7 + col` like
+`State.agent_pos`. The held-out evaluation set (`heldout_levels`, `heldout_grids`) is 100 generated levels
+plus the 5 expanded classic layouts; `sample_training_level` rejects any level whose grid is one of them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jax_env.layouts import COUNTER, EXPANDED_LAYOUTS, FLOOR, GOAL, ONION_PILE, PLATE_PILE, POT, get_layout
+from jax_env.state import DISH, ONION, PLATE, POT_EMPTY, State
+
+SIZE = 7
+NUM_CELLS = SIZE * SIZE
+
+# Predicate indices, in the order of `GeneratorConfig.predicate_probs`.
+EMPTY_INTERIOR, MIDDLE_BLOCK, VERTICAL_WALL, HORIZONTAL_WALL = range(4)
+PREDICATE_NAMES = ("empty", "middle", "vertical", "horizontal")
+
+# Required kinds in placement order; extra copies use the same order.
+ITEM_KINDS = (ONION_PILE, PLATE_PILE, POT, GOAL)
+# Loose item kinds, in the order of `GeneratorConfig.loose_probs`.
+LOOSE_KINDS = (ONION, PLATE, DISH)
+
+BORDER_CELLS = tuple((r, c) for r in range(SIZE) for c in range(SIZE) if r in (0, SIZE - 1) or c in (0, SIZE - 1))
+CORNER_CELLS = ((0, 0), (0, 6), (6, 0), (6, 6))
+T_JUNCTION_CELLS = ((0, 3), (3, 0), (3, 6), (6, 3))
+SAFE_CELLS = tuple(cell for cell in BORDER_CELLS if cell not in CORNER_CELLS + T_JUNCTION_CELLS)
+BLOCK_CELLS = tuple((r, c) for r in range(2, 5) for c in range(2, 5))
+VERTICAL_CELLS = tuple((r, 3) for r in range(1, 6))
+HORIZONTAL_CELLS = tuple((3, c) for c in range(1, 6))
+CROSS_CELLS = tuple(sorted({(3, c) for c in range(SIZE)} | {(r, 3) for r in range(SIZE)}))
+QUESTIONABLE_CELLS = tuple(sorted(set(CROSS_CELLS) | set(BLOCK_CELLS) | set(CORNER_CELLS)))
+# Top-left, top-right, bottom-left, bottom-right; no predicate ever walls these cells.
+QUADRANT_CELLS = (
+    ((1, 1), (1, 2), (2, 1)),
+    ((1, 4), (1, 5), (2, 5)),
+    ((4, 1), (5, 1), (5, 2)),
+    ((5, 4), (5, 5), (4, 5)),
+)
+# The two diagonal quadrant pairs: (top-left, bottom-right) and (top-right, bottom-left).
+QUADRANT_PAIRS = ((0, 3), (1, 2))
+
+# Seed of the held-out evaluation set; changing it changes which levels training never sees.
+HELDOUT_SEED = 20240
+NUM_HELDOUT_GENERATED = 100
+
+
+def _flat(cells) -> np.ndarray:
+    return np.asarray([r * SIZE + c for r, c in cells], dtype=np.int32)
+
+
+def _mask(cells) -> np.ndarray:
+    mask = np.zeros(NUM_CELLS, dtype=bool)
+    mask[_flat(cells)] = True
+    return mask
+
+
+_BORDER_MASK = _mask(BORDER_CELLS)
+_SAFE_FLAT = _flat(SAFE_CELLS)
+_BLOCK_FLAT = _flat(BLOCK_CELLS)
+_VERTICAL_FLAT = _flat(VERTICAL_CELLS)
+_HORIZONTAL_FLAT = _flat(HORIZONTAL_CELLS)
+_QUESTIONABLE_MASK = _mask(QUESTIONABLE_CELLS)
+_QUADRANT_FLAT = np.stack([_flat(cells) for cells in QUADRANT_CELLS])  # (4, 3)
+_QUADRANT_PAIRS = np.asarray(QUADRANT_PAIRS, dtype=np.int32)  # (2, 2)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class GeneratorConfig:
+    """Probabilities of the Infinite Kitchen generator (defaults: the paper's).
+
+    Hashable, so it can be a static argument (`jax.jit(sample_level, static_argnames="config")`), and a pytree
+    of scalars, so it can also be traced: `jax.jit(jax.vmap(sample_level, in_axes=(0, None)))(keys, config)`
+    compiles once for every config.
+    """
+
+    p_empty: float = 0.1
+    """probability of the predicate with no interior walls"""
+    p_middle: float = 0.3
+    """probability of the 3x3 middle-block predicate"""
+    p_vertical: float = 0.3
+    """probability of the continuous wall down column 3"""
+    p_horizontal: float = 0.3
+    """probability of the continuous wall along row 3"""
+    p_block_reopen: float = 0.5
+    """probability that each middle-block cell is reopened as floor, independently"""
+    p_wall_intact: float = 0.25
+    """probability that a continuous wall stays whole; otherwise exactly 2 of its 5 interior cells reopen"""
+    p_extra_item: float = 0.75
+    """probability, per item kind, of a second onion pile / plate pile / pot / goal on a questionable wall"""
+    p_loose_onion: float = 0.5
+    """probability of a loose onion on a plain counter"""
+    p_loose_plate: float = 0.5
+    """probability of a loose plate on a plain counter"""
+    p_loose_dish: float = 0.5
+    """probability of a loose dish (plated soup) on a plain counter"""
+
+    def __post_init__(self):
+        values = [getattr(self, field.name) for field in dataclasses.fields(self)]
+        if not all(isinstance(value, (int, float)) for value in values):
+            return  # traced or batched fields, rebuilt by jax; checked when first built from numbers
+        for field in dataclasses.fields(self):
+            # Plain floats, so that configs given with ints and with floats trace alike.
+            value = float(getattr(self, field.name))
+            object.__setattr__(self, field.name, value)
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"GeneratorConfig.{field.name} = {value} is not a probability in [0, 1]")
+        total = sum(self.predicate_probs)
+        if abs(total - 1.0) > 1e-6:
+            raise ValueError(
+                "GeneratorConfig predicate probabilities must sum to 1: "
+                f"p_empty + p_middle + p_vertical + p_horizontal = {total}"
+            )
+
+    @property
+    def predicate_probs(self) -> tuple[float, float, float, float]:
+        """(p_empty, p_middle, p_vertical, p_horizontal), indexed by EMPTY_INTERIOR ... HORIZONTAL_WALL."""
+        return (self.p_empty, self.p_middle, self.p_vertical, self.p_horizontal)
+
+    @property
+    def loose_probs(self) -> tuple[float, float, float]:
+        """(p_loose_onion, p_loose_plate, p_loose_dish), in the order of LOOSE_KINDS."""
+        return (self.p_loose_onion, self.p_loose_plate, self.p_loose_dish)
+
+
+def _top_k_cells(u: jax.Array, allowed: jax.Array, k: int) -> jax.Array:
+    """int32 (k,): k distinct indices drawn uniformly, in random order, among the True ones of `allowed` (bool (n,)).
+
+    u: float32 (>= n,) iid uniforms. The top k of iid uniform scores is a uniformly random ordered k-subset;
+    `allowed` must hold >= k entries.
+    """
+    scores = jnp.where(allowed, u[: allowed.shape[0]], -1.0)
+    return jax.lax.top_k(scores, k)[1].astype(jnp.int32)
+
+
+def _uniform_int(u: jax.Array, n: int) -> jax.Array:
+    """int32, shape of u: iid uniform integers in [0, n) from iid uniforms u."""
+    return jnp.minimum(jnp.floor(u * n), n - 1).astype(jnp.int32)
+
+
+def _categorical(u: jax.Array, probs) -> jax.Array:
+    """int32 (): index i drawn with probability probs[i] from one uniform u; an index of probability 0 is never
+    drawn."""
+    probs = jnp.asarray(probs, jnp.float32)
+    index = jnp.sum(u >= jnp.cumsum(probs)[:-1]).astype(jnp.int32)
+    # Rounding can leave the top threshold just below 1; never step past the last possible index.
+    last_possible = jnp.max(jnp.where(probs > 0, jnp.arange(probs.shape[0]), 0))
+    return jnp.minimum(index, last_possible)
+
+
+def _interior_walls(u: jax.Array, config: GeneratorConfig) -> jax.Array:
+    """bool (49,): interior walls drawn by one of the four predicates; u: float32 (4, >= 9) independent uniforms."""
+    predicate = _categorical(u[0, 0], config.predicate_probs)
+    block_kept = u[1, : len(BLOCK_CELLS)] >= config.p_block_reopen
+    intact = u[2, 0] < config.p_wall_intact
+    reopened = _top_k_cells(u[3], jnp.ones(5, bool), 2)
+    line_kept = intact | ~jnp.zeros(5, bool).at[reopened].set(True)
+
+    none = jnp.zeros(NUM_CELLS, bool)
+    walls = jnp.stack(
+        [
+            none,
+            none.at[_BLOCK_FLAT].set(block_kept),
+            none.at[_VERTICAL_FLAT].set(line_kept),
+            none.at[_HORIZONTAL_FLAT].set(line_kept),
+        ]
+    )
+    return walls[predicate]
+
+
+def sample_level(key: jax.Array, config: GeneratorConfig = GeneratorConfig()) -> State:
+    """One random Infinite Kitchen level (7x7): grid uint8 (7, 7), contents uint8 (7, 7) with loose items and
+    empty pots, agent_pos/agent_dir/agent_inv int32 (2,), step int32 (). Jittable and vmappable over `key`."""
+    # Every draw has its own key. The draws are vmapped over their keys, in two widths, so that the program
+    # holds 2 random kernels instead of 13 (XLA compiles it several times faster); one row per draw.
+    keys = jax.random.split(key, 13)
+    u = jax.vmap(lambda k: jax.random.uniform(k, (len(SAFE_CELLS),)))(keys[:11])  # float32 (11, 16)
+    cell_u = jax.vmap(lambda k: jax.random.uniform(k, (NUM_CELLS,)))(keys[11:])  # float32 (2, 49)
+
+    walls = jnp.asarray(_BORDER_MASK) | _interior_walls(u[0:4], config)
+    grid = jnp.where(walls, COUNTER, FLOOR).astype(jnp.uint8)
+
+    # Required items: a uniform ordered choice of 4 distinct safe cells.
+    safe_order = _top_k_cells(u[4], jnp.ones(len(SAFE_CELLS), bool), len(ITEM_KINDS))
+    grid = grid.at[jnp.asarray(_SAFE_FLAT)[safe_order]].set(jnp.asarray(ITEM_KINDS, jnp.uint8))
+
+    # Extras: 4 distinct questionable walls drawn together, each kind keeping its cell with p_extra_item.
+    # Required items sit on safe cells, never questionable ones, so the extras cannot land on them.
+    extra_cells = _top_k_cells(cell_u[0], jnp.asarray(_QUESTIONABLE_MASK) & walls, len(ITEM_KINDS))
+    has_extra = u[5, : len(ITEM_KINDS)] < config.p_extra_item
+    extra_kinds = jnp.where(has_extra, jnp.asarray(ITEM_KINDS, jnp.uint8), grid[extra_cells])
+    grid = grid.at[extra_cells].set(extra_kinds)
+
+    # Loose items on distinct plain counters (no pile, pot or goal).
+    loose_cells = _top_k_cells(cell_u[1], grid == COUNTER, len(LOOSE_KINDS))
+    has_loose = u[6, : len(LOOSE_KINDS)] < jnp.asarray(config.loose_probs, jnp.float32)
+    contents = jnp.zeros(NUM_CELLS, jnp.uint8)
+    contents = contents.at[loose_cells].set(jnp.where(has_loose, jnp.asarray(LOOSE_KINDS, jnp.uint8), 0))
+    contents = jnp.where(grid == POT, jnp.uint8(POT_EMPTY), contents)
+
+    # Agents: a diagonal quadrant pair, one cell in each quadrant, a coin for who goes where.
+    pair = jnp.asarray(_QUADRANT_PAIRS)[_uniform_int(u[7, 0], len(QUADRANT_PAIRS))]
+    positions = jnp.asarray(_QUADRANT_FLAT)[pair, _uniform_int(u[8, :2], 3)]
+    swap = u[9, 0] < 0.5
+    agent_pos = jnp.where(swap, positions[::-1], positions).astype(jnp.int32)
+    agent_dir = _uniform_int(u[10, :2], 4)
+
+    return State(
+        grid=grid.reshape(SIZE, SIZE),
+        contents=contents.reshape(SIZE, SIZE),
+        agent_pos=agent_pos,
+        agent_dir=agent_dir,
+        agent_inv=jnp.zeros(2, jnp.int32),
+        step=jnp.zeros((), jnp.int32),
+    )
+
+
+@jax.jit
+def sample_levels(keys: jax.Array, config: GeneratorConfig = GeneratorConfig()) -> State:
+    """A batch of levels, one per key (keys (N, 2) or (N,) typed): `sample_level` vmapped and jitted, with the
+    config traced, so one compilation per batch size serves every config."""
+    return jax.vmap(sample_level, in_axes=(0, None))(keys, config)
+
+
+def _grid_words(grids: jax.Array) -> jax.Array:
+    """uint32 (..., 13): the 49 grid bytes packed 4 to a word (zero-padded), so equality of words is
+    equality of grids at a quarter of the comparisons."""
+    flat = grids.reshape(grids.shape[:-2] + (NUM_CELLS,)).astype(jnp.uint8)
+    padded = jnp.pad(flat, [(0, 0)] * (flat.ndim - 1) + [(0, 3)])
+    return jax.lax.bitcast_convert_type(padded.reshape(padded.shape[:-1] + (13, 4)), jnp.uint32)
+
+
+def _matches_any(grid: jax.Array, heldout_words: jax.Array) -> jax.Array:
+    return jnp.any(jnp.all(heldout_words == _grid_words(grid), axis=-1))
+
+
+def is_heldout(grid: jax.Array, heldout: jax.Array) -> jax.Array:
+    """bool (): whether `grid` (uint8 (7, 7)) equals one of `heldout` (uint8 (K, 7, 7))."""
+    return _matches_any(grid, _grid_words(jnp.asarray(heldout, jnp.uint8)))
+
+
+def sample_training_level(key: jax.Array, config: GeneratorConfig, heldout: jax.Array) -> State:
+    """A level from `sample_level` whose grid is none of `heldout` (uint8 (K, 7, 7)), by rejection: redraws
+    with a fresh key until no held-out grid matches. Jittable (`static_argnums=1` for config) and vmappable over
+    `key` (`jax.vmap(sample_training_level, in_axes=(0, None, None))`)."""
+    heldout_words = _grid_words(jnp.asarray(heldout, jnp.uint8))
+
+    def draw(key):
+        key, sub = jax.random.split(key)
+        level = sample_level(sub, config)
+        return key, level, _matches_any(level.grid, heldout_words)
+
+    _, level, _ = jax.lax.while_loop(lambda carry: carry[2], lambda carry: draw(carry[0]), draw(key))
+    return level
+
+
+@functools.lru_cache(maxsize=8)
+def _heldout_levels_np(config: GeneratorConfig) -> State:
+    expanded = {get_layout(name).grid.tobytes() for name in EXPANDED_LAYOUTS}
+    seen: set[bytes] = set()
+    kept: list[State] = []
+    # The first batch is split(PRNGKey(HELDOUT_SEED), 100); a grid already taken (or equal to an expanded
+    # classic layout) is skipped and the shortfall filled from further batches, split(fold_in(seed, round)).
+    base = jax.random.PRNGKey(HELDOUT_SEED)
+    round_ = 0
+    while len(kept) < NUM_HELDOUT_GENERATED:
+        keys = jax.random.split(base if round_ == 0 else jax.random.fold_in(base, round_), NUM_HELDOUT_GENERATED)
+        batch = jax.tree_util.tree_map(np.asarray, sample_levels(keys, config))
+        for i in range(NUM_HELDOUT_GENERATED):
+            grid_bytes = batch.grid[i].tobytes()
+            if grid_bytes in seen or grid_bytes in expanded or len(kept) == NUM_HELDOUT_GENERATED:
+                continue
+            seen.add(grid_bytes)
+            kept.append(jax.tree_util.tree_map(lambda leaf: leaf[i], batch))
+        round_ += 1
+    return jax.tree_util.tree_map(lambda *leaves: np.stack(leaves), *kept)
+
+
+def heldout_levels(config: GeneratorConfig = GeneratorConfig()) -> State:
+    """The 100 held-out generated levels, batched: grid uint8 (100, 7, 7), ... Deterministic (HELDOUT_SEED);
+    their grids are distinct from each other and from the expanded classic layouts."""
+    return jax.tree_util.tree_map(jnp.asarray, _heldout_levels_np(config))
+
+
+def heldout_grids(config: GeneratorConfig = GeneratorConfig()) -> jax.Array:
+    """uint8 (105, 7, 7): the 100 held-out generated grids, then the 5 expanded classic layouts' grids."""
+    classic = np.stack([get_layout(name).grid for name in EXPANDED_LAYOUTS]).astype(np.uint8)
+    return jnp.asarray(np.concatenate([_heldout_levels_np(config).grid, classic]))

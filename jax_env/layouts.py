@@ -1,0 +1,158 @@
+"""Kitchen layouts: the text grid format, its parser, and the registry of named kitchens.
+
+A layout is the static part of a kitchen: which cell is floor, counter, pile, pot or goal, and where the
+two agents start. Grids are written one row per line with these symbols:
+
+    W counter   O onion pile   B plate pile   P pot   X delivery goal   A agent start   (space) floor
+
+Piles, pots and goals are counters too: agents never stand on them, they face them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import numpy as np
+
+# Cell kinds, as stored in `Layout.grid` and `State.grid` (uint8).
+FLOOR, COUNTER, ONION_PILE, PLATE_PILE, POT, GOAL = range(6)
+NUM_CELL_KINDS = 6
+
+SYMBOL_TO_KIND = {" ": FLOOR, "A": FLOOR, "W": COUNTER, "O": ONION_PILE, "B": PLATE_PILE, "P": POT, "X": GOAL}
+KIND_TO_SYMBOL = {FLOOR: " ", COUNTER: "W", ONION_PILE: "O", PLATE_PILE: "B", POT: "P", GOAL: "X"}
+_REQUIRED = {ONION_PILE: "onion pile (O)", PLATE_PILE: "plate pile (B)", POT: "pot (P)", GOAL: "goal (X)"}
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Layout:
+    """A kitchen's static map and the agents' start cells.
+
+    grid: uint8 (H, W) of cell kinds (FLOOR, COUNTER, ONION_PILE, PLATE_PILE, POT, GOAL).
+    agent_start: the two agents' start cells as (x, y), agent 0 first.
+    """
+
+    name: str
+    grid: np.ndarray
+    agent_start: tuple[tuple[int, int], tuple[int, int]]
+
+    @property
+    def height(self) -> int:
+        return int(self.grid.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.grid.shape[1])
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.height, self.width
+
+    def to_text(self) -> str:
+        """The layout in the text grid format (inverse of `parse_layout` up to agent order)."""
+        rows = [[KIND_TO_SYMBOL[int(k)] for k in row] for row in self.grid]
+        for x, y in self.agent_start:
+            rows[y][x] = "A"
+        return "\n".join("".join(row) for row in rows)
+
+    def same_map(self, other: "Layout") -> bool:
+        """True when both layouts have the same cells (agent starts ignored)."""
+        return self.grid.shape == other.grid.shape and bool(np.array_equal(self.grid, other.grid))
+
+    def __repr__(self) -> str:
+        return f"Layout({self.name!r}, {self.height}x{self.width})"
+
+
+def parse_layout(text: str, name: str = "custom", agent_order: Sequence[int] = (0, 1)) -> Layout:
+    """Parse a text grid into a `Layout`, refusing malformed kitchens with a `ValueError`.
+
+    The first `A` in row-major order is agent 0 unless `agent_order` says otherwise (JaxMARL's
+    forced_coord puts the row-major second `A` first: `agent_order=(1, 0)`). Leading and trailing blank
+    lines are ignored; trailing spaces inside the grid are floor, so rows must all have the same length.
+    """
+    lines = text.split("\n")
+    while lines and not lines[0].strip():
+        lines.pop(0)
+    while lines and not lines[-1].strip():
+        lines.pop()
+    if not lines:
+        raise ValueError(f"layout {name!r}: the grid is empty")
+
+    width = len(lines[0])
+    for y, line in enumerate(lines):
+        if len(line) != width:
+            raise ValueError(
+                f"layout {name!r}: row {y} has {len(line)} cells but row 0 has {width}; "
+                "every row must have the same length (pad with 'W' or spaces)"
+            )
+
+    grid = np.zeros((len(lines), width), dtype=np.uint8)
+    agents: list[tuple[int, int]] = []
+    for y, line in enumerate(lines):
+        for x, symbol in enumerate(line):
+            if symbol not in SYMBOL_TO_KIND:
+                known = ", ".join(repr(s) for s in SYMBOL_TO_KIND)
+                raise ValueError(
+                    f"layout {name!r}: unknown symbol {symbol!r} at row {y}, column {x}; known symbols: {known}"
+                )
+            grid[y, x] = SYMBOL_TO_KIND[symbol]
+            if symbol == "A":
+                agents.append((x, y))
+
+    if len(agents) != 2:
+        where = ", ".join(f"(row {y}, column {x})" for x, y in agents) or "none"
+        raise ValueError(f"layout {name!r}: needs exactly 2 agents 'A', found {len(agents)}: {where}")
+    for kind, what in _REQUIRED.items():
+        if not np.any(grid == kind):
+            raise ValueError(f"layout {name!r}: has no {what}; every kitchen needs at least one")
+    height = grid.shape[0]
+    for y in range(height):
+        for x in range(width):
+            on_border = y in (0, height - 1) or x in (0, width - 1)
+            if on_border and grid[y, x] == FLOOR:
+                what = "an agent" if (x, y) in agents else "floor"
+                raise ValueError(
+                    f"layout {name!r}: {what} on the outer border at row {y}, column {x}; "
+                    "the border must be counters, piles, pots or goals"
+                )
+    if sorted(agent_order) != [0, 1]:
+        raise ValueError(f"layout {name!r}: agent_order must be a permutation of (0, 1), got {agent_order!r}")
+    ordered = (agents[agent_order[0]], agents[agent_order[1]])
+    return Layout(name=name, grid=grid, agent_start=ordered)
+
+
+# The classic kitchens at their native sizes, with JaxMARL's agent order.
+_CLASSIC = {
+    "cramped_room": ("WWPWW\nOA AO\nW   W\nWBWXW", (0, 1)),
+    "asymm_advantages": ("WWWWWWWWW\nO WXWOW X\nW   P   W\nW A PA  W\nWWWBWBWWW", (0, 1)),
+    "coord_ring": ("WWWPW\nW A P\nBAW W\nO   W\nWOXWW", (0, 1)),
+    "forced_coord": ("WWWPW\nO WAP\nOAW W\nB W W\nWWWXW", (1, 0)),
+    "counter_circuit": ("WWWPPWWW\nW A    W\nB WWWW X\nW     AW\nWWWOOWWW", (0, 1)),
+}
+
+# The classic kitchens redrawn on the 7x7 Infinite Kitchen template (held out of training).
+_EXPANDED = {
+    "cramped_room_7x7": "WWWPWWP\nOA    O\nW     W\nW     W\nW     W\nW    AW\nBBWWWXX",
+    "asymm_advantages_7x7": "WXWWWWW\nW   A W\nB     O\nWWWPWPW\nB     X\nW A   W\nWOWWWWW",
+    "coord_ring_7x7": "BWWWWPW\nWA A  P\nW WWW W\nB WWW W\nW WWW W\nO     W\nWOWXWWX",
+    "forced_coord_7x7": "WWWWWWW\nOA W  P\nO  W  P\nW  W  W\nB  W AW\nB  W  W\nWWWWXXW",
+    "counter_circuit_7x7": "XWWPWWP\nW  A  W\nW     W\nB WWW X\nW     W\nW  A  W\nBWWOWWO",
+}
+
+CLASSIC_LAYOUTS: tuple[str, ...] = tuple(_CLASSIC)
+EXPANDED_LAYOUTS: tuple[str, ...] = tuple(_EXPANDED)
+
+
+def layout_names() -> tuple[str, ...]:
+    """Every registered layout name."""
+    return CLASSIC_LAYOUTS + EXPANDED_LAYOUTS
+
+
+def get_layout(name: str) -> Layout:
+    """Look a layout up by name (`cramped_room`, `cramped_room_7x7`, ...)."""
+    if name in _CLASSIC:
+        text, order = _CLASSIC[name]
+        return parse_layout(text, name=name, agent_order=order)
+    if name in _EXPANDED:
+        return parse_layout(_EXPANDED[name], name=name)
+    raise ValueError(f"unknown layout {name!r}; registered layouts: {', '.join(layout_names())}")

@@ -1,0 +1,1 @@
+"""PyTorch side: the TorchRL environment over the JAX kitchens, and the models."""

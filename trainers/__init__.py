@@ -1,0 +1,1 @@
+"""Algorithms, evaluation and command-line entry points."""
