@@ -254,32 +254,56 @@ def sample_levels(keys: jax.Array, config: GeneratorConfig = GeneratorConfig()) 
 
 
 def _grid_words(grids: jax.Array) -> jax.Array:
-    """uint32 (..., 13): the 49 grid bytes packed 4 to a word (zero-padded), so equality of words is
-    equality of grids at a quarter of the comparisons."""
-    flat = grids.reshape(grids.shape[:-2] + (NUM_CELLS,)).astype(jnp.uint8)
+    """uint32 (..., 13): the 49 grid bytes packed 4 to a word (zero-padded); grids are equal iff their words are."""
+    flat = jnp.asarray(grids, jnp.uint8).reshape(grids.shape[:-2] + (NUM_CELLS,))
     padded = jnp.pad(flat, [(0, 0)] * (flat.ndim - 1) + [(0, 3)])
     return jax.lax.bitcast_convert_type(padded.reshape(padded.shape[:-1] + (13, 4)), jnp.uint32)
 
 
-def _matches_any(grid: jax.Array, heldout_words: jax.Array) -> jax.Array:
-    return jnp.any(jnp.all(heldout_words == _grid_words(grid), axis=-1))
+def _sorted_words(grids: jax.Array) -> jax.Array:
+    """uint32 (K, 13): the grids' words in lexicographic order, for `_contains`."""
+    words = _grid_words(grids)
+    return words[jnp.lexsort(words.T[::-1])]  # lexsort's last key is its primary one
+
+
+def _contains(sorted_words: jax.Array, words: jax.Array) -> jax.Array:
+    """bool (): whether `words` (uint32 (13,)) is a row of `sorted_words` (uint32 (K, 13), sorted). A binary
+    search, so that a large held-out set costs log2(K) row comparisons per draw rather than K."""
+    num = sorted_words.shape[0]
+    if num == 0:
+        return jnp.zeros((), bool)
+
+    def less(row):
+        differs = row != words
+        first = jnp.argmax(differs)
+        return differs[first] & (row[first] < words[first])
+
+    def halve(_, bounds):  # keep the first row >= words inside [lo, hi]
+        lo, hi = bounds
+        mid = (lo + hi) // 2
+        go_right = less(sorted_words[mid])
+        active = lo < hi
+        return jnp.where(active & go_right, mid + 1, lo), jnp.where(active & ~go_right, mid, hi)
+
+    lo, _ = jax.lax.fori_loop(0, num.bit_length(), halve, (jnp.int32(0), jnp.int32(num)))
+    return (lo < num) & jnp.all(sorted_words[jnp.minimum(lo, num - 1)] == words)
 
 
 def is_heldout(grid: jax.Array, heldout: jax.Array) -> jax.Array:
     """bool (): whether `grid` (uint8 (7, 7)) equals one of `heldout` (uint8 (K, 7, 7))."""
-    return _matches_any(grid, _grid_words(jnp.asarray(heldout, jnp.uint8)))
+    return _contains(_sorted_words(heldout), _grid_words(grid))
 
 
 def sample_training_level(key: jax.Array, config: GeneratorConfig, heldout: jax.Array) -> State:
     """A level from `sample_level` whose grid is none of `heldout` (uint8 (K, 7, 7)), by rejection: redraws
-    with a fresh key until no held-out grid matches. Jittable (`static_argnums=1` for config) and vmappable over
-    `key` (`jax.vmap(sample_training_level, in_axes=(0, None, None))`)."""
-    heldout_words = _grid_words(jnp.asarray(heldout, jnp.uint8))
+    with a fresh key until no held-out grid matches. Jittable and vmappable over `key`
+    (`jax.vmap(sample_training_level, in_axes=(0, None, None))`)."""
+    heldout_words = _sorted_words(heldout)
 
     def draw(key):
         key, sub = jax.random.split(key)
         level = sample_level(sub, config)
-        return key, level, _matches_any(level.grid, heldout_words)
+        return key, level, _contains(heldout_words, _grid_words(level.grid))
 
     _, level, _ = jax.lax.while_loop(lambda carry: carry[2], lambda carry: draw(carry[0]), draw(key))
     return level
