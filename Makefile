@@ -1,0 +1,25 @@
+# Two entry points for a fresh machine: `make main` (set up, run the main job) and `make test`.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+
+.PHONY: setup main test bench
+
+setup: $(VENV)/.installed
+
+# torch is pinned to the CPU build first so the bounded range in setup.cfg never pulls CUDA packages.
+$(VENV)/.installed: setup.cfg pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q "torch==2.13.0"
+	$(BIN)/pip install -q -e ".[test]"
+	touch $@
+
+main: setup
+	$(BIN)/kitchen-demo --layout cramped_room_7x7 --steps 256 --out outputs/demo_cramped_room_7x7.gif
+
+test: setup
+	$(BIN)/python -m pytest -q
+
+bench: setup
+	$(BIN)/python benchmarks/env_step.py
