@@ -2,13 +2,23 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import NamedTuple, Sequence, Union
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jax_env.layouts import COUNTER, FLOOR, GOAL, ONION_PILE, PLATE_PILE, POT, Layout, get_layout
+from jax_env.generator import GeneratorConfig, heldout_grids, heldout_set, sample_training_level
+from jax_env.layouts import (
+    COUNTER,
+    FLOOR,
+    GOAL,
+    ONION_PILE,
+    PLATE_PILE,
+    POT,
+    Layout,
+    load_layout,
+)
 from jax_env.observation import get_obs
 from jax_env.state import (
     DIR_VECTORS,
@@ -36,6 +46,9 @@ class ShapingWeights(NamedTuple):
     soup_pickup: float = 5.0
 
 
+Levels = Union[str, Layout, Sequence[Union[str, Layout]]]
+
+
 class Overcooked:
     """A two-agent Overcooked kitchen with JaxMARL's API.
 
@@ -43,34 +56,74 @@ class Overcooked:
         obs, state = env.reset(key)                                   # obs uint8 (2, H, W, 26)
         obs, state, reward, done, info = env.step(key, state, actions)  # actions int32 (2,)
 
+    `levels` chooses the kitchen of every episode (at reset and at every auto-reset):
+      - a layout name, a text-grid file or a `Layout`: that kitchen, with random start facings (as JaxMARL);
+      - a list of them (all of one size): one drawn uniformly per episode;
+      - "infinite": a fresh Infinite Kitchen level per episode from `generator`, held-out levels rejected;
+      - "heldout": one of the 105 held-out evaluation levels per episode (100 generated + 5 expanded classics).
+
     `step` resets a finished episode in the same call (done=True comes with the new episode's observation),
     so `jax.vmap(env.step)` runs thousands of kitchens with no Python in the loop. Every method is pure and
-    jittable; the layout and settings are static.
+    jittable; the levels and settings are static.
     """
 
-    def __init__(self, layout: Layout | str, max_steps: int = 400, shaping: ShapingWeights = ShapingWeights()):
-        self.layout = get_layout(layout) if isinstance(layout, str) else layout
+    def __init__(
+        self,
+        levels: Levels = "cramped_room",
+        max_steps: int = 400,
+        shaping: ShapingWeights = ShapingWeights(),
+        generator: GeneratorConfig = GeneratorConfig(),
+    ):
         if max_steps < 1:
             raise ValueError(f"max_steps must be positive, got {max_steps}")
         self.max_steps = int(max_steps)
         self.shaping = ShapingWeights(*shaping)
-        self.height, self.width = self.layout.shape
+        self.generator = generator
+        self.levels = levels if isinstance(levels, str) else getattr(levels, "name", "custom")
+        self.layout: Layout | None = None  # the kitchen, when there is exactly one
+        self._bank: State | None = None  # start states to draw from, batched (N, ...)
+        self._heldout_grids = None
+        if isinstance(levels, str) and levels == "infinite":
+            self._heldout_grids = heldout_grids(generator)
+            height, width = self._heldout_grids.shape[1:]
+        else:
+            if isinstance(levels, str) and levels == "heldout":
+                self._bank = heldout_set(generator)
+            else:
+                layouts = [levels] if isinstance(levels, (str, Layout)) else list(levels)
+                if not layouts:
+                    raise ValueError("levels is an empty list; give at least one layout")
+                layouts = [load_layout(x) if isinstance(x, str) else x for x in layouts]
+                shapes = {layout.shape for layout in layouts}
+                if len(shapes) > 1:
+                    raise ValueError(f"all layouts of one environment must have one size, got {sorted(shapes)}")
+                self.layout = layouts[0] if len(layouts) == 1 else None
+                starts = [make_state(layout) for layout in layouts]
+                self._bank = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *starts)
+            height, width = self._bank.grid.shape[1:]
+        self.height, self.width = int(height), int(width)
         self.obs_shape = (self.height, self.width, 26)
         self.num_actions = NUM_ACTIONS
-        self._start = make_state(self.layout)
         # A direction as a step in flat cell indices.
         self._dir_offsets = jnp.asarray([dx + dy * self.width for dx, dy in DIR_VECTORS], dtype=jnp.int32)
+
+    def __repr__(self) -> str:
+        return f"Overcooked(levels={self.levels!r}, {self.height}x{self.width}, max_steps={self.max_steps})"
 
     # ----------------------------------------------------------------------------------------------------
     # Reset
     def initial_state(self, key: jax.Array) -> State:
-        """A fresh episode: the layout's start cells, uniformly random facings, empty hands and pots."""
-        # Same key derivation as JaxMARL's reset (its first split draws random start cells), so equal keys
-        # give equal facings.
-        key, _ = jax.random.split(key)
+        """A fresh episode: the level's start cells (or a new generated level), uniformly random facings."""
+        if self._heldout_grids is not None:
+            return sample_training_level(key, self.generator, self._heldout_grids)
+        # Same key derivation as JaxMARL's reset (its first split draws random start cells, ours the level),
+        # so with one layout equal keys give equal facings.
+        key, key_level = jax.random.split(key)
         _, key_dir = jax.random.split(key)
+        index = jax.random.randint(key_level, (), 0, self._bank.step.shape[0])
+        start = jax.tree_util.tree_map(lambda leaf: leaf[index], self._bank)
         facing = jax.random.randint(key_dir, (2,), 0, 4, dtype=jnp.int32)
-        return self._start.replace(agent_dir=facing)
+        return start.replace(agent_dir=facing)
 
     def reset(self, key: jax.Array) -> tuple[jax.Array, State]:
         state = self.initial_state(key)

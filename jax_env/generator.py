@@ -20,7 +20,8 @@ cell or cuts a quadrant from the other quadrant on its side of a wall (the inter
 columns 1 and 5, is only ever walled at row 3 or column 3). So each agent reaches every required item on its
 side. If a continuous wall separates the agents and all items lie on one side, that side's agent can do the
 whole task; if the items are split, the agents pass items over the wall's counters, which face floor on
-both sides (as in Forced Coordination); in every other case either agent can do the task alone.
+both sides and are never all taken by extras (5 counters, at most 4 extras), as in Forced Coordination; in
+every other case either agent can do the task alone.
 
 Coordinates in this module's constants are (row, col); cells are flat indices `row * 7 + col` like
 `State.agent_pos`. The held-out evaluation set (`heldout_levels`, `heldout_grids`) is 100 generated levels
@@ -37,14 +38,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jax_env.layouts import COUNTER, EXPANDED_LAYOUTS, FLOOR, GOAL, ONION_PILE, PLATE_PILE, POT, get_layout
-from jax_env.state import DISH, ONION, PLATE, POT_EMPTY, State
+from jax_env.state import DISH, ONION, PLATE, POT_EMPTY, State, make_state
 
 SIZE = 7
 NUM_CELLS = SIZE * SIZE
-
-# Predicate indices, in the order of `GeneratorConfig.predicate_probs`.
-EMPTY_INTERIOR, MIDDLE_BLOCK, VERTICAL_WALL, HORIZONTAL_WALL = range(4)
-PREDICATE_NAMES = ("empty", "middle", "vertical", "horizontal")
 
 # Required kinds in placement order; extra copies use the same order.
 ITEM_KINDS = (ONION_PILE, PLATE_PILE, POT, GOAL)
@@ -145,7 +142,7 @@ class GeneratorConfig:
 
     @property
     def predicate_probs(self) -> tuple[float, float, float, float]:
-        """(p_empty, p_middle, p_vertical, p_horizontal), indexed by EMPTY_INTERIOR ... HORIZONTAL_WALL."""
+        """(p_empty, p_middle, p_vertical, p_horizontal): the four predicates' probabilities, in this order."""
         return (self.p_empty, self.p_middle, self.p_vertical, self.p_horizontal)
 
     @property
@@ -154,7 +151,7 @@ class GeneratorConfig:
         return (self.p_loose_onion, self.p_loose_plate, self.p_loose_dish)
 
 
-def _top_k_cells(u: jax.Array, allowed: jax.Array, k: int) -> jax.Array:
+def _distinct_choice(u: jax.Array, allowed: jax.Array, k: int) -> jax.Array:
     """int32 (k,): k distinct indices drawn uniformly, in random order, among the True ones of `allowed` (bool (n,)).
 
     u: float32 (>= n,) iid uniforms. The top k of iid uniform scores is a uniformly random ordered k-subset;
@@ -184,7 +181,7 @@ def _interior_walls(u: jax.Array, config: GeneratorConfig) -> jax.Array:
     predicate = _categorical(u[0, 0], config.predicate_probs)
     block_kept = u[1, : len(BLOCK_CELLS)] >= config.p_block_reopen
     intact = u[2, 0] < config.p_wall_intact
-    reopened = _top_k_cells(u[3], jnp.ones(5, bool), 2)
+    reopened = _distinct_choice(u[3], jnp.ones(5, bool), 2)
     line_kept = intact | ~jnp.zeros(5, bool).at[reopened].set(True)
 
     none = jnp.zeros(NUM_CELLS, bool)
@@ -212,18 +209,18 @@ def sample_level(key: jax.Array, config: GeneratorConfig = GeneratorConfig()) ->
     grid = jnp.where(walls, COUNTER, FLOOR).astype(jnp.uint8)
 
     # Required items: a uniform ordered choice of 4 distinct safe cells.
-    safe_order = _top_k_cells(u[4], jnp.ones(len(SAFE_CELLS), bool), len(ITEM_KINDS))
+    safe_order = _distinct_choice(u[4], jnp.ones(len(SAFE_CELLS), bool), len(ITEM_KINDS))
     grid = grid.at[jnp.asarray(_SAFE_FLAT)[safe_order]].set(jnp.asarray(ITEM_KINDS, jnp.uint8))
 
     # Extras: 4 distinct questionable walls drawn together, each kind keeping its cell with p_extra_item.
     # Required items sit on safe cells, never questionable ones, so the extras cannot land on them.
-    extra_cells = _top_k_cells(cell_u[0], jnp.asarray(_QUESTIONABLE_MASK) & walls, len(ITEM_KINDS))
+    extra_cells = _distinct_choice(cell_u[0], jnp.asarray(_QUESTIONABLE_MASK) & walls, len(ITEM_KINDS))
     has_extra = u[5, : len(ITEM_KINDS)] < config.p_extra_item
     extra_kinds = jnp.where(has_extra, jnp.asarray(ITEM_KINDS, jnp.uint8), grid[extra_cells])
     grid = grid.at[extra_cells].set(extra_kinds)
 
     # Loose items on distinct plain counters (no pile, pot or goal).
-    loose_cells = _top_k_cells(cell_u[1], grid == COUNTER, len(LOOSE_KINDS))
+    loose_cells = _distinct_choice(cell_u[1], grid == COUNTER, len(LOOSE_KINDS))
     has_loose = u[6, : len(LOOSE_KINDS)] < jnp.asarray(config.loose_probs, jnp.float32)
     contents = jnp.zeros(NUM_CELLS, jnp.uint8)
     contents = contents.at[loose_cells].set(jnp.where(has_loose, jnp.asarray(LOOSE_KINDS, jnp.uint8), 0))
@@ -337,7 +334,15 @@ def heldout_levels(config: GeneratorConfig = GeneratorConfig()) -> State:
     return jax.tree_util.tree_map(jnp.asarray, _heldout_levels_np(config))
 
 
+def heldout_set(config: GeneratorConfig = GeneratorConfig()) -> State:
+    """All 105 held-out evaluation levels as start states, batched (105, ...): the 100 generated levels, then
+    the 5 expanded classic layouts (in `EXPANDED_LAYOUTS` order, agents at their start cells)."""
+    classic = [make_state(get_layout(name)) for name in EXPANDED_LAYOUTS]
+    return jax.tree_util.tree_map(
+        lambda generated, *fixed: jnp.concatenate([generated, jnp.stack(fixed)]), heldout_levels(config), *classic
+    )
+
+
 def heldout_grids(config: GeneratorConfig = GeneratorConfig()) -> jax.Array:
-    """uint8 (105, 7, 7): the 100 held-out generated grids, then the 5 expanded classic layouts' grids."""
-    classic = np.stack([get_layout(name).grid for name in EXPANDED_LAYOUTS]).astype(np.uint8)
-    return jnp.asarray(np.concatenate([_heldout_levels_np(config).grid, classic]))
+    """uint8 (105, 7, 7): the grids of `heldout_set`, which training never samples."""
+    return heldout_set(config).grid

@@ -11,6 +11,7 @@ Piles, pots and goals are counters too: agents never stand on them, they face th
 from __future__ import annotations
 
 import dataclasses
+import os
 from typing import Sequence
 
 import numpy as np
@@ -156,3 +157,16 @@ def get_layout(name: str) -> Layout:
     if name in _EXPANDED:
         return parse_layout(_EXPANDED[name], name=name)
     raise ValueError(f"unknown layout {name!r}; registered layouts: {', '.join(layout_names())}")
+
+
+def load_layout(name_or_path: str) -> Layout:
+    """A registered layout by name, else a text-grid file; `ValueError` with a one-line message otherwise."""
+    if name_or_path in layout_names():
+        return get_layout(name_or_path)
+    if os.path.isfile(name_or_path):
+        with open(name_or_path, encoding="utf-8") as grid_file:
+            text = grid_file.read()
+        return parse_layout(text, name=os.path.splitext(os.path.basename(name_or_path))[0])
+    if os.sep in name_or_path or name_or_path.endswith(".txt"):
+        raise ValueError(f"layout file {name_or_path!r} does not exist")
+    return get_layout(name_or_path)

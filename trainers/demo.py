@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from jax_env.env import DELIVERY_REWARD, NUM_ACTIONS, Overcooked
-from jax_env.layouts import Layout, get_layout, layout_names, parse_layout
+from jax_env.layouts import load_layout
 from jax_env.render import MIN_TILE_SIZE, state_to_text, write_gif
 from jax_env.state import State
 
@@ -28,20 +28,6 @@ class Episode(NamedTuple):
     states: State
     rewards: jax.Array
     shaped_rewards: jax.Array
-
-
-def load_layout(name_or_path: str) -> Layout:
-    """A registered layout by name, else a text-grid file; `ValueError` with a one-line message otherwise."""
-    if name_or_path in layout_names():
-        return get_layout(name_or_path)
-    if os.path.isfile(name_or_path):
-        with open(name_or_path, encoding="utf-8") as grid_file:
-            text = grid_file.read()
-        name = os.path.splitext(os.path.basename(name_or_path))[0]
-        return parse_layout(text, name=name)
-    if os.sep in name_or_path or name_or_path.endswith(".txt"):
-        raise ValueError(f"layout file {name_or_path!r} does not exist")
-    return get_layout(name_or_path)
 
 
 def play_random_episode(env: Overcooked, key: jax.Array, steps: int) -> Episode:
