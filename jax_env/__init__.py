@@ -13,7 +13,9 @@ from jax_env.layouts import (
     Layout,
     get_layout,
     layout_names,
+    load_layout,
     parse_layout,
+    save_layout,
 )
 from jax_env.observation import get_obs
 from jax_env.state import (
@@ -29,6 +31,17 @@ from jax_env.state import (
     SOUTH,
     WEST,
     State,
+    layout_from_state,
     make_state,
     state_nbytes,
 )
+from jax_env.generator import (
+    HELDOUT_SEED,
+    GeneratorConfig,
+    heldout_grids,
+    heldout_levels,
+    heldout_set,
+    sample_level,
+    sample_training_level,
+)
+from jax_env.solvability import classify_layout, classify_levels, is_solvable

@@ -4,6 +4,8 @@ A layout is the static part of a kitchen: which cell is floor, counter, pile, po
 two agents start. Grids are written one row per line with these symbols:
 
     W counter   O onion pile   B plate pile   P pot   X delivery goal   A agent start   (space) floor
+    o p d       a counter holding an onion, a plate or a dish (plated soup) at the start
+    0 1         agent 0 / agent 1 start, for a level whose agent 0 is not the first 'A' in row-major order
 
 Piles, pots and goals are counters too: agents never stand on them, they face them.
 """
@@ -20,8 +22,12 @@ import numpy as np
 FLOOR, COUNTER, ONION_PILE, PLATE_PILE, POT, GOAL = range(6)
 NUM_CELL_KINDS = 6
 
-SYMBOL_TO_KIND = {" ": FLOOR, "A": FLOOR, "W": COUNTER, "O": ONION_PILE, "B": PLATE_PILE, "P": POT, "X": GOAL}
+SYMBOL_TO_KIND = {
+    " ": FLOOR, "A": FLOOR, "W": COUNTER, "O": ONION_PILE, "B": PLATE_PILE, "P": POT, "X": GOAL,
+    "o": COUNTER, "p": COUNTER, "d": COUNTER, "0": FLOOR, "1": FLOOR,
+}  # fmt: skip
 KIND_TO_SYMBOL = {FLOOR: " ", COUNTER: "W", ONION_PILE: "O", PLATE_PILE: "B", POT: "P", GOAL: "X"}
+ITEM_SYMBOLS = {"o": 1, "p": 2, "d": 3}  # the item codes of jax_env.state: ONION, PLATE, DISH
 _REQUIRED = {ONION_PILE: "onion pile (O)", PLATE_PILE: "plate pile (B)", POT: "pot (P)", GOAL: "goal (X)"}
 
 
@@ -31,11 +37,13 @@ class Layout:
 
     grid: uint8 (H, W) of cell kinds (FLOOR, COUNTER, ONION_PILE, PLATE_PILE, POT, GOAL).
     agent_start: the two agents' start cells as (x, y), agent 0 first.
+    start_items: items lying on counters at the start, as ((x, y), item code) pairs.
     """
 
     name: str
     grid: np.ndarray
     agent_start: tuple[tuple[int, int], tuple[int, int]]
+    start_items: tuple[tuple[tuple[int, int], int], ...] = ()
 
     @property
     def height(self) -> int:
@@ -52,8 +60,12 @@ class Layout:
     def to_text(self) -> str:
         """The layout in the text grid format (inverse of `parse_layout` up to agent order)."""
         rows = [[KIND_TO_SYMBOL[int(k)] for k in row] for row in self.grid]
-        for x, y in self.agent_start:
-            rows[y][x] = "A"
+        row_major = sorted(self.agent_start, key=lambda cell: (cell[1], cell[0])) == list(self.agent_start)
+        for agent, (x, y) in enumerate(self.agent_start):
+            rows[y][x] = "A" if row_major else str(agent)
+        symbol_of_item = {item: symbol for symbol, item in ITEM_SYMBOLS.items()}
+        for (x, y), item in self.start_items:
+            rows[y][x] = symbol_of_item[item]
         return "\n".join("".join(row) for row in rows)
 
     def same_map(self, other: "Layout") -> bool:
@@ -68,7 +80,8 @@ def parse_layout(text: str, name: str = "custom", agent_order: Sequence[int] = (
     """Parse a text grid into a `Layout`, refusing malformed kitchens with a `ValueError`.
 
     The first `A` in row-major order is agent 0 unless `agent_order` says otherwise (JaxMARL's
-    forced_coord puts the row-major second `A` first: `agent_order=(1, 0)`). Leading and trailing blank
+    forced_coord puts the row-major second `A` first: `agent_order=(1, 0)`); a grid may instead name its
+    agents `0` and `1`. Leading and trailing blank
     lines are ignored; trailing spaces inside the grid are floor, so rows must all have the same length.
     """
     lines = text.split("\n")
@@ -89,6 +102,8 @@ def parse_layout(text: str, name: str = "custom", agent_order: Sequence[int] = (
 
     grid = np.zeros((len(lines), width), dtype=np.uint8)
     agents: list[tuple[int, int]] = []
+    items: list[tuple[tuple[int, int], int]] = []
+    numbered: dict[int, list[tuple[int, int]]] = {0: [], 1: []}
     for y, line in enumerate(lines):
         for x, symbol in enumerate(line):
             if symbol not in SYMBOL_TO_KIND:
@@ -99,7 +114,18 @@ def parse_layout(text: str, name: str = "custom", agent_order: Sequence[int] = (
             grid[y, x] = SYMBOL_TO_KIND[symbol]
             if symbol == "A":
                 agents.append((x, y))
+            elif symbol in "01":
+                numbered[int(symbol)].append((x, y))
+            elif symbol in ITEM_SYMBOLS:
+                items.append(((x, y), ITEM_SYMBOLS[symbol]))
 
+    if numbered[0] or numbered[1]:
+        if agents or len(numbered[0]) != 1 or len(numbered[1]) != 1:
+            raise ValueError(
+                f"layout {name!r}: name the agents either with two 'A' or with one '0' and one '1', "
+                f"found {len(agents)} 'A', {len(numbered[0])} '0', {len(numbered[1])} '1'"
+            )
+        agents, agent_order = numbered[0] + numbered[1], (0, 1)
     if len(agents) != 2:
         where = ", ".join(f"(row {y}, column {x})" for x, y in agents) or "none"
         raise ValueError(f"layout {name!r}: needs exactly 2 agents 'A', found {len(agents)}: {where}")
@@ -119,7 +145,7 @@ def parse_layout(text: str, name: str = "custom", agent_order: Sequence[int] = (
     if sorted(agent_order) != [0, 1]:
         raise ValueError(f"layout {name!r}: agent_order must be a permutation of (0, 1), got {agent_order!r}")
     ordered = (agents[agent_order[0]], agents[agent_order[1]])
-    return Layout(name=name, grid=grid, agent_start=ordered)
+    return Layout(name=name, grid=grid, agent_start=ordered, start_items=tuple(items))
 
 
 # The classic kitchens at their native sizes, with JaxMARL's agent order.
@@ -157,6 +183,14 @@ def get_layout(name: str) -> Layout:
     if name in _EXPANDED:
         return parse_layout(_EXPANDED[name], name=name)
     raise ValueError(f"unknown layout {name!r}; registered layouts: {', '.join(layout_names())}")
+
+
+def save_layout(layout: Layout, path: str) -> str:
+    """Write a layout as a text-grid file that `load_layout` reads back; returns the path."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path, "w", encoding="utf-8") as grid_file:
+        grid_file.write(layout.to_text() + "\n")
+    return path
 
 
 def load_layout(name_or_path: str) -> Layout:

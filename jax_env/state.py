@@ -72,12 +72,14 @@ def make_state(
     """Build a state by hand, for scenarios and tests. Cells are (x, y); unnamed pots are empty.
 
     agent_pos defaults to the layout's start cells; pot_status maps pot cells to a status in 0..23;
-    counter_items maps counter cells to ONION, PLATE or DISH. Raises `ValueError` on an impossible state.
+    counter_items maps counter cells to ONION, PLATE or DISH (default: the layout's start items). Raises
+    `ValueError` on an impossible state.
     """
     height, width = layout.shape
     grid = np.asarray(layout.grid, dtype=np.uint8)
     contents = np.where(grid == POT, POT_EMPTY, 0).astype(np.uint8)
     agent_pos = layout.agent_start if agent_pos is None else agent_pos
+    counter_items = dict(layout.start_items) if counter_items is None else counter_items
 
     def check_cell(cell, what):
         x, y = (int(c) for c in cell)
@@ -104,7 +106,7 @@ def make_state(
         if not 0 <= status <= POT_EMPTY:
             raise ValueError(f"pot status {status} at (x={x}, y={y}) is outside 0..23")
         contents[y, x] = status
-    for cell, item in (counter_items or {}).items():
+    for cell, item in counter_items.items():
         x, y = check_cell(cell, "counter item")
         if grid[y, x] != COUNTER:
             raise ValueError(f"item given at (x={x}, y={y}), which is not a plain counter")
@@ -120,3 +122,16 @@ def make_state(
         agent_inv=jnp.asarray(agent_inv, dtype=jnp.int32),
         step=jnp.asarray(step, dtype=jnp.int32),
     )
+
+
+def layout_from_state(state: State, name: str = "level") -> Layout:
+    """The `Layout` of an unbatched state: its map, the agents' cells and the items on its counters (pots
+    and hands are not part of a layout). `make_state(layout_from_state(s))` rebuilds `s` up to facings."""
+    grid = np.asarray(state.grid, dtype=np.uint8)
+    contents = np.asarray(state.contents)
+    width = grid.shape[1]
+    agents = tuple((int(p) % width, int(p) // width) for p in np.asarray(state.agent_pos))
+    items = tuple(
+        ((int(x), int(y)), int(contents[y, x])) for y, x in zip(*np.nonzero((grid == COUNTER) & (contents != EMPTY)))
+    )
+    return Layout(name=name, grid=grid, agent_start=agents, start_items=items)

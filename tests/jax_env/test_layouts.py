@@ -72,3 +72,22 @@ def test_registered_layouts_match_jaxmarl_cells():
 def test_unknown_layout_name_lists_the_known_ones():
     with pytest.raises(ValueError, match="unknown layout 'cramped'.*cramped_room_7x7"):
         get_layout("cramped")
+
+
+def test_start_items_and_numbered_agents_round_trip(tmp_path):
+    from jax_env import layout_from_state, load_layout, make_state, save_layout
+
+    text = "WWPWWWW\nO 1   W\nW     d\no   0 W\nWBWXWpW"
+    layout = parse_layout(text, name="edited")
+    assert layout.agent_start == ((4, 3), (2, 1))
+    assert dict(layout.start_items) == {(6, 2): 3, (0, 3): 1, (5, 4): 2}
+    assert layout.to_text() == text
+    state = make_state(layout)
+    assert int(state.contents[2, 6]) == 3 and int(state.contents[3, 0]) == 1
+    again = load_layout(save_layout(layout_from_state(state, "edited"), str(tmp_path / "edited.txt")))
+    assert again.to_text() == text and again.name == "edited"
+
+
+def test_numbered_agents_cannot_mix_with_a():
+    with pytest.raises(ValueError, match="either with two 'A' or with one '0' and one '1'"):
+        parse_layout("WWPWW\nO0 AO\nW   W\nWBWXW", name="bad")
