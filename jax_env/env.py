@@ -148,6 +148,34 @@ class Overcooked:
         # The observation is built once, from the state that is returned.
         return self.get_obs(next_state), next_state, reward, done, info
 
+    # ----------------------------------------------------------------------------------------------------
+    # Batches
+    def reset_batch(self, key: jax.Array, num_envs: int) -> tuple[jax.Array, State]:
+        """`num_envs` fresh episodes: obs uint8 (B, 2, H, W, 26) and a State with leading axis B."""
+        states = jax.vmap(self.initial_state)(jax.random.split(key, num_envs))
+        return jax.vmap(self.get_obs)(states), states
+
+    def reset_where(self, key: jax.Array, states: State, mask: jax.Array) -> State:
+        """Batched states with the kitchens where `mask` (bool (B,)) is set replaced by fresh episodes.
+
+        New levels are drawn only when some kitchen needs one: generating an Infinite Kitchen level costs
+        several steps, and batched episodes usually end together."""
+
+        def with_fresh(states):
+            fresh = jax.vmap(self.initial_state)(jax.random.split(key, mask.shape[0]))
+            pick = lambda new, old: jnp.where(mask.reshape(mask.shape + (1,) * (old.ndim - 1)), new, old)
+            return jax.tree_util.tree_map(pick, fresh, states)
+
+        return jax.lax.cond(jnp.any(mask), with_fresh, lambda states: states, states)
+
+    def step_batch(self, key: jax.Array, states: State, actions: jax.Array):
+        """`step` for a batch (leaves with leading axis B, actions int32 (B, 2)), auto-resetting the finished
+        kitchens: (obs (B, 2, H, W, 26), states, reward (B, 2), done (B,), info). Same dynamics as
+        `jax.vmap(step)`; reset levels come from `key` and are only generated on steps where one is needed."""
+        next_states, reward, done, info = jax.vmap(self.step_env)(states, actions)
+        next_states = self.reset_where(key, next_states, done)
+        return jax.vmap(self.get_obs)(next_states), next_states, reward, done, info
+
     def step_env(self, state: State, actions: jax.Array):
         """One step without reset or observation: (state, reward (2,), done (), info)."""
         actions = jnp.asarray(actions, dtype=jnp.int32)

@@ -1,17 +1,20 @@
-"""Pictures and text of a kitchen: an RGB image per state, an animated GIF per episode, a terminal sketch.
+"""Pictures and text of a kitchen: an RGB image per state, an animated GIF per episode, a contact sheet of
+many levels, a terminal sketch.
 
 Drawing uses numpy and Pillow only. Every function takes unbatched states (leaves without a batch axis),
-as jax or numpy arrays; `write_gif` also takes one state whose leaves carry a leading time axis (T, ...).
+as jax or numpy arrays; `write_gif` also takes one state whose leaves carry a leading time axis (T, ...),
+and `render_contact_sheet` one whose leaves carry a leading batch axis (N, ...).
 """
 
 from __future__ import annotations
 
+import math
 import os
 from typing import Sequence
 
 import jax
 import numpy as np
-from PIL import Image, ImageDraw
+from PIL import Image, ImageDraw, ImageFont
 
 from jax_env.layouts import COUNTER, FLOOR, GOAL, KIND_TO_SYMBOL, ONION_PILE, PLATE_PILE, POT
 from jax_env.state import DIR_VECTORS, DISH, EMPTY, ITEM_NAMES, ONION, PLATE, POT_EMPTY, POT_FULL, POT_READY, State
@@ -45,6 +48,8 @@ _ONION_EDGE = (150, 104, 28)
 _ONION_STEM = (92, 156, 56)
 _PLATE = (248, 248, 246)
 _PLATE_EDGE = (150, 150, 156)
+_SHEET_BACKGROUND = (250, 247, 240)
+_SHEET_LABEL = (64, 54, 44)
 
 _DIR_LETTERS = "NSEW"
 
@@ -223,20 +228,20 @@ def render_state(state: State, tile_size: int = 32) -> np.ndarray:
     return np.asarray(image.reduce(_SUPERSAMPLE), dtype=np.uint8)
 
 
-def _split_frames(states: State | Sequence[State]) -> list[State]:
-    """Unbatched numpy states from a list of states or from one state with a leading time axis."""
+def _split_frames(states: State | Sequence[State], caller: str = "write_gif") -> list[State]:
+    """Unbatched numpy states from a list of states or from one state with a leading (time or batch) axis."""
     if isinstance(states, State):
         stacked = _to_numpy(states)
         if stacked.step.ndim == 0:
             return [stacked]
         if stacked.step.ndim != 1:
             raise ValueError(
-                f"write_gif takes states with at most one leading time axis, got step of shape {stacked.step.shape}"
+                f"{caller} takes states with at most one leading axis, got step of shape {stacked.step.shape}"
             )
         return [jax.tree_util.tree_map(lambda leaf, t=t: leaf[t], stacked) for t in range(stacked.step.shape[0])]
     frames = list(states)
     if not frames:
-        raise ValueError("write_gif needs at least one state")
+        raise ValueError(f"{caller} needs at least one state")
     return frames
 
 
@@ -267,6 +272,51 @@ def write_gif(
         path, save_all=True, append_images=indexed[1:], duration=round(1000 / fps), loop=0, disposal=1
     )
     return path
+
+
+def render_contact_sheet(
+    states: State | Sequence[State],
+    columns: int | None = None,
+    tile_size: int = 24,
+    labels: Sequence[str] | None = None,
+) -> np.ndarray:
+    """Draw N levels on one sheet, row by row: uint8 (rows * (cell + label) + gaps, columns * cell + gaps, 3) RGB.
+
+    `states` is a list of unbatched states or one state whose leaves have a leading batch axis (N, ...).
+    Every level gets a cell the size of the largest one, centred in it; `columns` defaults to ceil(sqrt(N)).
+    `labels`, one short string per level (e.g. "3 solo"), is written under each cell and cut to its width.
+    """
+    levels = _split_frames(states, "render_contact_sheet")
+    if labels is not None and len(labels) != len(levels):
+        raise ValueError(f"render_contact_sheet got {len(labels)} labels for {len(levels)} levels")
+    if columns is not None and columns < 1:
+        raise ValueError(f"columns must be positive, got {columns}")
+    images = [render_state(level, tile_size) for level in levels]
+    columns = min(columns or math.ceil(math.sqrt(len(images))), len(images))
+    rows = math.ceil(len(images) / columns)
+    cell_height = max(image.shape[0] for image in images)
+    cell_width = max(image.shape[1] for image in images)
+    gap = max(4, int(tile_size) // 3)
+
+    font = ImageFont.load_default(size=max(10, round(int(tile_size) / 2)))
+    label_height = 0 if labels is None else gap // 2 + font.getbbox("Agy|")[3]
+    pitch_x, pitch_y = cell_width + gap, cell_height + label_height + gap
+    sheet = Image.new("RGB", (gap + columns * pitch_x, gap + rows * pitch_y), _SHEET_BACKGROUND)
+    draw = ImageDraw.Draw(sheet)
+
+    for index, image in enumerate(images):
+        row, column = divmod(index, columns)
+        left, top = gap + column * pitch_x, gap + row * pitch_y
+        offset = ((cell_width - image.shape[1]) // 2, (cell_height - image.shape[0]) // 2)
+        sheet.paste(Image.fromarray(image), (left + offset[0], top + offset[1]))
+        if labels is not None:
+            text = str(labels[index])
+            while len(text) > 1 and draw.textlength(text, font=font) > cell_width:
+                text = text[:-2] + "…"
+            x = left + (cell_width - draw.textlength(text, font=font)) / 2
+            draw.text((x, top + cell_height + gap // 2), text, fill=_SHEET_LABEL, font=font)
+
+    return np.asarray(sheet, dtype=np.uint8)
 
 
 def _item_name(item: int) -> str:

@@ -143,3 +143,25 @@ def test_text_form_shows_layout_agents_items_and_pots():
     assert "pot (3,0): 2 onions" in text
     assert "pot (6,0): cooking, 12 left" in text
     assert "ready" in state_to_text(scenario(pot_status={POT: 0}))
+
+
+def test_contact_sheet_lays_levels_out_in_a_grid():
+    from jax_env.render import render_contact_sheet
+
+    states = [scenario(agent_dir=[d, SOUTH]) for d in (NORTH, EAST, SOUTH, WEST, NORTH)]
+    stacked = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *states)
+    sheet = render_contact_sheet(stacked, columns=2, tile_size=TILE)
+    assert sheet.dtype == np.uint8 and sheet.ndim == 3 and sheet.shape[2] == 3
+    np.testing.assert_array_equal(sheet, render_contact_sheet(states, columns=2, tile_size=TILE))
+    level = LAYOUT.height * TILE
+    assert 2 * level < sheet.shape[1] <= 2 * level + 3 * TILE  # two columns and their gaps
+    assert 3 * level < sheet.shape[0] <= 3 * level + 4 * TILE  # three rows, the last one half full
+    first = render_state(states[0], TILE)
+    assert any(np.array_equal(sheet[g : g + level, g : g + level], first) for g in range(TILE))
+
+    labelled = render_contact_sheet(states, columns=2, tile_size=TILE, labels=[f"{i} solo" for i in range(5)])
+    assert labelled.shape[1] == sheet.shape[1] and labelled.shape[0] > sheet.shape[0]
+    mixed = render_contact_sheet([make_state(get_layout("cramped_room")), states[0]], tile_size=TILE)
+    assert mixed.shape[1] > 2 * level  # cells take the largest level's size
+    with pytest.raises(ValueError, match="labels"):
+        render_contact_sheet(states, labels=["too few"])
