@@ -1,0 +1,131 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import torch
+from torchrl.collectors import Collector
+from torchrl.envs.utils import RandomPolicy, check_env_specs
+
+from torch_kitchen.env import KitchenEnv
+
+
+def _numpy_states(states):
+    return [np.array(leaf) for leaf in jax.tree_util.tree_leaves(states)]
+
+
+@pytest.mark.parametrize("levels", ["cramped_room_7x7", "infinite", ["forced_coord_7x7", "coord_ring_7x7"]])
+def test_specs_hold(levels):
+    env = KitchenEnv(num_envs=4, levels=levels, max_steps=10)
+    check_env_specs(env)
+    assert env.observation_spec["agents", "observation"].shape == (4, 2, 7, 7, 26)
+    assert env.full_action_spec["agents", "action"].shape == (4, 2)
+
+
+def test_native_layout_has_its_own_shape():
+    env = KitchenEnv(num_envs=3, levels="cramped_room", max_steps=10)
+    check_env_specs(env)
+    assert env.reset()["agents", "observation"].shape == (3, 2, 4, 5, 26)
+
+
+def test_torchrl_rollout_equals_the_raw_jax_stepper():
+    num_envs, steps, seed = 6, 30, 3
+    env = KitchenEnv(num_envs=num_envs, levels="infinite", max_steps=100, seed=seed)
+    td = env.reset()
+    # The first reset draws its levels from the second half of split(PRNGKey(seed)).
+    _, key = jax.random.split(jax.random.PRNGKey(seed))
+    obs, states = env.kitchen.reset_batch(key, num_envs)
+    np.testing.assert_array_equal(td["agents", "observation"].numpy(), np.asarray(obs))
+
+    actions = torch.randint(0, 6, (steps, num_envs, 2), generator=torch.Generator().manual_seed(0))
+    step = jax.jit(jax.vmap(env.kitchen.step_env))
+    delivered = np.zeros(num_envs)
+    for t in range(steps):
+        td["agents", "action"] = actions[t]
+        out = env.step(td)["next"]
+        states, reward, done, info = step(states, jnp.asarray(actions[t].numpy(), jnp.int32))
+        np.testing.assert_array_equal(out["agents", "observation"].numpy(), np.asarray(jax.vmap(env.kitchen.get_obs)(states)))
+        np.testing.assert_array_equal(out["agents", "reward"].numpy()[..., 0], np.asarray(reward))
+        np.testing.assert_array_equal(out["agents", "shaped_reward"].numpy()[..., 0], np.asarray(info["shaped_reward"]))
+        np.testing.assert_array_equal(out["done"].numpy()[:, 0], np.asarray(done))
+        delivered += np.asarray(reward)[:, 0] / 20
+        np.testing.assert_array_equal(out["episode_deliveries"].numpy()[:, 0], delivered)
+        td = out.clone()
+    for ours, raw in zip(_numpy_states(env.states), _numpy_states(states)):
+        np.testing.assert_array_equal(ours, raw)
+
+
+def test_same_seed_same_rollout_and_rollouts_reset_finished_episodes():
+    def run(seed):
+        env = KitchenEnv(num_envs=4, levels="infinite", max_steps=8, seed=seed)
+        torch.manual_seed(0)
+        return env.rollout(20, break_when_any_done=False)
+
+    a, b, c = run(1), run(1), run(2)
+    assert (a["agents", "observation"] == b["agents", "observation"]).all()
+    assert not (a["agents", "observation"] == c["agents", "observation"]).all()
+    assert a["next", "done"].sum() == 4 * 2
+    # After each done step the next step starts a fresh episode (step counter back to the start).
+    urgency = a["agents", "observation"][..., 25].flatten(2).amax(-1)  # [B, T, ...]
+    assert urgency.any()
+
+
+def test_partial_reset_resets_exactly_the_masked_kitchens():
+    env = KitchenEnv(num_envs=8, levels="infinite", max_steps=50)
+    td = env.reset()
+    for _ in range(3):
+        td["agents", "action"] = torch.randint(0, 6, (8, 2))
+        td = env.step(td)["next"].clone()
+    before = _numpy_states(env.states)
+    mask = torch.tensor([True, False, False, True, False, False, False, True]).unsqueeze(-1)
+    previous_obs = td["agents", "observation"].clone()
+    td.set("_reset", mask)  # as a collector does: the last step's data plus the mask
+    out = env.reset(td)
+    after = _numpy_states(env.states)
+    steps = np.asarray(env.states.step)
+    assert (steps[mask[:, 0].numpy()] == 0).all() and (steps[~mask[:, 0].numpy()] == 3).all()
+    keep = ~mask[:, 0].numpy()
+    for old, new in zip(before, after):
+        np.testing.assert_array_equal(old[keep], new[keep])
+    np.testing.assert_array_equal(out["agents", "observation"][keep].numpy(), previous_obs[keep].numpy())
+    fresh_obs = jax.vmap(env.kitchen.get_obs)(env.states)
+    np.testing.assert_array_equal(out["agents", "observation"].numpy(), np.asarray(fresh_obs))
+    assert (out["episode_deliveries"][mask[:, 0]] == 0).all()
+
+
+def test_observations_are_zero_copy_and_torchrl_writes_cannot_corrupt_the_state():
+    env = KitchenEnv(num_envs=4, levels="cramped_room_7x7", max_steps=50, seed=5)
+    twin = KitchenEnv(num_envs=4, levels="cramped_room_7x7", max_steps=50, seed=5)
+    td, twin_td = env.reset(), twin.reset()
+    assert td["agents", "observation"].data_ptr() == env._last_obs.unsafe_buffer_pointer()
+    state_pointers = {leaf.unsafe_buffer_pointer() for leaf in jax.tree_util.tree_leaves(env.states)}
+    for value in td.values(include_nested=True, leaves_only=True):
+        assert value.data_ptr() not in state_pointers
+
+    actions = torch.randint(0, 6, (10, 4, 2), generator=torch.Generator().manual_seed(1))
+    for t in range(10):
+        td["agents", "action"], twin_td["agents", "action"] = actions[t], actions[t].clone()
+        out, twin_out = env.step(td)["next"], twin.step(twin_td)["next"]
+        np.testing.assert_array_equal(out["agents", "observation"].numpy(), twin_out["agents", "observation"].numpy())
+        for value in out.values(include_nested=True, leaves_only=True):
+            value.fill_(1)  # TorchRL writes into tensors it is given; the env must not care
+        td, twin_td = out, twin_out.clone()
+    for ours, theirs in zip(_numpy_states(env.states), _numpy_states(twin.states)):
+        np.testing.assert_array_equal(ours, theirs)
+
+
+def test_collector_with_a_random_policy():
+    env = KitchenEnv(num_envs=4, levels="infinite", max_steps=16)
+    collector = Collector(env, RandomPolicy(env.full_action_spec), frames_per_batch=4 * 32, total_frames=4 * 64)
+    batches = list(collector)
+    collector.shutdown()
+    assert len(batches) == 2
+    batch = batches[0]
+    assert batch["agents", "observation"].shape == (4, 32, 2, 7, 7, 26)
+    assert batch["next", "done"].sum() == 4 * 2
+
+
+def test_cuda_without_a_gpu_jax_says_what_to_install():
+    if jax.default_backend() == "gpu":
+        pytest.skip("this JAX has a GPU")
+    with pytest.raises(RuntimeError, match=r"jax\[cuda12\]"):
+        KitchenEnv(num_envs=2, levels="cramped_room_7x7", device="cuda")

@@ -1,0 +1,212 @@
+"""`KitchenEnv`: the JAX kitchens as one batched TorchRL environment, with tensors crossing by DLPack.
+
+Every `step` and `reset` is one jitted JAX call over all `num_envs` kitchens. Actions go from torch to JAX and
+observations, rewards and dones come back through DLPack without copies; the JAX state stays on this object,
+so TorchRL (which writes into the tensors it is given) never holds a buffer the state depends on.
+
+Keys (B = num_envs, H x W the kitchen, 7x7 for the Infinite Kitchen):
+
+    ("agents", "observation")    uint8   [B, 2, H, W, 26]  agent i's view (uint8 keeps rollouts 4x smaller;
+                                                           models cast to float)
+    ("agents", "action")         int64   [B, 2]            Categorical(6)
+    ("agents", "reward")         float32 [B, 2, 1]         the shared sparse reward (20 per delivery)
+    ("agents", "shaped_reward")  float32 [B, 2, 1]         each agent's shaped reward, unweighted by annealing
+    "deliveries"                 float32 [B, 1]            soups delivered this step
+    "episode_deliveries"         float32 [B, 1]            soups delivered so far this episode (the episode's
+                                                           total on its last step)
+    "done" / "truncated"         bool    [B, 1]            the time limit; "terminated" is always False
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Sequence
+
+# JAX would otherwise take 75% of the GPU's memory at its first operation and starve torch.
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import torch  # noqa: E402
+from tensordict import TensorDict, TensorDictBase  # noqa: E402
+from torchrl.data import Bounded, Categorical, Composite, Unbounded  # noqa: E402
+from torchrl.envs import EnvBase  # noqa: E402
+
+from jax_env import DELIVERY_REWARD, NUM_ACTIONS, GeneratorConfig, Overcooked, ShapingWeights  # noqa: E402
+from jax_env.env import Levels  # noqa: E402
+
+
+def jax_device_for(device: torch.device) -> jax.Device:
+    """The JAX device that shares memory with a torch device, or a `RuntimeError` that says what to install."""
+    if device.type == "cpu":
+        return jax.devices("cpu")[0]
+    if device.type == "cuda":
+        try:
+            gpus = jax.devices("gpu")
+        except RuntimeError:
+            gpus = []
+        index = device.index or 0
+        if index >= len(gpus):
+            raise RuntimeError(
+                f"KitchenEnv(device={str(device)!r}) needs JAX on the same GPU, but this JAX sees "
+                f"{len(gpus)} GPU(s) (backend: {jax.default_backend()}). Install a CUDA build of JAX matching "
+                "your driver, e.g. `pip install -U \"jax[cuda12]\"`, or use device='cpu'."
+            )
+        return gpus[index]
+    raise RuntimeError(f"KitchenEnv supports device='cpu' or 'cuda[:i]', got {str(device)!r}")
+
+
+class KitchenEnv(EnvBase):
+    """A batch of Overcooked kitchens as a TorchRL environment (see the module docstring for the keys).
+
+    Args:
+        num_envs: kitchens stepped together (the env's batch size).
+        levels: "infinite" (a new Infinite Kitchen level per episode, held-out levels excluded), "heldout",
+            a layout name or text-grid file, or a list of them; see `jax_env.Overcooked`.
+        max_steps: episode length.
+        shaping: weights of the shaped rewards reported in ("agents", "shaped_reward").
+        generator: the Infinite Kitchen generator's probabilities.
+        device: "cpu" or "cuda[:i]"; JAX runs on the same device.
+        seed: seed of the levels, start facings and resets (also `set_seed`).
+    """
+
+    batch_locked = True
+
+    def __init__(
+        self,
+        num_envs: int = 32,
+        levels: Levels = "infinite",
+        max_steps: int = 256,
+        shaping: ShapingWeights | Sequence[float] = ShapingWeights(),
+        generator: GeneratorConfig = GeneratorConfig(),
+        device: str | torch.device = "cpu",
+        seed: int = 0,
+    ):
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be at least 1, got {num_envs}")
+        device = torch.device(device)
+        self._jax_device = jax_device_for(device)
+        super().__init__(batch_size=torch.Size([num_envs]), device=device)
+        self.num_envs = num_envs
+        self.kitchen = Overcooked(levels, max_steps=max_steps, shaping=ShapingWeights(*shaping), generator=generator)
+        self._make_specs()
+
+        kitchen = self.kitchen
+
+        def reset_all(key):
+            _, states = kitchen.reset_batch(key, num_envs)
+            return self._outputs(states, jnp.zeros(num_envs, jnp.int32))
+
+        def reset_masked(key, states, deliveries, mask):
+            states = kitchen.reset_where(key, states, mask)
+            return self._outputs(states, jnp.where(mask, 0, deliveries))
+
+        def step(states, deliveries, actions):
+            states, reward, done, info = jax.vmap(kitchen.step_env)(states, actions)
+            delivered = (reward[:, 0] / DELIVERY_REWARD).astype(jnp.int32)
+            states, deliveries, out = self._outputs(states, deliveries + delivered)
+            out.update(
+                reward=reward[..., None],
+                shaped_reward=info["shaped_reward"][..., None],
+                deliveries=delivered.astype(jnp.float32)[:, None],
+                done=done[:, None],
+            )
+            return states, deliveries, out
+
+        self._reset_all = jax.jit(reset_all)
+        self._reset_masked = jax.jit(reset_masked)
+        self._step_jax = jax.jit(step)
+        self._states = None  # the JAX kitchens, batched
+        self._deliveries = None  # int32 [B]: soups delivered this episode
+        self._last_obs = None  # the JAX array behind the last observation handed out (zero-copy checks)
+        self.set_seed(seed)
+
+    def _make_specs(self) -> None:
+        batch, (height, width, channels) = self.batch_size, self.kitchen.obs_shape
+        agents = (*batch, 2)
+        self.observation_spec = Composite(
+            agents=Composite(
+                observation=Bounded(0, 255, shape=(*agents, height, width, channels), dtype=torch.uint8),
+                shaped_reward=Unbounded(shape=(*agents, 1), dtype=torch.float32),
+                shape=agents,
+            ),
+            deliveries=Unbounded(shape=(*batch, 1), dtype=torch.float32),
+            episode_deliveries=Unbounded(shape=(*batch, 1), dtype=torch.float32),
+            shape=batch,
+        )
+        self.action_spec = Composite(
+            agents=Composite(action=Categorical(NUM_ACTIONS, shape=agents, dtype=torch.int64), shape=agents),
+            shape=batch,
+        )
+        self.reward_spec = Composite(
+            agents=Composite(reward=Unbounded(shape=(*agents, 1), dtype=torch.float32), shape=agents), shape=batch
+        )
+        done = Categorical(2, shape=(*batch, 1), dtype=torch.bool)
+        self.done_spec = Composite(done=done, terminated=done.clone(), truncated=done.clone(), shape=batch)
+
+    # -------------------------------------------------------------------------------------------- JAX side
+    def _outputs(self, states, deliveries):
+        """(states, deliveries, outputs) for a reset: fresh arrays only, none of them part of the state."""
+        obs = jax.vmap(self.kitchen.get_obs)(states)
+        num_envs = deliveries.shape[0]
+        out = dict(
+            observation=obs,
+            reward=jnp.zeros((num_envs, 2, 1), jnp.float32),
+            shaped_reward=jnp.zeros((num_envs, 2, 1), jnp.float32),
+            deliveries=jnp.zeros((num_envs, 1), jnp.float32),
+            episode_deliveries=deliveries.astype(jnp.float32)[:, None],
+            done=jnp.zeros((num_envs, 1), bool),
+        )
+        return states, deliveries, out
+
+    def _next_key(self) -> jax.Array:
+        self._key, key = jax.random.split(self._key)
+        return key
+
+    # ------------------------------------------------------------------------------------------ torch side
+    def _to_tensordict(self, out: dict, with_reward: bool) -> TensorDictBase:
+        self._last_obs = out["observation"]
+        tensor = torch.from_dlpack
+        done = tensor(out["done"])
+        agents = {"observation": tensor(out["observation"]), "shaped_reward": tensor(out["shaped_reward"])}
+        if with_reward:
+            agents["reward"] = tensor(out["reward"])
+        return TensorDict(
+            {
+                "agents": TensorDict(agents, batch_size=(*self.batch_size, 2), device=self.device),
+                "deliveries": tensor(out["deliveries"]),
+                "episode_deliveries": tensor(out["episode_deliveries"]),
+                "done": done,
+                "truncated": done.clone(),
+                "terminated": torch.zeros_like(done),
+            },
+            batch_size=self.batch_size,
+            device=self.device,
+        )
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        if self._states is None or mask is None or bool(mask.all()):
+            self._states, self._deliveries, out = self._reset_all(self._next_key())
+        else:
+            mask = jax.dlpack.from_dlpack(mask.reshape(-1).contiguous())
+            self._states, self._deliveries, out = self._reset_masked(
+                self._next_key(), self._states, self._deliveries, mask
+            )
+        return self._to_tensordict(out, with_reward=False)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        actions = tensordict.get(("agents", "action"))
+        # int32 and contiguous, so JAX takes the memory as it is instead of a down-casting copy.
+        actions = jax.dlpack.from_dlpack(actions.detach().to(torch.int32).contiguous())
+        self._states, self._deliveries, out = self._step_jax(self._states, self._deliveries, actions)
+        return self._to_tensordict(out, with_reward=True)
+
+    def _set_seed(self, seed: int | None) -> None:
+        self._key = jax.device_put(jax.random.PRNGKey(0 if seed is None else seed), self._jax_device)
+        self._states = None  # the next reset starts every kitchen from the new seed
+
+    @property
+    def states(self):
+        """The JAX kitchens (a batched `jax_env.State`), read-only: for rendering and scenario checks."""
+        return self._states
