@@ -22,7 +22,7 @@ from jax_env import GeneratorConfig, Overcooked, heldout_grids, sample_level, sa
 def per_second(fn, items_per_call, min_seconds):
     jax.block_until_ready(fn(jax.random.PRNGKey(0)))  # compile
     calls, start = 0, time.perf_counter()
-    while (elapsed := time.perf_counter() - start) < min_seconds or calls == 0:
+    while time.perf_counter() - start < min_seconds or calls == 0:
         jax.block_until_ready(fn(jax.random.PRNGKey(calls + 1)))
         calls += 1
     return calls * items_per_call / (time.perf_counter() - start)

@@ -6,7 +6,6 @@ from typing import NamedTuple, Sequence, Union
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jax_env.generator import GeneratorConfig, heldout_grids, heldout_set, sample_training_level
 from jax_env.layouts import (

@@ -15,7 +15,7 @@ from jax_env import (
     heldout_grids,
     sample_training_level,
 )
-from jax_env.solvability import CLASS_NAMES, UNSOLVABLE
+from jax_env.solvability import CLASS_NAMES
 
 
 def _training_levels(num_levels, seed):
