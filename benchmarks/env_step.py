@@ -62,15 +62,14 @@ def make_rollout(reset, step, to_actions, num_envs, num_steps):
     return jax.jit(rollout)
 
 
-def steps_per_second(rollout, num_envs, num_steps, min_seconds):
-    jax.block_until_ready(rollout(jax.random.PRNGKey(0)))  # compile
-    runs, start = 0, time.perf_counter()
-    while True:
-        jax.block_until_ready(rollout(jax.random.PRNGKey(runs + 1)))
-        runs += 1
-        elapsed = time.perf_counter() - start
-        if elapsed >= min_seconds:
-            return runs * num_envs * num_steps / elapsed
+def per_second(fn, items_per_call, min_seconds):
+    """Items per second of a jitted `fn(key)`, timed over at least `min_seconds` after one compiling call."""
+    jax.block_until_ready(fn(jax.random.PRNGKey(0)))
+    calls, start = 0, time.perf_counter()
+    while time.perf_counter() - start < min_seconds or calls == 0:
+        jax.block_until_ready(fn(jax.random.PRNGKey(calls + 1)))
+        calls += 1
+    return calls * items_per_call / (time.perf_counter() - start)
 
 
 def main(argv=None):
@@ -93,8 +92,8 @@ def main(argv=None):
             ref_rollout = make_rollout(
                 ref.reset, ref.step, lambda a: {"agent_0": a[:, 0], "agent_1": a[:, 1]}, num_envs, args.steps
             )
-            ours_sps = steps_per_second(ours_rollout, num_envs, args.steps, args.min_seconds)
-            ref_sps = steps_per_second(ref_rollout, num_envs, args.steps, args.min_seconds)
+            ours_sps = per_second(ours_rollout, num_envs * args.steps, args.min_seconds)
+            ref_sps = per_second(ref_rollout, num_envs * args.steps, args.min_seconds)
             print(f"{name:22s} {num_envs:6d} {ours_sps:14,.0f} {ref_sps:16,.0f} {ours_sps / ref_sps:6.2f}x", flush=True)
         _, our_state = ours.reset(jax.random.PRNGKey(0))
         _, ref_state = ref.reset(jax.random.PRNGKey(0))

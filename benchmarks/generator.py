@@ -11,33 +11,24 @@ step as JaxMARL does, is shown too.
 from __future__ import annotations
 
 import argparse
-import time
 
 import jax
 import jax.numpy as jnp
+from env_step import make_rollout, per_second
 
-from jax_env import GeneratorConfig, Overcooked, heldout_grids, sample_level, sample_training_level
-
-
-def per_second(fn, items_per_call, min_seconds):
-    jax.block_until_ready(fn(jax.random.PRNGKey(0)))  # compile
-    calls, start = 0, time.perf_counter()
-    while time.perf_counter() - start < min_seconds or calls == 0:
-        jax.block_until_ready(fn(jax.random.PRNGKey(calls + 1)))
-        calls += 1
-    return calls * items_per_call / (time.perf_counter() - start)
+from jax_env import GeneratorConfig, Overcooked, heldout_grids, sample_levels, sample_training_levels
 
 
 def level_sampler(num_levels, training):
     config, heldout = GeneratorConfig(), heldout_grids()
     if training:
-        sample = jax.vmap(lambda key: sample_training_level(key, config, heldout))
-    else:
-        sample = jax.vmap(lambda key: sample_level(key, config))
-    return jax.jit(lambda key: sample(jax.random.split(key, num_levels)))
+        return lambda key: sample_training_levels(jax.random.split(key, num_levels), config, heldout)
+    return lambda key: sample_levels(jax.random.split(key, num_levels), config)
 
 
-def stepper(env, num_envs, num_steps, batched):
+def batched_rollout(env, num_envs, num_steps):
+    """Like `env_step.make_rollout`, but through `Overcooked.step_batch`."""
+
     def rollout(key):
         obs, states = env.reset_batch(key, num_envs)
 
@@ -45,10 +36,7 @@ def stepper(env, num_envs, num_steps, batched):
             obs, states = carry
             key_act, key_step = jax.random.split(key)
             actions = jax.random.randint(key_act, (num_envs, 2), 0, 6, dtype=jnp.int32)
-            if batched:
-                obs, states, *_ = env.step_batch(key_step, states, actions)
-            else:
-                obs, states, *_ = jax.vmap(env.step)(jax.random.split(key_step, num_envs), states, actions)
+            obs, states, *_ = env.step_batch(key_step, states, actions)
             return (obs, states), None
 
         return jax.lax.scan(body, (obs, states), jax.random.split(key, num_steps))[0]
@@ -74,9 +62,10 @@ def main(argv=None):
     infinite = Overcooked("infinite", max_steps=256)
     print(f"{'envs':>6s} {'fixed steps/s':>14s} {'infinite steps/s':>17s} {'cost':>6s} {'infinite, vmap(step)':>21s}")
     for n in args.envs:
-        fixed_sps = per_second(stepper(fixed, n, args.steps, True), n * args.steps, args.min_seconds)
-        infinite_sps = per_second(stepper(infinite, n, args.steps, True), n * args.steps, args.min_seconds)
-        every_step_sps = per_second(stepper(infinite, n, args.steps, False), n * args.steps, args.min_seconds)
+        fixed_sps = per_second(batched_rollout(fixed, n, args.steps), n * args.steps, args.min_seconds)
+        infinite_sps = per_second(batched_rollout(infinite, n, args.steps), n * args.steps, args.min_seconds)
+        every_step = make_rollout(infinite.reset, infinite.step, lambda a: a, n, args.steps)
+        every_step_sps = per_second(every_step, n * args.steps, args.min_seconds)
         cost = 1 - infinite_sps / fixed_sps
         print(f"{n:6d} {fixed_sps:14,.0f} {infinite_sps:17,.0f} {cost:6.1%} {every_step_sps:21,.0f}", flush=True)
 

@@ -42,6 +42,8 @@ from jax_env.generator import (
     heldout_levels,
     heldout_set,
     sample_level,
+    sample_levels,
     sample_training_level,
+    sample_training_levels,
 )
 from jax_env.solvability import classify_layout, classify_levels, is_solvable

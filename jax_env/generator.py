@@ -306,6 +306,12 @@ def sample_training_level(key: jax.Array, config: GeneratorConfig, heldout: jax.
     return level
 
 
+@jax.jit
+def sample_training_levels(keys: jax.Array, config: GeneratorConfig, heldout: jax.Array) -> State:
+    """A batch of training levels, one per key: `sample_training_level` vmapped and jitted."""
+    return jax.vmap(sample_training_level, in_axes=(0, None, None))(keys, config, heldout)
+
+
 @functools.lru_cache(maxsize=8)
 def _heldout_levels_np(config: GeneratorConfig) -> State:
     expanded = {get_layout(name).grid.tobytes() for name in EXPANDED_LAYOUTS}

@@ -24,7 +24,7 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
-from jax_env.generator import GeneratorConfig, heldout_grids, heldout_set, sample_levels, sample_training_level
+from jax_env.generator import GeneratorConfig, heldout_grids, heldout_set, sample_levels, sample_training_levels
 from jax_env.layouts import EXPANDED_LAYOUTS, Layout, load_layout, save_layout
 from jax_env.render import MIN_TILE_SIZE, render_contact_sheet
 from jax_env.solvability import CLASS_NAMES, analyse_layout, classify_levels
@@ -36,9 +36,6 @@ SHORT_CLASS_NAMES = {"unsolvable": "unsolvable", "solo": "solo", "forced_coordin
 # Writing more files than this shows a progress bar.
 PROGRESS_MIN_FILES = 100
 
-_sample_training_levels = jax.jit(jax.vmap(sample_training_level, in_axes=(0, None, None)))
-
-
 def level_keys(seed: int, n: int) -> jax.Array:
     """The keys of `sample`: uint32 (n, 2), `jax.random.split(jax.random.PRNGKey(seed), n)`; level i uses key i."""
     return jax.random.split(jax.random.PRNGKey(seed), n)
@@ -46,10 +43,10 @@ def level_keys(seed: int, n: int) -> jax.Array:
 
 def sample_batch(seed: int, n: int, training: bool = False, config: GeneratorConfig = GeneratorConfig()) -> State:
     """n start states batched (n, ...) in one jitted call: `sample_levels`, or with `training` the vmapped
-    `sample_training_level`, which never returns a held-out grid."""
+    `sample_training_levels`, which never return a held-out grid."""
     keys = level_keys(seed, n)
     if training:
-        return _sample_training_levels(keys, config, heldout_grids(config))
+        return sample_training_levels(keys, config, heldout_grids(config))
     return sample_levels(keys, config)
 
 

@@ -13,15 +13,14 @@ from jax_env import (
     classify_levels,
     get_layout,
     heldout_grids,
-    sample_training_level,
+    sample_training_levels,
 )
 from jax_env.solvability import CLASS_NAMES
 
 
 def _training_levels(num_levels, seed):
-    config, heldout = GeneratorConfig(), heldout_grids()
-    sample = jax.jit(jax.vmap(lambda key: sample_training_level(key, config, heldout)))
-    return sample(jax.random.split(jax.random.PRNGKey(seed), num_levels))
+    keys = jax.random.split(jax.random.PRNGKey(seed), num_levels)
+    return sample_training_levels(keys, GeneratorConfig(), heldout_grids())
 
 
 def _agent_cells(states):
