@@ -26,6 +26,7 @@ from typing import Sequence
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 import jax  # noqa: E402
+import numpy as np  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import torch  # noqa: E402
 from tensordict import TensorDict, TensorDictBase  # noqa: E402
@@ -107,12 +108,18 @@ class KitchenEnv(EnvBase):
             states, reward, done, info = jax.vmap(kitchen.step_env)(states, actions)
             return self._outputs(states, deliveries, reward, info["shaped_reward"], done)
 
+        def observe(states, deliveries):
+            zeros = jnp.zeros((num_envs, 2), jnp.float32)
+            return self._outputs(states, deliveries, zeros, zeros, jnp.zeros(num_envs, bool))
+
         self._reset_all = jax.jit(reset_all)
+        self._observe = jax.jit(observe)
         self._reset_masked = jax.jit(reset_masked)
         self._step_jax = jax.jit(step)
         self._states = None  # the JAX kitchens, batched
         self._deliveries = None  # int32 [B]: soups delivered this episode
         self._last_obs = None  # the JAX array behind the last observation handed out (zero-copy checks)
+        self._restored = False  # set by `load_state_dict`: the next full reset hands out the restored kitchens
         self.set_seed(seed)
 
     def _make_specs(self) -> None:
@@ -182,7 +189,11 @@ class KitchenEnv(EnvBase):
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         mask = None if tensordict is None else tensordict.get("_reset", None)
-        if self._states is None or mask is None or bool(mask.all()):
+        full = mask is None or bool(mask.all())
+        if self._restored and full:
+            self._restored = False
+            self._states, self._deliveries, out = self._observe(self._states, self._deliveries)
+        elif self._states is None or full:
             self._states, self._deliveries, out = self._reset_all(self._next_key())
         else:
             mask = jax.dlpack.from_dlpack(mask.reshape(-1).contiguous())
@@ -201,6 +212,32 @@ class KitchenEnv(EnvBase):
     def _set_seed(self, seed: int | None) -> None:
         self._key = jax.device_put(jax.random.PRNGKey(0 if seed is None else seed), self._jax_device)
         self._states = None  # the next reset starts every kitchen from the new seed
+
+    # Checkpoints: `env.state_dict()` carries the kitchens, the episode counters and the key, so a resumed run
+    # continues with exactly the levels and episodes it would have seen.
+    def get_extra_state(self) -> dict:
+        if self._states is None:
+            self.reset()
+        return {
+            "key": np.asarray(self._key),
+            "states": jax.tree_util.tree_map(np.asarray, self._states),
+            "deliveries": np.asarray(self._deliveries),
+        }
+
+    def set_extra_state(self, state: dict) -> None:
+        """Restores the kitchens of `get_extra_state`; the next full `reset()` hands them out as they were."""
+        restored = jax.tree_util.tree_map(lambda x: jax.device_put(x, self._jax_device), state["states"])
+        expected = jax.tree_util.tree_map(np.shape, jax.eval_shape(self._reset_all, self._key)[0])
+        if jax.tree_util.tree_map(np.shape, restored) != expected:
+            raise ValueError(
+                f"this env state holds {len(state['deliveries'])} kitchens of another shape; the env has "
+                f"{self.num_envs} {self.kitchen.obs_shape[0]}x{self.kitchen.obs_shape[1]} kitchens: build the env "
+                "with the num_envs and levels the state was saved with"
+            )
+        self._key = jax.device_put(state["key"], self._jax_device)
+        self._states = restored
+        self._deliveries = jax.device_put(state["deliveries"], self._jax_device)
+        self._restored = True
 
     @property
     def states(self):

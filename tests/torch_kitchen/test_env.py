@@ -129,3 +129,30 @@ def test_cuda_without_a_gpu_jax_says_what_to_install():
         pytest.skip("this JAX has a GPU")
     with pytest.raises(RuntimeError, match=r"jax\[cuda12\]"):
         KitchenEnv(num_envs=2, levels="cramped_room_7x7", device="cuda")
+
+
+def test_state_dict_restores_the_kitchens_mid_episode():
+    actions = torch.randint(0, 6, (12, 5, 2), generator=torch.Generator().manual_seed(1))
+    env = KitchenEnv(num_envs=5, levels="infinite", max_steps=8, seed=4)
+    td = env.reset()
+    for t in range(6):
+        _, td = env.step_and_maybe_reset(td.set(("agents", "action"), actions[t]))
+    saved = env.state_dict()
+    twin = KitchenEnv(num_envs=5, levels="infinite", max_steps=8, seed=99)
+    twin.load_state_dict(saved)
+    twin_td = twin.reset()  # hands out the restored kitchens, not new ones
+    np.testing.assert_array_equal(twin_td["agents", "observation"].numpy(), td["agents", "observation"].numpy())
+    np.testing.assert_array_equal(twin_td["episode_deliveries"].numpy(), td["episode_deliveries"].numpy())
+    # The same actions from here give the same steps, across the episode ends and resets at step 8.
+    for t in range(6, 12):
+        _, td = env.step_and_maybe_reset(td.set(("agents", "action"), actions[t]))
+        _, twin_td = twin.step_and_maybe_reset(twin_td.set(("agents", "action"), actions[t]))
+        np.testing.assert_array_equal(twin_td["agents", "observation"].numpy(), td["agents", "observation"].numpy())
+    # A later reset draws new kitchens again.
+    assert not np.array_equal(twin.reset()["agents", "observation"].numpy(), td["agents", "observation"].numpy())
+
+
+def test_state_dict_of_another_batch_is_refused():
+    saved = KitchenEnv(num_envs=3, levels="infinite").state_dict()
+    with pytest.raises(ValueError, match="num_envs and levels"):
+        KitchenEnv(num_envs=4, levels="infinite").load_state_dict(saved)

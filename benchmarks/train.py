@@ -1,0 +1,125 @@
+"""Training throughput (collection + PPO update) per architecture, and a learning check.
+
+Throughput: env steps per second of `trainers.ippo.train` for each architecture and batch size, timed on the
+updates after the first (which compiles the env). Learning check: Single Kitchen on `cramped_room_7x7` with the
+MLP and the shaped reward, run until the mean deliveries of the last episodes reach the target (or the budget
+ends), reporting steps and wall time.
+
+    python benchmarks/train.py throughput [--archs mlp gnn] [--envs 32 1024] [--device cpu|cuda]
+    python benchmarks/train.py learning [--target 5] [--budget 2e7] [--threads 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import tempfile
+import time
+from collections import deque
+
+import torch
+
+from trainers.config import load_config
+from trainers.ippo import train
+
+
+def throughput(architecture: str, num_envs: int, rollout_steps: int, updates: int, device: str, threads: int) -> float:
+    """Mean env steps per second of updates 2..`updates` (collection + PPO epochs)."""
+    rates = []
+    with tempfile.TemporaryDirectory() as run_dir:
+        config = load_config(
+            None,
+            [
+                f"architecture={architecture}",
+                f"num_envs={num_envs}",
+                f"rollout_steps={rollout_steps}",
+                f"total_steps={updates * num_envs * rollout_steps}",
+                f"device={device}",
+                f"threads={threads}",
+                f"run_dir={run_dir}",
+                "progress=false",
+                "eval_episodes=0",
+                "checkpoint_every=1000",
+            ],
+        )
+        train(config, on_update=lambda update, metrics: rates.append(metrics["charts/steps_per_second"]) and False)
+    return sum(rates[1:]) / max(1, len(rates) - 1)
+
+
+def learning_check(target: float, budget: int, threads: int, device: str, seed: int) -> None:
+    """SK cramped_room_7x7, MLP, shaped reward annealed over the first 5M steps; stops at the target."""
+    recent = deque(maxlen=8)  # updates (32 episodes each): the last 256 episodes
+    start = time.perf_counter()
+    reached = {}
+
+    def on_update(update, metrics):
+        recent.append(metrics["charts/episode_deliveries"])
+        mean = sum(recent) / len(recent)
+        steps = update * 32 * 256
+        if update % 10 == 0:
+            print(f"  {steps:>11,} steps  {time.perf_counter() - start:7.0f} s  deliveries {mean:5.2f}", flush=True)
+        if len(recent) == recent.maxlen and mean >= target:
+            reached.update(steps=steps, seconds=time.perf_counter() - start, deliveries=mean)
+            return True
+        return False
+
+    with tempfile.TemporaryDirectory() as run_dir:
+        config = load_config(
+            "configs/ippo/mlp_sk_cramped_room.yaml",
+            [
+                "shaping_weight=1.0",
+                "shaping_anneal_steps=5e6",
+                f"total_steps={budget}",
+                f"threads={threads}",
+                f"device={device}",
+                f"seed={seed}",
+                f"run_dir={run_dir}",
+                "progress=false",
+                "eval_episodes=0",
+                "checkpoint_every=1000",
+            ],
+        )
+        train(config, on_update=on_update)
+    if reached:
+        print(
+            f"reached {reached['deliveries']:.2f} deliveries per episode (target {target}) after "
+            f"{reached['steps']:,} steps in {reached['seconds']:.0f} s"
+        )
+    else:
+        print(f"target {target} not reached within {budget:,} steps ({time.perf_counter() - start:.0f} s)")
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="mode", required=True)
+    speed = sub.add_parser("throughput")
+    speed.add_argument("--archs", nargs="+", default=["mlp", "mlp_lstm", "gnn", "gnn_lstm"])
+    speed.add_argument("--envs", nargs="+", type=int, default=[32, 1024])
+    speed.add_argument("--updates", type=int, default=3, help="updates per measurement (the first is not timed)")
+    speed.add_argument("--frames", type=int, default=65_536, help="env steps per update at large batches")
+    speed.add_argument("--device", default="cpu")
+    speed.add_argument("--threads", type=int, default=2)
+    learn = sub.add_parser("learning")
+    learn.add_argument("--target", type=float, default=5.0)
+    learn.add_argument("--budget", type=float, default=2e7)
+    learn.add_argument("--threads", type=int, default=2)
+    learn.add_argument("--device", default="cpu")
+    learn.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    print(f"device: {args.device}, {platform.processor() or platform.machine()}, torch threads: {args.threads}")
+
+    if args.mode == "learning":
+        learning_check(args.target, int(args.budget), args.threads, args.device, args.seed)
+        return
+    print(f"{'architecture':>12s} {'envs':>6s} {'rollout':>8s} {'steps/s':>10s}")
+    for architecture in args.archs:
+        for num_envs in args.envs:
+            # The paper's 256-step rollouts at 32 envs; shorter ones keep large batches within memory and time.
+            rollout_steps = 256 if num_envs * 256 <= args.frames else max(16, args.frames // num_envs)
+            sps = throughput(architecture, num_envs, rollout_steps, args.updates, args.device, args.threads)
+            print(f"{architecture:>12s} {num_envs:6d} {rollout_steps:8d} {sps:10,.0f}", flush=True)
+
+
+if __name__ == "__main__":
+    torch.set_num_threads(1)
+    main()

@@ -1,0 +1,67 @@
+from pathlib import Path
+
+import pytest
+
+from trainers.config import ConfigError, TrainConfig, load_config
+
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
+CONFIGS = sorted(CONFIG_DIR.rglob("*.yaml"))
+
+
+def test_every_shipped_config_loads():
+    assert len(CONFIGS) >= 25  # 4 architectures x (5 SK layouts + IK), the bases and the main job
+    for path in CONFIGS:
+        config = load_config(path)
+        assert isinstance(config, TrainConfig), path
+
+
+@pytest.mark.parametrize("architecture", ["mlp", "mlp_lstm", "gnn", "gnn_lstm"])
+def test_regimes_follow_the_protocol(architecture):
+    ik = load_config(CONFIG_DIR / f"ippo/{architecture}_ik.yaml")
+    assert (ik.levels, ik.hidden, ik.share_params, ik.architecture) == ("infinite", 256, True, architecture)
+    for layout in ["cramped_room", "asymm_advantages", "coord_ring", "forced_coord", "counter_circuit"]:
+        sk = load_config(CONFIG_DIR / f"ippo/{architecture}_sk_{layout}.yaml")
+        assert (sk.levels, sk.hidden, sk.share_params) == (f"{layout}_7x7", 128, False)
+        assert sk.name == f"ippo_{architecture}_sk_{layout}"
+    assert (ik.num_envs, ik.rollout_steps, ik.epochs, ik.minibatches, ik.shaping_weight) == (32, 256, 4, 4, 0.0)
+
+
+def test_overrides_apply_on_top_of_the_file_and_are_typed():
+    config = load_config(CONFIG_DIR / "ippo/mlp_ik.yaml", ["seed=3", "lr=1e-3", "total_steps=2e6", "levels=[a, b]"])
+    assert (config.seed, config.lr, config.total_steps, config.levels) == (3, 1e-3, 2_000_000, ["a", "b"])
+    assert config.run_path == Path("runs/ippo_mlp_ik/seed3")
+
+
+def test_unknown_keys_are_refused_with_the_valid_ones(tmp_path):
+    with pytest.raises(ConfigError, match=r"unknown config key 'lrr'.*did you mean 'lr'.*valid keys: name, run_dir"):
+        load_config(None, ["lrr=0.1"])
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("base: " + str(CONFIG_DIR / "ippo/mlp_ik.yaml") + "\nnum_env: 8\n")
+    with pytest.raises(ConfigError, match=r"unknown config key 'num_env' in .*bad.yaml.*did you mean 'num_envs'"):
+        load_config(bad)
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("share_params=3", "share_params in the command line must be bool"),
+        ("lr=fast", "lr in the command line must be float"),
+        ("num_envs=0", "num_envs must be at least 1"),
+        ("num_envs=30", r"minibatches \(4\) must divide num_envs \(30\)"),
+        ("seed", "must look like key=value"),
+    ],
+)
+def test_bad_values_say_what_is_wrong(override, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(None, [override])
+
+
+def test_broken_files_say_what_is_wrong(tmp_path):
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config(tmp_path / "missing.yaml")
+    (tmp_path / "list.yaml").write_text("- a\n- b\n")
+    with pytest.raises(ConfigError, match="must hold `key: value` lines"):
+        load_config(tmp_path / "list.yaml")
+    (tmp_path / "loop.yaml").write_text("base: loop.yaml\n")
+    with pytest.raises(ConfigError, match="names itself as a base"):
+        load_config(tmp_path / "loop.yaml")

@@ -1,0 +1,376 @@
+"""Policy and value networks for the kitchens: MLP or GNN encoders, optionally an LSTM, per agent or shared.
+
+`make_actor_critic(architecture, ...)` builds an `ActorCritic` whose actor and critic are TensorDict modules
+with separate torsos (no layer is shared between actor and critic). Each torso, with h = `hidden`:
+
+    encoder   "mlp": flatten H*W*26 -> Linear(h) + ReLU
+              "gnn": kitchen graph (`torch_kitchen.graph`) -> GATConv(26, 8, heads=4, concat) -> ReLU
+                     -> flatten the H*W+2 node embeddings -> Linear(h) + ReLU (the scene embedding)
+    memory    recurrent variants only: TorchRL LSTMModule(h) -> LayerNorm(h)
+    head      Linear(h) + ReLU -> Linear(h) + ReLU -> Linear(6 logits | 1 value)
+
+Orthogonal init as in the authors' code: gain sqrt(2) for hidden Linear layers, 0.01 for the policy head, 1.0
+for the value head, zero biases (the GAT layer and the LSTM keep their own default init).
+With `share_params` one network serves both agents; otherwise agent i has its own (TorchRL's
+`MultiAgentNetBase`, which stacks the agents' parameters and vmaps over them).
+
+Keys (*B = the tensordict's batch dims: [B] while collecting, [B, T] in training batches; h = hidden):
+
+    in   ("agents", "observation")        uint8   [*B, 2, H, W, 26]  (cast to float32 inside)
+         "is_init"                        bool    [*B, 1]           recurrent only (`InitTracker`)
+         ("agents", "<net>_h" | "<net>_c") float32 [*B, 2, 1, h]     recurrent only, <net> = actor | critic
+    out  ("agents", "logits")             float32 [*B, 2, 6]
+         ("agents", "action")             int64   [*B, 2]           sampled (interaction type RANDOM)
+         ("agents", "action_log_prob")    float32 [*B, 2]
+         ("agents", "state_value")        float32 [*B, 2, 1]
+         ("next", "agents", "<net>_h" | "<net>_c")                  recurrent, step mode only: the state after
+                                                                    this step (where a Collector carries it)
+
+Recurrent models run one step at a time by default (collection); wrap training calls on [B, T] batches in
+`torchrl.modules.set_recurrent_mode(True)` for backpropagation through time, T the last batch dim. Either way
+the LSTM state is zeroed where "is_init" is True, also in the middle of a sequence.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import InteractionType, TensorDictModule, TensorDictModuleBase, TensorDictSequential
+from torch import nn
+from torch_geometric.nn import GATConv
+from torchrl.data import Composite, Unbounded
+from torchrl.envs import InitTracker, TensorDictPrimer, Transform
+from torchrl.modules import LSTMModule, ProbabilisticActor
+from torchrl.modules.models.multiagent import MultiAgentNetBase
+
+from jax_env import NUM_ACTIONS
+from torch_kitchen.graph import build_graph, num_nodes
+
+N_AGENTS = 2
+GAT_HEADS, GAT_FEATURES = 4, 8  # per head; concatenated -> 32 features per node
+
+ARCHITECTURES = ("mlp", "mlp_lstm", "gnn", "gnn_lstm")
+
+
+# ------------------------------------------------------------------------------------------- single networks
+def _orthogonal_(layer: nn.Linear, gain: float) -> nn.Linear:
+    nn.init.orthogonal_(layer.weight, gain)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+def _hidden_linear(in_features: int, out_features: int) -> nn.Linear:
+    return _orthogonal_(nn.Linear(in_features, out_features), math.sqrt(2))
+
+
+class GraphEncoder(nn.Module):
+    """Kitchen graph -> one GAT layer -> scene embedding: float [..., H, W, C] -> float [..., hidden]."""
+
+    def __init__(self, obs_shape: tuple[int, int, int], hidden: int):
+        super().__init__()
+        height, width, channels = obs_shape
+        self.obs_shape = tuple(obs_shape)
+        # Self-loops are part of the graph's edge list (torch_kitchen.graph): don't let GATConv rebuild them.
+        self.gat = GATConv(channels, GAT_FEATURES, heads=GAT_HEADS, add_self_loops=False)
+        self.scene = _hidden_linear(num_nodes(height, width) * GAT_HEADS * GAT_FEATURES, hidden)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        batch = obs.shape[:-3]
+        graphs = obs.reshape(-1, *self.obs_shape)
+        x, edge_index = build_graph(graphs)
+        nodes = torch.relu(self.gat(x, edge_index))  # [N * (H*W + 2), 32]
+        scene = torch.relu(self.scene(nodes.reshape(graphs.shape[0], -1)))
+        return scene.reshape(*batch, -1)
+
+
+def make_encoder(kind: str, obs_shape: tuple[int, int, int], hidden: int) -> nn.Module:
+    """One agent's encoder: float [..., H, W, C] -> float [..., hidden]; kind "mlp" or "gnn"."""
+    if kind == "mlp":
+        return nn.Sequential(nn.Flatten(-3), _hidden_linear(math.prod(obs_shape), hidden), nn.ReLU())
+    if kind == "gnn":
+        return GraphEncoder(obs_shape, hidden)
+    raise ValueError(f"unknown encoder {kind!r}, expected 'mlp' or 'gnn'")
+
+
+def make_head(hidden: int, out_features: int, out_gain: float, layer_norm: bool) -> nn.Sequential:
+    """One agent's head: float [..., hidden] -> float [..., out_features], after a LayerNorm if `layer_norm`."""
+    layers = [nn.LayerNorm(hidden)] if layer_norm else []
+    layers += [_hidden_linear(hidden, hidden), nn.ReLU(), _hidden_linear(hidden, hidden), nn.ReLU()]
+    layers.append(_orthogonal_(nn.Linear(hidden, out_features), out_gain))
+    return nn.Sequential(*layers)
+
+
+# -------------------------------------------------------------------------------------- one net per agent
+def _drop_template_entries(module, state_dict, prefix, local_metadata):
+    for key in [key for key in state_dict if key.startswith(prefix + "_empty_net.")]:
+        del state_dict[key]
+
+
+class MultiAgentNet(MultiAgentNetBase):
+    """Any torch module applied to each agent: float [..., n_agents, *in_shape] -> [..., n_agents, *out].
+
+    `build()` makes one agent's module (it must accept any leading dims). Shared: one module over both agents.
+    Not shared: one module per agent, agent i's on input[..., i, *in_shape] (vmapped over stacked parameters).
+    """
+
+    def __init__(self, build: Callable[[], nn.Module], in_shape: tuple[int, ...], *, n_agents: int = N_AGENTS,
+                 share_params: bool = True):
+        self.build = build
+        self.in_shape = tuple(in_shape)
+        super().__init__(n_agents=n_agents, centralized=False, share_params=share_params,
+                         agent_dim=-len(in_shape) - 1)
+        # torch-geometric layers save their weights themselves, even from the parameter-less template that
+        # MultiAgentNetBase keeps; those entries are not parameters and must stay out of checkpoints.
+        self._register_state_dict_hook(_drop_template_entries)
+
+    def _build_single_net(self, *, device=None, **kwargs) -> nn.Module:
+        # MultiAgentNetBase rebuilds a parameter-less copy under `torch.device("meta")`: no device to pass on.
+        return self.build()
+
+    def _pre_forward_check(self, inputs: torch.Tensor) -> torch.Tensor:
+        expected = (self.n_agents, *self.in_shape)
+        if tuple(inputs.shape[-len(expected):]) != expected:
+            raise ValueError(f"{type(self).__name__} expects inputs [..., {', '.join(map(str, expected))}], "
+                             f"got {list(inputs.shape)}")
+        return inputs
+
+
+class ObservationEncoder(MultiAgentNet):
+    """Both agents' observations, uint8 [..., 2, H, W, C], to embeddings float32 [..., 2, hidden]."""
+
+    def __init__(self, kind: str, obs_shape: tuple[int, int, int], hidden: int, share_params: bool = True):
+        super().__init__(functools.partial(make_encoder, kind, obs_shape, hidden), obs_shape,
+                         share_params=share_params)
+
+    def _pre_forward_check(self, inputs: torch.Tensor) -> torch.Tensor:
+        height, width, channels = self.in_shape
+        if tuple(inputs.shape[-4:]) != (self.n_agents, *self.in_shape):
+            raise ValueError(
+                f"observation of shape {list(inputs.shape)}, but this model was built for [..., {self.n_agents}, "
+                f"{height}, {width}, {channels}] (obs_shape={self.in_shape}): a model built for {height}x{width} "
+                f"kitchens needs {height}x{width} levels (7x7: the Infinite Kitchen and the expanded classic "
+                f"layouts), or build it with make_actor_critic(..., obs_shape={tuple(inputs.shape[-3:])})"
+            )
+        return inputs.to(torch.float32)
+
+
+# ------------------------------------------------------------------------------------------- recurrence
+def agent_state_primer(states: dict[str, int], n_agents: int = N_AGENTS) -> TensorDictPrimer:
+    """Primer of the LSTM states ("agents", name) float32 [*B, n_agents, 1, size], zeros at every reset.
+
+    states: name -> size. The specs sit in an "agents" Composite of shape [n_agents] so that, expanded to the
+    env's batch size, they share the env's ("agents",) batch dims [*B, n_agents].
+    """
+    agents = Composite({name: Unbounded(shape=(n_agents, 1, size)) for name, size in states.items()},
+                       shape=(n_agents,))
+    return TensorDictPrimer(Composite(agents=agents), expand_specs=True)
+
+
+class AgentLSTMModule(LSTMModule):
+    """TorchRL's LSTMModule with states ("agents", name) [*B, n_agents, 1, hidden] in its primer.
+
+    Run through `MultiAgentLSTM`, which moves the agent dim into the batch. The primer is what an env must carry,
+    so `torchrl.modules.utils.get_primers_from_module` (and the collector's check) see the right shapes.
+    """
+
+    def __init__(self, *args, n_agents: int = N_AGENTS, **kwargs):
+        super().__init__(*args, **kwargs)
+        if any(len(key) != 2 or key[0] != "agents" for key in self.in_keys[1:3]):
+            raise ValueError(f"AgentLSTMModule keeps its states under 'agents', got {self.in_keys[1:3]}")
+        self.n_agents = n_agents
+
+    def state_sizes(self) -> dict[str, int]:
+        """Name under "agents" -> size of the two states (h, c)."""
+        return {key[1]: self.lstm.hidden_size for key in self.in_keys[1:3]}
+
+    def make_tensordict_primer(self) -> TensorDictPrimer:
+        return agent_state_primer(self.state_sizes(), self.n_agents)
+
+
+class MultiAgentLSTM(TensorDictModuleBase):
+    """LSTM over both agents: ("agents", "<net>_embedding") [*B, 2, h] -> ("agents", "<net>_memory") [*B, 2, h].
+
+    Reads the state ("agents", "<net>_h" | "<net>_c") [*B, 2, 1, h] (zeros if absent) and "is_init" [*B, 1]. In
+    step mode it writes the next state to ("next", "agents", "<net>_h" | "<net>_c"); in recurrent mode it leaves
+    the stored next states as they are. LSTMModule takes time as the last batch dim, so the agent dim goes just
+    before it, [B, T, 2] -> [B, 2, T]: shared, one LSTM runs both agents at once; separate, agent i's LSTM runs
+    on agent i's slice.
+    """
+
+    def __init__(self, net: str, hidden: int, share_params: bool = True, n_agents: int = N_AGENTS):
+        super().__init__()
+        self.n_agents, self.share_params = n_agents, share_params
+        embedding, memory = ("agents", f"{net}_embedding"), ("agents", f"{net}_memory")
+        state_h, state_c = ("agents", f"{net}_h"), ("agents", f"{net}_c")
+        self.in_keys = [embedding, state_h, state_c, "is_init"]
+        self.out_keys = [memory, ("next", *state_h), ("next", *state_c)]
+        self.lstms = nn.ModuleList(
+            AgentLSTMModule(input_size=hidden, hidden_size=hidden, n_agents=n_agents, in_keys=list(self.in_keys),
+                            out_keys=list(self.out_keys))
+            for _ in range(1 if share_params else n_agents)
+        )
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if "is_init" not in tensordict:
+            raise KeyError("recurrent models need 'is_init' [*B, 1]: append ActorCritic.env_transforms() "
+                           "(InitTracker and the state primer) to the env")
+        groups = [(0, self.n_agents)] if self.share_params else [(i, 1) for i in range(self.n_agents)]
+        outputs = [self._run(lstm, tensordict, *group) for lstm, group in zip(self.lstms, groups)]
+        agent_dim = tensordict.ndim
+        if self.lstms[0].recurrent_mode:
+            # Over a sequence LSTMModule returns next states that are zero but at the last step: keep the collected
+            # ("next", ...) states rather than overwrite them with that padding.
+            memory, *_ = zip(*outputs)
+            tensordict.set(self.out_keys[0], torch.cat(memory, dim=agent_dim))
+            return tensordict
+        if ("next", "agents") not in tensordict.keys(include_nested=True):
+            # Created with the agent dim, like the env's own ("next", "agents").
+            tensordict.set(("next", "agents"), tensordict.get("agents").empty())
+        for key, *values in zip(self.out_keys, *outputs):
+            tensordict.set(key, torch.cat(values, dim=agent_dim))
+        return tensordict
+
+    def _run(self, lstm: LSTMModule, tensordict: TensorDictBase, first: int, count: int) -> list[torch.Tensor]:
+        """Agents first .. first+count-1 through `lstm`: the out_keys' values, with the agent dim."""
+        batch, ndim = tensordict.batch_size, tensordict.ndim
+        fold = max(ndim - 1, 0)  # where the agent dim goes: just before time
+
+        def to_lstm(value: torch.Tensor) -> torch.Tensor:
+            return value.narrow(ndim, first, count).movedim(ndim, fold)
+
+        is_init = to_lstm(tensordict.get("is_init").unsqueeze(ndim).expand(*batch, self.n_agents, 1))
+        agents = {self.in_keys[0][1]: to_lstm(tensordict.get(self.in_keys[0]))}
+        for key in self.in_keys[1:3]:
+            state = tensordict.get(key, None)
+            if state is not None:
+                # LSTMModule zeroes the state at "is_init" only in step mode; in recurrent mode it trusts the
+                # stored state at a sequence's start. Zeroing here makes a boundary inside a sequence safe too.
+                state = to_lstm(state)
+                agents[key[1]] = torch.where(is_init.unsqueeze(-1), torch.zeros_like(state), state)
+        lstm_batch = is_init.shape[:-1]
+        scratch = TensorDict({"agents": TensorDict(agents, batch_size=lstm_batch), "is_init": is_init},
+                             batch_size=lstm_batch)
+        scratch = lstm(scratch)
+        return [scratch.get(key).movedim(fold, ndim) for key in self.out_keys]
+
+
+# --------------------------------------------------------------------------------------- actor and critic
+def make_network(
+    net: str,
+    encoder: str,
+    out_key: tuple[str, str],
+    out_features: int,
+    out_gain: float,
+    obs_shape: tuple[int, int, int],
+    hidden: int,
+    recurrent: bool,
+    share_params: bool,
+) -> TensorDictSequential:
+    """One torso + head as a TensorDictSequential: ("agents", "observation") -> `out_key` [*B, 2, out_features].
+
+    Intermediate keys ("agents", "<net>_embedding" | "<net>_memory") are dropped from the output, so rollouts
+    don't store them.
+    """
+    embedding, memory = ("agents", f"{net}_embedding"), ("agents", f"{net}_memory")
+    modules = [
+        TensorDictModule(ObservationEncoder(encoder, obs_shape, hidden, share_params),
+                         in_keys=[("agents", "observation")], out_keys=[embedding])
+    ]
+    selected = [out_key]
+    if recurrent:
+        lstm = MultiAgentLSTM(net, hidden, share_params)
+        modules.append(lstm)
+        selected += lstm.out_keys[1:]
+    head = MultiAgentNet(functools.partial(make_head, hidden, out_features, out_gain, recurrent), (hidden,),
+                         share_params=share_params)
+    modules.append(TensorDictModule(head, in_keys=[memory if recurrent else embedding], out_keys=[out_key]))
+    return TensorDictSequential(*modules, selected_out_keys=selected)
+
+
+@dataclass
+class ActorCritic:
+    """A policy and a value network over both agents (keys in the module docstring).
+
+    actor: writes ("agents", "logits") [*B, 2, 6], ("agents", "action") int64 [*B, 2] and
+        ("agents", "action_log_prob") [*B, 2]; samples by default (interaction type RANDOM).
+    critic: writes ("agents", "state_value") float32 [*B, 2, 1].
+    recurrent: whether both carry an LSTM state (then see `env_transforms` and `set_recurrent_mode`).
+    """
+
+    actor: ProbabilisticActor
+    critic: TensorDictModuleBase
+    recurrent: bool
+
+    def env_transforms(self) -> list[Transform]:
+        """Transforms to append to the KitchenEnv: [] if feed-forward, else [InitTracker(), one state primer].
+
+        The primer holds every LSTM state of actor and critic, [*B, 2, 1, h] under "agents", zeroed at reset.
+        """
+        if not self.recurrent:
+            return []
+        states = {}
+        for network in (self.actor, self.critic):
+            for module in network.modules():
+                if isinstance(module, AgentLSTMModule):
+                    states.update(module.state_sizes())
+        return [InitTracker(), agent_state_primer(states)]
+
+
+def build_builtin(architecture: str, obs_shape: tuple[int, int, int], hidden: int,
+                  share_params: bool) -> ActorCritic:
+    """The four architectures of the paper: "mlp", "mlp_lstm", "gnn", "gnn_lstm"."""
+    encoder, recurrent = architecture.removesuffix("_lstm"), architecture.endswith("_lstm")
+    common = {"encoder": encoder, "obs_shape": tuple(obs_shape), "hidden": hidden, "recurrent": recurrent,
+              "share_params": share_params}
+    policy = make_network("actor", out_key=("agents", "logits"), out_features=NUM_ACTIONS, out_gain=0.01, **common)
+    critic = make_network("critic", out_key=("agents", "state_value"), out_features=1, out_gain=1.0, **common)
+    actor = ProbabilisticActor(
+        policy,
+        in_keys={"logits": ("agents", "logits")},
+        out_keys=[("agents", "action")],
+        distribution_class=torch.distributions.Categorical,
+        return_log_prob=True,
+        log_prob_key=("agents", "action_log_prob"),
+        # The protocol samples actions in training and in evaluation alike.
+        default_interaction_type=InteractionType.RANDOM,
+    )
+    return ActorCritic(actor=actor, critic=critic, recurrent=recurrent)
+
+
+# ----------------------------------------------------------------------------------------------- registry
+Builder = Callable[..., ActorCritic]  # builder(obs_shape=(H, W, C), hidden=h, share_params=bool) -> ActorCritic
+_REGISTRY: dict[str, Builder] = {}
+
+
+def register_architecture(name: str, builder: Builder) -> None:
+    """Make `make_actor_critic(name, ...)` call `builder(obs_shape=..., hidden=..., share_params=...)`.
+
+    The builder returns an `ActorCritic` honouring the keys of the module docstring. A name can be registered
+    once (`ValueError` otherwise), so a second registration cannot silently replace another architecture.
+    """
+    if name in _REGISTRY:
+        raise ValueError(f"architecture {name!r} is already registered")
+    _REGISTRY[name] = builder
+
+
+for _name in ARCHITECTURES:
+    register_architecture(_name, functools.partial(build_builtin, _name))
+del _name
+
+
+def make_actor_critic(architecture: str, obs_shape: tuple[int, int, int] = (7, 7, 26), hidden: int = 256,
+                      share_params: bool = True) -> ActorCritic:
+    """Actor and critic of a registered architecture ("mlp", "mlp_lstm", "gnn", "gnn_lstm" or your own).
+
+    obs_shape: (H, W, C) of one agent's observation; the model rejects other shapes. hidden: width h of every
+    layer. share_params: one network for both agents (the paper's Infinite Kitchen runs) or one per agent
+    (its Single Kitchen runs).
+    """
+    if architecture not in _REGISTRY:
+        raise ValueError(f"unknown architecture {architecture!r}; registered: {', '.join(_REGISTRY)}")
+    return _REGISTRY[architecture](obs_shape=tuple(obs_shape), hidden=hidden, share_params=share_params)
