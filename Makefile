@@ -15,8 +15,14 @@ $(VENV)/.installed: setup.cfg pyproject.toml
 	$(BIN)/pip install -q -e ".[test]"
 	touch $@
 
+# Trains configs/main.yaml into runs/main/seed0; a second call resumes it (or re-evaluates a finished run).
+MAIN_RUN := runs/main/seed0
 main: setup
-	$(BIN)/kitchen-demo --layout cramped_room_7x7 --steps 256 --out outputs/demo_cramped_room_7x7.gif
+	if [ -f $(MAIN_RUN)/checkpoints/latest.pt ]; then \
+		$(BIN)/kitchen-train --resume $(MAIN_RUN); \
+	else \
+		$(BIN)/kitchen-train configs/main.yaml; \
+	fi
 
 test: setup
 	$(BIN)/python -m pytest -q
