@@ -94,23 +94,21 @@ class KitchenEnv(EnvBase):
 
         kitchen = self.kitchen
 
+        def observe(states, deliveries):
+            """The outputs of kitchens as they stand: nothing earned, not done (resets and restores)."""
+            zeros = jnp.zeros((num_envs, 2), jnp.float32)
+            return self._outputs(states, deliveries, zeros, zeros, jnp.zeros(num_envs, bool))
+
         def reset_all(key):
             _, states = kitchen.reset_batch(key, num_envs)
-            zeros = jnp.zeros((num_envs, 2), jnp.float32)
-            return self._outputs(states, jnp.zeros(num_envs, jnp.int32), zeros, zeros, jnp.zeros(num_envs, bool))
+            return observe(states, jnp.zeros(num_envs, jnp.int32))
 
         def reset_masked(key, states, deliveries, mask):
-            states = kitchen.reset_where(key, states, mask)
-            zeros = jnp.zeros((num_envs, 2), jnp.float32)
-            return self._outputs(states, jnp.where(mask, 0, deliveries), zeros, zeros, jnp.zeros(num_envs, bool))
+            return observe(kitchen.reset_where(key, states, mask), jnp.where(mask, 0, deliveries))
 
         def step(states, deliveries, actions):
             states, reward, done, info = jax.vmap(kitchen.step_env)(states, actions)
             return self._outputs(states, deliveries, reward, info["shaped_reward"], done)
-
-        def observe(states, deliveries):
-            zeros = jnp.zeros((num_envs, 2), jnp.float32)
-            return self._outputs(states, deliveries, zeros, zeros, jnp.zeros(num_envs, bool))
 
         self._reset_all = jax.jit(reset_all)
         self._observe = jax.jit(observe)

@@ -97,10 +97,9 @@ def report_trained_team(run: str | Path, episodes: int | None = None, num_heldou
     config, actor_critic = team.config, team.actor_critic
     episodes = episodes or config.eval_episodes
     grids = evaluation_grids(config.eval_heldout if num_heldout is None else num_heldout)
+    grids = [grid for grid in grids if grid.grid.shape == team.obs_shape[:2]]  # a model sees one kitchen size
     rows = []
     for grid in grids:
-        if grid.grid.shape != team.obs_shape[:2]:  # a model sees kitchens of one size only
-            continue
         deliveries = self_play_deliveries(config, actor_critic, grid, episodes, seed=config.seed)
         stderr = float(deliveries.std() / np.sqrt(len(deliveries))) if len(deliveries) > 1 else 0.0
         rows.append((grid.name, float(deliveries.mean()), stderr, len(deliveries)))
@@ -125,8 +124,8 @@ def report_trained_team(run: str | Path, episodes: int | None = None, num_heldou
         writer.writerow(["grid", "mean_deliveries", "stderr", "episodes"])
         writer.writerows(rows)
     print(table)
-    if config.gif and rows:
-        gif = record_gif(config, actor_critic, next(g for g in grids if g.name == rows[0][0]), run / "team.gif")
+    if config.gif and grids:
+        gif = record_gif(config, actor_critic, grids[0], run / "team.gif")
         print(f"gif: {gif}")
     return run / "eval.md"
 
