@@ -111,18 +111,29 @@ class Overcooked:
 
     # ----------------------------------------------------------------------------------------------------
     # Reset
-    def initial_state(self, key: jax.Array) -> State:
-        """A fresh episode: the level's start cells (or a new generated level), uniformly random facings."""
+    def initial_state(self, key: jax.Array, level: jax.Array | None = None) -> State:
+        """A fresh episode: the level's start cells (or a new generated level), uniformly random facings.
+
+        `level` (int32 ()): the index of the level to play in the list of levels (`num_levels`); None draws one.
+        """
         if self._heldout_grids is not None:
+            if level is not None:
+                raise ValueError("the Infinite Kitchen generates its levels: it has no level to pin an episode to")
             return sample_training_level(key, self.generator, self._heldout_grids)
         # Same key derivation as JaxMARL's reset (its first split draws random start cells, ours the level),
         # so with one layout equal keys give equal facings.
         key, key_level = jax.random.split(key)
         _, key_dir = jax.random.split(key)
-        index = jax.random.randint(key_level, (), 0, self._bank.step.shape[0])
-        start = jax.tree_util.tree_map(lambda leaf: leaf[index], self._bank)
+        if level is None:
+            level = jax.random.randint(key_level, (), 0, self.num_levels)
+        start = jax.tree_util.tree_map(lambda leaf: leaf[level], self._bank)
         facing = jax.random.randint(key_dir, (2,), 0, 4, dtype=jnp.int32)
         return start.replace(agent_dir=facing)
+
+    @property
+    def num_levels(self) -> int:
+        """How many levels episodes are drawn from (0 for the Infinite Kitchen, which generates them)."""
+        return 0 if self._bank is None else int(self._bank.step.shape[0])
 
     def reset(self, key: jax.Array) -> tuple[jax.Array, State]:
         state = self.initial_state(key)
@@ -149,23 +160,31 @@ class Overcooked:
 
     # ----------------------------------------------------------------------------------------------------
     # Batches
-    def reset_batch(self, key: jax.Array, num_envs: int) -> tuple[jax.Array, State]:
-        """`num_envs` fresh episodes: obs uint8 (B, 2, H, W, 26) and a State with leading axis B."""
-        states = jax.vmap(self.initial_state)(jax.random.split(key, num_envs))
+    def reset_batch(self, key: jax.Array, num_envs: int, levels: jax.Array | None = None) -> tuple[jax.Array, State]:
+        """`num_envs` fresh episodes: obs uint8 (B, 2, H, W, 26) and a State with leading axis B.
+
+        `levels` (int32 (B,)): kitchen b plays level levels[b] of the list; None draws a level per kitchen."""
+        states = self._fresh(key, num_envs, levels)
         return jax.vmap(self.get_obs)(states), states
 
-    def reset_where(self, key: jax.Array, states: State, mask: jax.Array) -> State:
+    def reset_where(self, key: jax.Array, states: State, mask: jax.Array, levels: jax.Array | None = None) -> State:
         """Batched states with the kitchens where `mask` (bool (B,)) is set replaced by fresh episodes.
 
         New levels are drawn only when some kitchen needs one: generating an Infinite Kitchen level costs
-        several steps, and batched episodes usually end together."""
+        several steps, and batched episodes usually end together. `levels` as in `reset_batch`."""
 
         def with_fresh(states):
-            fresh = jax.vmap(self.initial_state)(jax.random.split(key, mask.shape[0]))
+            fresh = self._fresh(key, mask.shape[0], levels)
             pick = lambda new, old: jnp.where(mask.reshape(mask.shape + (1,) * (old.ndim - 1)), new, old)
             return jax.tree_util.tree_map(pick, fresh, states)
 
         return jax.lax.cond(jnp.any(mask), with_fresh, lambda states: states, states)
+
+    def _fresh(self, key: jax.Array, num_envs: int, levels: jax.Array | None) -> State:
+        keys = jax.random.split(key, num_envs)
+        if levels is None:
+            return jax.vmap(self.initial_state)(keys)
+        return jax.vmap(self.initial_state)(keys, levels)
 
     def step_batch(self, key: jax.Array, states: State, actions: jax.Array):
         """`step` for a batch (leaves with leading axis B, actions int32 (B, 2)), auto-resetting the finished

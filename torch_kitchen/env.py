@@ -69,6 +69,8 @@ class KitchenEnv(EnvBase):
         generator: the Infinite Kitchen generator's probabilities.
         device: "cpu" or "cuda[:i]"; JAX runs on the same device.
         seed: seed of the levels, start facings and resets (also `set_seed`).
+        pin_levels: kitchen b always plays level b % len(levels) of a list (or of "heldout") instead of a
+            random one per episode: evaluation lays out its batch so that every test grid gets its kitchens.
     """
 
     batch_locked = True
@@ -82,6 +84,7 @@ class KitchenEnv(EnvBase):
         generator: GeneratorConfig = GeneratorConfig(),
         device: str | torch.device = "cpu",
         seed: int = 0,
+        pin_levels: bool = False,
     ):
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
@@ -93,6 +96,11 @@ class KitchenEnv(EnvBase):
         self._make_specs()
 
         kitchen = self.kitchen
+        if pin_levels and kitchen.num_levels == 0:
+            raise ValueError("pin_levels needs a list of levels (or 'heldout'); the Infinite Kitchen generates them")
+        # The level of every kitchen, or None: a fresh draw per episode.
+        self.pinned_levels = np.arange(num_envs) % kitchen.num_levels if pin_levels else None
+        levels_of_envs = None if self.pinned_levels is None else jnp.asarray(self.pinned_levels, jnp.int32)
 
         def observe(states, deliveries):
             """The outputs of kitchens as they stand: nothing earned, not done (resets and restores)."""
@@ -100,11 +108,11 @@ class KitchenEnv(EnvBase):
             return self._outputs(states, deliveries, zeros, zeros, jnp.zeros(num_envs, bool))
 
         def reset_all(key):
-            _, states = kitchen.reset_batch(key, num_envs)
+            _, states = kitchen.reset_batch(key, num_envs, levels_of_envs)
             return observe(states, jnp.zeros(num_envs, jnp.int32))
 
         def reset_masked(key, states, deliveries, mask):
-            return observe(kitchen.reset_where(key, states, mask), jnp.where(mask, 0, deliveries))
+            return observe(kitchen.reset_where(key, states, mask, levels_of_envs), jnp.where(mask, 0, deliveries))
 
         def step(states, deliveries, actions):
             states, reward, done, info = jax.vmap(kitchen.step_env)(states, actions)

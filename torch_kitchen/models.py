@@ -292,6 +292,20 @@ def make_network(
     return TensorDictSequential(*modules, selected_out_keys=selected)
 
 
+def sampling_actor(policy: TensorDictModuleBase) -> ProbabilisticActor:
+    """A `ProbabilisticActor` sampling ("agents", "action") and its log-prob from `policy`'s ("agents", "logits")."""
+    return ProbabilisticActor(
+        policy,
+        in_keys={"logits": ("agents", "logits")},
+        out_keys=[("agents", "action")],
+        distribution_class=torch.distributions.Categorical,
+        return_log_prob=True,
+        log_prob_key=("agents", "action_log_prob"),
+        # The protocol samples actions in training and in evaluation alike.
+        default_interaction_type=InteractionType.RANDOM,
+    )
+
+
 @dataclass
 class ActorCritic:
     """A policy and a value network over both agents (keys in the module docstring).
@@ -329,16 +343,7 @@ def build_builtin(architecture: str, obs_shape: tuple[int, int, int], hidden: in
               "share_params": share_params}
     policy = make_network("actor", out_key=("agents", "logits"), out_features=NUM_ACTIONS, out_gain=0.01, **common)
     critic = make_network("critic", out_key=("agents", "state_value"), out_features=1, out_gain=1.0, **common)
-    actor = ProbabilisticActor(
-        policy,
-        in_keys={"logits": ("agents", "logits")},
-        out_keys=[("agents", "action")],
-        distribution_class=torch.distributions.Categorical,
-        return_log_prob=True,
-        log_prob_key=("agents", "action_log_prob"),
-        # The protocol samples actions in training and in evaluation alike.
-        default_interaction_type=InteractionType.RANDOM,
-    )
+    actor = sampling_actor(policy)
     return ActorCritic(actor=actor, critic=critic, recurrent=recurrent)
 
 

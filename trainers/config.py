@@ -1,22 +1,29 @@
 """Experiment configs: one dataclass, YAML files that mirror it, and `key=value` overrides on top.
 
-A YAML file may name a `base:` file (relative to itself) whose values it overrides, so the configs of one
-family share their common part. Unknown keys and ill-typed values are refused with the list of valid keys.
+Two schemas: `TrainConfig` (a training run) and `EvalConfig` (an evaluation of trained teams). A YAML file may
+name a `base:` file (relative to itself) whose values it overrides, so the configs of one family share their
+common part. Unknown keys and ill-typed values are refused with the list of valid keys.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import difflib
+import types
 import typing
 from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
 
+from jax_env import EXPANDED_LAYOUTS
+
 
 class ConfigError(ValueError):
     """A config file or override that cannot be used; the message says what to change."""
+
+
+ALGORITHMS = ("ippo",)
 
 
 @dataclass
@@ -29,6 +36,8 @@ class TrainConfig:
     seed: int = 0  # seeds torch, the levels and the resets; the 6 teams of a condition are seeds 0..5
     device: str = "cpu"  # "cpu" or "cuda[:i]"; the env and the networks share it
     threads: int = 1  # torch CPU threads (1 is fastest for small networks on a shared CPU)
+
+    algorithm: str = "ippo"  # "ippo" (self-play)
 
     # --- environment
     levels: str | list[str] = "infinite"  # "infinite" (IK), a layout name or file (SK), or a list of them
@@ -85,6 +94,8 @@ class TrainConfig:
         for name in positive:
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.algorithm not in ALGORITHMS:
+            raise ConfigError(f"algorithm must be one of {', '.join(ALGORITHMS)}, got {self.algorithm!r}")
         if self.num_envs % self.minibatches:
             raise ConfigError(
                 f"minibatches ({self.minibatches}) must divide num_envs ({self.num_envs}): minibatches are whole "
@@ -93,49 +104,107 @@ class TrainConfig:
         return self
 
 
-FIELDS = {f.name: f for f in dataclasses.fields(TrainConfig)}
-_TYPES = typing.get_type_hints(TrainConfig)
+@dataclass
+class EvalConfig:
+    """The self-play / cross-play evaluation of populations of trained teams (`kitchen-eval`).
+
+    Every ordered pair of teams within a condition plays (i == j: self-play, i != j: cross-play), and so does
+    every pair across the conditions named in `cross`; each pair plays `rollouts` episodes on every test grid.
+    """
+
+    # --- who plays
+    conditions: dict[str, str | list[str]] = dataclasses.field(default_factory=dict)  # name -> run dirs or globs
+    cross: list[list[str]] = dataclasses.field(default_factory=list)  # [[cond_a, cond_b], ...] to cross-play
+
+    # --- where and how long
+    layouts: list[str] = dataclasses.field(default_factory=lambda: list(EXPANDED_LAYOUTS))
+    heldout: int = 100  # the first N of the 100 held-out generated levels
+    rollouts: int = 100  # episodes per pair and grid, actions sampled
+    max_steps: int = 256
+
+    # --- execution
+    max_envs: int = 8192  # kitchens stepped together (pairs x rollouts x grids are cut into batches of this)
+    seed: int = 0  # the same seed gives the same numbers
+    device: str = "cpu"
+    threads: int = 1
+    progress: bool = True
+
+    # --- outputs
+    out_dir: str = "results/eval"
+    gifs: list[str] = dataclasses.field(default_factory=list)  # "cond/seed0+cond/seed1@grid": agent 0, agent 1, grid
+    heatmaps: list[str] = dataclasses.field(default_factory=list)  # grids on which to draw the cells agents visit
+
+    def check(self) -> EvalConfig:
+        for name in ("rollouts", "max_steps", "max_envs"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if not 0 <= self.heldout <= 100:
+            raise ConfigError(f"heldout must be between 0 and 100 (the held-out set has 100 levels), got {self.heldout}")
+        if not self.layouts and not self.heldout:
+            raise ConfigError("nothing to evaluate on: give layouts or heldout > 0")
+        for pair in self.cross:
+            if len(pair) != 2:
+                raise ConfigError(f"cross holds pairs of condition names, got {pair!r}")
+            for name in pair:
+                if name not in self.conditions:
+                    raise ConfigError(
+                        f"cross names the condition {name!r}, which is not among the conditions: "
+                        f"{', '.join(self.conditions) or '(none)'}"
+                    )
+        return self
 
 
-def _coerce(key: str, value, source: str):
+def _fields(schema: type) -> list[str]:
+    return [f.name for f in dataclasses.fields(schema)]
+
+
+def _matches(value, expected) -> bool:
+    """Whether a YAML value fits a field type built from str, int, float, bool, list, dict and `|`."""
+    origin, args = typing.get_origin(expected), typing.get_args(expected)
+    if origin in (typing.Union, types.UnionType):
+        return any(_matches(value, arg) for arg in args)
+    if origin is list:
+        return isinstance(value, list) and all(_matches(item, args[0]) for item in value)
+    if origin is dict:
+        return isinstance(value, dict) and all(
+            _matches(key, args[0]) and _matches(item, args[1]) for key, item in value.items()
+        )
+    if expected in (int, float):
+        return isinstance(value, int | float) and not isinstance(value, bool)
+    return isinstance(value, expected)
+
+
+def _coerce(schema: type, key: str, value, source: str):
     """`value` as the type of field `key`, or a ConfigError naming the field, the type and where it came from."""
-    expected = _TYPES[key]
+    expected = typing.get_type_hints(schema)[key]
     if expected in (int, float) and isinstance(value, str):
         try:  # YAML reads 1e-3 (no dot) as a string
             value = float(value)
         except ValueError:
             pass
-    if expected is bool:
-        if isinstance(value, bool):
-            return value
-    elif expected is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-        if isinstance(value, float) and value.is_integer():  # 2e6 in YAML is a float
-            return int(value)
-    elif expected is float:
-        if isinstance(value, int | float) and not isinstance(value, bool):
-            return float(value)
-    elif expected is str:
-        if isinstance(value, str):
-            return value
-    else:  # levels: a name, or a list of names
-        if isinstance(value, str) or (isinstance(value, list) and value and all(isinstance(v, str) for v in value)):
-            return value
+    if expected is int and isinstance(value, float) and value.is_integer():  # 2e6 in YAML is a float
+        value = int(value)
+    if isinstance(value, list) and not value and typing.get_origin(expected) is not list:
+        value = None  # an empty list is no value for a name-or-list field
+    if value is not None and _matches(value, expected) and not (expected is int and isinstance(value, float)):
+        return float(value) if expected is float else value
     raise ConfigError(f"{key} in {source} must be {_type_name(expected)}, got {value!r}")
 
 
 def _type_name(expected) -> str:
-    return getattr(expected, "__name__", None) or str(expected).replace("typing.", "")
+    if typing.get_origin(expected) is None:
+        return expected.__name__
+    return str(expected).replace("typing.", "")
 
 
-def _unknown_key(key: str, source: str) -> ConfigError:
-    hint = difflib.get_close_matches(key, FIELDS, n=1)
+def _unknown_key(schema: type, key: str, source: str) -> ConfigError:
+    fields = _fields(schema)
+    hint = difflib.get_close_matches(key, fields, n=1)
     did_you_mean = f" (did you mean {hint[0]!r}?)" if hint else ""
-    return ConfigError(f"unknown config key {key!r} in {source}{did_you_mean}; valid keys: {', '.join(FIELDS)}")
+    return ConfigError(f"unknown config key {key!r} in {source}{did_you_mean}; valid keys: {', '.join(fields)}")
 
 
-def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict:
+def _read_yaml(schema: type, path: Path, seen: tuple[Path, ...] = ()) -> dict:
     """The values of a YAML config and of its `base:` chain, the file's own values last."""
     path = path.resolve()
     if path in seen:
@@ -149,15 +218,15 @@ def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict:
     if not isinstance(values, dict):
         raise ConfigError(f"config file {path} must hold `key: value` lines, got {type(values).__name__}")
     base = values.pop("base", None)
-    merged = _read_yaml(path.parent / base, (*seen, path)) if base else {}
+    merged = _read_yaml(schema, path.parent / base, (*seen, path)) if base else {}
     for key, value in values.items():
-        if key not in FIELDS:
-            raise _unknown_key(key, str(path))
+        if key not in _fields(schema):
+            raise _unknown_key(schema, key, str(path))
         merged[key] = (value, str(path))
     return merged
 
 
-def parse_overrides(overrides: list[str]) -> dict:
+def parse_overrides(overrides: list[str], schema: type = TrainConfig) -> dict:
     """`["lr=1e-3", "levels=[a, b]"]` -> {key: (value, source)}; values are read as YAML scalars or lists."""
     parsed = {}
     for item in overrides:
@@ -165,8 +234,8 @@ def parse_overrides(overrides: list[str]) -> dict:
         if not sep or not key:
             raise ConfigError(f"override {item!r} must look like key=value (e.g. seed=3)")
         key = key.strip()
-        if key not in FIELDS:
-            raise _unknown_key(key, "the command line")
+        if key not in _fields(schema):
+            raise _unknown_key(schema, key, "the command line")
         try:
             parsed[key] = (yaml.safe_load(text), "the command line")
         except yaml.YAMLError:
@@ -174,21 +243,29 @@ def parse_overrides(overrides: list[str]) -> dict:
     return parsed
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] = (), base: dict | None = None) -> TrainConfig:
-    """A checked `TrainConfig` from defaults, then `base` (e.g. a saved run's values), the YAML file, overrides."""
+Config = typing.TypeVar("Config", TrainConfig, EvalConfig)
+
+
+def load_config(
+    path: str | Path | None = None,
+    overrides: list[str] = (),
+    base: dict | None = None,
+    schema: type[Config] = TrainConfig,
+) -> Config:
+    """A checked `schema` config from defaults, then `base` (e.g. a saved run's values), the YAML file, overrides."""
     values = {key: (value, "the saved run config") for key, value in (base or {}).items()}
     for key in values:
-        if key not in FIELDS:
-            raise _unknown_key(key, "the saved run config")
+        if key not in _fields(schema):
+            raise _unknown_key(schema, key, "the saved run config")
     if path is not None:
-        values.update(_read_yaml(Path(path)))
-    values.update(parse_overrides(list(overrides)))
-    kwargs = {key: _coerce(key, value, source) for key, (value, source) in values.items()}
-    return TrainConfig(**kwargs).check()
+        values.update(_read_yaml(schema, Path(path)))
+    values.update(parse_overrides(list(overrides), schema))
+    kwargs = {key: _coerce(schema, key, value, source) for key, (value, source) in values.items()}
+    return schema(**kwargs).check()
 
 
-def save_config(config: TrainConfig, path: str | Path) -> None:
-    Path(path).write_text(yaml.safe_dump(config.to_dict(), sort_keys=False))
+def save_config(config: TrainConfig | EvalConfig, path: str | Path) -> None:
+    Path(path).write_text(yaml.safe_dump(dataclasses.asdict(config), sort_keys=False))
 
 
-__all__ = ["ConfigError", "TrainConfig", "load_config", "parse_overrides", "save_config"]
+__all__ = ["ConfigError", "EvalConfig", "TrainConfig", "load_config", "parse_overrides", "save_config"]

@@ -1,131 +1,475 @@
-"""Evaluating a trained team: self-play deliveries per test grid, a Markdown/CSV table, and a GIF.
+"""Self-play and cross-play evaluation of trained teams: the paper's matrices, tables, figures and GIFs.
 
-The test grids are the paper's: the 5 expanded classic layouts and the generated levels held out of
-training. Episodes come from the same collector routine as training (`trainers.rollout`), with actions
-sampled from the policy.
+    kitchen-eval configs/eval/paper.yaml                     # the paper's protocol
+    kitchen-eval configs/eval/paper.yaml rollouts=5 heldout=10 out_dir=results/quick
+
+A *population* is a set of conditions (e.g. "ippo_mlp_ik"), each a list of trained teams (its seeds). Every
+ordered pair (agent 0 of team i, agent 1 of team j) within a condition plays: self-play (SP) when i == j,
+cross-play (XP) otherwise; so does every pair across the conditions named in `cross`. Each pair plays
+`rollouts` episodes on every test grid: the 5 expanded classic layouts and the held-out generated levels.
+
+All pairs x grids x rollouts run as batches of up to `max_envs` kitchens through the rollout routine that
+training uses (`trainers.rollout`): kitchen b of a batch is pinned to grid b % G, and a `SeatedPolicy` gives
+each kitchen's two seats to the teams of its pair. Actions are sampled, recurrent teams carry their state.
 """
 
 from __future__ import annotations
 
+import argparse
 import csv
+import glob
+import math
+import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import jax
 import numpy as np
 import torch
-from torchrl.envs import TransformedEnv
+from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
+from tqdm import tqdm
 
-from jax_env import EXPANDED_LAYOUTS, Layout, get_layout, heldout_levels, layout_from_state
+from jax_env import EXPANDED_LAYOUTS, Layout, heldout_levels, layout_from_state, load_layout
 from jax_env.render import write_gif
+from torch_kitchen.env import KitchenEnv
 from torch_kitchen.models import ActorCritic, make_actor_critic
-from trainers.checkpoint import load_checkpoint
-from trainers.config import TrainConfig, load_config
-from trainers.ippo import make_env, with_model_transforms
-from trainers.rollout import collect_episodes, finished_episode_deliveries
+from torch_kitchen.pairing import make_seated_actor
+from trainers.checkpoint import CheckpointError, load_checkpoint
+from trainers.config import ConfigError, EvalConfig, TrainConfig, load_config, save_config
+from trainers.rollout import play_episodes
+
+SP, XP, CROSS = "SP", "XP", "cross"
 
 
+# ------------------------------------------------------------------------------------------------ teams
 @dataclass
 class Team:
-    """A trained team: its training config, its networks, and the kitchen size they were built for."""
+    """A trained team: its name ("<condition>/seed<k>"), training config, networks and kitchen size."""
 
+    name: str
+    condition: str
     config: TrainConfig
     actor_critic: ActorCritic
     obs_shape: tuple[int, int, int]
     checkpoint: str
 
+    @property
+    def regime(self) -> str:
+        """"IK" (trained on the Infinite Kitchen) or "SK" (on fixed layouts)."""
+        return "IK" if self.config.levels == "infinite" else "SK"
 
-def load_team(checkpoint: str | Path, device: str = "cpu") -> Team:
+    @property
+    def home(self) -> set[str] | None:
+        """The layouts a Single Kitchen team was trained on (None: an Infinite Kitchen team, at home anywhere)."""
+        if self.regime == "IK":
+            return None
+        levels = self.config.levels
+        return {levels} if isinstance(levels, str) else set(levels)
+
+    @property
+    def label(self) -> str:
+        """The team's family in the paper's figures, e.g. "IPPO MLP IK"."""
+        return f"{self.config.algorithm.upper()} {self.config.architecture.upper().replace('_', '+')} {self.regime}"
+
+
+def load_team(checkpoint: str | Path, device: str = "cpu", condition: str = "") -> Team:
     """The trained team of a checkpoint file or run directory (a CheckpointError says why one is unusable)."""
     state = load_checkpoint(checkpoint, map_location=device)
-    config = load_config(base=state["config"], overrides=[f"device={device}"])
+    where = state["path"]
+    try:
+        config = load_config(base=state["config"], overrides=[f"device={device}"])
+    except ConfigError as error:
+        raise CheckpointError(f"{where} was saved with a config this version cannot read ({error})") from None
     model = state["model"]
-    actor_critic = make_actor_critic(
-        model["architecture"], tuple(model["obs_shape"]), model["hidden"], model["share_params"]
-    )
-    actor_critic.actor.load_state_dict(state["actor"])
-    actor_critic.critic.load_state_dict(state["critic"])
+    try:
+        actor_critic = make_actor_critic(
+            model["architecture"], tuple(model["obs_shape"]), model["hidden"], model["share_params"]
+        )
+    except ValueError as error:
+        raise CheckpointError(
+            f"{where} holds a {model['architecture']!r} model that cannot be built here ({error}); import the "
+            "module that registers that architecture before loading it"
+        ) from None
+    try:
+        actor_critic.actor.load_state_dict(state["actor"])
+        actor_critic.critic.load_state_dict(state["critic"])
+    except RuntimeError as error:
+        raise CheckpointError(
+            f"{where}: the weights do not fit the {model['architecture']!r} model its header describes "
+            f"({str(error).splitlines()[0][:200]}); the file was written by another version or altered"
+        ) from None
     actor_critic.actor.to(device).eval()
     actor_critic.critic.to(device).eval()
-    return Team(config, actor_critic, tuple(model["obs_shape"]), state["path"])
+    condition = condition or config.name
+    return Team(f"{condition}/seed{config.seed}", condition, config, actor_critic, tuple(model["obs_shape"]), where)
 
 
-def evaluation_grids(num_heldout: int = 100) -> list[Layout]:
-    """The 5 expanded classic layouts, then the first `num_heldout` of the 100 held-out generated levels."""
+def load_population(conditions: dict[str, str | list[str]], device: str = "cpu") -> dict[str, list[Team]]:
+    """Condition name -> its teams, from run directories, checkpoint files or glob patterns of them."""
+    population = {}
+    for condition, patterns in conditions.items():
+        paths = []
+        for pattern in [patterns] if isinstance(patterns, str) else patterns:
+            matched = sorted(glob.glob(pattern)) if glob.has_magic(pattern) else [pattern]
+            if not matched:
+                raise CheckpointError(f"condition {condition!r}: no run matches {pattern!r}")
+            paths += matched
+        teams = []
+        for path in paths:
+            try:
+                teams.append(load_team(path, device, condition))
+            except CheckpointError as error:
+                raise CheckpointError(f"condition {condition!r}: {error}") from None
+        names = [team.name for team in teams]
+        for team in teams:  # two runs with one seed: tell them apart by position
+            if names.count(team.name) > 1:
+                team.name = f"{team.name}#{teams.index(team)}"
+        population[condition] = teams
+    return population
+
+
+# --------------------------------------------------------------------------------------------- matchups
+@dataclass(frozen=True)
+class Matchup:
+    """Agent 0 of teams[seat0] with agent 1 of teams[seat1]; kind SP, XP (same condition) or cross."""
+
+    seat0: int
+    seat1: int
+    kind: str
+
+
+def make_matchups(population: dict[str, list[Team]], cross: Sequence[Sequence[str]] = ()):
+    """(teams, matchups): every ordered pair within each condition, and both orders across each `cross` pair."""
+    teams = [team for members in population.values() for team in members]
+    index = {id(team): i for i, team in enumerate(teams)}
+    matchups = []
+    for members in population.values():
+        for a in members:
+            for b in members:
+                matchups.append(Matchup(index[id(a)], index[id(b)], SP if a is b else XP))
+    for first, second in cross:
+        for a in population[first]:
+            for b in population[second]:
+                matchups += [Matchup(index[id(a)], index[id(b)], CROSS), Matchup(index[id(b)], index[id(a)], CROSS)]
+    return teams, matchups
+
+
+def evaluation_grids(layouts: Sequence[str], num_heldout: int = 100) -> list[Layout]:
+    """The given layouts (names or text-grid files), then the first `num_heldout` of the 100 held-out generated levels (heldout_000...)."""
     generated = heldout_levels()
     heldout = [
         layout_from_state(jax.tree_util.tree_map(lambda leaf, i=i: leaf[i], generated), name=f"heldout_{i:03d}")
         for i in range(min(num_heldout, int(generated.grid.shape[0])))
     ]
-    return [get_layout(name) for name in EXPANDED_LAYOUTS] + heldout
+    return [load_layout(name) for name in layouts] + heldout
 
 
-def self_play_deliveries(
-    config: TrainConfig, actor_critic: ActorCritic, grid: Layout | str, episodes: int, seed: int = 0
-) -> torch.Tensor:
-    """float32 [episodes]: deliveries of `episodes` self-play episodes on one grid."""
-    env = with_model_transforms(make_env(config, num_envs=episodes, levels=grid, seed=seed), actor_critic)
-    return finished_episode_deliveries(collect_episodes(env, actor_critic.actor, config.max_steps))
+def is_heldout(grid_name: str) -> bool:
+    return grid_name.startswith("heldout_")
 
 
-def record_gif(config: TrainConfig, actor_critic: ActorCritic, grid: Layout | str, path: Path, seed: int = 0) -> Path:
-    """One self-play episode on `grid`, rendered as an animated GIF."""
-    env = with_model_transforms(make_env(config, num_envs=1, levels=grid, seed=seed), actor_critic)
-    kitchen = env.base_env if isinstance(env, TransformedEnv) else env
+# ------------------------------------------------------------------------------------------------ playing
+@dataclass
+class Outcomes:
+    """deliveries float32 [M, G, R] of every matchup, grid and rollout; visits float32 [M, G, 2, H, W], the steps
+    each seat spent on each cell, summed over rollouts."""
+
+    teams: list[Team]
+    matchups: list[Matchup]
+    grids: list[Layout]
+    deliveries: np.ndarray
+    visits: np.ndarray
+
+
+def play(
+    teams: list[Team],
+    matchups: list[Matchup],
+    grids: list[Layout],
+    rollouts: int,
+    max_steps: int = 256,
+    max_envs: int = 8192,
+    seed: int = 0,
+    device: str = "cpu",
+    progress: bool = False,
+) -> Outcomes:
+    """Every matchup plays `rollouts` episodes on every grid, in batches of at most `max_envs` kitchens."""
+    shapes = {(*grid.shape, 26) for grid in grids}
+    if len(shapes) != 1:
+        raise ValueError(f"the test grids must share one size, got {sorted(shapes)}")
+    (obs_shape,) = shapes
+    for team in teams:
+        if team.obs_shape != obs_shape:
+            raise CheckpointError(
+                f"{team.name} ({team.checkpoint}) was built for {team.obs_shape[0]}x{team.obs_shape[1]} kitchens, "
+                f"the test grids are {obs_shape[0]}x{obs_shape[1]}: evaluate it on grids of its own size"
+            )
+    num_grids = len(grids)
+    units = len(matchups) * rollouts  # a unit: one matchup's one rollout on every grid
+    per_batch = max(1, min(max_envs // num_grids, units))
+    batches = math.ceil(units / per_batch)
+    torch.manual_seed(seed)
+    kitchen = KitchenEnv(per_batch * num_grids, levels=grids, max_steps=max_steps, device=device, seed=seed,
+                         pin_levels=True)
+    actor = make_seated_actor([team.actor_critic.actor for team in teams])
+    seated = actor.module[0]
+    env = TransformedEnv(kitchen, Compose(*seated.env_transforms())) if seated.recurrent else kitchen
+    seat_of_matchup = torch.tensor([[m.seat0, m.seat1] for m in matchups], device=device)
+
+    height, width = obs_shape[:2]
+    deliveries = np.zeros((units, num_grids), np.float32)
+    visits = np.zeros((len(matchups), num_grids, 2, height, width), np.float32)
+    bar = tqdm(total=units * num_grids, unit="episode", unit_scale=True, disable=not progress, desc="evaluating")
+    for batch in range(batches):
+        # Kitchen b plays unit first + b // G on grid b % G; the last batch repeats its last unit to stay full.
+        unit = torch.arange(per_batch, device=device) + batch * per_batch
+        unit = unit.clamp(max=units - 1).repeat_interleave(num_grids)
+        seated.seat(seat_of_matchup[unit // rollouts])
+        with torch.no_grad():
+            outcome = play_episodes(env, actor, max_steps)
+        fresh = slice(0, min(per_batch, units - batch * per_batch) * num_grids)
+        unit, got = unit[fresh].cpu().numpy(), outcome.deliveries[fresh].cpu().numpy()
+        grid = np.arange(len(unit)) % num_grids
+        deliveries[unit, grid] = got
+        np.add.at(visits, (unit // rollouts, grid), outcome.visits[fresh].cpu().numpy())
+        bar.update(len(unit))
+    bar.close()
+    deliveries = deliveries.reshape(len(matchups), rollouts, num_grids).transpose(0, 2, 1)
+    return Outcomes(teams, matchups, grids, deliveries, visits)
+
+
+# ------------------------------------------------------------------------------------------------ metrics
+def mean_and_stderr(values: np.ndarray) -> tuple[float, float]:
+    values = np.asarray(values, dtype=np.float64)
+    if values.size == 0:
+        return float("nan"), float("nan")
+    stderr = values.std(ddof=1) / math.sqrt(values.size) if values.size > 1 else 0.0
+    return float(values.mean()), float(stderr)
+
+
+def pair_rows(outcomes: Outcomes) -> list[dict]:
+    """One row per matchup and grid: who played which seat, the kind of pair, mean deliveries and s.e."""
+    rows = []
+    for m, matchup in enumerate(outcomes.matchups):
+        first, second = outcomes.teams[matchup.seat0], outcomes.teams[matchup.seat1]
+        for g, grid in enumerate(outcomes.grids):
+            mean, stderr = mean_and_stderr(outcomes.deliveries[m, g])
+            rows.append({
+                "agent0": first.name, "agent1": second.name, "condition0": first.condition,
+                "condition1": second.condition, "kind": matchup.kind, "grid": grid.name,
+                "mean_deliveries": round(mean, 4), "stderr": round(stderr, 4), "episodes": outcomes.deliveries.shape[2],
+            })  # fmt: skip
+    return rows
+
+
+def at_home(team: Team, grid_name: str) -> bool:
+    """Whether a grid counts for a team in the summaries: any grid for IK, its own layouts and held-out levels for
+    SK (the paper evaluates SK teams on the layout they were trained on, and on the held-out levels)."""
+    return team.home is None or grid_name in team.home or is_heldout(grid_name)
+
+
+def pair_scores(outcomes: Outcomes, select, grid_names: Sequence[str]) -> np.ndarray:
+    """float [n]: for every matchup `select(matchup, team0, team1)` accepts, its mean deliveries over the grids
+    named (pairs are the unit of the paper's error bars)."""
+    columns = [g for g, grid in enumerate(outcomes.grids) if grid.name in set(grid_names)]
+    scores = []
+    for m, matchup in enumerate(outcomes.matchups):
+        first, second = outcomes.teams[matchup.seat0], outcomes.teams[matchup.seat1]
+        if columns and select(matchup, first, second):
+            scores.append(outcomes.deliveries[m, columns].mean())
+    return np.asarray(scores)
+
+
+def grid_groups(outcomes: Outcomes) -> list[tuple[str, list[str]]]:
+    """(group name, grid names): each classic layout alone, then all held-out levels together."""
+    groups = [(grid.name, [grid.name]) for grid in outcomes.grids if not is_heldout(grid.name)]
+    heldout = [grid.name for grid in outcomes.grids if is_heldout(grid.name)]
+    if heldout:
+        groups.append((f"held-out ({len(heldout)})", heldout))
+    return groups
+
+
+def summary_rows(outcomes: Outcomes) -> list[dict]:
+    """SP, XP and the SP - XP gap per condition and grid group; cross-condition XP per condition pair."""
+    rows = []
+    conditions = list(dict.fromkeys(team.condition for team in outcomes.teams))
+    for condition in conditions:
+        team = next(t for t in outcomes.teams if t.condition == condition)
+        for group, names in grid_groups(outcomes):
+            if not all(at_home(team, name) for name in names):
+                continue
+            stats = {}
+            for kind in (SP, XP):
+                scores = pair_scores(
+                    outcomes, lambda m, a, b, kind=kind: m.kind == kind and a.condition == condition, names
+                )
+                stats[kind] = (*mean_and_stderr(scores), len(scores))
+            rows.append({
+                "condition": condition, "label": team.label, "grids": group,
+                "sp": stats[SP][0], "sp_stderr": stats[SP][1], "sp_pairs": stats[SP][2],
+                "xp": stats[XP][0], "xp_stderr": stats[XP][1], "xp_pairs": stats[XP][2],
+                "gap": stats[SP][0] - stats[XP][0],
+            })  # fmt: skip
+    crossed = list(dict.fromkeys(
+        tuple(sorted((outcomes.teams[m.seat0].condition, outcomes.teams[m.seat1].condition)))
+        for m in outcomes.matchups if m.kind == CROSS
+    ))  # fmt: skip
+    for pair in crossed:
+        members = [next(t for t in outcomes.teams if t.condition == c) for c in pair]
+        for group, names in grid_groups(outcomes):
+            if not all(at_home(member, name) for member in members for name in names):
+                continue
+            scores = pair_scores(
+                outcomes, lambda m, a, b: m.kind == CROSS and tuple(sorted((a.condition, b.condition))) == pair, names
+            )
+            mean, stderr = mean_and_stderr(scores)
+            rows.append({"condition": " x ".join(pair), "label": "cross", "grids": group, "sp": float("nan"),
+                         "sp_stderr": float("nan"), "sp_pairs": 0, "xp": mean, "xp_stderr": stderr,
+                         "xp_pairs": len(scores), "gap": float("nan")})
+    return rows
+
+
+def markdown_summary(rows: list[dict], rollouts: int) -> str:
+    def cell(mean, stderr, pairs):
+        return "" if not pairs else f"{mean:.2f} ± {stderr:.2f} ({pairs})"
+
+    lines = [
+        f"Mean deliveries per episode ({rollouts} rollouts per pair and grid, actions sampled); ± one standard "
+        "error over pairs, (number of pairs). Held-out: the mean over the held-out levels.",
+        "",
+        "| condition | grids | SP | XP | SP - XP |",
+        "|---|---|---:|---:|---:|",
+    ]
+    for row in rows:
+        gap = "" if math.isnan(row["gap"]) or not row["xp_pairs"] else f"{row['gap']:.2f}"
+        lines.append(
+            f"| {row['condition']} | {row['grids']} | {cell(row['sp'], row['sp_stderr'], row['sp_pairs'])} | "
+            f"{cell(row['xp'], row['xp_stderr'], row['xp_pairs'])} | {gap} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def write_csv(rows: list[dict], path: Path) -> None:
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]) if rows else [])
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+# -------------------------------------------------------------------------------------------------- GIFs
+def record_gif(seat0: Team, seat1: Team, grid: Layout | str, path: Path, max_steps: int = 256, seed: int = 0) -> Path:
+    """One episode of agent 0 of `seat0` with agent 1 of `seat1` on `grid`, rendered as an animated GIF."""
+    kitchen = KitchenEnv(1, levels=grid, max_steps=max_steps, device=seat0.config.device, seed=seed)
+    teams = [seat0] if seat0 is seat1 else [seat0, seat1]
+    actor = make_seated_actor([team.actor_critic.actor for team in teams])
+    seated = actor.module[0].seat(torch.tensor([[0, len(teams) - 1]], device=kitchen.device))
+    env = TransformedEnv(kitchen, Compose(*seated.env_transforms())) if seated.recurrent else kitchen
 
     def the_kitchen():
         return jax.tree_util.tree_map(lambda leaf: leaf[0], kitchen.states)
 
+    torch.manual_seed(seed)
     tensordict = env.reset()
     frames = [the_kitchen()]
     with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
-        env.rollout(
-            config.max_steps,
-            actor_critic.actor,
-            auto_reset=False,
-            tensordict=tensordict,
-            callback=lambda env, td: frames.append(the_kitchen()),
-        )
+        env.rollout(max_steps, actor, auto_reset=False, tensordict=tensordict,
+                    callback=lambda env, td: frames.append(the_kitchen()))
     return Path(write_gif(frames, path))
 
 
+def parse_gif_request(request: str, teams: list[Team], grids: dict[str, Layout]) -> tuple[Team, Team, Layout]:
+    """"cond/seed0+cond/seed1@grid" -> (agent 0's team, agent 1's team, the test grid)."""
+    pair, sep, grid = request.partition("@")
+    first, plus, second = pair.partition("+")
+    if not sep or not plus or not grid:
+        raise ConfigError(f"gifs entry {request!r} must look like 'condition/seed0+condition/seed1@grid'")
+    by_name = {team.name: team for team in teams}
+    for name in (first, second):
+        if name not in by_name:
+            raise ConfigError(f"gifs entry {request!r} names the team {name!r}; teams: {', '.join(by_name)}")
+    if grid not in grids:
+        raise ConfigError(f"gifs entry {request!r} names {grid!r}, which is not a test grid: {', '.join(grids)}")
+    return by_name[first], by_name[second], grids[grid]
+
+
+# --------------------------------------------------------------------------------------------- the whole job
+def evaluate(config: EvalConfig) -> Path:
+    """Loads the population, plays every matchup, writes tables, figures and GIFs to `config.out_dir`."""
+    from trainers.figures import draw_figures, draw_heatmaps
+
+    torch.set_num_threads(config.threads)
+    if not config.conditions:
+        raise ConfigError("no conditions to evaluate: give conditions: {name: run_dir_or_glob, ...}")
+    population = load_population(config.conditions, config.device)
+    teams, matchups = make_matchups(population, config.cross)
+    grids = evaluation_grids(config.layouts, config.heldout)
+    by_name = {grid.name: grid for grid in grids}
+    for heatmap in config.heatmaps:
+        if heatmap not in by_name:
+            raise ConfigError(f"heatmaps names {heatmap!r}, which is not a test grid: {', '.join(by_name)}")
+    gifs = [parse_gif_request(request, teams, by_name) for request in config.gifs]
+    out = Path(config.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    save_config(config, out / "eval_config.yaml")
+    print(f"{len(teams)} teams, {len(matchups)} pairs, {len(grids)} grids, {config.rollouts} rollouts: "
+          f"{len(matchups) * len(grids) * config.rollouts:,} episodes")
+
+    outcomes = play(teams, matchups, grids, config.rollouts, config.max_steps, config.max_envs, config.seed,
+                    config.device, config.progress)
+    write_csv(pair_rows(outcomes), out / "pairs.csv")
+    summary = summary_rows(outcomes)
+    write_csv(summary, out / "summary.csv")
+    table = markdown_summary(summary, config.rollouts)
+    (out / "eval.md").write_text(table)
+    print(table)
+    written = draw_figures(outcomes, summary, out) + draw_heatmaps(outcomes, config.heatmaps, out)
+    for first, second, grid in gifs:
+        name = f"{first.name}+{second.name}@{grid.name}".replace("/", "-")
+        written.append(record_gif(first, second, grid, out / f"{name}.gif", config.max_steps, config.seed))
+    for path in written:
+        print(f"wrote {path}")
+    return out
+
+
 def report_trained_team(run: str | Path, episodes: int | None = None, num_heldout: int | None = None) -> Path:
-    """Self-play table of a run's latest checkpoint (eval.md, eval.csv) and a GIF (team.gif) in the run dir."""
+    """The self-play evaluation of a finished run, into the run directory: eval.md, pairs.csv, a team.gif."""
     run = Path(run)
     team = load_team(run)
-    config, actor_critic = team.config, team.actor_critic
-    episodes = episodes or config.eval_episodes
-    grids = evaluation_grids(config.eval_heldout if num_heldout is None else num_heldout)
-    grids = [grid for grid in grids if grid.grid.shape == team.obs_shape[:2]]  # a model sees one kitchen size
-    rows = []
-    for grid in grids:
-        deliveries = self_play_deliveries(config, actor_critic, grid, episodes, seed=config.seed)
-        stderr = float(deliveries.std() / np.sqrt(len(deliveries))) if len(deliveries) > 1 else 0.0
-        rows.append((grid.name, float(deliveries.mean()), stderr, len(deliveries)))
+    config = team.config
+    seven_by_seven = team.obs_shape[:2] == (7, 7)  # the held-out levels are 7x7
+    layouts = sorted(team.home) if team.home else list(EXPANDED_LAYOUTS)
+    out = evaluate(EvalConfig(
+        conditions={team.condition: str(run)},
+        layouts=layouts,
+        heldout=(config.eval_heldout if num_heldout is None else num_heldout) if seven_by_seven else 0,
+        rollouts=episodes or config.eval_episodes,
+        max_steps=config.max_steps,
+        seed=config.seed, device=config.device, threads=config.threads, progress=False,
+        out_dir=str(run),
+    ).check())  # fmt: skip
+    if config.gif:
+        print(f"gif: {record_gif(team, team, layouts[0], run / 'team.gif', config.max_steps, config.seed)}")
+    return out / "eval.md"
 
-    lines = [
-        f"Self-play deliveries per episode, {run} ({episodes} episodes per grid, actions sampled)",
-        "",
-        "| grid | mean deliveries | s.e. | episodes |",
-        "|---|---:|---:|---:|",
-    ]
-    lines += [f"| {name} | {mean:.2f} | {stderr:.2f} | {n} |" for name, mean, stderr, n in rows]
-    classic = [mean for name, mean, *_ in rows if not name.startswith("heldout")]
-    generated = [mean for name, mean, *_ in rows if name.startswith("heldout")]
-    if classic:
-        lines.append(f"| **classic layouts (mean)** | {np.mean(classic):.2f} | | |")
-    if generated:
-        lines.append(f"| **held-out levels (mean)** | {np.mean(generated):.2f} | | |")
-    table = "\n".join(lines) + "\n"
-    (run / "eval.md").write_text(table)
-    with open(run / "eval.csv", "w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(["grid", "mean_deliveries", "stderr", "episodes"])
-        writer.writerows(rows)
-    print(table)
-    if config.gif and grids:
-        gif = record_gif(config, actor_critic, grids[0], run / "team.gif")
-        print(f"gif: {gif}")
-    return run / "eval.md"
 
+# -------------------------------------------------------------------------------------------- command line
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="kitchen-eval",
+        description="Self-play and cross-play evaluation of trained teams: tables, figures, heat maps and GIFs.",
+        epilog="Overrides: any config key as key=value, e.g. rollouts=5 heldout=10 out_dir=results/quick.",
+    )
+    parser.add_argument("config", help="an evaluation config (configs/eval/...)")
+    parser.add_argument("overrides", nargs="*", help="key=value config overrides")
+    args = parser.parse_args(argv)
+    try:
+        evaluate(load_config(args.config, args.overrides, schema=EvalConfig))
+    except (ConfigError, CheckpointError, ValueError) as error:
+        print(f"kitchen-eval: error: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

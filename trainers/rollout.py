@@ -6,6 +6,8 @@ results the same way, from the "episode_deliveries" the env reports on each epis
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from tensordict import TensorDictBase
 from torchrl.collectors import Collector
@@ -36,12 +38,34 @@ def finished_episode_deliveries(batch: TensorDictBase) -> torch.Tensor:
     return batch["next", "episode_deliveries"].squeeze(-1)[done]
 
 
-def collect_episodes(env: EnvBase, policy, max_steps: int) -> TensorDictBase:
-    """One episode of every kitchen of `env` (which must start them together), as a [B, max_steps] batch."""
+@dataclass
+class EpisodeOutcomes:
+    """One episode of every kitchen: deliveries float32 [B], and visits float32 [B, 2, H, W], the steps each
+    agent spent on each cell."""
+
+    deliveries: torch.Tensor
+    visits: torch.Tensor
+
+
+def play_episodes(env: EnvBase, policy, max_steps: int, max_frames: int = 1 << 17) -> EpisodeOutcomes:
+    """One episode of every kitchen of `env` (all starting at the collector's reset), read on the fly.
+
+    The collector hands the episodes over in pieces of at most `max_frames` steps, so memory stays bounded
+    however many kitchens play; only the outcomes are kept.
+    """
     num_envs = env.batch_size[0]
-    collector = make_collector(env, policy, frames_per_batch=num_envs * max_steps, total_frames=num_envs * max_steps)
+    steps = max(d for d in range(1, max_steps + 1) if max_steps % d == 0 and d * num_envs <= max(max_frames, num_envs))
+    collector = make_collector(env, policy, frames_per_batch=num_envs * steps, total_frames=num_envs * max_steps)
+    deliveries, visits = None, None
     try:
-        batch = next(iter(collector)).clone()
+        for batch in collector:
+            position = batch["agents", "observation"][..., 0].sum(1, dtype=torch.float32)  # channel 0: own cell
+            visits = position if visits is None else visits + position
+            done = batch["next", "done"].squeeze(-1)
+            if deliveries is None:
+                deliveries = torch.full((num_envs,), float("nan"), device=done.device)
+            ended = done.any(1)
+            deliveries[ended] = batch["next", "episode_deliveries"].squeeze(-1)[done].to(deliveries.dtype)
     finally:
         collector.shutdown()
-    return batch
+    return EpisodeOutcomes(deliveries, visits)

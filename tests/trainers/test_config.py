@@ -2,10 +2,11 @@ from pathlib import Path
 
 import pytest
 
-from trainers.config import ConfigError, TrainConfig, load_config
+from trainers.config import ConfigError, EvalConfig, TrainConfig, load_config
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
-CONFIGS = sorted(CONFIG_DIR.rglob("*.yaml"))
+CONFIGS = sorted(path for path in CONFIG_DIR.rglob("*.yaml") if path.parent.name != "eval")
+EVAL_CONFIGS = sorted((CONFIG_DIR / "eval").glob("*.yaml"))
 
 
 def test_every_shipped_config_loads():
@@ -13,6 +14,23 @@ def test_every_shipped_config_loads():
     for path in CONFIGS:
         config = load_config(path)
         assert isinstance(config, TrainConfig), path
+    assert EVAL_CONFIGS
+    for path in EVAL_CONFIGS:
+        config = load_config(path, schema=EvalConfig)
+        assert config.conditions and config.rollouts == 100 and config.heldout == 100, path
+        # Every condition of the paper's evaluation names runs that the shipped training configs write.
+        names = {load_config(train).name for train in CONFIGS}
+        for condition, runs in config.conditions.items():
+            assert condition in names and runs == f"runs/{condition}/seed*", (path, condition)
+
+
+def test_eval_config_values_are_checked():
+    with pytest.raises(ConfigError, match=r"conditions in the command line must be dict\[str, str \| list\[str\]\]"):
+        load_config(None, ["conditions=[a, b]"], schema=EvalConfig)
+    with pytest.raises(ConfigError, match="heldout must be between 0 and 100"):
+        load_config(None, ["heldout=101"], schema=EvalConfig)
+    config = load_config(None, ["conditions={a: runs/a/seed*}", "rollouts=5"], schema=EvalConfig)
+    assert (config.conditions, config.rollouts, config.heldout) == ({"a": "runs/a/seed*"}, 5, 100)
 
 
 @pytest.mark.parametrize("architecture", ["mlp", "mlp_lstm", "gnn", "gnn_lstm"])

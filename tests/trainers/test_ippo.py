@@ -13,7 +13,7 @@ from trainers.checkpoint import load_checkpoint
 from trainers.config import load_config
 from trainers.evaluate import load_team
 from trainers.ippo import compute_advantages, main, make_env, make_loss, train, with_model_transforms
-from trainers.rollout import collect_episodes
+from trainers.rollout import make_collector
 
 MAIN_CONFIG = str(Path(__file__).resolve().parents[2] / "configs" / "main.yaml")
 # A few seconds per run: 4 kitchens x 16 steps per update, 16-step episodes, narrow networks.
@@ -66,9 +66,14 @@ def test_the_entry_point_trains_checkpoints_logs_and_evaluates(tmp_path, capsys)
     assert lr[0] == pytest.approx(2.5e-4) and lr[1] == pytest.approx(1.25e-4)  # annealed linearly
 
     table = (run / "eval.md").read_text()
-    for grid in ["cramped_room_7x7", "asymm_advantages_7x7", "coord_ring_7x7", "forced_coord_7x7",
-                 "counter_circuit_7x7", "heldout_000"]:
-        assert f"| {grid} |" in table
+    layouts = ["cramped_room_7x7", "asymm_advantages_7x7", "coord_ring_7x7", "forced_coord_7x7", "counter_circuit_7x7"]
+    for group in [*layouts, "held-out (1)"]:
+        assert f"| main | {group} |" in table
+    with open(run / "pairs.csv") as handle:
+        pairs = list(csv.DictReader(handle))
+    assert [(row["kind"], row["grid"], row["episodes"]) for row in pairs] == [
+        ("SP", grid, "2") for grid in [*layouts, "heldout_000"]
+    ]
     with Image.open(run / "team.gif") as gif:
         assert gif.n_frames > 1
     assert "gif:" in capsys.readouterr().out
@@ -144,7 +149,10 @@ def test_ppo_updates_lower_the_loss_on_a_fixed_batch(tmp_path, architecture):
     config = tiny_config(tmp_path, f"architecture={architecture}", "shaping_weight=1")
     actor_critic = make_actor_critic(architecture, (7, 7, 26), hidden=16, share_params=True)
     env = with_model_transforms(make_env(config), actor_critic)
-    batch = collect_episodes(env, TensorDictSequential(actor_critic.actor, actor_critic.critic), config.max_steps)
+    frames = config.num_envs * config.max_steps
+    collector = make_collector(env, TensorDictSequential(actor_critic.actor, actor_critic.critic), frames, frames)
+    batch = next(iter(collector)).clone()
+    collector.shutdown()
     compute_advantages(batch, actor_critic.critic, config, shaping_weight=1.0)
     loss_module = make_loss(config, actor_critic)
     optimizer = torch.optim.Adam(loss_module.parameters(), lr=1e-3)

@@ -1,0 +1,97 @@
+"""A scripted cook whose deliveries are known, for tests of evaluation and partner modelling.
+
+`TWO_BOOTHS` encloses each agent in a one-cell booth with a pot, an onion pile, a plate pile and a goal on its
+four sides, so an agent delivers on its own, at a fixed pace, whatever its partner does. `ScriptedCook` reads
+its observation and cooks: three onions into the pot, a plate, the soup, the goal. Seats not in `working` stay.
+Teams of it are registered as architectures, so they are saved and loaded like trained teams.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+from jax_env import INTERACT, STAY, parse_layout
+from jax_env.state import DIR_VECTORS
+from torch_kitchen.models import ActorCritic, register_architecture, sampling_actor
+from trainers.checkpoint import model_identity, save_checkpoint
+from trainers.config import TrainConfig
+
+TWO_BOOTHS = parse_layout("WPWPW\nO0B1O\nWXWXW", name="two_booths")
+POT, GOAL, ONION_PILE, PLATE_PILE = 10, 15, 12, 14  # observation channels
+ONIONS_IN_POT, COOKING_OR_READY, READY_SOUP, PLATE, ONION = 16, 18, 21, 22, 23
+
+
+class ScriptedCook(nn.Module):
+    """uint8 [..., 2, H, W, 26] observations -> logits [..., 2, 6] that pick one action with certainty."""
+
+    def __init__(self, working: tuple[int, ...] = (0, 1)):
+        super().__init__()
+        self.register_buffer("working", torch.tensor([seat in working for seat in range(2)]), persistent=False)
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        obs = observation.float()
+        me = obs[..., 0]  # [..., 2, H, W]: where each seat's agent stands
+
+        def here(channel):
+            return (obs[..., channel] * me).sum((-2, -1))
+
+        # The four cells around the agent, in the order of the move actions (north, south, east, west).
+        around = torch.stack([me.roll((dy, dx), (-2, -1)) for dx, dy in DIR_VECTORS], dim=-3)  # [..., 2, 4, H, W]
+
+        def beside(channel):
+            return (obs[..., channel].unsqueeze(-3) * around).sum((-2, -1))  # [..., 2, 4]
+
+        facing = (obs[..., 2:6] * me.unsqueeze(-1)).sum((-3, -2)).argmax(-1)
+        pot_onions = (beside(ONIONS_IN_POT) * beside(POT)).sum(-1)
+        pot_busy = (beside(COOKING_OR_READY) * beside(POT)).sum(-1) > 0
+        pot_ready = (beside(READY_SOUP) * beside(POT)).sum(-1) > 0
+        holding_soup, holding_plate, holding_onion = here(READY_SOUP) > 0, here(PLATE) > 0, here(ONION) > 0
+
+        needs_onion = (pot_onions < 3) & ~pot_busy
+        target_feature = torch.where(
+            holding_soup, GOAL,
+            torch.where(holding_onion | holding_plate, POT, torch.where(needs_onion, ONION_PILE, PLATE_PILE)),
+        )  # fmt: skip
+        features = torch.stack([beside(c) for c in (GOAL, POT, ONION_PILE, PLATE_PILE)], dim=-1)  # [..., 2, 4, 4]
+        column = {GOAL: 0, POT: 1, ONION_PILE: 2, PLATE_PILE: 3}
+        which = torch.zeros_like(target_feature)
+        for feature, index in column.items():
+            which = torch.where(target_feature == feature, index, which)
+        direction = features.gather(-1, which[..., None, None].expand(*which.shape, 4, 1)).squeeze(-1).argmax(-1)
+        waiting = holding_plate & ~pot_ready
+        act = torch.where(facing == direction, torch.where(waiting, STAY, INTERACT), direction)
+        action = torch.where(self.working, act, STAY)
+        logits = torch.full((*action.shape, 6), -1e9, device=observation.device)
+        return logits.scatter(-1, action.unsqueeze(-1), 0.0)
+
+
+def scripted_team(working: tuple[int, ...]) -> ActorCritic:
+    actor = sampling_actor(
+        TensorDictModule(ScriptedCook(working), in_keys=[("agents", "observation")], out_keys=[("agents", "logits")])
+    )
+    critic = TensorDictModule(
+        lambda obs: torch.zeros(*obs.shape[:-3], 1), in_keys=[("agents", "observation")],
+        out_keys=[("agents", "state_value")],
+    )  # fmt: skip
+    return ActorCritic(actor=actor, critic=critic, recurrent=False)
+
+
+SEATS = {"scripted_cooks": (0, 1), "scripted_cook_seat0": (0,), "scripted_cook_seat1": (1,), "scripted_idle": ()}
+for _name, _seats in SEATS.items():
+    try:
+        register_architecture(_name, lambda obs_shape, hidden, share_params, seats=_seats: scripted_team(seats))
+    except ValueError:  # registered by an earlier import of this module
+        pass
+
+
+def save_scripted_team(path, architecture: str, seed: int = 0, levels="infinite") -> str:
+    """A checkpoint of a scripted team, as `kitchen-train` would write it (no weights: nothing to learn)."""
+    config = TrainConfig(name=architecture, seed=seed, architecture=architecture, levels=levels)
+    obs_shape = (*TWO_BOOTHS.grid.shape, 26)
+    save_checkpoint(path, {
+        "config": config.to_dict(), "model": model_identity(architecture, obs_shape, 1, True),
+        "actor": {}, "critic": {}, "update": 0, "env_steps": 0,
+    })  # fmt: skip
+    return str(path)

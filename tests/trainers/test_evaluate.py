@@ -1,0 +1,174 @@
+"""Self-play / cross-play evaluation: known counts from scripted cooks, pair selection, seeding, errors, outputs."""
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from jax_env import get_layout, parse_layout, save_layout
+from scripted_cook import TWO_BOOTHS, save_scripted_team, scripted_team
+from torch_kitchen.env import KitchenEnv
+from torch_kitchen.models import make_actor_critic
+from trainers.checkpoint import CheckpointError, model_identity, save_checkpoint
+from trainers.config import ConfigError, EvalConfig, TrainConfig, load_config
+from trainers.evaluate import CROSS, SP, XP, evaluate, load_population, main, make_matchups, play
+
+# Agent 1's booth is complete; agent 0's has no plate pile, so agent 0 can never deliver here.
+ONE_BOOTH = parse_layout("WPWPW\nW0O1B\nWXWXW", name="one_booth")
+PACE = 7  # soups a scripted cook delivers alone in its booth in 256 steps
+WORKING = {"scripted_cooks": (0, 1), "scripted_cook_seat0": (0,), "scripted_cook_seat1": (1,), "scripted_idle": ()}
+
+
+@pytest.fixture()
+def booth_files(tmp_path):
+    return [save_layout(layout, str(tmp_path / f"{layout.name}.txt")) for layout in (TWO_BOOTHS, ONE_BOOTH)]
+
+
+@pytest.mark.parametrize("layout, seats, expected", [
+    (TWO_BOOTHS, (0, 1), 2 * PACE), (TWO_BOOTHS, (0,), PACE), (TWO_BOOTHS, (1,), PACE), (TWO_BOOTHS, (), 0),
+    (ONE_BOOTH, (0, 1), PACE), (ONE_BOOTH, (0,), 0),
+])  # fmt: skip
+def test_a_scripted_cook_delivers_at_a_known_pace(layout, seats, expected):
+    # Plain TorchRL rollouts, outside the evaluator: the ground truth the evaluator must reproduce.
+    env = KitchenEnv(8, levels=layout, max_steps=256, seed=3)
+    with set_exploration_type(ExplorationType.RANDOM):
+        rollout = env.rollout(256, scripted_team(seats).actor)
+    assert rollout["next", "deliveries"].sum(1).squeeze(-1).tolist() == [expected] * 8
+
+
+def test_the_evaluator_reports_exactly_the_known_counts(tmp_path, booth_files):
+    runs = {name: save_scripted_team(tmp_path / f"{name}.pt", name, seed=k) for k, name in enumerate(WORKING)}
+    config = EvalConfig(
+        conditions={"cooks": [runs["scripted_cooks"], runs["scripted_idle"]],
+                    "halves": [runs["scripted_cook_seat0"], runs["scripted_cook_seat1"]]},
+        cross=[["cooks", "halves"]], layouts=booth_files, heldout=0, rollouts=3,
+        max_envs=10,  # 5 kitchens per grid per batch: several batches, the last one padded
+        out_dir=str(tmp_path / "out"), progress=False,
+    ).check()  # fmt: skip
+    out = evaluate(config)
+
+    with open(out / "pairs.csv") as handle:
+        pairs = list(csv.DictReader(handle))
+    assert len(pairs) == (4 + 4 + 8) * 2
+    for row in pairs:
+        working0 = WORKING[_architecture(runs, row["agent0"])]
+        working1 = WORKING[_architecture(runs, row["agent1"])]
+        expected = PACE * (0 in working0) * (row["grid"] == "two_booths") + PACE * (1 in working1)
+        assert (float(row["mean_deliveries"]), float(row["stderr"]), row["episodes"]) == (expected, 0.0, "3"), row
+        kind = CROSS if row["condition0"] != row["condition1"] else SP if row["agent0"] == row["agent1"] else XP
+        assert row["kind"] == kind
+
+    with open(out / "summary.csv") as handle:
+        summary = {(row["condition"], row["grids"]): row for row in csv.DictReader(handle)}
+    cooks = summary["cooks", "two_booths"]  # SP: 14 (cooks) and 0 (idle); XP: 7 and 7
+    assert [float(cooks[k]) for k in ("sp", "sp_stderr", "xp", "xp_stderr", "gap")] == pytest.approx([7, 7, 7, 0, 0])
+    halves = summary["halves", "one_booth"]  # agent 0 idle here: SP 0 and 7, XP 7 (seat1 team in seat 1) and 0
+    assert [float(halves[k]) for k in ("sp", "xp")] == [3.5, 3.5]
+    assert int(summary["cooks x halves", "two_booths"]["xp_pairs"]) == 8
+    assert "| cooks | two_booths | 7.00 ± 7.00 (2) | 7.00 ± 0.00 (2) | 0.00 |" in (out / "eval.md").read_text()
+
+
+def _architecture(runs, team_name):
+    # Team names are "<condition>/seed<k>"; the scripted teams were saved with seed k = their index in WORKING.
+    return list(WORKING)[int(team_name.rsplit("seed", 1)[1])]
+
+
+def test_pairs_are_every_ordered_pair_within_a_condition_and_both_orders_across():
+    class Fake:
+        def __init__(self, condition):
+            self.condition = condition
+
+    population = {"a": [Fake("a"), Fake("a"), Fake("a")], "b": [Fake("b"), Fake("b")]}
+    teams, matchups = make_matchups(population, cross=[["a", "b"]])
+    assert len(teams) == 5
+    sp = [(m.seat0, m.seat1) for m in matchups if m.kind == SP]
+    xp = [(m.seat0, m.seat1) for m in matchups if m.kind == XP]
+    cross = {(m.seat0, m.seat1) for m in matchups if m.kind == CROSS}
+    assert sp == [(0, 0), (1, 1), (2, 2), (3, 3), (4, 4)]
+    assert sorted(xp) == [(0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1), (3, 4), (4, 3)]
+    assert cross == {(a, b) for a in range(3) for b in (3, 4)} | {(b, a) for a in range(3) for b in (3, 4)}
+    assert len(matchups) == 9 + 4 + 12
+
+
+def _save_model_team(path, architecture, seed, hidden=8, share_params=True):
+    torch.manual_seed(seed)
+    actor_critic = make_actor_critic(architecture, (7, 7, 26), hidden, share_params)
+    config = TrainConfig(architecture=architecture, seed=seed, hidden=hidden, share_params=share_params)
+    save_checkpoint(path, {
+        "config": config.to_dict(), "model": model_identity(architecture, (7, 7, 26), hidden, share_params),
+        "actor": actor_critic.actor.state_dict(), "critic": actor_critic.critic.state_dict(),
+    })  # fmt: skip
+    return str(path)
+
+
+def test_the_same_seed_gives_the_same_numbers_with_recurrent_and_mixed_teams(tmp_path):
+    population = load_population({
+        "lstm": [_save_model_team(tmp_path / "l0.pt", "mlp_lstm", 0, share_params=False),
+                 _save_model_team(tmp_path / "l1.pt", "mlp_lstm", 1)],
+        "gnn": [_save_model_team(tmp_path / "g0.pt", "gnn", 0, hidden=16)],
+    })  # fmt: skip
+    teams, matchups = make_matchups(population, cross=[["lstm", "gnn"]])
+    grids = [get_layout("cramped_room_7x7"), get_layout("coord_ring_7x7")]
+
+    def run(seed):
+        return play(teams, matchups, grids, rollouts=2, max_steps=32, max_envs=12, seed=seed)
+
+    first, again, other = run(0), run(0), run(1)
+    assert first.deliveries.shape == (len(matchups), 2, 2)
+    np.testing.assert_array_equal(first.deliveries, again.deliveries)
+    np.testing.assert_array_equal(first.visits, again.visits)
+    assert not np.array_equal(first.visits, other.visits)
+    # Every matchup, grid and seat: 2 rollouts x 32 steps spent somewhere on the floor.
+    np.testing.assert_array_equal(first.visits.sum((-2, -1)), np.full((len(matchups), 2, 2), 64.0))
+
+
+def test_unusable_checkpoints_and_configs_are_refused_with_a_message(tmp_path, capsys):
+    good = _save_model_team(tmp_path / "good.pt", "mlp", 0)
+    corrupt = tmp_path / "corrupt.pt"
+    corrupt.write_bytes(Path(good).read_bytes()[:500])
+    with pytest.raises(CheckpointError, match="condition 'c': .*corrupt.pt is not a readable checkpoint"):
+        load_population({"c": [good, str(corrupt)]})
+    with pytest.raises(CheckpointError, match="no run matches"):
+        load_population({"c": str(tmp_path / "nothing*")})
+    save_checkpoint(tmp_path / "alien.pt", {"config": {}, "model": model_identity("alien", (7, 7, 26), 8, True),
+                                            "actor": {}, "critic": {}})
+    with pytest.raises(CheckpointError, match="'alien' model that cannot be built here"):
+        load_population({"c": str(tmp_path / "alien.pt")})
+
+    booths = save_scripted_team(tmp_path / "booth.pt", "scripted_idle")
+    config = tmp_path / "eval.yaml"
+    config.write_text(f"conditions:\n  c: {good}\n  d: {booths}\nheldout: 1\nrollouts: 1\nout_dir: {tmp_path}/o\n")
+    assert main([str(config), "layouts=[]"]) == 2
+    assert "built for 3x5 kitchens, the test grids are 7x7" in capsys.readouterr().err
+    assert main([str(config), "rolouts=3"]) == 2
+    assert "unknown config key 'rolouts' in the command line (did you mean 'rollouts'?)" in capsys.readouterr().err
+    assert main([str(config), "cross=[[c, e]]"]) == 2
+    assert "cross names the condition 'e'" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="gifs entry 'c/seed0@cramped_room_7x7' must look like"):
+        evaluate(load_config(config, ["gifs=['c/seed0@cramped_room_7x7']", "conditions={c: " + good + "}"],
+                             schema=EvalConfig))
+
+
+def test_the_entry_point_writes_tables_figures_heatmaps_and_gifs(tmp_path):
+    runs = [_save_model_team(tmp_path / f"t{seed}.pt", "mlp", seed) for seed in range(2)]
+    out = tmp_path / "out"
+    argv = [
+        str(Path(__file__).resolve().parents[2] / "configs" / "eval" / "paper.yaml"),
+        f"conditions={{mlp_ik: [{runs[0]}, {runs[1]}]}}", "cross=[]", "rollouts=1", "heldout=2", "max_steps=16",
+        "layouts=[cramped_room_7x7, coord_ring_7x7]", f"out_dir={out}", "heatmaps=[coord_ring_7x7]",
+        "gifs=['mlp_ik/seed0+mlp_ik/seed1@heldout_001']", "progress=false",
+    ]  # fmt: skip
+    assert main(argv) == 0
+    for name in ["fig3a_xp_layouts.png", "fig3b_gap.png", "fig7_heldout.png", "fig8_per_layout.png",
+                 "heatmap_coord_ring_7x7.png"]:
+        with Image.open(out / name) as image:
+            assert image.size[0] > 200 and image.size[1] > 200
+    with Image.open(out / "mlp_ik-seed0+mlp_ik-seed1@heldout_001.gif") as gif:
+        assert gif.n_frames > 1
+    table = (out / "eval.md").read_text()
+    assert "| mlp_ik | coord_ring_7x7 |" in table and "| mlp_ik | held-out (2) |" in table
+    assert load_config(out / "eval_config.yaml", schema=EvalConfig).rollouts == 1

@@ -1,0 +1,107 @@
+"""Kitchens whose two seats are played by different teams: the policy of self-play and cross-play evaluation.
+
+`SeatedPolicy(actors)` holds the actors of several teams. `seat(teams)` says, for every kitchen of the batch,
+which team plays agent 0 and which plays agent 1 (long [B, 2]); a forward pass then runs each team's actor once
+on the kitchens where it plays a seat and keeps, per seat, the logits of the team in that seat. Sampling
+happens once, on those combined logits (`make_seated_actor` wraps it in a `ProbabilisticActor`), so the
+kitchens' actions are drawn exactly as a team's own actor would draw them.
+
+A team evaluates both agents of every kitchen it plays in and its output for the other seat is dropped: the
+networks act on each agent's observation independently, so this costs compute (at most 2x) but never
+changes what the seated agent does, and it keeps every architecture and parameter-sharing mode usable as is.
+
+Recurrent state: a team's actor reads ("agents", "actor_h" | "actor_c") [*B, 2, 1, h]. Here seat s of
+kitchen b holds the state of the team in that seat, under ("agents", "<name>_<h>") so that teams of different
+widths can meet; `env_transforms()` gives the InitTracker and the primer that carry them.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import InitTracker, Transform
+from torchrl.modules import ProbabilisticActor
+
+from jax_env import NUM_ACTIONS
+from torch_kitchen.models import N_AGENTS, AgentLSTMModule, agent_state_primer, sampling_actor
+
+OBSERVATION, LOGITS = ("agents", "observation"), ("agents", "logits")
+
+
+def _recurrent_states(actor: TensorDictModuleBase) -> dict[str, int]:
+    """Name under "agents" -> width of every LSTM state the actor reads."""
+    states = {}
+    for module in actor.modules():
+        if isinstance(module, AgentLSTMModule):
+            states.update(module.state_sizes())
+    return states
+
+
+class SeatedPolicy(TensorDictModuleBase):
+    """Logits ("agents", "logits") [B, 2, 6] of the teams seated in every kitchen (see the module docstring)."""
+
+    def __init__(self, actors: list[TensorDictModuleBase]):
+        super().__init__()
+        self.actors = torch.nn.ModuleList(actors)
+        # Per team: its state names -> the storage name (the state name suffixed with its width).
+        self._storage: list[dict[str, str]] = []
+        self._widths: dict[str, int] = {}  # storage name -> width
+        for actor in actors:
+            states = _recurrent_states(actor)
+            self._storage.append({name: f"{name}_{width}" for name, width in states.items()})
+            self._widths.update({f"{name}_{width}": width for name, width in states.items()})
+        self.recurrent = bool(self._widths)
+        state_keys = [("agents", name) for name in self._widths]
+        self.in_keys = [OBSERVATION] + (["is_init", *state_keys] if self.recurrent else [])
+        self.out_keys = [LOGITS] + [("next", *key) for key in state_keys]
+        self._rows: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
+
+    def env_transforms(self) -> list[Transform]:
+        """[] for feed-forward teams, else [InitTracker(), the primer of every stored state]."""
+        return [InitTracker(), agent_state_primer(self._widths)] if self.recurrent else []
+
+    def seat(self, teams: torch.Tensor) -> SeatedPolicy:
+        """Seats team teams[b, s] (an index into `actors`) as agent s of kitchen b, for the next forward passes."""
+        if teams.ndim != 2 or teams.shape[1] != N_AGENTS:
+            raise ValueError(f"teams must be [num_envs, {N_AGENTS}] team indices, got {list(teams.shape)}")
+        if teams.numel() and not 0 <= int(teams.min()) <= int(teams.max()) < len(self.actors):
+            raise ValueError(f"team indices must lie in [0, {len(self.actors)}), got {teams.unique().tolist()}")
+        self._rows = []
+        for team in range(len(self.actors)):
+            seated = teams == team  # [B, 2]
+            rows = seated.any(-1).nonzero().squeeze(-1)
+            self._rows.append((rows, seated[rows, 0], seated[rows, 1]))
+        self._num_envs = teams.shape[0]
+        return self
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if not self._rows:
+            raise RuntimeError("SeatedPolicy.seat(teams) must say who plays where before the first forward pass")
+        observation = tensordict.get(OBSERVATION)
+        if observation.shape[0] != self._num_envs:
+            raise ValueError(f"seated for {self._num_envs} kitchens, got a batch of {observation.shape[0]}")
+        logits = observation.new_zeros((*observation.shape[:2], NUM_ACTIONS), dtype=torch.float32)
+        next_states = {name: torch.zeros_like(tensordict.get(("agents", name))) for name in self._widths}
+        for actor, storage, (rows, seat0, seat1) in zip(self.actors, self._storage, self._rows):
+            if rows.numel() == 0:
+                continue
+            team_view = TensorDict({OBSERVATION: observation[rows]}, batch_size=rows.shape)
+            if storage:
+                team_view.set("is_init", tensordict.get("is_init")[rows])
+                for name, stored in storage.items():
+                    team_view.set(("agents", name), tensordict.get(("agents", stored))[rows])
+            team_view = actor(team_view)
+            for seat, mine in enumerate((seat0, seat1)):
+                logits[rows[mine], seat] = team_view.get(LOGITS)[mine, seat]
+                for name, stored in storage.items():
+                    next_states[stored][rows[mine], seat] = team_view.get(("next", "agents", name))[mine, seat]
+        tensordict.set(LOGITS, logits)
+        for name, state in next_states.items():
+            tensordict.set(("next", "agents", name), state)
+        return tensordict
+
+
+def make_seated_actor(actors: list[TensorDictModuleBase]) -> ProbabilisticActor:
+    """A `ProbabilisticActor` sampling ("agents", "action") from a `SeatedPolicy` over `actors` (`.module[0]`)."""
+    return sampling_actor(SeatedPolicy(actors))

@@ -1,0 +1,171 @@
+"""The paper's evaluation figures (matplotlib, PNG) from `trainers.evaluate` outcomes and summary rows.
+
+    fig3a_xp_layouts.png    cross-play per family (e.g. "IPPO MLP IK") on each classic layout
+    fig3b_gap.png           SP - XP gap per family, averaged over the classic layouts
+    fig7_heldout.png        SP and XP per family on the held-out generated levels
+    fig8_per_layout.png     SP and XP per family, one panel per classic layout
+    heatmap_<grid>.png      where the agents stand on a grid: one row per condition, SP and XP columns
+
+A family's value on a layout comes from its conditions at home there (an SK condition on the layout it was
+trained on); several conditions of one family pool their means, their standard errors add in quadrature.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only: no display needed
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from jax_env.layouts import COUNTER, FLOOR, GOAL, ONION_PILE, PLATE_PILE, POT  # noqa: E402
+
+HELDOUT = "held-out"
+_KIND_COLORS = {
+    FLOOR: (0.96, 0.94, 0.90), COUNTER: (0.55, 0.45, 0.35), ONION_PILE: (0.95, 0.80, 0.25),
+    PLATE_PILE: (0.85, 0.85, 0.90), POT: (0.25, 0.25, 0.25), GOAL: (0.35, 0.65, 0.40),
+}  # fmt: skip
+
+
+def family_stats(summary: list[dict], grids: str, kind: str) -> dict[str, tuple[float, float]]:
+    """Family label -> (mean, s.e.) of `kind` ("sp" | "xp" | "gap") on one grid group, pooled over conditions."""
+    pooled: dict[str, list[tuple[float, float]]] = {}
+    for row in summary:
+        if row["label"] == "cross" or not _same_group(row["grids"], grids):
+            continue
+        if kind == "gap":
+            value, stderr = row["gap"], math.hypot(row["sp_stderr"], row["xp_stderr"])
+        else:
+            value, stderr = row[kind], row[f"{kind}_stderr"]
+        if row[f"{'xp' if kind == 'gap' else kind}_pairs"] and not math.isnan(value):
+            pooled.setdefault(row["label"], []).append((value, stderr))
+    return {
+        label: (float(np.mean([v for v, _ in values])), math.sqrt(sum(s * s for _, s in values)) / len(values))
+        for label, values in pooled.items()
+    }
+
+
+def _same_group(row_group: str, wanted: str) -> bool:
+    return row_group.startswith(HELDOUT) if wanted == HELDOUT else row_group == wanted
+
+
+def _bars(axis, groups: list[str], series: dict[str, dict[str, tuple[float, float]]], ylabel: str) -> None:
+    """Grouped bars: one group per x tick, one bar per series (name -> {group: (mean, s.e.)})."""
+    width = 0.8 / max(1, len(series))
+    for k, (name, values) in enumerate(series.items()):
+        x = np.arange(len(groups)) + (k - (len(series) - 1) / 2) * width
+        means = [values.get(group, (np.nan, 0))[0] for group in groups]
+        errors = [values.get(group, (np.nan, 0))[1] for group in groups]
+        axis.bar(x, means, width, yerr=errors, capsize=3, label=name)
+    names = [g.removesuffix("_7x7").replace("_", " ") for g in groups]
+    axis.set_xticks(np.arange(len(groups)), [name.replace(" ", "\n") if len(name) > 10 else name for name in names])
+    axis.set_ylabel(ylabel)
+    axis.grid(axis="y", alpha=0.3)
+    axis.legend(fontsize=8)
+
+
+def draw_figures(outcomes, summary: list[dict], out: Path) -> list[Path]:
+    """The bar figures that the outcomes support (XP figures need conditions of several teams)."""
+    out = Path(out)
+    layouts = [grid.name for grid in outcomes.grids if not grid.name.startswith("heldout_")]
+    has_heldout = len(layouts) < len(outcomes.grids)
+    has_xp = any(row["xp_pairs"] for row in summary if row["label"] != "cross")
+    written = []
+
+    def save(figure, name):
+        figure.tight_layout()
+        figure.savefig(out / name, dpi=120)
+        plt.close(figure)
+        written.append(out / name)
+
+    families = list(dict.fromkeys(row["label"] for row in summary if row["label"] != "cross"))
+    if has_xp and layouts:
+        xp = {label: {} for label in families}
+        for layout in layouts:
+            for label, stats in family_stats(summary, layout, "xp").items():
+                xp[label][layout] = stats
+        figure, axis = plt.subplots(figsize=(2 + 1.4 * len(layouts), 4))
+        _bars(axis, layouts, xp, "cross-play deliveries per episode")
+        axis.set_title("Cross-play on the classic layouts (Fig. 3a)")
+        save(figure, "fig3a_xp_layouts.png")
+
+        gaps = {}
+        for label in families:
+            values = [family_stats(summary, layout, "gap").get(label) for layout in layouts]
+            values = [v for v in values if v is not None]
+            if values:
+                gaps[label] = (float(np.mean([v for v, _ in values])),
+                               math.sqrt(sum(s * s for _, s in values)) / len(values))
+        figure, axis = plt.subplots(figsize=(2 + 1.2 * len(gaps), 4))
+        _bars(axis, ["classic layouts"], {label: {"classic layouts": v} for label, v in gaps.items()}, "SP - XP")
+        axis.set_title("Generalisation gap, SP - XP (Fig. 3b)")
+        save(figure, "fig3b_gap.png")
+
+        figure, axes = plt.subplots(1, len(layouts), figsize=(3.2 * len(layouts), 3.8), squeeze=False)
+        for axis, layout in zip(axes[0], layouts):
+            series = {kind.upper(): family_stats(summary, layout, kind) for kind in ("sp", "xp")}
+            present = [label for label in families if any(label in v for v in series.values())]
+            _bars(axis, present, series, "deliveries per episode")
+            axis.set_title(layout.removesuffix("_7x7").replace("_", " "))
+        figure.suptitle("SP and XP per layout (Fig. 8)")
+        save(figure, "fig8_per_layout.png")
+
+    if has_heldout:
+        series = {kind.upper(): family_stats(summary, HELDOUT, kind) for kind in ("sp", "xp")}
+        series = {kind: values for kind, values in series.items() if values}
+        figure, axis = plt.subplots(figsize=(2 + 1.4 * len(families), 4))
+        _bars(axis, families, series, "deliveries per episode")
+        axis.set_title("Held-out generated levels (Fig. 7)")
+        save(figure, "fig7_heldout.png")
+    return written
+
+
+def grid_image(grid: np.ndarray) -> np.ndarray:
+    """float RGB (H, W, 3) of a kitchen's cell kinds."""
+    return np.asarray([[_KIND_COLORS[int(kind)] for kind in row] for row in grid])
+
+
+def draw_heatmaps(outcomes, grid_names: list[str], out: Path) -> list[Path]:
+    """For each grid named: the share of steps agents spent on each cell, per condition (rows), SP and XP."""
+    from trainers.evaluate import SP, XP, at_home
+
+    written = []
+    names = [grid.name for grid in outcomes.grids]
+    for grid_name in grid_names:
+        g = names.index(grid_name)
+        layout = outcomes.grids[g]
+        panels = []  # (condition, kind, visits [H, W])
+        for condition in dict.fromkeys(team.condition for team in outcomes.teams):
+            for kind in (SP, XP):
+                chosen = [m for m, matchup in enumerate(outcomes.matchups)
+                          if matchup.kind == kind and outcomes.teams[matchup.seat0].condition == condition
+                          and at_home(outcomes.teams[matchup.seat0], grid_name)]
+                if chosen:
+                    visits = outcomes.visits[chosen, g].sum(axis=(0, 1))
+                    panels.append((condition, kind, visits / max(visits.sum(), 1)))
+        if not panels:
+            continue
+        rows = list(dict.fromkeys(condition for condition, _, _ in panels))
+        kinds = list(dict.fromkeys(kind for _, kind, _ in panels))
+        figure, axes = plt.subplots(len(rows), len(kinds), figsize=(3.2 * len(kinds), 3.0 * len(rows)),
+                                    squeeze=False)
+        background = grid_image(layout.grid)
+        top = max(float(v.max()) for _, _, v in panels) or 1.0
+        for axis in axes.flat:
+            axis.set_axis_off()
+        for condition, kind, visits in panels:
+            axis = axes[rows.index(condition), kinds.index(kind)]
+            axis.imshow(background)
+            heat = np.ma.masked_where(layout.grid != FLOOR, visits)
+            image = axis.imshow(heat, cmap="inferno", vmin=0, vmax=top, alpha=0.85)
+            axis.set_title(f"{condition}: {kind}", fontsize=9)
+        figure.colorbar(image, ax=axes.ravel().tolist(), shrink=0.8, label="share of agent steps")
+        figure.suptitle(f"Cells visited on {grid_name} (Fig. 4)")
+        path = out / f"heatmap_{grid_name}.png"
+        figure.savefig(path, dpi=120)
+        plt.close(figure)
+        written.append(path)
+    return written
