@@ -50,16 +50,12 @@ class ScriptedCook(nn.Module):
         holding_soup, holding_plate, holding_onion = here(READY_SOUP) > 0, here(PLATE) > 0, here(ONION) > 0
 
         needs_onion = (pot_onions < 3) & ~pot_busy
-        target_feature = torch.where(
-            holding_soup, GOAL,
-            torch.where(holding_onion | holding_plate, POT, torch.where(needs_onion, ONION_PILE, PLATE_PILE)),
-        )  # fmt: skip
-        features = torch.stack([beside(c) for c in (GOAL, POT, ONION_PILE, PLATE_PILE)], dim=-1)  # [..., 2, 4, 4]
-        column = {GOAL: 0, POT: 1, ONION_PILE: 2, PLATE_PILE: 3}
-        which = torch.zeros_like(target_feature)
-        for feature, index in column.items():
-            which = torch.where(target_feature == feature, index, which)
-        direction = features.gather(-1, which[..., None, None].expand(*which.shape, 4, 1)).squeeze(-1).argmax(-1)
+        # Which of the tiles (goal, pot, onion pile, plate pile) to face next, and where it lies.
+        tiles = torch.stack([beside(c) for c in (GOAL, POT, ONION_PILE, PLATE_PILE)], dim=-1)  # [..., 2, 4 dirs, 4]
+        wanted = torch.where(
+            holding_soup, 0, torch.where(holding_onion | holding_plate, 1, torch.where(needs_onion, 2, 3))
+        )
+        direction = tiles.gather(-1, wanted[..., None, None].expand(*wanted.shape, 4, 1)).squeeze(-1).argmax(-1)
         waiting = holding_plate & ~pot_ready
         act = torch.where(facing == direction, torch.where(waiting, STAY, INTERACT), direction)
         action = torch.where(self.working, act, STAY)

@@ -192,6 +192,15 @@ class AgentLSTMModule(LSTMModule):
         return agent_state_primer(self.state_sizes(), self.n_agents)
 
 
+def recurrent_states(network: nn.Module) -> dict[str, int]:
+    """Name under "agents" -> width of every LSTM state a network reads (empty if feed-forward)."""
+    states = {}
+    for module in network.modules():
+        if isinstance(module, AgentLSTMModule):
+            states.update(module.state_sizes())
+    return states
+
+
 class MultiAgentLSTM(TensorDictModuleBase):
     """LSTM over both agents: ("agents", "<net>_embedding") [*B, 2, h] -> ("agents", "<net>_memory") [*B, 2, h].
 
@@ -327,12 +336,7 @@ class ActorCritic:
         """
         if not self.recurrent:
             return []
-        states = {}
-        for network in (self.actor, self.critic):
-            for module in network.modules():
-                if isinstance(module, AgentLSTMModule):
-                    states.update(module.state_sizes())
-        return [InitTracker(), agent_state_primer(states)]
+        return [InitTracker(), agent_state_primer({**recurrent_states(self.actor), **recurrent_states(self.critic)})]
 
 
 def build_builtin(architecture: str, obs_shape: tuple[int, int, int], hidden: int,

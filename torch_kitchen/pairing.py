@@ -24,18 +24,9 @@ from torchrl.envs import InitTracker, Transform
 from torchrl.modules import ProbabilisticActor
 
 from jax_env import NUM_ACTIONS
-from torch_kitchen.models import N_AGENTS, AgentLSTMModule, agent_state_primer, sampling_actor
+from torch_kitchen.models import N_AGENTS, agent_state_primer, recurrent_states, sampling_actor
 
 OBSERVATION, LOGITS = ("agents", "observation"), ("agents", "logits")
-
-
-def _recurrent_states(actor: TensorDictModuleBase) -> dict[str, int]:
-    """Name under "agents" -> width of every LSTM state the actor reads."""
-    states = {}
-    for module in actor.modules():
-        if isinstance(module, AgentLSTMModule):
-            states.update(module.state_sizes())
-    return states
 
 
 class SeatedPolicy(TensorDictModuleBase):
@@ -48,7 +39,7 @@ class SeatedPolicy(TensorDictModuleBase):
         self._storage: list[dict[str, str]] = []
         self._widths: dict[str, int] = {}  # storage name -> width
         for actor in actors:
-            states = _recurrent_states(actor)
+            states = recurrent_states(actor)
             self._storage.append({name: f"{name}_{width}" for name, width in states.items()})
             self._widths.update({f"{name}_{width}": width for name, width in states.items()})
         self.recurrent = bool(self._widths)

@@ -94,6 +94,8 @@ class TrainConfig:
         for name in positive:
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if not self.levels:
+            raise ConfigError("levels is empty: give a layout name or file, a list of them, or 'infinite'")
         if self.algorithm not in ALGORITHMS:
             raise ConfigError(f"algorithm must be one of {', '.join(ALGORITHMS)}, got {self.algorithm!r}")
         if self.num_envs % self.minibatches:
@@ -139,7 +141,7 @@ class EvalConfig:
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be at least 1, got {getattr(self, name)}")
         if not 0 <= self.heldout <= 100:
-            raise ConfigError(f"heldout must be between 0 and 100 (the held-out set has 100 levels), got {self.heldout}")
+            raise ConfigError(f"heldout must be between 0 and 100 (the held-out levels), got {self.heldout}")
         if not self.layouts and not self.heldout:
             raise ConfigError("nothing to evaluate on: give layouts or heldout > 0")
         for pair in self.cross:
@@ -169,8 +171,10 @@ def _matches(value, expected) -> bool:
         return isinstance(value, dict) and all(
             _matches(key, args[0]) and _matches(item, args[1]) for key, item in value.items()
         )
-    if expected in (int, float):
-        return isinstance(value, int | float) and not isinstance(value, bool)
+    if isinstance(value, bool):
+        return expected is bool
+    if expected is float:
+        return isinstance(value, int | float)
     return isinstance(value, expected)
 
 
@@ -184,9 +188,7 @@ def _coerce(schema: type, key: str, value, source: str):
             pass
     if expected is int and isinstance(value, float) and value.is_integer():  # 2e6 in YAML is a float
         value = int(value)
-    if isinstance(value, list) and not value and typing.get_origin(expected) is not list:
-        value = None  # an empty list is no value for a name-or-list field
-    if value is not None and _matches(value, expected) and not (expected is int and isinstance(value, float)):
+    if _matches(value, expected):
         return float(value) if expected is float else value
     raise ConfigError(f"{key} in {source} must be {_type_name(expected)}, got {value!r}")
 

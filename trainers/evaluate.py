@@ -38,6 +38,7 @@ from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.pairing import make_seated_actor
 from trainers.checkpoint import CheckpointError, load_checkpoint
 from trainers.config import ConfigError, EvalConfig, TrainConfig, load_config, save_config
+from trainers.figures import draw_figures, draw_heatmap
 from trainers.rollout import play_episodes
 
 SP, XP, CROSS = "SP", "XP", "cross"
@@ -157,7 +158,8 @@ def make_matchups(population: dict[str, list[Team]], cross: Sequence[Sequence[st
 
 
 def evaluation_grids(layouts: Sequence[str], num_heldout: int = 100) -> list[Layout]:
-    """The given layouts (names or text-grid files), then the first `num_heldout` of the 100 held-out generated levels (heldout_000...)."""
+    """The given layouts (names or text-grid files), then the first `num_heldout` of the 100 held-out generated
+    levels, named heldout_000, heldout_001, ..."""
     generated = heldout_levels()
     heldout = [
         layout_from_state(jax.tree_util.tree_map(lambda leaf, i=i: leaf[i], generated), name=f"heldout_{i:03d}")
@@ -357,6 +359,21 @@ def write_csv(rows: list[dict], path: Path) -> None:
         writer.writerows(rows)
 
 
+def visit_shares(outcomes: Outcomes, grid_name: str) -> list[tuple[str, str, np.ndarray]]:
+    """(condition, SP | XP, share of agent steps per cell [H, W]) on one grid, for each condition at home there."""
+    g = [grid.name for grid in outcomes.grids].index(grid_name)
+    panels = []
+    for condition in dict.fromkeys(team.condition for team in outcomes.teams):
+        for kind in (SP, XP):
+            chosen = [m for m, matchup in enumerate(outcomes.matchups)
+                      if matchup.kind == kind and outcomes.teams[matchup.seat0].condition == condition
+                      and at_home(outcomes.teams[matchup.seat0], grid_name)]  # fmt: skip
+            if chosen:
+                visits = outcomes.visits[chosen, g].sum(axis=(0, 1))
+                panels.append((condition, kind, visits / max(visits.sum(), 1)))
+    return panels
+
+
 # -------------------------------------------------------------------------------------------------- GIFs
 def record_gif(seat0: Team, seat1: Team, grid: Layout | str, path: Path, max_steps: int = 256, seed: int = 0) -> Path:
     """One episode of agent 0 of `seat0` with agent 1 of `seat1` on `grid`, rendered as an animated GIF."""
@@ -396,8 +413,6 @@ def parse_gif_request(request: str, teams: list[Team], grids: dict[str, Layout])
 # --------------------------------------------------------------------------------------------- the whole job
 def evaluate(config: EvalConfig) -> Path:
     """Loads the population, plays every matchup, writes tables, figures and GIFs to `config.out_dir`."""
-    from trainers.figures import draw_figures, draw_heatmaps
-
     torch.set_num_threads(config.threads)
     if not config.conditions:
         raise ConfigError("no conditions to evaluate: give conditions: {name: run_dir_or_glob, ...}")
@@ -423,7 +438,11 @@ def evaluate(config: EvalConfig) -> Path:
     table = markdown_summary(summary, config.rollouts)
     (out / "eval.md").write_text(table)
     print(table)
-    written = draw_figures(outcomes, summary, out) + draw_heatmaps(outcomes, config.heatmaps, out)
+    written = draw_figures(outcomes, summary, out)
+    for grid_name in config.heatmaps:
+        panels = visit_shares(outcomes, grid_name)
+        if panels:
+            written.append(draw_heatmap(by_name[grid_name], panels, out / f"heatmap_{grid_name}.png"))
     for first, second, grid in gifs:
         name = f"{first.name}+{second.name}@{grid.name}".replace("/", "-")
         written.append(record_gif(first, second, grid, out / f"{name}.gif", config.max_steps, config.seed))

@@ -4,7 +4,7 @@
     fig3b_gap.png           SP - XP gap per family, averaged over the classic layouts
     fig7_heldout.png        SP and XP per family on the held-out generated levels
     fig8_per_layout.png     SP and XP per family, one panel per classic layout
-    heatmap_<grid>.png      where the agents stand on a grid: one row per condition, SP and XP columns
+    heatmap_<grid>.png      where the agents stand on a grid: one row per condition, SP and XP columns (Fig. 4)
 
 A family's value on a layout comes from its conditions at home there (an SK condition on the layout it was
 trained on); several conditions of one family pool their means, their standard errors add in quadrature.
@@ -42,10 +42,12 @@ def family_stats(summary: list[dict], grids: str, kind: str) -> dict[str, tuple[
             value, stderr = row[kind], row[f"{kind}_stderr"]
         if row[f"{'xp' if kind == 'gap' else kind}_pairs"] and not math.isnan(value):
             pooled.setdefault(row["label"], []).append((value, stderr))
-    return {
-        label: (float(np.mean([v for v, _ in values])), math.sqrt(sum(s * s for _, s in values)) / len(values))
-        for label, values in pooled.items()
-    }
+    return {label: pool(values) for label, values in pooled.items()}
+
+
+def pool(values: list[tuple[float, float]]) -> tuple[float, float]:
+    """The mean of several (mean, s.e.) and its standard error, the errors adding in quadrature."""
+    return float(np.mean([v for v, _ in values])), math.sqrt(sum(s * s for _, s in values)) / len(values)
 
 
 def _same_group(row_group: str, wanted: str) -> bool:
@@ -97,8 +99,7 @@ def draw_figures(outcomes, summary: list[dict], out: Path) -> list[Path]:
             values = [family_stats(summary, layout, "gap").get(label) for layout in layouts]
             values = [v for v in values if v is not None]
             if values:
-                gaps[label] = (float(np.mean([v for v, _ in values])),
-                               math.sqrt(sum(s * s for _, s in values)) / len(values))
+                gaps[label] = pool(values)
         figure, axis = plt.subplots(figsize=(2 + 1.2 * len(gaps), 4))
         _bars(axis, ["classic layouts"], {label: {"classic layouts": v} for label, v in gaps.items()}, "SP - XP")
         axis.set_title("Generalisation gap, SP - XP (Fig. 3b)")
@@ -128,44 +129,24 @@ def grid_image(grid: np.ndarray) -> np.ndarray:
     return np.asarray([[_KIND_COLORS[int(kind)] for kind in row] for row in grid])
 
 
-def draw_heatmaps(outcomes, grid_names: list[str], out: Path) -> list[Path]:
-    """For each grid named: the share of steps agents spent on each cell, per condition (rows), SP and XP."""
-    from trainers.evaluate import SP, XP, at_home
-
-    written = []
-    names = [grid.name for grid in outcomes.grids]
-    for grid_name in grid_names:
-        g = names.index(grid_name)
-        layout = outcomes.grids[g]
-        panels = []  # (condition, kind, visits [H, W])
-        for condition in dict.fromkeys(team.condition for team in outcomes.teams):
-            for kind in (SP, XP):
-                chosen = [m for m, matchup in enumerate(outcomes.matchups)
-                          if matchup.kind == kind and outcomes.teams[matchup.seat0].condition == condition
-                          and at_home(outcomes.teams[matchup.seat0], grid_name)]
-                if chosen:
-                    visits = outcomes.visits[chosen, g].sum(axis=(0, 1))
-                    panels.append((condition, kind, visits / max(visits.sum(), 1)))
-        if not panels:
-            continue
-        rows = list(dict.fromkeys(condition for condition, _, _ in panels))
-        kinds = list(dict.fromkeys(kind for _, kind, _ in panels))
-        figure, axes = plt.subplots(len(rows), len(kinds), figsize=(3.2 * len(kinds), 3.0 * len(rows)),
-                                    squeeze=False)
-        background = grid_image(layout.grid)
-        top = max(float(v.max()) for _, _, v in panels) or 1.0
-        for axis in axes.flat:
-            axis.set_axis_off()
-        for condition, kind, visits in panels:
-            axis = axes[rows.index(condition), kinds.index(kind)]
-            axis.imshow(background)
-            heat = np.ma.masked_where(layout.grid != FLOOR, visits)
-            image = axis.imshow(heat, cmap="inferno", vmin=0, vmax=top, alpha=0.85)
-            axis.set_title(f"{condition}: {kind}", fontsize=9)
-        figure.colorbar(image, ax=axes.ravel().tolist(), shrink=0.8, label="share of agent steps")
-        figure.suptitle(f"Cells visited on {grid_name} (Fig. 4)")
-        path = out / f"heatmap_{grid_name}.png"
-        figure.savefig(path, dpi=120)
-        plt.close(figure)
-        written.append(path)
-    return written
+def draw_heatmap(layout, panels: list[tuple[str, str, np.ndarray]], path: Path) -> Path:
+    """Where agents stand on `layout`: one panel per (condition, kind, share of steps per cell [H, W]),
+    conditions as rows and kinds (SP, XP) as columns, drawn over the kitchen."""
+    rows = list(dict.fromkeys(condition for condition, _, _ in panels))
+    kinds = list(dict.fromkeys(kind for _, kind, _ in panels))
+    figure, axes = plt.subplots(len(rows), len(kinds), figsize=(3.2 * len(kinds), 3.0 * len(rows)), squeeze=False)
+    background = grid_image(layout.grid)
+    top = max(float(share.max()) for _, _, share in panels) or 1.0
+    for axis in axes.flat:
+        axis.set_axis_off()
+    for condition, kind, share in panels:
+        axis = axes[rows.index(condition), kinds.index(kind)]
+        axis.imshow(background)
+        image = axis.imshow(np.ma.masked_where(layout.grid != FLOOR, share), cmap="inferno", vmin=0, vmax=top,
+                            alpha=0.85)
+        axis.set_title(f"{condition}: {kind}", fontsize=9)
+    figure.colorbar(image, ax=axes.ravel().tolist(), shrink=0.8, label="share of agent steps")
+    figure.suptitle(f"Cells visited on {layout.name} (Fig. 4)")
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+    return path
