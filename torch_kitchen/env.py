@@ -31,7 +31,7 @@ import jax.numpy as jnp  # noqa: E402
 import torch  # noqa: E402
 from tensordict import TensorDict, TensorDictBase  # noqa: E402
 from torchrl.data import Bounded, Categorical, Composite, Unbounded  # noqa: E402
-from torchrl.envs import EnvBase  # noqa: E402
+from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv  # noqa: E402
 
 from jax_env import DELIVERY_REWARD, NUM_ACTIONS, GeneratorConfig, Overcooked, ShapingWeights  # noqa: E402
 from jax_env.env import Levels  # noqa: E402
@@ -249,3 +249,8 @@ class KitchenEnv(EnvBase):
     def states(self):
         """The JAX kitchens (a batched `jax_env.State`), read-only: for rendering and scenario checks."""
         return self._states
+
+
+def with_transforms(env: EnvBase, transforms: Sequence[Transform]) -> EnvBase:
+    """`env` with `transforms` appended (e.g. a model's `env_transforms()`), or `env` itself if there are none."""
+    return TransformedEnv(env, Compose(*transforms)) if transforms else env

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -50,11 +50,13 @@ from torchrl.modules.models.multiagent import MultiAgentNetBase
 
 from jax_env import NUM_ACTIONS
 from torch_kitchen.graph import build_graph, num_nodes
+from torch_kitchen.partner import CONTEXT_ACTION, CONTEXT_OBSERVATION, NO_ACTION, PartnerContext
 
 N_AGENTS = 2
 GAT_HEADS, GAT_FEATURES = 4, 8  # per head; concatenated -> 32 features per node
 
 ARCHITECTURES = ("mlp", "mlp_lstm", "gnn", "gnn_lstm")
+E3T_ARCHITECTURES = ("e3t_mlp", "e3t_gnn")  # with a partner predictor: trained with algorithm "e3t"
 
 
 # ------------------------------------------------------------------------------------------- single networks
@@ -97,10 +99,15 @@ def make_encoder(kind: str, obs_shape: tuple[int, int, int], hidden: int) -> nn.
     raise ValueError(f"unknown encoder {kind!r}, expected 'mlp' or 'gnn'")
 
 
-def make_head(hidden: int, out_features: int, out_gain: float, layer_norm: bool) -> nn.Sequential:
-    """One agent's head: float [..., hidden] -> float [..., out_features], after a LayerNorm if `layer_norm`."""
-    layers = [nn.LayerNorm(hidden)] if layer_norm else []
-    layers += [_hidden_linear(hidden, hidden), nn.ReLU(), _hidden_linear(hidden, hidden), nn.ReLU()]
+def make_head(hidden: int, out_features: int, out_gain: float, layer_norm: bool, in_features: int | None = None
+              ) -> nn.Sequential:
+    """One agent's head: float [..., in_features] -> float [..., out_features], after a LayerNorm if `layer_norm`.
+
+    in_features: `hidden` by default; wider when other inputs (E3T's partner prediction) join the torso's output.
+    """
+    in_features = in_features or hidden
+    layers = [nn.LayerNorm(in_features)] if layer_norm else []
+    layers += [_hidden_linear(in_features, hidden), nn.ReLU(), _hidden_linear(hidden, hidden), nn.ReLU()]
     layers.append(_orthogonal_(nn.Linear(hidden, out_features), out_gain))
     return nn.Sequential(*layers)
 
@@ -279,11 +286,13 @@ def make_network(
     hidden: int,
     recurrent: bool,
     share_params: bool,
+    extra_inputs: Sequence[tuple[tuple[str, str], int]] = (),
 ) -> TensorDictSequential:
     """One torso + head as a TensorDictSequential: ("agents", "observation") -> `out_key` [*B, 2, out_features].
 
-    Intermediate keys ("agents", "<net>_embedding" | "<net>_memory") are dropped from the output, so rollouts
-    don't store them.
+    extra_inputs: (key, width) of per-agent features [*B, 2, width] concatenated to the torso's output before
+    the head (E3T's partner prediction). Intermediate keys ("agents", "<net>_embedding" | "<net>_memory") are
+    dropped from the output, so rollouts don't store them.
     """
     embedding, memory = ("agents", f"{net}_embedding"), ("agents", f"{net}_memory")
     modules = [
@@ -295,9 +304,11 @@ def make_network(
         lstm = MultiAgentLSTM(net, hidden, share_params)
         modules.append(lstm)
         selected += lstm.out_keys[1:]
-    head = MultiAgentNet(functools.partial(make_head, hidden, out_features, out_gain, recurrent), (hidden,),
-                         share_params=share_params)
-    modules.append(TensorDictModule(head, in_keys=[memory if recurrent else embedding], out_keys=[out_key]))
+    in_features = hidden + sum(width for _, width in extra_inputs)
+    head = MultiAgentNet(functools.partial(make_head, hidden, out_features, out_gain, recurrent, in_features),
+                         (in_features,), share_params=share_params)
+    head_inputs = [memory if recurrent else embedding, *(key for key, _ in extra_inputs)]
+    modules.append(TensorDictModule(head, in_keys=head_inputs, out_keys=[out_key]))
     return TensorDictSequential(*modules, selected_out_keys=selected)
 
 
@@ -315,6 +326,70 @@ def sampling_actor(policy: TensorDictModuleBase) -> ProbabilisticActor:
     )
 
 
+# ------------------------------------------------------------------------------------- E3T partner model
+E3T_CONTEXT = 5  # (observation, partner action) pairs the partner predictor reads
+PARTNER_LOGITS, PARTNER_PREDICTION = ("agents", "partner_logits"), ("agents", "partner_prediction")
+
+
+class PartnerPredictor(nn.Module):
+    """One agent's partner model: its last k (observation, partner action) pairs -> logits of the partner's action.
+
+    in:  float [..., k, H*W*C + 7], each pair as the flattened observation then the one-hot partner action
+         (6 actions and NO_ACTION, the padding before an episode's first step)
+    out: float [..., 6]
+    Every observation goes through its own encoder (the policy's kind, "mlp" or "gnn", with its own weights);
+    the k codes and actions are flattened in order and mapped to the logits by Linear(h) + ReLU -> Linear(6).
+    """
+
+    def __init__(self, kind: str, obs_shape: tuple[int, int, int], hidden: int, length: int):
+        super().__init__()
+        self.obs_shape, self.length = tuple(obs_shape), length
+        self.encoder = make_encoder(kind, obs_shape, hidden)
+        self.head = nn.Sequential(
+            _hidden_linear(length * (hidden + NO_ACTION + 1), hidden), nn.ReLU(),
+            _orthogonal_(nn.Linear(hidden, NUM_ACTIONS), 0.01),
+        )
+
+    def forward(self, pairs: torch.Tensor) -> torch.Tensor:
+        size = math.prod(self.obs_shape)
+        codes = self.encoder(pairs[..., :size].unflatten(-1, self.obs_shape))  # [..., k, h]
+        return self.head(torch.cat([codes, pairs[..., size:]], -1).flatten(-2))
+
+
+def context_pairs(observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    """uint8 [..., k, H, W, C] and int64 [..., k] -> float [..., k, H*W*C + 7], the predictor's input."""
+    one_hot = nn.functional.one_hot(action, NO_ACTION + 1).to(torch.float32)
+    return torch.cat([observation.flatten(-3).to(torch.float32), one_hot], -1)
+
+
+def _detached_softmax(logits: torch.Tensor) -> torch.Tensor:
+    return torch.softmax(logits.detach(), -1)
+
+
+def make_partner_predictor(encoder: str, obs_shape: tuple[int, int, int], hidden: int, share_params: bool,
+                           length: int = E3T_CONTEXT) -> TensorDictSequential:
+    """The context (`torch_kitchen.partner.PartnerContext`) -> ("agents", "partner_logits") [*B, 2, 6] and
+    ("agents", "partner_prediction"), their softmax, detached: the policy reads the prediction as an input and
+    the predictor learns from its own cross-entropy only."""
+    pairs = ("agents", "context_pairs")
+    predictor = MultiAgentNet(functools.partial(PartnerPredictor, encoder, obs_shape, hidden, length),
+                              (length, math.prod(obs_shape) + NO_ACTION + 1), share_params=share_params)
+    return TensorDictSequential(
+        TensorDictModule(context_pairs, in_keys=[CONTEXT_OBSERVATION, CONTEXT_ACTION], out_keys=[pairs]),
+        TensorDictModule(predictor, in_keys=[pairs], out_keys=[PARTNER_LOGITS]),
+        TensorDictModule(_detached_softmax, in_keys=[PARTNER_LOGITS], out_keys=[PARTNER_PREDICTION]),
+        selected_out_keys=[PARTNER_LOGITS, PARTNER_PREDICTION],
+    )
+
+
+def partner_context_length(network: nn.Module) -> int:
+    """The context length k a network's partner predictor reads (0 without one)."""
+    lengths = {module.length for module in network.modules() if isinstance(module, PartnerPredictor)}
+    if len(lengths) > 1:
+        raise ValueError(f"one network reads partner contexts of several lengths {sorted(lengths)}")
+    return lengths.pop() if lengths else 0
+
+
 @dataclass
 class ActorCritic:
     """A policy and a value network over both agents (keys in the module docstring).
@@ -323,20 +398,28 @@ class ActorCritic:
         ("agents", "action_log_prob") [*B, 2]; samples by default (interaction type RANDOM).
     critic: writes ("agents", "state_value") float32 [*B, 2, 1].
     recurrent: whether both carry an LSTM state (then see `env_transforms` and `set_recurrent_mode`).
+    predictor: E3T only: the actor's partner predictor (`make_partner_predictor`), trained by cross-entropy.
+    ppo_actor: E3T only: the actor without its predictor, reading the prediction stored while acting; the PPO
+        loss differentiates it, so its probability ratios compare the policy on the very inputs it acted on.
     """
 
     actor: ProbabilisticActor
     critic: TensorDictModuleBase
     recurrent: bool
+    predictor: TensorDictModuleBase | None = None
+    ppo_actor: ProbabilisticActor | None = None
 
     def env_transforms(self) -> list[Transform]:
-        """Transforms to append to the KitchenEnv: [] if feed-forward, else [InitTracker(), one state primer].
-
-        The primer holds every LSTM state of actor and critic, [*B, 2, 1, h] under "agents", zeroed at reset.
-        """
-        if not self.recurrent:
-            return []
-        return [InitTracker(), agent_state_primer({**recurrent_states(self.actor), **recurrent_states(self.critic)})]
+        """Transforms to append to the KitchenEnv: none for a feed-forward model; for recurrent ones InitTracker()
+        and one primer of every LSTM state of actor and critic ([*B, 2, 1, h] under "agents", zeroed at reset);
+        for E3T models the partner context."""
+        transforms = []
+        if self.recurrent:
+            states = {**recurrent_states(self.actor), **recurrent_states(self.critic)}
+            transforms += [InitTracker(), agent_state_primer(states)]
+        if partner_context_length(self.actor):
+            transforms.append(PartnerContext(partner_context_length(self.actor)))
+        return transforms
 
 
 def build_builtin(architecture: str, obs_shape: tuple[int, int, int], hidden: int,
@@ -349,6 +432,20 @@ def build_builtin(architecture: str, obs_shape: tuple[int, int, int], hidden: in
     critic = make_network("critic", out_key=("agents", "state_value"), out_features=1, out_gain=1.0, **common)
     actor = sampling_actor(policy)
     return ActorCritic(actor=actor, critic=critic, recurrent=recurrent)
+
+
+def build_e3t(encoder: str, obs_shape: tuple[int, int, int], hidden: int, share_params: bool) -> ActorCritic:
+    """E3T's networks ("e3t_mlp", "e3t_gnn"): the feed-forward actor of `encoder` whose head also reads the
+    partner prediction, after the partner predictor; the critic as in "mlp" / "gnn"."""
+    common = {"encoder": encoder, "obs_shape": tuple(obs_shape), "hidden": hidden, "recurrent": False,
+              "share_params": share_params}
+    predictor = make_partner_predictor(encoder, obs_shape, hidden, share_params)
+    policy = make_network("actor", out_key=("agents", "logits"), out_features=NUM_ACTIONS, out_gain=0.01,
+                          extra_inputs=[(PARTNER_PREDICTION, NUM_ACTIONS)], **common)
+    critic = make_network("critic", out_key=("agents", "state_value"), out_features=1, out_gain=1.0, **common)
+    actor = sampling_actor(TensorDictSequential(predictor, policy))
+    return ActorCritic(actor=actor, critic=critic, recurrent=False, predictor=predictor,
+                       ppo_actor=sampling_actor(policy))
 
 
 # ----------------------------------------------------------------------------------------------- registry
@@ -369,12 +466,15 @@ def register_architecture(name: str, builder: Builder) -> None:
 
 for _name in ARCHITECTURES:
     register_architecture(_name, functools.partial(build_builtin, _name))
+for _name in E3T_ARCHITECTURES:
+    register_architecture(_name, functools.partial(build_e3t, _name.removeprefix("e3t_")))
 del _name
 
 
 def make_actor_critic(architecture: str, obs_shape: tuple[int, int, int] = (7, 7, 26), hidden: int = 256,
                       share_params: bool = True) -> ActorCritic:
-    """Actor and critic of a registered architecture ("mlp", "mlp_lstm", "gnn", "gnn_lstm" or your own).
+    """Actor and critic of a registered architecture ("mlp", "mlp_lstm", "gnn", "gnn_lstm", "e3t_mlp",
+    "e3t_gnn" or your own).
 
     obs_shape: (H, W, C) of one agent's observation; the model rejects other shapes. hidden: width h of every
     layer. share_params: one network for both agents (the paper's Infinite Kitchen runs) or one per agent

@@ -12,7 +12,9 @@ changes what the seated agent does, and it keeps every architecture and paramete
 
 Recurrent state: a team's actor reads ("agents", "actor_h" | "actor_c") [*B, 2, 1, h]. Here seat s of
 kitchen b holds the state of the team in that seat, under ("agents", "<name>_<h>") so that teams of different
-widths can meet; `env_transforms()` gives the InitTracker and the primer that carry them.
+widths can meet; `env_transforms()` gives the InitTracker and the primer that carry them, and the partner
+context (`torch_kitchen.partner.PartnerContext`) when an E3T team plays. Every other entry a team's actor reads
+(its observation, the partner context) is handed to it as the env wrote it.
 """
 
 from __future__ import annotations
@@ -24,7 +26,8 @@ from torchrl.envs import InitTracker, Transform
 from torchrl.modules import ProbabilisticActor
 
 from jax_env import NUM_ACTIONS
-from torch_kitchen.models import N_AGENTS, agent_state_primer, recurrent_states, sampling_actor
+from torch_kitchen.models import N_AGENTS, agent_state_primer, partner_context_length, recurrent_states, sampling_actor
+from torch_kitchen.partner import PartnerContext
 
 OBSERVATION, LOGITS = ("agents", "observation"), ("agents", "logits")
 
@@ -38,19 +41,30 @@ class SeatedPolicy(TensorDictModuleBase):
         # Per team: its state names -> the storage name (the state name suffixed with its width).
         self._storage: list[dict[str, str]] = []
         self._widths: dict[str, int] = {}  # storage name -> width
+        self._inputs: list[list] = []  # per team: the entries its actor reads as they are
         for actor in actors:
             states = recurrent_states(actor)
             self._storage.append({name: f"{name}_{width}" for name, width in states.items()})
             self._widths.update({f"{name}_{width}": width for name, width in states.items()})
+            own_states = {("agents", name) for name in states} | {"is_init"}
+            self._inputs.append([key for key in actor.in_keys if key not in own_states])
         self.recurrent = bool(self._widths)
+        contexts = {partner_context_length(actor) for actor in actors} - {0}
+        if len(contexts) > 1:
+            raise ValueError(f"teams read partner contexts of different lengths {sorted(contexts)}; one env "
+                             "carries one context")
+        self.context_length = contexts.pop() if contexts else 0
         state_keys = [("agents", name) for name in self._widths]
-        self.in_keys = [OBSERVATION] + (["is_init", *state_keys] if self.recurrent else [])
+        inputs = list(dict.fromkeys(key for keys in self._inputs for key in keys))
+        self.in_keys = inputs + (["is_init", *state_keys] if self.recurrent else [])
         self.out_keys = [LOGITS] + [("next", *key) for key in state_keys]
         self._rows: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
 
     def env_transforms(self) -> list[Transform]:
-        """[] for feed-forward teams, else [InitTracker(), the primer of every stored state]."""
-        return [InitTracker(), agent_state_primer(self._widths)] if self.recurrent else []
+        """[InitTracker(), the primer of every stored state] if a team is recurrent, then the partner context if
+        a team reads one."""
+        transforms = [InitTracker(), agent_state_primer(self._widths)] if self.recurrent else []
+        return transforms + ([PartnerContext(self.context_length)] if self.context_length else [])
 
     def seat(self, teams: torch.Tensor) -> SeatedPolicy:
         """Seats team teams[b, s] (an index into `actors`) as agent s of kitchen b, for the next forward passes."""
@@ -74,10 +88,10 @@ class SeatedPolicy(TensorDictModuleBase):
             raise ValueError(f"seated for {self._num_envs} kitchens, got a batch of {observation.shape[0]}")
         logits = observation.new_zeros((*observation.shape[:2], NUM_ACTIONS), dtype=torch.float32)
         next_states = {name: torch.zeros_like(tensordict.get(("agents", name))) for name in self._widths}
-        for actor, storage, (rows, seat0, seat1) in zip(self.actors, self._storage, self._rows):
+        for actor, inputs, storage, (rows, seat0, seat1) in zip(self.actors, self._inputs, self._storage, self._rows):
             if rows.numel() == 0:
                 continue
-            team_view = TensorDict({OBSERVATION: observation[rows]}, batch_size=rows.shape)
+            team_view = TensorDict({key: tensordict.get(key)[rows] for key in inputs}, batch_size=rows.shape)
             if storage:
                 team_view.set("is_init", tensordict.get("is_init")[rows])
                 for name, stored in storage.items():

@@ -23,12 +23,13 @@ class ConfigError(ValueError):
     """A config file or override that cannot be used; the message says what to change."""
 
 
-ALGORITHMS = ("ippo",)
+ALGORITHMS = ("ippo", "e3t")
+PARTNER_POLICIES = ("ego", "copy")
 
 
 @dataclass
 class TrainConfig:
-    """Everything an IPPO self-play run depends on. Defaults: the paper's Infinite Kitchen setting with an MLP."""
+    """Everything a self-play run (IPPO or E3T) depends on. Defaults: the paper's Infinite Kitchen setting with an MLP."""
 
     # --- run
     name: str = "ippo_mlp_ik"  # the run directory is {run_dir}/{name}/seed{seed}
@@ -37,7 +38,7 @@ class TrainConfig:
     device: str = "cpu"  # "cpu" or "cuda[:i]"; the env and the networks share it
     threads: int = 1  # torch CPU threads (1 is fastest for small networks on a shared CPU)
 
-    algorithm: str = "ippo"  # "ippo" (self-play)
+    algorithm: str = "ippo"  # "ippo" (self-play) or "e3t" (mixed partner + partner model; e3t_* architectures)
 
     # --- environment
     levels: str | list[str] = "infinite"  # "infinite" (IK), a layout name or file (SK), or a list of them
@@ -65,6 +66,12 @@ class TrainConfig:
     max_grad_norm: float = 0.5
     shaping_weight: float = 0.0  # weight of the shaped reward added to the sparse one (0: sparse only)
     shaping_anneal_steps: int = 0  # anneal shaping_weight linearly to 0 over this many env steps (0: constant)
+
+    # --- E3T (algorithm: e3t)
+    partner_epsilon: float = 0.3  # the mixed partner acts from (1 - eps) * pi + eps * uniform
+    partner_policy: str = "ego"  # pi of the mixed partner: "ego" (the policy itself) or "copy" (a slow copy)
+    partner_copy_rate: float = 0.01  # "copy": after every update, copy += rate * (ego - copy)
+    predictor_coef: float = 1.0  # weight of the partner predictor's cross-entropy in the loss
 
     # --- logging, checkpoints, final evaluation
     checkpoint_every: int = 10  # updates between checkpoints (one is always written at the end)
@@ -98,6 +105,13 @@ class TrainConfig:
             raise ConfigError("levels is empty: give a layout name or file, a list of them, or 'infinite'")
         if self.algorithm not in ALGORITHMS:
             raise ConfigError(f"algorithm must be one of {', '.join(ALGORITHMS)}, got {self.algorithm!r}")
+        if self.partner_policy not in PARTNER_POLICIES:
+            raise ConfigError(
+                f"partner_policy must be one of {', '.join(PARTNER_POLICIES)}, got {self.partner_policy!r}"
+            )
+        for name in ("partner_epsilon", "partner_copy_rate"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
         if self.num_envs % self.minibatches:
             raise ConfigError(
                 f"minibatches ({self.minibatches}) must divide num_envs ({self.num_envs}): minibatches are whole "

@@ -27,13 +27,12 @@ from pathlib import Path
 import jax
 import numpy as np
 import torch
-from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm import tqdm
 
 from jax_env import EXPANDED_LAYOUTS, Layout, heldout_levels, layout_from_state, load_layout
 from jax_env.render import write_gif
-from torch_kitchen.env import KitchenEnv
+from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.pairing import make_seated_actor
 from trainers.checkpoint import CheckpointError, load_checkpoint
@@ -71,8 +70,10 @@ class Team:
 
     @property
     def label(self) -> str:
-        """The team's family in the paper's figures, e.g. "IPPO MLP IK"."""
-        return f"{self.config.algorithm.upper()} {self.config.architecture.upper().replace('_', '+')} {self.regime}"
+        """The team's family in the paper's figures, e.g. "IPPO MLP IK", "E3T GNN SK"."""
+        algorithm = self.config.algorithm
+        architecture = self.config.architecture.removeprefix(f"{algorithm}_")  # e3t_gnn -> GNN
+        return f"{algorithm.upper()} {architecture.upper().replace('_', '+')} {self.regime}"
 
 
 def load_team(checkpoint: str | Path, device: str = "cpu", condition: str = "") -> Team:
@@ -216,7 +217,7 @@ def play(
                          pin_levels=True)
     actor = make_seated_actor([team.actor_critic.actor for team in teams])
     seated = actor.module[0]
-    env = TransformedEnv(kitchen, Compose(*seated.env_transforms())) if seated.recurrent else kitchen
+    env = with_transforms(kitchen, seated.env_transforms())
     seat_of_matchup = torch.tensor([[m.seat0, m.seat1] for m in matchups], device=device)
 
     height, width = obs_shape[:2]
@@ -381,7 +382,7 @@ def record_gif(seat0: Team, seat1: Team, grid: Layout | str, path: Path, max_ste
     teams = [seat0] if seat0 is seat1 else [seat0, seat1]
     actor = make_seated_actor([team.actor_critic.actor for team in teams])
     seated = actor.module[0].seat(torch.tensor([[0, len(teams) - 1]], device=kitchen.device))
-    env = TransformedEnv(kitchen, Compose(*seated.env_transforms())) if seated.recurrent else kitchen
+    env = with_transforms(kitchen, seated.env_transforms())
 
     def the_kitchen():
         return jax.tree_util.tree_map(lambda leaf: leaf[0], kitchen.states)

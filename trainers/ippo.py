@@ -1,9 +1,15 @@
-"""IPPO self-play on the Infinite Kitchen with TorchRL: a `Collector` over `KitchenEnv`, GAE, `ClipPPOLoss`.
+"""Self-play on the Infinite Kitchen with TorchRL: a `Collector` over `KitchenEnv`, GAE, `ClipPPOLoss`.
 
 Read top to bottom: build the env and the networks, the loss and the optimizer, then for every batch of
 `num_envs x rollout_steps` steps compute the rewards, the advantages and a few epochs of PPO, then log and
-checkpoint. Both agents are trained on their own transitions (independent PPO); with `share_params` they share
-one network.
+checkpoint. Two algorithms:
+
+- IPPO: both agents are trained on their own transitions (independent PPO); with `share_params` they share one
+  network.
+- E3T (Yan et al., 2023): in every episode one agent, drawn per kitchen, is a mixed partner acting from
+  (1 - eps) * pi + eps * uniform (`torch_kitchen.partner`); PPO trains on the other agent's (the ego's)
+  transitions only, whose log-probabilities are those of the policy that acted. The actor carries a partner
+  predictor, trained by cross-entropy on the partner's actual actions, whose prediction the policy reads.
 
     kitchen-train configs/ippo/mlp_ik.yaml seed=3 total_steps=1e6
     kitchen-train --resume runs/ippo_mlp_ik/seed3
@@ -12,6 +18,7 @@ one network.
 from __future__ import annotations
 
 import argparse
+import copy
 import math
 import signal
 import sys
@@ -24,21 +31,23 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
 from torch.utils.tensorboard import SummaryWriter
-from torchrl.envs import Compose, TransformedEnv
+from torchrl.envs import Transform
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value.functional import generalized_advantage_estimate
 from torchrl.record.loggers import CSVLogger, TensorboardLogger
 from tqdm import tqdm
 
-from torch_kitchen.env import KitchenEnv
-from torch_kitchen.models import ActorCritic, make_actor_critic
+from torch_kitchen.env import KitchenEnv, with_transforms
+from torch_kitchen.models import PARTNER_LOGITS, ActorCritic, make_actor_critic
+from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
 from trainers.checkpoint import LATEST, CheckpointError, check_identity, load_checkpoint, model_identity, save_checkpoint
 from trainers.config import ConfigError, TrainConfig, load_config, save_config
 from trainers.rollout import finished_episode_deliveries, make_collector
 
 ACTION, LOG_PROB, VALUE = ("agents", "action"), ("agents", "action_log_prob"), ("agents", "state_value")
 ADVANTAGE, VALUE_TARGET = ("agents", "advantage"), ("agents", "value_target")
+EGO = ("agents", "ego")  # E3T: bool [B, T, 2], the transitions PPO learns from
 
 
 class _TensorboardLogger(TensorboardLogger):
@@ -63,29 +72,55 @@ def make_env(config: TrainConfig, num_envs: int | None = None, levels=None, seed
     )
 
 
-def with_model_transforms(env: KitchenEnv, actor_critic: ActorCritic):
-    """`env` plus the transforms the model needs (episode-start flags and recurrent state for LSTMs)."""
-    transforms = actor_critic.env_transforms()
-    return TransformedEnv(env, Compose(*transforms)) if transforms else env
+def with_model_transforms(env: KitchenEnv, actor_critic: ActorCritic, *extra: Transform):
+    """`env` plus the transforms the model needs (episode-start flags and recurrent state for LSTMs, the partner
+    context for E3T models), then `extra` ones."""
+    return with_transforms(env, [*actor_critic.env_transforms(), *extra])
 
 
 def make_loss(config: TrainConfig, actor_critic: ActorCritic) -> ClipPPOLoss:
-    """TorchRL's clipped PPO loss on the ("agents", ...) keys, with the protocol's coefficients."""
+    """TorchRL's clipped PPO loss on the ("agents", ...) keys, with the protocol's coefficients.
+
+    E3T: the loss counts the ego's transitions only (TorchRL's `loss_mask_key`), and the advantages arrive
+    normalised over those (`normalize_ego_advantage`).
+    """
+    e3t = config.algorithm == "e3t"
     loss_module = ClipPPOLoss(
-        actor_critic.actor,
+        actor_critic.ppo_actor or actor_critic.actor,
         actor_critic.critic,
         clip_epsilon=config.clip_epsilon,
         entropy_coeff=config.entropy_coef,
         critic_coeff=config.value_coef,
         loss_critic_type="l2",
-        normalize_advantage=True,  # per minibatch, pooled over kitchens, steps and agents
+        normalize_advantage=not e3t,  # per minibatch, pooled over kitchens, steps and agents
         normalize_advantage_exclude_dims=(-1,),  # only the trailing singleton: says "pooled" without a warning
         clip_value=True,
     )
     loss_module.set_keys(
         action=ACTION, sample_log_prob=LOG_PROB, value=VALUE, advantage=ADVANTAGE, value_target=VALUE_TARGET
     )
+    if e3t:
+        loss_module.loss_mask_key = EGO
     return loss_module
+
+
+def normalize_ego_advantage(minibatch: TensorDictBase) -> None:
+    """E3T: standardises the advantages with the mean and deviation of the ego's transitions (IPPO's loss pools
+    all of a minibatch's; here the mixed partner's would skew them)."""
+    advantage, ego = minibatch.get(ADVANTAGE), minibatch.get(EGO).unsqueeze(-1)
+    mean = advantage[ego].mean()
+    std = advantage[ego].std(correction=0).clamp_min(1e-4) if ego.sum() > 1 else advantage.new_ones(())
+    minibatch.set(ADVANTAGE, (advantage - mean) / std)
+
+
+def partner_prediction_loss(predictor, minibatch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+    """E3T: cross-entropy of every agent's predicted partner action against the action the partner took at that
+    step, and the accuracy of the most likely one. The predictor reads only the context of earlier steps."""
+    logits = predictor(minibatch.select(*predictor.in_keys)).get(PARTNER_LOGITS)  # [mb, T, 2, 6]
+    partner_action = minibatch.get(ACTION).flip(-1)
+    loss = torch.nn.functional.cross_entropy(logits.flatten(0, -2), partner_action.flatten())
+    accuracy = (logits.argmax(-1) == partner_action).float().mean()
+    return loss, accuracy.detach()
 
 
 def compute_advantages(batch: TensorDictBase, critic, config: TrainConfig, shaping_weight: float) -> None:
@@ -184,14 +219,25 @@ def train(
     obs_shape = kitchen.kitchen.obs_shape
     if actor_critic is None:
         actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
+    check_algorithm(config, actor_critic)
     identity = model_identity(config.architecture, obs_shape, config.hidden, config.share_params)
     actor, critic = actor_critic.actor.to(config.device), actor_critic.critic.to(config.device)
-    env = with_model_transforms(kitchen, actor_critic)
-    policy = TensorDictSequential(actor, critic)  # the critic runs while acting: its values feed GAE
+    predictor = actor_critic.predictor  # E3T's partner predictor, part of the actor
+    e3t = config.algorithm == "e3t"
+    if e3t:
+        seats = PartnerSeats(config.seed)  # which agent is the mixed partner, per kitchen and episode
+        copied = copy.deepcopy(actor).requires_grad_(False) if config.partner_policy == "copy" else None
+        env = with_model_transforms(kitchen, actor_critic, seats)
+        # The critic runs while acting: its values feed GAE.
+        policy = TensorDictSequential(actor, PartnerMixture(config.partner_epsilon, copied), critic)
+    else:
+        env = with_model_transforms(kitchen, actor_critic)
+        policy = TensorDictSequential(actor, critic)  # the critic runs while acting: its values feed GAE
 
     # ---------------------------------------------------------------- loss and optimizer
     loss_module = make_loss(config, actor_critic)
-    optimizer = torch.optim.Adam(loss_module.parameters(), lr=config.lr, eps=config.adam_eps)
+    parameters = [*loss_module.parameters(), *(predictor.parameters() if predictor is not None else [])]
+    optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps)
 
     # ---------------------------------------------------------------- resume or start
     update, env_steps = 0, 0
@@ -202,6 +248,10 @@ def train(
         critic.load_state_dict(state["critic"])
         optimizer.load_state_dict(state["optimizer"])
         kitchen.load_state_dict(state["env"])  # the collector's first reset hands these kitchens out
+        if e3t:
+            seats.load_state_dict(state["partner_seats"])
+            if copied is not None:
+                copied.load_state_dict(state["partner_copy"])
         update, env_steps = state["update"], state["env_steps"]
     run.mkdir(parents=True, exist_ok=True)
     save_config(config, run / "config.yaml")
@@ -223,6 +273,8 @@ def train(
                 "env_steps": env_steps,
                 "torch_rng": torch.get_rng_state(),
                 "env": kitchen.state_dict(),
+                **({"partner_seats": seats.state_dict()} if e3t else {}),
+                **({"partner_copy": copied.state_dict()} if e3t and copied is not None else {}),
             },
         )
 
@@ -261,20 +313,31 @@ def train(
 
             # --- advantages (GAE) over the whole batch
             compute_advantages(batch, critic, config, shaping)
+            if e3t:
+                batch.set(EGO, ~batch.get(MIXED))
 
-            # --- PPO epochs over minibatches of whole kitchen sequences
+            # --- PPO epochs over minibatches of whole kitchen sequences (E3T: plus the partner predictor)
             stats = []
             with set_recurrent_mode(actor_critic.recurrent):
                 for _ in range(config.epochs):
                     for kitchens in torch.randperm(config.num_envs).chunk(config.minibatches):
-                        losses = loss_module(batch[kitchens.to(batch.device)])
+                        minibatch = batch[kitchens.to(batch.device)]
+                        if e3t:
+                            normalize_ego_advantage(minibatch)
+                        losses = loss_module(minibatch)
                         total = losses["loss_objective"] + losses["loss_critic"] + losses["loss_entropy"]
+                        if predictor is not None:
+                            prediction_loss, accuracy = partner_prediction_loss(predictor, minibatch)
+                            total = total + config.predictor_coef * prediction_loss
+                            losses.set("loss_partner_prediction", prediction_loss).set("partner_accuracy", accuracy)
                         optimizer.zero_grad()
                         total.backward()
-                        grad_norm = torch.nn.utils.clip_grad_norm_(loss_module.parameters(), config.max_grad_norm)
+                        grad_norm = torch.nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
                         optimizer.step()
                         stats.append(losses.detach().set("grad_norm", grad_norm.detach()))
             stats = torch.stack(stats).apply(lambda x: x.float().mean(), batch_size=[])
+            if e3t and copied is not None:  # the slow copy follows the ego
+                torch._foreach_lerp_(list(copied.parameters()), list(actor.parameters()), config.partner_copy_rate)
 
             # --- logging
             finished = finished_episode_deliveries(batch)
@@ -297,6 +360,8 @@ def train(
                 "losses/clip_fraction": float(stats.get("clip_fraction", float("nan"))),
                 "losses/grad_norm": float(stats["grad_norm"]),
                 "losses/explained_variance": explained_variance(batch.get(VALUE), batch.get(VALUE_TARGET)),
+                "losses/partner_prediction": float(stats.get("loss_partner_prediction", float("nan"))),
+                "charts/partner_accuracy": float(stats.get("partner_accuracy", float("nan"))),
             }
             for logger in loggers:
                 for name, value in metrics.items():
@@ -319,6 +384,20 @@ def train(
     return run
 
 
+def check_algorithm(config: TrainConfig, actor_critic: ActorCritic) -> None:
+    """E3T needs a model with a partner predictor (e3t_mlp, e3t_gnn); IPPO one without."""
+    if config.algorithm == "e3t" and actor_critic.predictor is None:
+        raise ConfigError(
+            f"algorithm=e3t needs a model with a partner predictor, and {config.architecture!r} has none: use "
+            "architecture=e3t_mlp or e3t_gnn (configs/e3t/)"
+        )
+    if config.algorithm != "e3t" and actor_critic.predictor is not None:
+        raise ConfigError(
+            f"{config.architecture!r} carries E3T's partner predictor, which only algorithm=e3t trains: set "
+            "algorithm=e3t, or choose an architecture without it (mlp, gnn, ...)"
+        )
+
+
 def _drop_csv_rows_after(csv_dir: Path, env_steps: int) -> None:
     """Removes the CSV rows a killed run logged after its last checkpoint, so a resumed run does not repeat them."""
     for path in csv_dir.rglob("*.csv"):
@@ -330,7 +409,7 @@ def _drop_csv_rows_after(csv_dir: Path, env_steps: int) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="kitchen-train",
-        description="Train a self-play team with IPPO (TorchRL) on Single or Infinite Kitchen levels.",
+        description="Train a self-play team with IPPO or E3T (TorchRL) on Single or Infinite Kitchen levels.",
         epilog="Overrides: any config key as key=value, e.g. seed=3 levels=cramped_room_7x7 total_steps=2e6.",
     )
     parser.add_argument("config", nargs="?", help="a YAML config (configs/...); omit it with --resume")
