@@ -1,11 +1,13 @@
 """Training throughput (collection + PPO update) per architecture, and a learning check.
 
 Throughput: env steps per second of `trainers.ippo.train` for each architecture and batch size, timed on the
-updates after the first (which compiles the env). Learning check: Single Kitchen on `cramped_room_7x7` with the
+updates after the first (which compiles the env). E3T: the same for E3T and for IPPO with the same encoder, one
+after the other in the same run, and their ratio. Learning check: Single Kitchen on `cramped_room_7x7` with the
 MLP and the shaped reward, run until the mean deliveries of the last episodes reach the target (or the budget
 ends), reporting steps and wall time.
 
     python benchmarks/train.py throughput [--archs mlp gnn] [--envs 32 1024] [--device cpu|cuda]
+    python benchmarks/train.py e3t [--encoders mlp gnn] [--envs 32] [--device cpu|cuda]
     python benchmarks/train.py learning [--target 5] [--budget 2e7] [--threads 2] [key=value ...]
 """
 
@@ -24,7 +26,8 @@ from trainers.config import load_config
 from trainers.ippo import train
 
 
-def throughput(architecture: str, num_envs: int, rollout_steps: int, updates: int, device: str, threads: int) -> float:
+def throughput(architecture: str, num_envs: int, rollout_steps: int, updates: int, device: str, threads: int,
+               algorithm: str = "ippo") -> float:
     """Mean env steps per second of updates 2..`updates` (collection + PPO epochs)."""
     rates = []
     with tempfile.TemporaryDirectory() as run_dir:
@@ -32,6 +35,7 @@ def throughput(architecture: str, num_envs: int, rollout_steps: int, updates: in
             None,
             [
                 f"architecture={architecture}",
+                f"algorithm={algorithm}",
                 f"num_envs={num_envs}",
                 f"rollout_steps={rollout_steps}",
                 f"total_steps={updates * num_envs * rollout_steps}",
@@ -109,6 +113,12 @@ def main(argv=None):
     speed.add_argument("--frames", type=int, default=65_536, help="env steps per update at large batches")
     speed.add_argument("--device", default="cpu")
     speed.add_argument("--threads", type=int, default=2)
+    e3t = sub.add_parser("e3t")
+    e3t.add_argument("--encoders", nargs="+", default=["mlp", "gnn"])
+    e3t.add_argument("--envs", nargs="+", type=int, default=[32])
+    e3t.add_argument("--updates", type=int, default=3, help="updates per measurement (the first is not timed)")
+    e3t.add_argument("--device", default="cpu")
+    e3t.add_argument("--threads", type=int, default=2)
     learn = sub.add_parser("learning")
     learn.add_argument("--target", type=float, default=5.0)
     learn.add_argument("--budget", type=float, default=2e7)
@@ -121,6 +131,14 @@ def main(argv=None):
 
     if args.mode == "learning":
         learning_check(args.target, int(args.budget), args.threads, args.device, args.seed, args.overrides)
+        return
+    if args.mode == "e3t":
+        print(f"{'encoder':>8s} {'envs':>6s} {'IPPO steps/s':>13s} {'E3T steps/s':>12s} {'E3T / IPPO':>11s}")
+        for encoder in args.encoders:
+            for num_envs in args.envs:
+                ippo = throughput(encoder, num_envs, 256, args.updates, args.device, args.threads)
+                e3t = throughput(f"e3t_{encoder}", num_envs, 256, args.updates, args.device, args.threads, "e3t")
+                print(f"{encoder:>8s} {num_envs:6d} {ippo:13,.0f} {e3t:12,.0f} {e3t / ippo:11.2f}", flush=True)
         return
     print(f"{'architecture':>12s} {'envs':>6s} {'rollout':>8s} {'steps/s':>10s}")
     for architecture in args.archs:

@@ -12,6 +12,7 @@ from jax_env.layouts import (
     POT,
     Layout,
     get_layout,
+    layout_name,
     layout_names,
     load_layout,
     parse_layout,

@@ -193,6 +193,13 @@ def save_layout(layout: Layout, path: str) -> str:
     return path
 
 
+def layout_name(name_or_path: str) -> str:
+    """The name `load_layout` gives a layout: a registered name as it is, a file's name without its extension."""
+    if name_or_path in layout_names():
+        return name_or_path
+    return os.path.splitext(os.path.basename(name_or_path))[0]
+
+
 def load_layout(name_or_path: str) -> Layout:
     """A registered layout by name, else a text-grid file; `ValueError` with a one-line message otherwise."""
     if name_or_path in layout_names():
@@ -200,7 +207,7 @@ def load_layout(name_or_path: str) -> Layout:
     if os.path.isfile(name_or_path):
         with open(name_or_path, encoding="utf-8") as grid_file:
             text = grid_file.read()
-        return parse_layout(text, name=os.path.splitext(os.path.basename(name_or_path))[0])
+        return parse_layout(text, name=layout_name(name_or_path))
     if os.sep in name_or_path or name_or_path.endswith(".txt"):
         raise ValueError(f"layout file {name_or_path!r} does not exist")
     return get_layout(name_or_path)

@@ -30,7 +30,7 @@ import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm import tqdm
 
-from jax_env import EXPANDED_LAYOUTS, Layout, heldout_levels, layout_from_state, load_layout
+from jax_env import EXPANDED_LAYOUTS, Layout, heldout_levels, layout_from_state, layout_name, load_layout
 from jax_env.render import write_gif
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.models import ActorCritic, make_actor_critic
@@ -62,11 +62,12 @@ class Team:
 
     @property
     def home(self) -> set[str] | None:
-        """The layouts a Single Kitchen team was trained on (None: an Infinite Kitchen team, at home anywhere)."""
+        """The names of the layouts a Single Kitchen team was trained on (None: an Infinite Kitchen team, at home
+        anywhere); a layout file counts by its name, as the grids are named."""
         if self.regime == "IK":
             return None
         levels = self.config.levels
-        return {levels} if isinstance(levels, str) else set(levels)
+        return {layout_name(level) for level in ([levels] if isinstance(levels, str) else levels)}
 
     @property
     def label(self) -> str:

@@ -9,9 +9,9 @@ from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import ClipPPOLoss
 
 from torch_kitchen import models
-from torch_kitchen.env import KitchenEnv
+from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.graph import batched_edges, build_graph, graph_edges
-from torch_kitchen.models import ARCHITECTURES, make_actor_critic, register_architecture
+from torch_kitchen.models import ARCHITECTURES, E3T_ARCHITECTURES, make_actor_critic, register_architecture
 
 HIDDEN = 16
 RECURRENT = [a for a in ARCHITECTURES if a.endswith("_lstm")]
@@ -25,7 +25,7 @@ def envs():
 
 
 def _env(base, ac):
-    return TransformedEnv(base, Compose(*ac.env_transforms())) if ac.recurrent else base
+    return with_transforms(base, ac.env_transforms())
 
 
 def _rollout(base, ac, steps):
@@ -37,7 +37,7 @@ def _rollout(base, ac, steps):
 
 @pytest.mark.parametrize("num_envs", [1, 3])
 @pytest.mark.parametrize("share_params", [True, False])
-@pytest.mark.parametrize("architecture", ARCHITECTURES)
+@pytest.mark.parametrize("architecture", ARCHITECTURES + E3T_ARCHITECTURES)
 def test_forward_shapes_dtypes_and_log_probs(envs, architecture, share_params, num_envs):
     ac = make_actor_critic(architecture, hidden=HIDDEN, share_params=share_params)
     td = _env(envs[num_envs], ac).reset()
@@ -57,9 +57,13 @@ def test_forward_shapes_dtypes_and_log_probs(envs, architecture, share_params, n
         for key in STATE_KEYS:
             assert td["next", *key].shape == (num_envs, 2, 1, HIDDEN)
             assert td["next", *key].abs().sum() > 0
+    if architecture in E3T_ARCHITECTURES:
+        prediction = td["agents", "partner_prediction"]
+        assert prediction.shape == (num_envs, 2, 6) and not prediction.requires_grad
+        torch.testing.assert_close(prediction.sum(-1), torch.ones(num_envs, 2))
 
 
-@pytest.mark.parametrize("architecture", ARCHITECTURES)
+@pytest.mark.parametrize("architecture", ARCHITECTURES + E3T_ARCHITECTURES)
 def test_parameter_sharing(envs, architecture):
     shared = make_actor_critic(architecture, hidden=HIDDEN, share_params=True)
     separate = make_actor_critic(architecture, hidden=HIDDEN, share_params=False)
@@ -221,7 +225,7 @@ def test_wrong_observation_shape_is_a_clear_error():
 
 
 def test_registry():
-    with pytest.raises(ValueError, match="registered: mlp, mlp_lstm, gnn, gnn_lstm"):
+    with pytest.raises(ValueError, match="registered: mlp, mlp_lstm, gnn, gnn_lstm, e3t_mlp, e3t_gnn"):
         make_actor_critic("transformer")
     with pytest.raises(ValueError, match="already registered"):
         register_architecture("mlp", lambda **kwargs: None)

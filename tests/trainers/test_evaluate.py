@@ -16,6 +16,7 @@ from torch_kitchen.models import make_actor_critic
 from trainers.checkpoint import CheckpointError, model_identity, save_checkpoint
 from trainers.config import ConfigError, EvalConfig, TrainConfig, load_config
 from trainers.evaluate import CROSS, SP, XP, evaluate, load_population, main, make_matchups, play
+from trainers.ippo import train
 
 # Agent 1's booth is complete; agent 0's has no plate pile, so agent 0 can never deliver here.
 ONE_BOOTH = parse_layout("WPWPW\nW0O1B\nWXWXW", name="one_booth")
@@ -172,3 +173,29 @@ def test_the_entry_point_writes_tables_figures_heatmaps_and_gifs(tmp_path):
     table = (out / "eval.md").read_text()
     assert "| mlp_ik | coord_ring_7x7 |" in table and "| mlp_ik | held-out (2) |" in table
     assert load_config(out / "eval_config.yaml", schema=EvalConfig).rollouts == 1
+
+
+def test_e3t_teams_play_self_play_cross_play_and_beside_other_teams(tmp_path, booth_files):
+    two_booths = booth_files[0]
+    runs = []
+    for seed in (0, 1):
+        config = load_config(None, [
+            "algorithm=e3t", "architecture=e3t_mlp", f"levels={two_booths}", "num_envs=4", "rollout_steps=16",
+            "max_steps=16", "total_steps=64", "hidden=16", "minibatches=2", "epochs=1", "progress=false",
+            "eval_episodes=0", f"run_dir={tmp_path / 'runs'}", f"seed={seed}",
+        ])  # fmt: skip
+        runs.append(str(train(config)))
+    cook = save_scripted_team(tmp_path / "cook.pt", "scripted_cook_seat1", seed=0)
+    config = EvalConfig(conditions={"e3t": runs, "cook": [cook]}, cross=[["e3t", "cook"]], layouts=[two_booths],
+                        heldout=0, rollouts=2, max_envs=6, out_dir=str(tmp_path / "out"), progress=False).check()
+    out = evaluate(config)
+
+    with open(out / "pairs.csv") as handle:
+        pairs = {(row["agent0"], row["agent1"]): row for row in csv.DictReader(handle)}
+    e3t = ["e3t/seed0", "e3t/seed1"]
+    assert {pairs[a, b]["kind"] for a in e3t for b in e3t} == {SP, XP}
+    # In its own booth the scripted cook delivers at its pace whoever sits beside it (plus whatever E3T adds).
+    for team in e3t:
+        assert float(pairs[team, "cook/seed0"]["mean_deliveries"]) >= PACE
+    summary = (out / "eval.md").read_text()
+    assert "| e3t | two_booths |" in summary and "| cook x e3t | two_booths |" in summary

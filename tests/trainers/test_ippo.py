@@ -12,7 +12,9 @@ from torch_kitchen.models import make_actor_critic
 from trainers.checkpoint import load_checkpoint
 from trainers.config import load_config
 from trainers.evaluate import load_team
-from trainers.ippo import compute_advantages, main, make_env, make_loss, train, with_model_transforms
+from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
+from trainers.ippo import (EGO, compute_advantages, main, make_env, make_loss, normalize_ego_advantage, train,
+                           with_model_transforms)
 from trainers.rollout import make_collector
 
 MAIN_CONFIG = str(Path(__file__).resolve().parents[2] / "configs" / "main.yaml")
@@ -79,11 +81,13 @@ def test_the_entry_point_trains_checkpoints_logs_and_evaluates(tmp_path, capsys)
     assert "gif:" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize(
-    "architecture, share_params", [("mlp", "false"), ("mlp_lstm", "true"), ("gnn", "true"), ("gnn_lstm", "false")]
-)
-def test_every_architecture_trains_and_reloads(tmp_path, architecture, share_params):
-    config = tiny_config(tmp_path, f"architecture={architecture}", f"share_params={share_params}")
+@pytest.mark.parametrize("architecture, share_params, algorithm", [
+    ("mlp", "false", "ippo"), ("mlp_lstm", "true", "ippo"), ("gnn", "true", "ippo"), ("gnn_lstm", "false", "ippo"),
+    ("e3t_mlp", "true", "e3t"), ("e3t_gnn", "false", "e3t"),
+])  # fmt: skip
+def test_every_architecture_trains_and_reloads(tmp_path, architecture, share_params, algorithm):
+    config = tiny_config(tmp_path, f"architecture={architecture}", f"share_params={share_params}",
+                         f"algorithm={algorithm}")
     losses = []
     run = train(config, on_update=lambda update, metrics: losses.append(metrics["losses/value"]) and False)
     assert len(losses) == 2 and all(torch.isfinite(torch.tensor(losses)))
@@ -93,9 +97,10 @@ def test_every_architecture_trains_and_reloads(tmp_path, architecture, share_par
         assert torch.equal(tensor, trained[name]), name
 
 
-@pytest.mark.parametrize("architecture", ["mlp", "mlp_lstm"])
-def test_a_crashed_run_resumes_from_its_checkpoint_with_the_same_metrics(tmp_path, architecture):
-    common = (f"architecture={architecture}", "checkpoint_every=2", "shaping_weight=1", "shaping_anneal_steps=256")
+@pytest.mark.parametrize("architecture, algorithm", [("mlp", "ippo"), ("mlp_lstm", "ippo"), ("e3t_mlp", "e3t")])
+def test_a_crashed_run_resumes_from_its_checkpoint_with_the_same_metrics(tmp_path, architecture, algorithm):
+    common = (f"architecture={architecture}", f"algorithm={algorithm}", "checkpoint_every=2", "shaping_weight=1",
+              "shaping_anneal_steps=256", *(["partner_policy=copy"] if algorithm == "e3t" else []))
     whole = train(tiny_config(tmp_path / "whole", *common, updates=4))
 
     def crash_at_update_3(update, metrics):
@@ -137,6 +142,16 @@ def test_bad_runs_and_checkpoints_get_a_clear_message(tmp_path, capsys):
     assert main([MAIN_CONFIG, "lrr=0.1"]) == 2
     assert "unknown config key 'lrr' in the command line (did you mean 'lr'?)" in capsys.readouterr().err
 
+    assert main([MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "algorithm=e3t"]) == 2
+    assert "algorithm=e3t needs a model with a partner predictor, and 'mlp' has none" in capsys.readouterr().err
+    assert main([MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "architecture=e3t_mlp"]) == 2
+    assert "'e3t_mlp' carries E3T's partner predictor, which only algorithm=e3t trains" in capsys.readouterr().err
+    assert main([MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "partner_policy=past"]) == 2
+    assert "partner_policy must be one of ego, copy, got 'past'" in capsys.readouterr().err
+
+    assert main([MAIN_CONFIG, "lrr=0.1"]) == 2
+    assert "unknown config key 'lrr' in the command line (did you mean 'lr'?)" in capsys.readouterr().err
+
     checkpoint = run / "checkpoints" / "latest.pt"
     checkpoint.write_bytes(checkpoint.read_bytes()[:1000])
     assert main(["--resume", str(run)]) == 2
@@ -168,3 +183,64 @@ def test_ppo_updates_lower_the_loss_on_a_fixed_batch(tmp_path, architecture):
         total_loss().backward()
         optimizer.step()
     assert total_loss().item() < before
+
+
+def e3t_batch(config, actor_critic):
+    """One collected E3T batch with its advantages, as the trainer sees it before the PPO epochs."""
+    env = with_model_transforms(make_env(config), actor_critic, PartnerSeats(config.seed))
+    policy = TensorDictSequential(actor_critic.actor, PartnerMixture(config.partner_epsilon), actor_critic.critic)
+    frames = config.num_envs * config.max_steps
+    collector = make_collector(env, policy, frames, frames)
+    batch = next(iter(collector)).clone()
+    collector.shutdown()
+    compute_advantages(batch, actor_critic.critic, config, shaping_weight=1.0)
+    batch.set(EGO, ~batch.get(MIXED))
+    return batch
+
+
+def test_e3t_ppo_learns_from_the_ego_transitions_only(tmp_path):
+    torch.manual_seed(0)
+    config = tiny_config(tmp_path, "algorithm=e3t", "architecture=e3t_mlp", "partner_epsilon=0.5")
+    actor_critic = make_actor_critic("e3t_mlp", (7, 7, 26), hidden=16, share_params=True)
+    batch = e3t_batch(config, actor_critic)
+    assert (batch.get(EGO).sum(-1) == 1).all()
+    loss_module = make_loss(config, actor_critic)
+
+    def losses(data):
+        data = data.clone()
+        normalize_ego_advantage(data)
+        return loss_module(data).select("loss_objective", "loss_critic", "loss_entropy").detach()
+
+    before = losses(batch)
+    # The mixed partner's transitions, scrambled: nothing changes.
+    scrambled = batch.clone()
+    partner = ~batch.get(EGO)
+    for key in [("agents", "advantage"), ("agents", "value_target"), ("agents", "action_log_prob")]:
+        scrambled.set(key, torch.where(partner.reshape(*partner.shape, *[1] * (batch.get(key).ndim - 3)),
+                                       torch.randn_like(batch.get(key)) * 100, batch.get(key)))
+    scrambled.set(("agents", "action"), torch.where(partner, (batch.get(("agents", "action")) + 1) % 6,
+                                                    batch.get(("agents", "action"))))
+    for name, value in losses(scrambled).items():
+        torch.testing.assert_close(value, before[name], msg=name)
+    # One ego transition changed: the policy loss moves.
+    nudged = batch.clone()
+    b, t = 0, 0
+    ego_seat = int(batch.get(EGO)[b, t].long().argmax())
+    nudged["agents", "action_log_prob"][b, t, ego_seat] -= 1.0
+    assert not torch.allclose(losses(nudged)["loss_objective"], before["loss_objective"])
+
+
+def test_e3t_training_teaches_the_predictor_and_keeps_a_slow_copy(tmp_path):
+    config = tiny_config(tmp_path, "algorithm=e3t", "architecture=e3t_mlp", "partner_policy=copy",
+                         "partner_copy_rate=0.5", updates=3)
+    metrics = []
+    run = train(config, on_update=lambda update, m: metrics.append(m) and False)
+    assert all(0 <= m["charts/partner_accuracy"] <= 1 and m["losses/partner_prediction"] > 0 for m in metrics)
+    state = load_checkpoint(run)
+    torch.manual_seed(config.seed)  # the initial weights, as train() built them
+    initial = make_actor_critic("e3t_mlp", (7, 7, 26), hidden=16).actor.state_dict()
+    for name, ego in state["actor"].items():
+        copy, start = state["partner_copy"][name], initial[name]
+        # After 3 updates at rate 0.5 the copy is 7/8 of the way along: between the start and the ego.
+        if not torch.equal(ego, start):
+            assert not torch.equal(copy, ego) and not torch.equal(copy, start), name
