@@ -9,6 +9,9 @@ with separate torsos (no layer is shared between actor and critic). Each torso, 
     memory    recurrent variants only: TorchRL LSTMModule(h) -> LayerNorm(h)
     head      Linear(h) + ReLU -> Linear(h) + ReLU -> Linear(6 logits | 1 value)
 
+E3T's models ("e3t_mlp", "e3t_gnn") put a partner predictor (`PartnerPredictor`) before the actor's torso; its
+predicted distribution of the partner's action, detached, is concatenated to the torso's output before the head.
+
 Orthogonal init as in the authors' code: gain sqrt(2) for hidden Linear layers, 0.01 for the policy head, 1.0
 for the value head, zero biases (the GAT layer and the LSTM keep their own default init).
 With `share_params` one network serves both agents; otherwise agent i has its own (TorchRL's
@@ -25,6 +28,9 @@ Keys (*B = the tensordict's batch dims: [B] while collecting, [B, T] in training
          ("agents", "state_value")        float32 [*B, 2, 1]
          ("next", "agents", "<net>_h" | "<net>_c")                  recurrent, step mode only: the state after
                                                                     this step (where a Collector carries it)
+    E3T  in  ("agents", "context_observation" | "context_action")  the partner context
+                                                                    (`torch_kitchen.partner.PartnerContext`)
+         out ("agents", "partner_logits" | "partner_prediction") float32 [*B, 2, 6]
 
 Recurrent models run one step at a time by default (collection); wrap training calls on [B, T] batches in
 `torchrl.modules.set_recurrent_mode(True)` for backpropagation through time, T the last batch dim. Either way
@@ -331,55 +337,69 @@ E3T_CONTEXT = 5  # (observation, partner action) pairs the partner predictor rea
 PARTNER_LOGITS, PARTNER_PREDICTION = ("agents", "partner_logits"), ("agents", "partner_prediction")
 
 
-class PartnerPredictor(nn.Module):
-    """One agent's partner model: its last k (observation, partner action) pairs -> logits of the partner's action.
+def make_predictor_head(hidden: int, length: int) -> nn.Sequential:
+    """One agent's reading of its context: float [..., k, h + 7] (each observation's code, then the one-hot partner
+    action: 6 actions and NO_ACTION) -> float [..., 6] logits, through Linear(h) + ReLU -> Linear(6)."""
+    return nn.Sequential(
+        nn.Flatten(-2),
+        _hidden_linear(length * (hidden + NO_ACTION + 1), hidden), nn.ReLU(),
+        _orthogonal_(nn.Linear(hidden, NUM_ACTIONS), 0.01),
+    )
 
-    in:  float [..., k, H*W*C + 7], each pair as the flattened observation then the one-hot partner action
-         (6 actions and NO_ACTION, the padding before an episode's first step)
-    out: float [..., 6]
-    Every observation goes through its own encoder (the policy's kind, "mlp" or "gnn", with its own weights);
-    the k codes and actions are flattened in order and mapped to the logits by Linear(h) + ReLU -> Linear(6).
+
+class PartnerPredictor(TensorDictModuleBase):
+    """E3T's partner model over both agents: the partner context -> the partner's next action.
+
+    in:  ("agents", "context_observation") uint8 [*B, 2, k, H, W, C], ("agents", "context_action") int64 [*B, 2, k]
+    out: ("agents", "partner_logits") [*B, 2, 6] and ("agents", "partner_prediction"), their softmax, detached:
+         the policy reads the prediction as an input and the predictor learns from its own cross-entropy only.
+    Each context observation goes through an encoder of the policy's kind ("mlp" or "gnn", weights of its own);
+    the head reads the k codes with the k actions. `sequence_logits` gives the same logits for whole
+    trajectories while encoding each observation once instead of k times (training).
     """
 
-    def __init__(self, kind: str, obs_shape: tuple[int, int, int], hidden: int, length: int):
+    def __init__(self, encoder: str, obs_shape: tuple[int, int, int], hidden: int, share_params: bool,
+                 length: int = E3T_CONTEXT):
         super().__init__()
-        self.obs_shape, self.length = tuple(obs_shape), length
-        self.encoder = make_encoder(kind, obs_shape, hidden)
-        self.head = nn.Sequential(
-            _hidden_linear(length * (hidden + NO_ACTION + 1), hidden), nn.ReLU(),
-            _orthogonal_(nn.Linear(hidden, NUM_ACTIONS), 0.01),
-        )
+        self.length, self.obs_shape = length, tuple(obs_shape)
+        self.encoder = ObservationEncoder(encoder, obs_shape, hidden, share_params)
+        self.head = MultiAgentNet(functools.partial(make_predictor_head, hidden, length),
+                                  (length, hidden + NO_ACTION + 1), share_params=share_params)
+        self.in_keys = [CONTEXT_OBSERVATION, CONTEXT_ACTION]
+        self.out_keys = [PARTNER_LOGITS, PARTNER_PREDICTION]
 
-    def forward(self, pairs: torch.Tensor) -> torch.Tensor:
-        size = math.prod(self.obs_shape)
-        codes = self.encoder(pairs[..., :size].unflatten(-1, self.obs_shape))  # [..., k, h]
-        return self.head(torch.cat([codes, pairs[..., size:]], -1).flatten(-2))
+    def _read(self, codes: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """codes float [*B, 2, k, h], actions int64 [*B, 2, k] -> logits [*B, 2, 6]."""
+        one_hot = nn.functional.one_hot(actions, NO_ACTION + 1).to(codes.dtype)
+        return self.head(torch.cat([codes, one_hot], -1))
 
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        # The encoder wants the agent dim just before the observation: [*B, 2, k, ...] -> [*B, k, 2, ...].
+        codes = self.encoder(tensordict.get(CONTEXT_OBSERVATION).movedim(-5, -4)).movedim(-3, -2)
+        logits = self._read(codes, tensordict.get(CONTEXT_ACTION))
+        tensordict.set(PARTNER_LOGITS, logits)
+        tensordict.set(PARTNER_PREDICTION, torch.softmax(logits.detach(), -1))
+        return tensordict
 
-def context_pairs(observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-    """uint8 [..., k, H, W, C] and int64 [..., k] -> float [..., k, H*W*C + 7], the predictor's input."""
-    one_hot = nn.functional.one_hot(action, NO_ACTION + 1).to(torch.float32)
-    return torch.cat([observation.flatten(-3).to(torch.float32), one_hot], -1)
+    def sequence_logits(self, batch: TensorDictBase) -> torch.Tensor:
+        """Logits [B, T, 2, 6] over trajectories [B, T] as a collector gives them (consecutive steps per kitchen).
 
-
-def _detached_softmax(logits: torch.Tensor) -> torch.Tensor:
-    return torch.softmax(logits.detach(), -1)
-
-
-def make_partner_predictor(encoder: str, obs_shape: tuple[int, int, int], hidden: int, share_params: bool,
-                           length: int = E3T_CONTEXT) -> TensorDictSequential:
-    """The context (`torch_kitchen.partner.PartnerContext`) -> ("agents", "partner_logits") [*B, 2, 6] and
-    ("agents", "partner_prediction"), their softmax, detached: the policy reads the prediction as an input and
-    the predictor learns from its own cross-entropy only."""
-    pairs = ("agents", "context_pairs")
-    predictor = MultiAgentNet(functools.partial(PartnerPredictor, encoder, obs_shape, hidden, length),
-                              (length, math.prod(obs_shape) + NO_ACTION + 1), share_params=share_params)
-    return TensorDictSequential(
-        TensorDictModule(context_pairs, in_keys=[CONTEXT_OBSERVATION, CONTEXT_ACTION], out_keys=[pairs]),
-        TensorDictModule(predictor, in_keys=[pairs], out_keys=[PARTNER_LOGITS]),
-        TensorDictModule(_detached_softmax, in_keys=[PARTNER_LOGITS], out_keys=[PARTNER_PREDICTION]),
-        selected_out_keys=[PARTNER_LOGITS, PARTNER_PREDICTION],
-    )
+        Slot j of step t's context holds the observation of step t - k + j, or padding where that step lies
+        before the episode's start (there its action is NO_ACTION). So the codes of the batch's own
+        observations, after the codes of the context at t = 0 (the steps before the batch), give every
+        context by a sliding window; padded slots take the code of an all-zero observation, as they do step by
+        step. Equal to `forward` step by step (tested), with one encoding per observation.
+        """
+        context_obs, actions = batch.get(CONTEXT_OBSERVATION), batch.get(CONTEXT_ACTION)  # [B, T, 2, k, ...]
+        observation = batch.get(("agents", "observation"))  # [B, T, 2, H, W, C]
+        steps = observation.shape[1]
+        before = self.encoder(context_obs[:, 0].movedim(-5, -4))  # [B, k, 2, h]: steps -k .. -1
+        codes = torch.cat([before, self.encoder(observation)], dim=1)  # [B, k + T, 2, h]
+        windows = codes.unfold(1, self.length, 1)[:, :steps].transpose(-1, -2)  # [B, T, 2, k, h]
+        padding = self.encoder(torch.zeros_like(observation[:1, 0]))  # [1, 2, h]
+        padded = (actions == NO_ACTION).unsqueeze(-1)
+        windows = torch.where(padded, padding.unsqueeze(-2), windows)
+        return self._read(windows, actions)
 
 
 def partner_context_length(network: nn.Module) -> int:
@@ -398,7 +418,7 @@ class ActorCritic:
         ("agents", "action_log_prob") [*B, 2]; samples by default (interaction type RANDOM).
     critic: writes ("agents", "state_value") float32 [*B, 2, 1].
     recurrent: whether both carry an LSTM state (then see `env_transforms` and `set_recurrent_mode`).
-    predictor: E3T only: the actor's partner predictor (`make_partner_predictor`), trained by cross-entropy.
+    predictor: E3T only: the actor's `PartnerPredictor`, trained by cross-entropy.
     ppo_actor: E3T only: the actor without its predictor, reading the prediction stored while acting; the PPO
         loss differentiates it, so its probability ratios compare the policy on the very inputs it acted on.
     """
@@ -439,7 +459,7 @@ def build_e3t(encoder: str, obs_shape: tuple[int, int, int], hidden: int, share_
     partner prediction, after the partner predictor; the critic as in "mlp" / "gnn"."""
     common = {"encoder": encoder, "obs_shape": tuple(obs_shape), "hidden": hidden, "recurrent": False,
               "share_params": share_params}
-    predictor = make_partner_predictor(encoder, obs_shape, hidden, share_params)
+    predictor = PartnerPredictor(encoder, obs_shape, hidden, share_params)
     policy = make_network("actor", out_key=("agents", "logits"), out_features=NUM_ACTIONS, out_gain=0.01,
                           extra_inputs=[(PARTNER_PREDICTION, NUM_ACTIONS)], **common)
     critic = make_network("critic", out_key=("agents", "state_value"), out_features=1, out_gain=1.0, **common)

@@ -39,7 +39,7 @@ from torchrl.record.loggers import CSVLogger, TensorboardLogger
 from tqdm import tqdm
 
 from torch_kitchen.env import KitchenEnv, with_transforms
-from torch_kitchen.models import PARTNER_LOGITS, ActorCritic, make_actor_critic
+from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
 from trainers.checkpoint import LATEST, CheckpointError, check_identity, load_checkpoint, model_identity, save_checkpoint
 from trainers.config import ConfigError, TrainConfig, load_config, save_config
@@ -115,8 +115,9 @@ def normalize_ego_advantage(minibatch: TensorDictBase) -> None:
 
 def partner_prediction_loss(predictor, minibatch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
     """E3T: cross-entropy of every agent's predicted partner action against the action the partner took at that
-    step, and the accuracy of the most likely one. The predictor reads only the context of earlier steps."""
-    logits = predictor(minibatch.select(*predictor.in_keys)).get(PARTNER_LOGITS)  # [mb, T, 2, 6]
+    step, and the accuracy of the most likely one, over whole kitchen sequences [mb, T]. The predictor reads
+    only the context of earlier steps."""
+    logits = predictor.sequence_logits(minibatch)  # [mb, T, 2, 6]
     partner_action = minibatch.get(ACTION).flip(-1)
     loss = torch.nn.functional.cross_entropy(logits.flatten(0, -2), partner_action.flatten())
     accuracy = (logits.argmax(-1) == partner_action).float().mean()

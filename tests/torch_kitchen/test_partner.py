@@ -153,3 +153,16 @@ def with_leakage(data):
     context = leaky["agents", "context_action"]
     leaky["agents", "context_action"] = torch.cat([context[..., 1:], data["agents", "action"].flip(-1)[..., None]], -1)
     return leaky
+
+
+@pytest.mark.parametrize("architecture, share_params", [("e3t_mlp", True), ("e3t_gnn", False)])
+def test_sequence_logits_equal_the_step_by_step_predictions(architecture, share_params):
+    """Over a batch that starts mid-episode and crosses episode ends, one encoding per observation gives what
+    the predictor computed at every step from its context."""
+    torch.manual_seed(0)
+    actor_critic = make_actor_critic(architecture, hidden=16, share_params=share_params)
+    env = with_transforms(KitchenEnv(3, levels="infinite", max_steps=6), actor_critic.env_transforms())
+    with torch.no_grad():
+        data = env.rollout(20, actor_critic.actor, break_when_any_done=False)[:, 4:]  # from mid-episode
+        sequence = actor_critic.predictor.sequence_logits(data)
+    torch.testing.assert_close(sequence, data["agents", "partner_logits"])
