@@ -66,19 +66,19 @@ class PartnerContext(Transform):
         carried_obs = tensordict.get(CONTEXT_OBSERVATION, None) if tensordict is not None else None
         if carried_obs is not None:  # a partial reset: the other kitchens keep their context
             fresh = _reset_rows(tensordict, tensordict_reset.batch_size, context_obs.device)
-            context_obs = torch.where(fresh.view(-1, 1, 1, 1, 1, 1), context_obs, carried_obs)
-            context_action = torch.where(fresh.view(-1, 1, 1), context_action, tensordict.get(CONTEXT_ACTION))
+            context_obs = torch.where(fresh.view(*fresh.shape, 1, 1, 1, 1, 1), context_obs, carried_obs)
+            context_action = torch.where(fresh.view(*fresh.shape, 1, 1), context_action,
+                                         tensordict.get(CONTEXT_ACTION))
         tensordict_reset.set(CONTEXT_OBSERVATION, context_obs)
         tensordict_reset.set(CONTEXT_ACTION, context_action)
         return tensordict_reset
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         # The pair of this step, (own observation at t, partner's action at t), joins the context read at t + 1.
-        partner_action = tensordict.get(ACTION).flip(-1)
-        context_obs = torch.cat(
-            [tensordict.get(CONTEXT_OBSERVATION)[:, :, 1:], tensordict.get(OBSERVATION).unsqueeze(2)], dim=2
-        )
-        context_action = torch.cat([tensordict.get(CONTEXT_ACTION)[:, :, 1:], partner_action.unsqueeze(2)], dim=2)
+        partner_action = tensordict.get(ACTION).flip(-1)  # [*B, 2]
+        context_obs, observation = tensordict.get(CONTEXT_OBSERVATION), tensordict.get(OBSERVATION)
+        context_obs = torch.cat([context_obs[..., 1:, :, :, :], observation.unsqueeze(-4)], dim=-4)
+        context_action = torch.cat([tensordict.get(CONTEXT_ACTION)[..., 1:], partner_action.unsqueeze(-1)], dim=-1)
         next_tensordict.set(CONTEXT_OBSERVATION, context_obs)
         next_tensordict.set(CONTEXT_ACTION, context_action)
         return next_tensordict

@@ -10,7 +10,7 @@ EVAL_CONFIGS = sorted((CONFIG_DIR / "eval").glob("*.yaml"))
 
 
 def test_every_shipped_config_loads():
-    assert len(CONFIGS) >= 25  # 4 architectures x (5 SK layouts + IK), the bases and the main job
+    assert len(CONFIGS) >= 39  # (4 IPPO + 2 E3T architectures) x (5 SK layouts + IK), the bases, the main job
     for path in CONFIGS:
         config = load_config(path)
         assert isinstance(config, TrainConfig), path
@@ -42,6 +42,18 @@ def test_regimes_follow_the_protocol(architecture):
         assert (sk.levels, sk.hidden, sk.share_params) == (f"{layout}_7x7", 128, False)
         assert sk.name == f"ippo_{architecture}_sk_{layout}"
     assert (ik.num_envs, ik.rollout_steps, ik.epochs, ik.minibatches, ik.shaping_weight) == (32, 256, 4, 4, 0.0)
+
+
+@pytest.mark.parametrize("encoder", ["mlp", "gnn"])
+def test_e3t_configs_follow_the_protocol_on_top_of_ippo(encoder):
+    ik = load_config(CONFIG_DIR / f"e3t/{encoder}_ik.yaml")
+    assert (ik.algorithm, ik.architecture, ik.levels, ik.hidden, ik.share_params) == (
+        "e3t", f"e3t_{encoder}", "infinite", 256, True)
+    assert (ik.partner_epsilon, ik.partner_policy, ik.num_envs, ik.rollout_steps) == (0.3, "ego", 32, 256)
+    for layout in ["cramped_room", "asymm_advantages", "coord_ring", "forced_coord", "counter_circuit"]:
+        sk = load_config(CONFIG_DIR / f"e3t/{encoder}_sk_{layout}.yaml")
+        assert (sk.algorithm, sk.levels, sk.hidden, sk.share_params) == ("e3t", f"{layout}_7x7", 128, False)
+        assert sk.name == f"e3t_{encoder}_sk_{layout}"
 
 
 def test_overrides_apply_on_top_of_the_file_and_are_typed():
