@@ -230,17 +230,27 @@ def test_e3t_ppo_learns_from_the_ego_transitions_only(tmp_path):
     assert not torch.allclose(losses(nudged)["loss_objective"], before["loss_objective"])
 
 
-def test_e3t_training_teaches_the_predictor_and_keeps_a_slow_copy(tmp_path):
-    config = tiny_config(tmp_path, "algorithm=e3t", "architecture=e3t_mlp", "partner_policy=copy",
-                         "partner_copy_rate=0.5", updates=3)
-    metrics = []
-    run = train(config, on_update=lambda update, m: metrics.append(m) and False)
-    assert all(0 <= m["charts/partner_accuracy"] <= 1 and m["losses/partner_prediction"] > 0 for m in metrics)
+def test_e3t_through_the_entry_point_teaches_the_predictor_keeps_a_slow_copy_and_evaluates(tmp_path):
+    config_file = str(Path(__file__).resolve().parents[2] / "configs" / "e3t" / "mlp_ik.yaml")
+    argv = [config_file, *TINY, f"run_dir={tmp_path}", "hidden=16", "total_steps=192", "partner_policy=copy",
+            "partner_copy_rate=0.5", "eval_episodes=1", "eval_heldout=1"]
+    assert main(argv) == 0
+    run = tmp_path / "e3t_mlp_ik" / "seed0"
+    metrics = read_metrics(run)
+    assert [step for step, _ in metrics["charts/partner_accuracy"]] == [64, 128, 192]
+    assert all(0 <= accuracy <= 1 for _, accuracy in metrics["charts/partner_accuracy"])
+    assert all(loss > 0 for _, loss in metrics["losses/partner_prediction"])
     state = load_checkpoint(run)
-    torch.manual_seed(config.seed)  # the initial weights, as train() built them
+    torch.manual_seed(0)  # the initial weights, as train() built them
     initial = make_actor_critic("e3t_mlp", (7, 7, 26), hidden=16).actor.state_dict()
+    moved = 0
     for name, ego in state["actor"].items():
         copy, start = state["partner_copy"][name], initial[name]
-        # After 3 updates at rate 0.5 the copy is 7/8 of the way along: between the start and the ego.
+        # After 3 updates at rate 0.5 the copy has moved 7/8 of the way: neither where it started nor the ego.
         if not torch.equal(ego, start):
+            moved += 1
             assert not torch.equal(copy, ego) and not torch.equal(copy, start), name
+    assert moved > 0
+    assert "| e3t_mlp_ik | cramped_room_7x7 |" in (run / "eval.md").read_text()
+    with Image.open(run / "team.gif") as gif:
+        assert gif.n_frames > 1
