@@ -4,6 +4,7 @@ partner predictor learning a scripted partner but not a random one."""
 import pytest
 import torch
 from tensordict.nn import TensorDictModule, TensorDictSequential
+from torchrl.envs.utils import check_env_specs
 
 from jax_env import NUM_ACTIONS, STAY
 from scripted_cook import TWO_BOOTHS, scripted_team
@@ -166,3 +167,11 @@ def test_sequence_logits_equal_the_step_by_step_predictions(architecture, share_
         data = env.rollout(20, actor_critic.actor, break_when_any_done=False)[:, 4:]  # from mid-episode
         sequence = actor_critic.predictor.sequence_logits(data)
     torch.testing.assert_close(sequence, data["agents", "partner_logits"])
+
+
+def test_the_partner_transforms_declare_what_they_write():
+    env = with_transforms(KitchenEnv(2, levels="infinite", max_steps=4), [PartnerContext(5), PartnerSeats(0)])
+    check_env_specs(env, seed=0)
+    agents = env.observation_spec["agents"]
+    assert agents["context_observation"].shape == (2, 2, 5, 7, 7, 26)
+    assert agents["context_action"].shape == (2, 2, 5) and agents["mixed"].dtype == torch.bool
