@@ -338,7 +338,9 @@ def train(
                         stats.append(losses.detach().set("grad_norm", grad_norm.detach()))
             stats = torch.stack(stats).apply(lambda x: x.float().mean(), batch_size=[])
             if e3t and copied is not None:  # the slow copy follows the ego
-                torch._foreach_lerp_(list(copied.parameters()), list(actor.parameters()), config.partner_copy_rate)
+                with torch.no_grad():
+                    for slow, ego in zip(copied.parameters(), actor.parameters()):
+                        slow.lerp_(ego, config.partner_copy_rate)
 
             # --- logging
             finished = finished_episode_deliveries(batch)
