@@ -361,7 +361,7 @@ class PartnerPredictor(TensorDictModuleBase):
     def __init__(self, encoder: str, obs_shape: tuple[int, int, int], hidden: int, share_params: bool,
                  length: int = E3T_CONTEXT):
         super().__init__()
-        self.length, self.obs_shape = length, tuple(obs_shape)
+        self.length = length
         self.encoder = ObservationEncoder(encoder, obs_shape, hidden, share_params)
         self.head = MultiAgentNet(functools.partial(make_predictor_head, hidden, length),
                                   (length, hidden + NO_ACTION + 1), share_params=share_params)
@@ -437,8 +437,9 @@ class ActorCritic:
         if self.recurrent:
             states = {**recurrent_states(self.actor), **recurrent_states(self.critic)}
             transforms += [InitTracker(), agent_state_primer(states)]
-        if partner_context_length(self.actor):
-            transforms.append(PartnerContext(partner_context_length(self.actor)))
+        context_length = partner_context_length(self.actor)
+        if context_length:
+            transforms.append(PartnerContext(context_length))
         return transforms
 
 

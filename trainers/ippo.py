@@ -225,15 +225,12 @@ def train(
     actor, critic = actor_critic.actor.to(config.device), actor_critic.critic.to(config.device)
     predictor = actor_critic.predictor  # E3T's partner predictor, part of the actor
     e3t = config.algorithm == "e3t"
-    if e3t:
-        seats = PartnerSeats(config.seed)  # which agent is the mixed partner, per kitchen and episode
-        copied = copy.deepcopy(actor).requires_grad_(False) if config.partner_policy == "copy" else None
-        env = with_model_transforms(kitchen, actor_critic, seats)
-        # The critic runs while acting: its values feed GAE.
-        policy = TensorDictSequential(actor, PartnerMixture(config.partner_epsilon, copied), critic)
-    else:
-        env = with_model_transforms(kitchen, actor_critic)
-        policy = TensorDictSequential(actor, critic)  # the critic runs while acting: its values feed GAE
+    # E3T: which agent is the mixed partner (per kitchen and episode), and the optional slow copy of the ego.
+    seats = PartnerSeats(config.seed) if e3t else None
+    copied = copy.deepcopy(actor).requires_grad_(False) if e3t and config.partner_policy == "copy" else None
+    env = with_model_transforms(kitchen, actor_critic, *([seats] if e3t else []))
+    acting = [actor, PartnerMixture(config.partner_epsilon, copied)] if e3t else [actor]
+    policy = TensorDictSequential(*acting, critic)  # the critic runs while acting: its values feed GAE
 
     # ---------------------------------------------------------------- loss and optimizer
     loss_module = make_loss(config, actor_critic)
@@ -249,10 +246,10 @@ def train(
         critic.load_state_dict(state["critic"])
         optimizer.load_state_dict(state["optimizer"])
         kitchen.load_state_dict(state["env"])  # the collector's first reset hands these kitchens out
-        if e3t:
+        if seats is not None:
             seats.load_state_dict(state["partner_seats"])
-            if copied is not None:
-                copied.load_state_dict(state["partner_copy"])
+        if copied is not None:
+            copied.load_state_dict(state["partner_copy"])
         update, env_steps = state["update"], state["env_steps"]
     run.mkdir(parents=True, exist_ok=True)
     save_config(config, run / "config.yaml")
@@ -274,8 +271,8 @@ def train(
                 "env_steps": env_steps,
                 "torch_rng": torch.get_rng_state(),
                 "env": kitchen.state_dict(),
-                **({"partner_seats": seats.state_dict()} if e3t else {}),
-                **({"partner_copy": copied.state_dict()} if e3t and copied is not None else {}),
+                **({"partner_seats": seats.state_dict()} if seats is not None else {}),
+                **({"partner_copy": copied.state_dict()} if copied is not None else {}),
             },
         )
 
@@ -337,7 +334,7 @@ def train(
                         optimizer.step()
                         stats.append(losses.detach().set("grad_norm", grad_norm.detach()))
             stats = torch.stack(stats).apply(lambda x: x.float().mean(), batch_size=[])
-            if e3t and copied is not None:  # the slow copy follows the ego
+            if copied is not None:  # the slow copy follows the ego
                 with torch.no_grad():
                     for slow, ego in zip(copied.parameters(), actor.parameters()):
                         slow.lerp_(ego, config.partner_copy_rate)
