@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup main test bench
+.PHONY: setup main test lint bench
 
 setup: $(VENV)/.installed
 
@@ -15,7 +15,8 @@ $(VENV)/.installed: setup.cfg pyproject.toml
 	$(BIN)/pip install -q -e ".[test]"
 	touch $@
 
-# Trains configs/main.yaml into runs/main/seed0; a second call resumes it (or re-evaluates a finished run).
+# Trains configs/main.yaml into runs/main/seed0. Called again, it resumes a stopped or killed run, re-evaluates a
+# finished one, and starts clean a run killed before its first checkpoint (its partial logs replaced).
 MAIN_RUN := runs/main/seed0
 main: setup
 	if [ -f $(MAIN_RUN)/checkpoints/latest.pt ]; then \
@@ -26,6 +27,9 @@ main: setup
 
 test: setup
 	$(BIN)/python -m pytest -q
+
+lint: setup
+	$(BIN)/ruff check .
 
 bench: setup
 	$(BIN)/python benchmarks/env_step.py

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jax_env import COUNTER, GOAL, ONION_PILE, PLATE_PILE, POT, FLOOR, Overcooked, get_layout, state_nbytes
+from jax_env import COUNTER, FLOOR, GOAL, ONION_PILE, PLATE_PILE, POT, Overcooked, get_layout, state_nbytes
 
 
 def jaxmarl_env(layout, max_steps):
@@ -81,7 +81,8 @@ def main(argv=None):
     parser.add_argument("--min-seconds", type=float, default=2.0, help="timing window per measurement")
     args = parser.parse_args(argv)
 
-    print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}), {platform.processor() or platform.machine()}")
+    machine = platform.processor() or platform.machine()
+    print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}), {machine}")
     print(f"{'layout':22s} {'envs':>6s} {'ours steps/s':>14s} {'JaxMARL steps/s':>16s} {'ratio':>7s}")
     for name in args.layouts:
         layout = get_layout(name)

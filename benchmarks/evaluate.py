@@ -16,8 +16,8 @@ import platform
 import time
 
 import torch
-
 from env_step import jaxmarl_env, make_rollout, per_second
+
 from jax_env import EXPANDED_LAYOUTS, get_layout
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.models import make_actor_critic

@@ -14,7 +14,6 @@ ends), reporting steps and wall time.
 from __future__ import annotations
 
 import argparse
-import math
 import platform
 import tempfile
 import time
@@ -82,7 +81,7 @@ def learning_check(target: float, budget: int, threads: int, device: str, seed: 
         recent = deque(maxlen=max(1, round(128 / episodes_per_update)))  # about the last 128 episodes
 
         def on_update(update, metrics):
-            if not math.isnan(metrics["charts/episode_deliveries"]):
+            if "charts/episode_deliveries" in metrics:  # logged on updates where some episode ended
                 recent.append(metrics["charts/episode_deliveries"])
             mean = sum(recent) / max(1, len(recent))
             steps = update * config.frames_per_batch

@@ -1,6 +1,17 @@
 """Pure-JAX Overcooked: layouts, the stepper, observations and rendering. No torch in here."""
 
 from jax_env.env import DELIVERY_REWARD, INTERACT, NUM_ACTIONS, STAY, Overcooked, ShapingWeights
+from jax_env.generator import (
+    HELDOUT_SEED,
+    GeneratorConfig,
+    heldout_grids,
+    heldout_levels,
+    heldout_set,
+    sample_level,
+    sample_levels,
+    sample_training_level,
+    sample_training_levels,
+)
 from jax_env.layouts import (
     CLASSIC_LAYOUTS,
     COUNTER,
@@ -19,10 +30,11 @@ from jax_env.layouts import (
     save_layout,
 )
 from jax_env.observation import get_obs
+from jax_env.solvability import classify_layout, classify_levels, is_solvable
 from jax_env.state import (
     DISH,
-    EMPTY,
     EAST,
+    EMPTY,
     NORTH,
     ONION,
     PLATE,
@@ -36,15 +48,3 @@ from jax_env.state import (
     make_state,
     state_nbytes,
 )
-from jax_env.generator import (
-    HELDOUT_SEED,
-    GeneratorConfig,
-    heldout_grids,
-    heldout_levels,
-    heldout_set,
-    sample_level,
-    sample_levels,
-    sample_training_level,
-    sample_training_levels,
-)
-from jax_env.solvability import classify_layout, classify_levels, is_solvable

@@ -175,7 +175,9 @@ class Overcooked:
 
         def with_fresh(states):
             fresh = self._fresh(key, mask.shape[0], levels)
-            pick = lambda new, old: jnp.where(mask.reshape(mask.shape + (1,) * (old.ndim - 1)), new, old)
+            def pick(new, old):
+                return jnp.where(mask.reshape(mask.shape + (1,) * (old.ndim - 1)), new, old)
+
             return jax.tree_util.tree_map(pick, fresh, states)
 
         return jax.lax.cond(jnp.any(mask), with_fresh, lambda states: states, states)

@@ -19,6 +19,7 @@ Keys (B = num_envs, H x W the kitchen, 7x7 for the Infinite Kitchen):
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from typing import Sequence
 
@@ -26,14 +27,14 @@ from typing import Sequence
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 import jax  # noqa: E402
-import numpy as np  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from tensordict import TensorDict, TensorDictBase  # noqa: E402
 from torchrl.data import Bounded, Categorical, Composite, Unbounded  # noqa: E402
 from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv  # noqa: E402
 
-from jax_env import DELIVERY_REWARD, NUM_ACTIONS, GeneratorConfig, Overcooked, ShapingWeights  # noqa: E402
+from jax_env import DELIVERY_REWARD, NUM_ACTIONS, GeneratorConfig, Overcooked, ShapingWeights, State  # noqa: E402
 from jax_env.env import Levels  # noqa: E402
 
 
@@ -55,6 +56,14 @@ def jax_device_for(device: torch.device) -> jax.Device:
             )
         return gpus[index]
     raise RuntimeError(f"KitchenEnv supports device='cpu' or 'cuda[:i]', got {str(device)!r}")
+
+
+_STATE_FIELDS = dataclasses.fields(State)  # the kitchens travel in checkpoints as tensors named by these
+
+
+def _to_tensor(array, dtype=None) -> torch.Tensor:
+    """A CPU tensor copy of a JAX array (a copy: JAX's host buffers are read-only)."""
+    return torch.from_numpy(np.array(array, dtype=dtype))
 
 
 class KitchenEnv(EnvBase):
@@ -220,30 +229,43 @@ class KitchenEnv(EnvBase):
         self._states = None  # the next reset starts every kitchen from the new seed
 
     # Checkpoints: `env.state_dict()` carries the kitchens, the episode counters and the key, so a resumed run
-    # continues with exactly the levels and episodes it would have seen.
+    # continues with exactly the levels and episodes it would have seen. All of it is CPU tensors, so that a
+    # checkpoint loads with `torch.load(weights_only=True)`: data, never code.
     def get_extra_state(self) -> dict:
+        """The key (int64 [2]), the kitchens (`State`'s fields by name, in their own dtypes) and the deliveries."""
         if self._states is None:
             self.reset()
         return {
-            "key": np.asarray(self._key),
-            "states": jax.tree_util.tree_map(np.asarray, self._states),
-            "deliveries": np.asarray(self._deliveries),
+            # The key is uint32, which torch supports only in part; int64 holds every value exactly.
+            "key": _to_tensor(self._key, np.int64),
+            "states": {field.name: _to_tensor(getattr(self._states, field.name)) for field in _STATE_FIELDS},
+            "deliveries": _to_tensor(self._deliveries),
         }
 
     def set_extra_state(self, state: dict) -> None:
         """Restores the kitchens of `get_extra_state`; the next full `reset()` hands them out as they were."""
-        restored = jax.tree_util.tree_map(lambda x: jax.device_put(x, self._jax_device), state["states"])
-        expected = jax.tree_util.tree_map(np.shape, jax.eval_shape(self._reset_all, self._key)[0])
-        if jax.tree_util.tree_map(np.shape, restored) != expected:
+        expected_states, expected_deliveries, _ = jax.eval_shape(self._reset_all, self._key)
+        expected = {field.name: getattr(expected_states, field.name) for field in _STATE_FIELDS}
+        saved = state["states"]
+        if {name: tuple(value.shape) for name, value in saved.items()} != {k: v.shape for k, v in expected.items()}:
             raise ValueError(
                 f"this env state holds {len(state['deliveries'])} kitchens of another shape; the env has "
                 f"{self.num_envs} {self.kitchen.obs_shape[0]}x{self.kitchen.obs_shape[1]} kitchens: build the env "
                 "with the num_envs and levels the state was saved with"
             )
-        self._key = jax.device_put(state["key"], self._jax_device)
-        self._states = restored
-        self._deliveries = jax.device_put(state["deliveries"], self._jax_device)
+        if tuple(state["key"].shape) != self._key.shape:
+            raise ValueError(
+                f"this env state holds a JAX key of shape {tuple(state['key'].shape)}, this JAX makes keys of shape "
+                f"{self._key.shape}: load it with the JAX PRNG implementation it was saved with"
+            )
+        self._key = self._to_jax(state["key"], self._key.dtype)
+        self._states = State(**{name: self._to_jax(saved[name], value.dtype) for name, value in expected.items()})
+        self._deliveries = self._to_jax(state["deliveries"], expected_deliveries.dtype)
         self._restored = True
+
+    def _to_jax(self, tensor: torch.Tensor, dtype) -> jax.Array:
+        # Through NumPy on the CPU: a checkpoint may have been loaded onto any torch device.
+        return jax.device_put(np.asarray(tensor.detach().cpu().numpy(), dtype=dtype), self._jax_device)
 
     @property
     def states(self):

@@ -52,11 +52,11 @@ from torch_geometric.nn import GATConv
 from torchrl.data import Composite, Unbounded
 from torchrl.envs import InitTracker, TensorDictPrimer, Transform
 from torchrl.modules import LSTMModule, ProbabilisticActor
-from torchrl.modules.models.multiagent import MultiAgentNetBase
 
 from jax_env import NUM_ACTIONS
 from torch_kitchen.graph import build_graph, num_nodes
 from torch_kitchen.partner import CONTEXT_ACTION, CONTEXT_OBSERVATION, NO_ACTION, PartnerContext
+from torch_kitchen.torchrl_internals import MultiAgentNet
 
 N_AGENTS = 2
 GAT_HEADS, GAT_FEATURES = 4, 8  # per head; concatenated -> 32 features per node
@@ -119,40 +119,6 @@ def make_head(hidden: int, out_features: int, out_gain: float, layer_norm: bool,
 
 
 # -------------------------------------------------------------------------------------- one net per agent
-def _drop_template_entries(module, state_dict, prefix, local_metadata):
-    for key in [key for key in state_dict if key.startswith(prefix + "_empty_net.")]:
-        del state_dict[key]
-
-
-class MultiAgentNet(MultiAgentNetBase):
-    """Any torch module applied to each agent: float [..., n_agents, *in_shape] -> [..., n_agents, *out].
-
-    `build()` makes one agent's module (it must accept any leading dims). Shared: one module over both agents.
-    Not shared: one module per agent, agent i's on input[..., i, *in_shape] (vmapped over stacked parameters).
-    """
-
-    def __init__(self, build: Callable[[], nn.Module], in_shape: tuple[int, ...], *, n_agents: int = N_AGENTS,
-                 share_params: bool = True):
-        self.build = build
-        self.in_shape = tuple(in_shape)
-        super().__init__(n_agents=n_agents, centralized=False, share_params=share_params,
-                         agent_dim=-len(in_shape) - 1)
-        # torch-geometric layers save their weights themselves, even from the parameter-less template that
-        # MultiAgentNetBase keeps; those entries are not parameters and must stay out of checkpoints.
-        self._register_state_dict_hook(_drop_template_entries)
-
-    def _build_single_net(self, *, device=None, **kwargs) -> nn.Module:
-        # MultiAgentNetBase rebuilds a parameter-less copy under `torch.device("meta")`: no device to pass on.
-        return self.build()
-
-    def _pre_forward_check(self, inputs: torch.Tensor) -> torch.Tensor:
-        expected = (self.n_agents, *self.in_shape)
-        if tuple(inputs.shape[-len(expected):]) != expected:
-            raise ValueError(f"{type(self).__name__} expects inputs [..., {', '.join(map(str, expected))}], "
-                             f"got {list(inputs.shape)}")
-        return inputs
-
-
 class ObservationEncoder(MultiAgentNet):
     """Both agents' observations, uint8 [..., 2, H, W, C], to embeddings float32 [..., 2, hidden]."""
 
@@ -160,7 +126,7 @@ class ObservationEncoder(MultiAgentNet):
         super().__init__(functools.partial(make_encoder, kind, obs_shape, hidden), obs_shape,
                          share_params=share_params)
 
-    def _pre_forward_check(self, inputs: torch.Tensor) -> torch.Tensor:
+    def check_input(self, inputs: torch.Tensor) -> torch.Tensor:
         height, width, channels = self.in_shape
         if tuple(inputs.shape[-4:]) != (self.n_agents, *self.in_shape):
             raise ValueError(
@@ -410,6 +376,23 @@ def partner_context_length(network: nn.Module) -> int:
     return lengths.pop() if lengths else 0
 
 
+def split_partner_predictor(actor: ProbabilisticActor) -> tuple[PartnerPredictor, ProbabilisticActor]:
+    """An E3T actor, `sampling_actor(TensorDictSequential(predictor, policy))` as `build_e3t` makes it, as its
+    `PartnerPredictor` and the sampling actor of `policy` alone, which reads the ("agents", "partner_prediction")
+    already in a tensordict (the one stored while acting) instead of predicting it anew. Shares their weights.
+
+    Raises ValueError for an actor of another form (e.g. one without a predictor).
+    """
+    body = actor.module[0] if len(actor.module) else None
+    parts = list(body.module) if isinstance(body, TensorDictSequential) else []
+    if len(parts) < 2 or not isinstance(parts[0], PartnerPredictor):
+        raise ValueError(
+            "E3T needs an actor of the form sampling_actor(TensorDictSequential(PartnerPredictor(...), policy)), "
+            "as the architectures e3t_mlp and e3t_gnn build it"
+        )
+    return parts[0], sampling_actor(TensorDictSequential(*parts[1:]))
+
+
 @dataclass
 class ActorCritic:
     """A policy and a value network over both agents (keys in the module docstring).
@@ -418,16 +401,11 @@ class ActorCritic:
         ("agents", "action_log_prob") [*B, 2]; samples by default (interaction type RANDOM).
     critic: writes ("agents", "state_value") float32 [*B, 2, 1].
     recurrent: whether both carry an LSTM state (then see `env_transforms` and `set_recurrent_mode`).
-    predictor: E3T only: the actor's `PartnerPredictor`, trained by cross-entropy.
-    ppo_actor: E3T only: the actor without its predictor, reading the prediction stored while acting; the PPO
-        loss differentiates it, so its probability ratios compare the policy on the very inputs it acted on.
     """
 
     actor: ProbabilisticActor
     critic: TensorDictModuleBase
     recurrent: bool
-    predictor: TensorDictModuleBase | None = None
-    ppo_actor: ProbabilisticActor | None = None
 
     def env_transforms(self) -> list[Transform]:
         """Transforms to append to the KitchenEnv: none for a feed-forward model; for recurrent ones InitTracker()
@@ -464,9 +442,7 @@ def build_e3t(encoder: str, obs_shape: tuple[int, int, int], hidden: int, share_
     policy = make_network("actor", out_key=("agents", "logits"), out_features=NUM_ACTIONS, out_gain=0.01,
                           extra_inputs=[(PARTNER_PREDICTION, NUM_ACTIONS)], **common)
     critic = make_network("critic", out_key=("agents", "state_value"), out_features=1, out_gain=1.0, **common)
-    actor = sampling_actor(TensorDictSequential(predictor, policy))
-    return ActorCritic(actor=actor, critic=critic, recurrent=False, predictor=predictor,
-                       ppo_actor=sampling_actor(policy))
+    return ActorCritic(actor=sampling_actor(TensorDictSequential(predictor, policy)), critic=critic, recurrent=False)
 
 
 # ----------------------------------------------------------------------------------------------- registry

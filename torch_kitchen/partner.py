@@ -141,8 +141,9 @@ class PartnerSeats(Transform):
         return {"generator": self.generator.get_state(), "seats": self._seats}
 
     def set_extra_state(self, state: dict) -> None:
-        self.generator.set_state(state["generator"])
-        self._seats = state["seats"]
+        # Back to the CPU, where the generator draws: a checkpoint may have been loaded onto a GPU.
+        self.generator.set_state(state["generator"].cpu())
+        self._seats = None if state["seats"] is None else state["seats"].cpu()
         self._restored = self._seats is not None
 
 

@@ -2,83 +2,117 @@
 
 Two schemas: `TrainConfig` (a training run) and `EvalConfig` (an evaluation of trained teams). A YAML file may
 name a `base:` file (relative to itself) whose values it overrides, so the configs of one family share their
-common part. Unknown keys and ill-typed values are refused with the list of valid keys.
+common part. Unknown keys and ill-typed values are refused with the list of valid keys; `check()` refuses values
+no run can use before any work starts, with one line (a `ConfigError`) that says what to change. Every field
+carries a one-line meaning, which `config_help` lists for `--help`.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import difflib
+import math
 import types
 import typing
 from dataclasses import dataclass
 from pathlib import Path
 
+import jax
+import torch
 import yaml
 
-from jax_env import EXPANDED_LAYOUTS
+from jax_env import EXPANDED_LAYOUTS, classify_layout, load_layout
+from jax_env.generator import NUM_HELDOUT_GENERATED
 
 
 class ConfigError(ValueError):
     """A config file or override that cannot be used; the message says what to change."""
 
 
-ALGORITHMS = ("ippo", "e3t")
+LOGGERS = ("tensorboard", "csv", "wandb", "mlflow", "trackio")  # TorchRL's `get_logger` backends
 PARTNER_POLICIES = ("ego", "copy")
+GENERATED_LEVELS = ("infinite", "heldout")  # `levels` values that name generated levels rather than layouts
+# torch takes 64-bit seeds, but JAX (32-bit by default) keeps only a seed's low 32 bits: 2**32 + 5 would replay 5.
+MAX_SEED = 2**32 - 1
+
+
+def option(default, help: str, group: str | None = None):
+    """A config field with its one-line meaning (`help`, listed by `config_help`); a list or dict default is copied
+    for every instance. `group` starts a new group of keys in `config_help`."""
+    metadata = {"help": help} if group is None else {"help": help, "group": group}
+    if isinstance(default, list | dict):
+        return dataclasses.field(default_factory=lambda: copy.deepcopy(default), metadata=metadata)
+    return dataclasses.field(default=default, metadata=metadata)
 
 
 @dataclass
 class TrainConfig:
-    """Everything a self-play run (IPPO or E3T) depends on. Defaults: the paper's Infinite Kitchen setting with an MLP."""
+    """Everything a self-play run (IPPO or E3T) depends on. Defaults: the paper's Infinite Kitchen setting, an MLP."""
 
     # --- run
-    name: str = "ippo_mlp_ik"  # the run directory is {run_dir}/{name}/seed{seed}
-    run_dir: str = "runs"
-    seed: int = 0  # seeds torch, the levels and the resets; the 6 teams of a condition are seeds 0..5
-    device: str = "cpu"  # "cpu" or "cuda[:i]"; the env and the networks share it
-    threads: int = 1  # torch CPU threads (1 is fastest for small networks on a shared CPU)
+    name: str = option("ippo_mlp_ik", "the run directory is {run_dir}/{name}/seed{seed}", group="run")
+    run_dir: str = option("runs", "the folder that holds the runs")
+    seed: int = option(0, "seeds torch, the levels and the resets; the 6 teams of a condition are seeds 0..5")
+    device: str = option("cpu", '"cpu" or "cuda[:i]"; the env and the networks share it')
+    threads: int = option(1, "torch CPU threads (1 is fastest for small networks on a shared CPU)")
 
-    algorithm: str = "ippo"  # "ippo" (self-play) or "e3t" (mixed partner + partner model; e3t_* architectures)
+    algorithm: str = option(
+        "ippo", '"ippo" (self-play), "e3t" (mixed partner + partner model; e3t_* architectures), or a registered one'
+    )
 
     # --- environment
-    levels: str | list[str] = "infinite"  # "infinite" (IK), a layout name or file (SK), or a list of them
-    max_steps: int = 256  # episode length
-    num_envs: int = 32  # kitchens stepped together
-    rollout_steps: int = 256  # steps of every kitchen per update (one full episode by default)
-    total_steps: int = 20_000_000  # env steps over the run (num_envs x rollout_steps per update)
+    levels: str | list[str] = option(
+        "infinite", '"infinite" (IK), a layout name or file (SK), or a list of them', group="environment"
+    )
+    max_steps: int = option(256, "episode length")
+    num_envs: int = option(32, "kitchens stepped together")
+    rollout_steps: int = option(256, "steps of every kitchen per update (one full episode by default)")
+    total_steps: int = option(20_000_000, "env steps over the run (num_envs x rollout_steps per update)")
 
     # --- model
-    architecture: str = "mlp"  # mlp | mlp_lstm | gnn | gnn_lstm, or a name given to register_architecture
-    hidden: int = 256  # 256 for IK, 128 for SK in the paper
-    share_params: bool = True  # one network for both agents (IK) or one per agent (SK)
+    architecture: str = option(
+        "mlp", "mlp | mlp_lstm | gnn | gnn_lstm, or a name given to register_architecture", group="model"
+    )
+    hidden: int = option(256, "hidden width: 256 for IK, 128 for SK in the paper")
+    share_params: bool = option(True, "one network for both agents (IK) or one per agent (SK)")
 
     # --- PPO
-    lr: float = 2.5e-4
-    anneal_lr: bool = True  # linearly to 0 over the run
-    adam_eps: float = 1e-5
-    epochs: int = 4  # passes over each batch
-    minibatches: int = 4  # split over kitchens, so every minibatch holds whole sequences (for recurrent models)
-    gamma: float = 0.99
-    gae_lambda: float = 0.95
-    clip_epsilon: float = 0.2  # for the policy ratio and the value
-    entropy_coef: float = 0.01
-    value_coef: float = 0.5
-    max_grad_norm: float = 0.5
-    shaping_weight: float = 0.0  # weight of the shaped reward added to the sparse one (0: sparse only)
-    shaping_anneal_steps: int = 0  # anneal shaping_weight linearly to 0 over this many env steps (0: constant)
+    lr: float = option(2.5e-4, "Adam's learning rate", group="PPO")
+    anneal_lr: bool = option(True, "anneal the learning rate linearly to 0 over the run")
+    adam_eps: float = option(1e-5, "Adam's epsilon")
+    epochs: int = option(4, "passes over each batch")
+    minibatches: int = option(4, "split over kitchens, so every minibatch holds whole sequences (for recurrent models)")
+    gamma: float = option(0.99, "discount factor")
+    gae_lambda: float = option(0.95, "lambda of the generalised advantage estimate")
+    clip_epsilon: float = option(0.2, "PPO clip range, for the policy ratio and the value")
+    entropy_coef: float = option(0.01, "weight of the entropy bonus in the loss")
+    value_coef: float = option(0.5, "weight of the value loss")
+    max_grad_norm: float = option(0.5, "gradients are clipped to this global norm")
+    shaping_weight: float = option(0.0, "weight of the shaped reward added to the sparse one (0: sparse only)")
+    shaping_anneal_steps: int = option(0, "anneal shaping_weight linearly to 0 over this many env steps (0: constant)")
 
     # --- E3T (algorithm: e3t)
-    partner_epsilon: float = 0.3  # the mixed partner acts from (1 - eps) * pi + eps * uniform
-    partner_policy: str = "ego"  # pi of the mixed partner: "ego" (the policy itself) or "copy" (a slow copy)
-    partner_copy_rate: float = 0.01  # "copy": after every update, copy += rate * (ego - copy)
-    predictor_coef: float = 1.0  # weight of the partner predictor's cross-entropy in the loss
+    partner_epsilon: float = option(
+        0.3, "the mixed partner acts from (1 - eps) * pi + eps * uniform", group="E3T (algorithm: e3t)"
+    )
+    partner_policy: str = option("ego", 'pi of the mixed partner: "ego" (the policy itself) or "copy" (a slow copy)')
+    partner_copy_rate: float = option(0.01, '"copy": after every update, copy += rate * (ego - copy)')
+    predictor_coef: float = option(1.0, "weight of the partner predictor's cross-entropy in the loss")
 
     # --- logging, checkpoints, final evaluation
-    checkpoint_every: int = 10  # updates between checkpoints (one is always written at the end)
-    progress: bool = True  # a progress bar with steps/s and recent deliveries
-    eval_episodes: int = 8  # episodes per grid in the final self-play table (0: no evaluation)
-    eval_heldout: int = 5  # held-out generated levels in that table, beside the 5 expanded classics
-    gif: bool = True  # a GIF of the trained team on the first evaluation grid
+    checkpoint_every: int = option(
+        10,
+        "updates between checkpoints (one is always written at the end)",
+        group="logging, checkpoints, final evaluation",
+    )
+    loggers: list[str] = option(
+        ["tensorboard", "csv"], f"TorchRL loggers, each under the run directory: {', '.join(LOGGERS)}"
+    )
+    progress: bool = option(True, "a progress bar with steps/s and recent deliveries")
+    eval_episodes: int = option(8, "episodes per grid in the final self-play table (0: no evaluation)")
+    eval_heldout: int = option(5, "held-out generated levels in that table, beside the 5 expanded classics")
+    gif: bool = option(True, "a GIF of the trained team on the first evaluation grid")
 
     @property
     def run_path(self) -> Path:
@@ -90,34 +124,109 @@ class TrainConfig:
 
     @property
     def num_updates(self) -> int:
-        return max(1, self.total_steps // self.frames_per_batch)
+        """Updates of the run: total_steps rounded up to whole updates (`step_note` says so when it rounds)."""
+        return max(1, -(-self.total_steps // self.frames_per_batch))
+
+    def step_note(self) -> str | None:
+        """One line for the trainer to print when total_steps is not a whole number of updates, else None."""
+        if self.total_steps % self.frames_per_batch == 0:
+            return None
+        return (
+            f"total_steps={self.total_steps:,} is not a multiple of the {self.frames_per_batch:,} steps of an update "
+            f"(num_envs x rollout_steps): training {self.num_updates:,} updates = "
+            f"{self.num_updates * self.frames_per_batch:,} steps"
+        )
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
     def check(self) -> TrainConfig:
-        """Refuses values no run can use, before any work starts."""
-        positive = ["max_steps", "num_envs", "rollout_steps", "total_steps", "hidden", "epochs", "minibatches"]
-        for name in positive:
-            if getattr(self, name) < 1:
-                raise ConfigError(f"{name} must be at least 1, got {getattr(self, name)}")
+        """Refuses values no run can use, before any work starts. Touches neither the file system nor the levels:
+        the trainer also calls `check_run_location` and `check_levels`."""
+        _check_types(self)
+        _check_name(self.name)
+        _check_seed(self.seed)
+        counts = ["max_steps", "num_envs", "rollout_steps", "total_steps", "hidden", "epochs", "minibatches"]
+        _at_least(self, [*counts, "checkpoint_every", "threads"], 1)
+        weights = ["entropy_coef", "value_coef", "predictor_coef", "shaping_weight"]
+        _at_least(self, ["eval_episodes", "shaping_anneal_steps", *weights], 0)
+        for name in ("lr", "adam_eps", "clip_epsilon", "max_grad_norm"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name} must be greater than 0, got {getattr(self, name)}")
+        for name in ("gamma", "gae_lambda", "partner_epsilon", "partner_copy_rate"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
+        if not 0 <= self.eval_heldout <= NUM_HELDOUT_GENERATED:
+            raise ConfigError(
+                f"eval_heldout must be between 0 and {NUM_HELDOUT_GENERATED} (the held-out levels), "
+                f"got {self.eval_heldout}"
+            )
         if not self.levels:
             raise ConfigError("levels is empty: give a layout name or file, a list of them, or 'infinite'")
+        if isinstance(self.levels, list):
+            for level in self.levels:
+                if level in GENERATED_LEVELS:  # jax_env.Overcooked reads them only as the whole of `levels`
+                    raise ConfigError(f"levels={level} stands alone: it cannot be one entry of a list {self.levels}")
+        from trainers.algorithms import ALGORITHMS  # the registry imports this module
+
         if self.algorithm not in ALGORITHMS:
             raise ConfigError(f"algorithm must be one of {', '.join(ALGORITHMS)}, got {self.algorithm!r}")
+        for logger in self.loggers:
+            if logger not in LOGGERS:
+                raise ConfigError(f"loggers holds {logger!r}; the TorchRL loggers are {', '.join(LOGGERS)}")
+        if len(set(self.loggers)) < len(self.loggers):
+            raise ConfigError(f"loggers names a logger twice: {self.loggers}")
         if self.partner_policy not in PARTNER_POLICIES:
             raise ConfigError(
                 f"partner_policy must be one of {', '.join(PARTNER_POLICIES)}, got {self.partner_policy!r}"
             )
-        for name in ("partner_epsilon", "partner_copy_rate"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ConfigError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
         if self.num_envs % self.minibatches:
             raise ConfigError(
                 f"minibatches ({self.minibatches}) must divide num_envs ({self.num_envs}): minibatches are whole "
                 "kitchens' sequences"
             )
+        check_device(self.device)
         return self
+
+    def check_run_location(self) -> None:
+        """Refuses a run directory that cannot be made because a file stands where a folder must be. It looks at
+        this machine's files, so `check()` leaves it to the trainer (evaluation reloads configs elsewhere)."""
+        run_dir = Path(self.run_dir)
+        for path in (self.run_path, *self.run_path.parents):
+            if path.exists() and not path.is_dir():
+                if path in (run_dir, *run_dir.parents):
+                    raise ConfigError(f"run_dir={self.run_dir}: {path} is a file, not a folder")
+                raise ConfigError(
+                    f"name={self.name}: {path} is a file, not a folder (the run directory is {self.run_path})"
+                )
+
+    def check_levels(self, allow_unsolvable: bool = False) -> list[str]:
+        """Loads every layout named in `levels` and refuses unsolvable ones (no team can deliver a soup there);
+        with `allow_unsolvable`, returns one warning per unsolvable level instead, for the caller to print."""
+        if isinstance(self.levels, str) and self.levels in GENERATED_LEVELS:
+            return []  # the generator keeps only solvable levels
+        layouts = {}
+        for level in [self.levels] if isinstance(self.levels, str) else self.levels:
+            try:
+                layouts[level] = load_layout(level)
+            except (ValueError, OSError) as error:
+                raise ConfigError(f"levels: cannot load {level!r}: {error}") from None
+        if len({layout.shape for layout in layouts.values()}) > 1:
+            sizes = ", ".join(f"{level} is {layout.height}x{layout.width}" for level, layout in layouts.items())
+            raise ConfigError(f"levels must all have one size, as they share one batch of kitchens: {sizes}")
+        unsolvable = [level for level, layout in layouts.items() if classify_layout(layout) == "unsolvable"]
+        if unsolvable and not allow_unsolvable:
+            one = len(unsolvable) == 1
+            which, it = (f"{unsolvable[0]} is", "it") if one else (f"{', '.join(unsolvable)} are", "them")
+            raise ConfigError(
+                f"levels: {which} unsolvable, no team can deliver a soup there (`kitchen-levels show FILE` says "
+                f"why): fix the layout, or pass --allow-unsolvable to train on {it} anyway"
+            )
+        return [
+            f"level {level} is unsolvable (no team can deliver a soup there); training on it anyway "
+            "(--allow-unsolvable)"
+            for level in unsolvable
+        ]
 
 
 @dataclass
@@ -129,33 +238,42 @@ class EvalConfig:
     """
 
     # --- who plays
-    conditions: dict[str, str | list[str]] = dataclasses.field(default_factory=dict)  # name -> run dirs or globs
-    cross: list[list[str]] = dataclasses.field(default_factory=list)  # [[cond_a, cond_b], ...] to cross-play
+    conditions: dict[str, str | list[str]] = option(
+        {}, "condition name -> its teams' run dirs or globs", group="who plays"
+    )
+    cross: list[list[str]] = option([], "[[cond_a, cond_b], ...] to cross-play")
 
     # --- where and how long
-    layouts: list[str] = dataclasses.field(default_factory=lambda: list(EXPANDED_LAYOUTS))
-    heldout: int = 100  # the first N of the 100 held-out generated levels
-    rollouts: int = 100  # episodes per pair and grid, actions sampled
-    max_steps: int = 256
+    layouts: list[str] = option(
+        list(EXPANDED_LAYOUTS), "test grids: layout names or text-grid files", group="where and how long"
+    )
+    heldout: int = option(NUM_HELDOUT_GENERATED, "the first N of the 100 held-out generated levels")
+    rollouts: int = option(100, "episodes per pair and grid, actions sampled")
+    max_steps: int = option(256, "episode length")
 
     # --- execution
-    max_envs: int = 8192  # kitchens stepped together (pairs x rollouts x grids are cut into batches of this)
-    seed: int = 0  # the same seed gives the same numbers
-    device: str = "cpu"
-    threads: int = 1
-    progress: bool = True
+    max_envs: int = option(
+        8192, "kitchens stepped together (pairs x rollouts x grids are cut into batches of this)", group="execution"
+    )
+    seed: int = option(0, "the same seed gives the same numbers")
+    device: str = option("cpu", '"cpu" or "cuda[:i]"')
+    threads: int = option(1, "torch CPU threads")
+    progress: bool = option(True, "a progress bar")
 
     # --- outputs
-    out_dir: str = "results/eval"
-    gifs: list[str] = dataclasses.field(default_factory=list)  # "cond/seed0+cond/seed1@grid": agent 0, agent 1, grid
-    heatmaps: list[str] = dataclasses.field(default_factory=list)  # grids on which to draw the cells agents visit
+    out_dir: str = option("results/eval", "the folder of the tables, figures and GIFs", group="outputs")
+    gifs: list[str] = option([], '"cond/seed0+cond/seed1@grid": agent 0, agent 1, grid')
+    heatmaps: list[str] = option([], "grids on which to draw the cells agents visit")
 
     def check(self) -> EvalConfig:
-        for name in ("rollouts", "max_steps", "max_envs"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"{name} must be at least 1, got {getattr(self, name)}")
-        if not 0 <= self.heldout <= 100:
-            raise ConfigError(f"heldout must be between 0 and 100 (the held-out levels), got {self.heldout}")
+        """Refuses values no evaluation can use, before any work starts."""
+        _check_types(self)
+        _check_seed(self.seed)
+        _at_least(self, ["rollouts", "max_steps", "max_envs", "threads"], 1)
+        if not 0 <= self.heldout <= NUM_HELDOUT_GENERATED:
+            raise ConfigError(
+                f"heldout must be between 0 and {NUM_HELDOUT_GENERATED} (the held-out levels), got {self.heldout}"
+            )
         if not self.layouts and not self.heldout:
             raise ConfigError("nothing to evaluate on: give layouts or heldout > 0")
         for pair in self.cross:
@@ -167,7 +285,88 @@ class EvalConfig:
                         f"cross names the condition {name!r}, which is not among the conditions: "
                         f"{', '.join(self.conditions) or '(none)'}"
                     )
+        check_device(self.device)
         return self
+
+
+def check_device(device: str) -> None:
+    """Refuses a device other than the CPU or a CUDA GPU that both torch and JAX see on this machine."""
+    allowed = "use device=cpu, device=cuda or device=cuda:<index>"
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise ConfigError(f"device={device} is not a device: {allowed}") from None
+    if parsed.type == "cpu" and not parsed.index:
+        return
+    if parsed.type != "cuda":
+        raise ConfigError(f"device={device} is not supported: {allowed}")
+    if not torch.cuda.is_available():
+        raise ConfigError(f"device={device}, but torch sees no CUDA GPU on this machine: use device=cpu")
+    index, count = parsed.index or 0, torch.cuda.device_count()
+    if index >= count:
+        raise ConfigError(f"device={device}, but torch sees {count} CUDA GPU(s) here: use cuda:0 to cuda:{count - 1}")
+    try:  # the env runs in JAX on the same GPU (torch_kitchen.env.jax_device_for)
+        jax_gpus = len(jax.devices("gpu"))
+    except RuntimeError:
+        jax_gpus = 0
+    if index >= jax_gpus:
+        raise ConfigError(
+            f"device={device}, but JAX sees {jax_gpus} GPU(s) here (backend: {jax.default_backend()}): install a CUDA "
+            'build of JAX matching the driver (pip install -U "jax[cuda12]") or use device=cpu'
+        )
+
+
+def config_help(schema: type) -> str:
+    """Every key of `schema` with its type, default and meaning, in groups: an argparse epilog (to be shown with
+    `argparse.RawDescriptionHelpFormatter`, which keeps its lines)."""
+    hints = typing.get_type_hints(schema)
+    lines = ["config keys (in the YAML file, or as key=value overrides):"]
+    for field in dataclasses.fields(schema):
+        if "group" in field.metadata:
+            lines += ["", f"  {field.metadata['group']}:"]
+        default = field.default_factory() if field.default is dataclasses.MISSING else field.default
+        lines.append(f"    {field.name}: {_type_name(hints[field.name])} = {_yaml_scalar(default)}")
+        lines.append(f"        {field.metadata['help']}")
+    return "\n".join(lines)
+
+
+def _yaml_scalar(value) -> str:
+    """A value as one line of YAML, as it would be written in an override."""
+    return yaml.safe_dump(value, default_flow_style=True, width=math.inf).removesuffix("\n...\n").strip()
+
+
+def _check_types(config: TrainConfig | EvalConfig) -> None:
+    """Refuses a field whose value does not fit its type (a config built in Python skips `_coerce`)."""
+    hints = typing.get_type_hints(type(config))
+    for field in dataclasses.fields(config):
+        value, expected = getattr(config, field.name), hints[field.name]
+        if not _matches(value, expected):
+            raise ConfigError(f"{field.name} must be {_type_name(expected)}, got {value!r}")
+        if expected is float and not math.isfinite(value):  # YAML reads .inf and .nan, float() reads "nan"
+            raise ConfigError(f"{field.name} must be a finite number, got {value}")
+
+
+def _at_least(config: TrainConfig | EvalConfig, names: list[str], low: int) -> None:
+    for name in names:
+        if not getattr(config, name) >= low:
+            raise ConfigError(f"{name} must be at least {low}, got {getattr(config, name)}")
+
+
+def _check_seed(seed: int) -> None:
+    if not 0 <= seed <= MAX_SEED:
+        raise ConfigError(
+            f"seed must be an integer in [0, {MAX_SEED}] (JAX keeps only the low 32 bits of a seed), got {seed}"
+        )
+
+
+def _check_name(name: str) -> None:
+    """Refuses a run name that would put the run directory outside run_dir, or make it run_dir itself."""
+    parts = Path(name).parts
+    if not name.strip() or not parts or Path(name).is_absolute() or ".." in parts:
+        raise ConfigError(
+            f"name={name!r} must be a relative path inside run_dir, without '..' (e.g. name=ippo_mlp_ik or "
+            "name=ablation/mlp)"
+        )
 
 
 def _fields(schema: type) -> list[str]:
@@ -214,10 +413,13 @@ def _type_name(expected) -> str:
 
 
 def _unknown_key(schema: type, key: str, source: str) -> ConfigError:
-    fields = _fields(schema)
-    hint = difflib.get_close_matches(key, fields, n=1)
+    hint = difflib.get_close_matches(key, _fields(schema), n=1)
     did_you_mean = f" (did you mean {hint[0]!r}?)" if hint else ""
-    return ConfigError(f"unknown config key {key!r} in {source}{did_you_mean}; valid keys: {', '.join(fields)}")
+    return ConfigError(f"unknown config key {key!r} in {source}{did_you_mean}; valid keys: {_key_list(schema)}")
+
+
+def _key_list(schema: type) -> str:
+    return ", ".join(_fields(schema))
 
 
 def _read_yaml(schema: type, path: Path, seen: tuple[Path, ...] = ()) -> dict:
@@ -229,12 +431,21 @@ def _read_yaml(schema: type, path: Path, seen: tuple[Path, ...] = ()) -> dict:
         raise ConfigError(f"config file {path} does not exist")
     try:
         values = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as error:
+    except (yaml.YAMLError, UnicodeDecodeError) as error:
         raise ConfigError(f"config file {path} is not valid YAML: {error}") from None
     if not isinstance(values, dict):
         raise ConfigError(f"config file {path} must hold `key: value` lines, got {type(values).__name__}")
-    base = values.pop("base", None)
-    merged = _read_yaml(schema, path.parent / base, (*seen, path)) if base else {}
+    for key in values:
+        if not isinstance(key, str):
+            raise ConfigError(
+                f"the key {key!r} in {path} is not a config key (keys are names): valid keys: {_key_list(schema)}"
+            )
+    merged = {}
+    if "base" in values:
+        base = values.pop("base")
+        if not isinstance(base, str) or not base.strip():
+            raise ConfigError(f"base in {path} must be the path of a config file (relative to this one), got {base!r}")
+        merged = _read_yaml(schema, path.parent / base, (*seen, path))
     for key, value in values.items():
         if key not in _fields(schema):
             raise _unknown_key(schema, key, str(path))
@@ -284,4 +495,14 @@ def save_config(config: TrainConfig | EvalConfig, path: str | Path) -> None:
     Path(path).write_text(yaml.safe_dump(dataclasses.asdict(config), sort_keys=False))
 
 
-__all__ = ["ConfigError", "EvalConfig", "TrainConfig", "load_config", "parse_overrides", "save_config"]
+__all__ = [
+    "ConfigError",
+    "EvalConfig",
+    "TrainConfig",
+    "check_device",
+    "config_help",
+    "load_config",
+    "option",
+    "parse_overrides",
+    "save_config",
+]

@@ -36,7 +36,7 @@ from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.pairing import make_seated_actor
 from trainers.checkpoint import CheckpointError, load_checkpoint
-from trainers.config import ConfigError, EvalConfig, TrainConfig, load_config, save_config
+from trainers.config import ConfigError, EvalConfig, TrainConfig, config_help, load_config, save_config
 from trainers.figures import draw_figures, draw_heatmap
 from trainers.rollout import play_episodes
 
@@ -46,7 +46,8 @@ SP, XP, CROSS = "SP", "XP", "cross"
 # ------------------------------------------------------------------------------------------------ teams
 @dataclass
 class Team:
-    """A trained team: its name ("<condition>/seed<k>"), training config, networks and kitchen size."""
+    """A trained team: its name ("<condition>/seed<k>"), training config, networks, kitchen size, and the env steps
+    it was trained for (None where its file does not say, e.g. a team saved by hand)."""
 
     name: str
     condition: str
@@ -54,6 +55,12 @@ class Team:
     actor_critic: ActorCritic
     obs_shape: tuple[int, int, int]
     checkpoint: str
+    env_steps: int | None = None
+
+    @property
+    def fully_trained(self) -> bool:
+        """Whether the team ran its config's whole budget (False for a run stopped early)."""
+        return self.env_steps is None or self.env_steps >= self.config.num_updates * self.config.frames_per_batch
 
     @property
     def regime(self) -> str:
@@ -106,7 +113,8 @@ def load_team(checkpoint: str | Path, device: str = "cpu", condition: str = "") 
     actor_critic.actor.to(device).eval()
     actor_critic.critic.to(device).eval()
     condition = condition or config.name
-    return Team(f"{condition}/seed{config.seed}", condition, config, actor_critic, tuple(model["obs_shape"]), where)
+    return Team(f"{condition}/seed{config.seed}", condition, config, actor_critic, tuple(model["obs_shape"]), where,
+                state.get("env_steps"))
 
 
 def load_population(conditions: dict[str, str | list[str]], device: str = "cpu") -> dict[str, list[Team]]:
@@ -469,6 +477,11 @@ def report_trained_team(run: str | Path, episodes: int | None = None, num_heldou
         seed=config.seed, device=config.device, threads=config.threads, progress=False,
         out_dir=str(run),
     ).check())  # fmt: skip
+    if not team.fully_trained:
+        budget = config.num_updates * config.frames_per_batch
+        note = f"Partly trained: {team.env_steps:,} of {budget:,} env steps (the run stopped early).\n\n"
+        (out / "eval.md").write_text(note + (out / "eval.md").read_text())
+        print(note.strip())
     if config.gif:
         print(f"gif: {record_gif(team, team, layouts[0], run / 'team.gif', config.max_steps, config.seed)}")
     return out / "eval.md"
@@ -479,7 +492,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="kitchen-eval",
         description="Self-play and cross-play evaluation of trained teams: tables, figures, heat maps and GIFs.",
-        epilog="Overrides: any config key as key=value, e.g. rollouts=5 heldout=10 out_dir=results/quick.",
+        epilog="Overrides: any config key as key=value, e.g. rollouts=5 heldout=10 out_dir=results/quick.\n\n"
+               + config_help(EvalConfig),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("config", help="an evaluation config (configs/eval/...)")
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")

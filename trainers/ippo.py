@@ -1,15 +1,10 @@
-"""Self-play on the Infinite Kitchen with TorchRL: a `Collector` over `KitchenEnv`, GAE, `ClipPPOLoss`.
+"""The PPO core on TorchRL: a `Collector` over `KitchenEnv`, GAE, `ClipPPOLoss`, loggers, checkpoints.
 
-Read top to bottom: build the env and the networks, the loss and the optimizer, then for every batch of
-`num_envs x rollout_steps` steps compute the rewards, the advantages and a few epochs of PPO, then log and
-checkpoint. Two algorithms:
-
-- IPPO: both agents are trained on their own transitions (independent PPO); with `share_params` they share one
-  network.
-- E3T (Yan et al., 2023): in every episode one agent, drawn per kitchen, is a mixed partner acting from
-  (1 - eps) * pi + eps * uniform (`torch_kitchen.partner`); PPO trains on the other agent's (the ego's)
-  transitions only, whose log-probabilities are those of the policy that acted. The actor carries a partner
-  predictor, trained by cross-entropy on the partner's actual actions, whose prediction the policy reads.
+Read top to bottom: the helpers the loop uses, then `train()`: build the env, the networks and the algorithm,
+the loss and the optimizer, resume or start fresh, then for every batch of `num_envs x rollout_steps` steps
+compute the training reward, the advantages and a few epochs of PPO over minibatches of whole kitchen
+sequences, log, and checkpoint. The algorithm (`trainers.algorithms`: IPPO, E3T, or one you register) changes
+the loop only through its named hooks; this file knows none of them by name.
 
     kitchen-train configs/ippo/mlp_ik.yaml seed=3 total_steps=1e6
     kitchen-train --resume runs/ippo_mlp_ik/seed3
@@ -18,8 +13,7 @@ checkpoint. Two algorithms:
 from __future__ import annotations
 
 import argparse
-import copy
-import math
+import shutil
 import signal
 import sys
 import time
@@ -30,37 +24,66 @@ from pathlib import Path
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
-from torch.utils.tensorboard import SummaryWriter
 from torchrl.envs import Transform
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value.functional import generalized_advantage_estimate
-from torchrl.record.loggers import CSVLogger, TensorboardLogger
+from torchrl.record.loggers import Logger, get_logger
 from tqdm import tqdm
 
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.models import ActorCritic, make_actor_critic
-from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
-from trainers.checkpoint import LATEST, CheckpointError, check_identity, load_checkpoint, model_identity, save_checkpoint
-from trainers.config import ConfigError, TrainConfig, load_config, save_config
+from torch_kitchen.torchrl_internals import PurgingTensorboardLogger
+from trainers.algorithms import ALGORITHMS, Algorithm
+from trainers.checkpoint import (
+    LATEST,
+    CheckpointError,
+    capture_rng_states,
+    check_identity,
+    load_checkpoint,
+    model_identity,
+    restore_rng_states,
+    save_checkpoint,
+)
+from trainers.config import ConfigError, TrainConfig, config_help, load_config, save_config
 from trainers.rollout import finished_episode_deliveries, make_collector
 
 ACTION, LOG_PROB, VALUE = ("agents", "action"), ("agents", "action_log_prob"), ("agents", "state_value")
 ADVANTAGE, VALUE_TARGET = ("agents", "advantage"), ("agents", "value_target")
-EGO = ("agents", "ego")  # E3T: bool [B, T, 2], the transitions PPO learns from
+REWARD, SHAPED_REWARD = ("next", "agents", "reward"), ("next", "agents", "shaped_reward")
+TRAIN_REWARD = ("next", "agents", "train_reward")  # sparse + shaping weight x shaped: the reward optimised
+
+# ClipPPOLoss's outputs as logged (None: not logged); other entries (an algorithm's) go to losses/<name> for
+# "loss_<name>" and to charts/<name> otherwise.
+PPO_METRICS = {
+    "loss_objective": "losses/policy",
+    "loss_critic": "losses/value",
+    "loss_entropy": "losses/entropy_loss",
+    "entropy": "losses/entropy",
+    "kl_approx": "losses/approx_kl",
+    "clip_fraction": "losses/clip_fraction",
+    "value_clip_fraction": "losses/value_clip_fraction",
+    "ESS": "losses/effective_sample_size",
+    "mean_ratio": "losses/mean_ratio",
+    "max_ratio": "losses/max_ratio",
+    "grad_norm": "losses/grad_norm",
+    "explained_variance": None,  # per minibatch; the trainer logs it over the whole batch instead
+}
 
 
-class _TensorboardLogger(TensorboardLogger):
-    """TorchRL's TensorBoard logger, purging the events a killed run wrote after its last checkpoint."""
+class RunStopped(Exception):
+    """A run stopped by a signal (Ctrl-C: SIGINT, or SIGTERM); `exit_code` is 128 + the signal's number."""
 
-    def __init__(self, exp_name: str, log_dir: str, purge_step: int | None = None):
-        self._purge_step = purge_step
-        super().__init__(exp_name=exp_name, log_dir=log_dir)
-
-    def _create_experiment(self) -> SummaryWriter:
-        return SummaryWriter(log_dir=str(Path(self.log_dir) / self.exp_name), purge_step=self._purge_step)
+    def __init__(self, signum: int, message: str):
+        super().__init__(message)
+        self.exit_code = 128 + signum
 
 
+class TrainingDiverged(RuntimeError):
+    """A loss became NaN or infinite; the last good state is in the run's latest checkpoint."""
+
+
+# ------------------------------------------------------------------------------------------ building parts
 def make_env(config: TrainConfig, num_envs: int | None = None, levels=None, seed: int | None = None) -> KitchenEnv:
     """The `KitchenEnv` of a config (evaluation passes its own batch, levels and seed)."""
     return KitchenEnv(
@@ -74,70 +97,75 @@ def make_env(config: TrainConfig, num_envs: int | None = None, levels=None, seed
 
 def with_model_transforms(env: KitchenEnv, actor_critic: ActorCritic, *extra: Transform):
     """`env` plus the transforms the model needs (episode-start flags and recurrent state for LSTMs, the partner
-    context for E3T models), then `extra` ones."""
+    context for E3T models), then `extra` ones (an algorithm's)."""
     return with_transforms(env, [*actor_critic.env_transforms(), *extra])
 
 
-def make_loss(config: TrainConfig, actor_critic: ActorCritic) -> ClipPPOLoss:
-    """TorchRL's clipped PPO loss on the ("agents", ...) keys, with the protocol's coefficients.
+def make_algorithm(config: TrainConfig, actor_critic: ActorCritic) -> Algorithm:
+    """The registered algorithm `config.algorithm`, checked against the model."""
+    algorithm = ALGORITHMS[config.algorithm](config, actor_critic)
+    algorithm.check()
+    return algorithm
 
-    E3T: the loss counts the ego's transitions only (TorchRL's `loss_mask_key`), and the advantages arrive
-    normalised over those (`normalize_ego_advantage`).
-    """
-    e3t = config.algorithm == "e3t"
-    loss_module = ClipPPOLoss(
-        actor_critic.ppo_actor or actor_critic.actor,
+
+def make_loss(config: TrainConfig, actor_critic: ActorCritic, algorithm: Algorithm) -> ClipPPOLoss:
+    """TorchRL's clipped PPO loss on the ("agents", ...) keys with the protocol's coefficients, as the algorithm
+    configures it. Advantages are standardised per minibatch, pooled over kitchens, steps and agents."""
+    loss = ClipPPOLoss(
+        algorithm.loss_actor(),
         actor_critic.critic,
         clip_epsilon=config.clip_epsilon,
         entropy_coeff=config.entropy_coef,
         critic_coeff=config.value_coef,
         loss_critic_type="l2",
-        normalize_advantage=not e3t,  # per minibatch, pooled over kitchens, steps and agents
+        normalize_advantage=True,
         normalize_advantage_exclude_dims=(-1,),  # only the trailing singleton: says "pooled" without a warning
         clip_value=True,
     )
-    loss_module.set_keys(
-        action=ACTION, sample_log_prob=LOG_PROB, value=VALUE, advantage=ADVANTAGE, value_target=VALUE_TARGET
-    )
-    if e3t:
-        loss_module.loss_mask_key = EGO
-    return loss_module
+    loss.set_keys(action=ACTION, sample_log_prob=LOG_PROB, value=VALUE, advantage=ADVANTAGE, value_target=VALUE_TARGET)
+    algorithm.configure_loss(loss)
+    return loss
 
 
-def normalize_ego_advantage(minibatch: TensorDictBase) -> None:
-    """E3T: standardises the advantages with the mean and deviation of the ego's transitions (IPPO's loss pools
-    all of a minibatch's; here the mixed partner's would skew them)."""
-    advantage, ego = minibatch.get(ADVANTAGE), minibatch.get(EGO).unsqueeze(-1)
-    mean = advantage[ego].mean()
-    std = advantage[ego].std(correction=0).clamp_min(1e-4) if ego.sum() > 1 else advantage.new_ones(())
-    minibatch.set(ADVANTAGE, (advantage - mean) / std)
+def make_loggers(config: TrainConfig, run: Path, purge_step: int | None) -> list[Logger]:
+    """TorchRL loggers named by `config.loggers`, writing under `run/<name>`. TensorBoard drops the events a killed
+    run wrote at steps >= `purge_step` (a resume); other backends (wandb, mlflow, ...) come from `get_logger`."""
+    loggers = []
+    for name in config.loggers:
+        if name == "tensorboard":
+            loggers.append(PurgingTensorboardLogger("tensorboard", str(run), purge_step=purge_step))
+        else:
+            loggers.append(get_logger(name, logger_name=str(run), experiment_name=name))
+    return loggers
 
 
-def partner_prediction_loss(predictor, minibatch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
-    """E3T: cross-entropy of every agent's predicted partner action against the action the partner took at that
-    step, and the accuracy of the most likely one, over whole kitchen sequences [mb, T]. The predictor reads
-    only the context of earlier steps."""
-    logits = predictor.sequence_logits(minibatch)  # [mb, T, 2, 6]
-    partner_action = minibatch.get(ACTION).flip(-1)
-    loss = torch.nn.functional.cross_entropy(logits.flatten(0, -2), partner_action.flatten())
-    accuracy = (logits.argmax(-1) == partner_action).float().mean()
-    return loss, accuracy.detach()
+def hyperparameters(config: TrainConfig) -> dict[str, int | float | str | bool]:
+    """The config as TensorBoard's hparams accept it (lists as text)."""
+    return {key: value if isinstance(value, int | float | str | bool) else str(value)
+            for key, value in config.to_dict().items()}
+
+
+# ------------------------------------------------------------------------------------------- each update
+def shaping_weight_at(config: TrainConfig, env_steps: int) -> float:
+    if config.shaping_anneal_steps <= 0:
+        return config.shaping_weight
+    return config.shaping_weight * max(0.0, 1.0 - env_steps / config.shaping_anneal_steps)
 
 
 def compute_advantages(batch: TensorDictBase, critic, config: TrainConfig, shaping_weight: float) -> None:
-    """Writes the training reward, GAE advantages and value targets into `batch` ([B, T], agents [B, T, 2]).
+    """Writes the training reward (`TRAIN_REWARD`), GAE advantages and value targets into `batch` ([B, T],
+    agents [B, T, 2]); the env's own rewards stay as they were.
 
     Values come from the collection pass (the policy runs the critic), so recurrent critics see the hidden
     state they had while acting; only the step after the batch needs a new critic call. The time limit ends
     an episode as a terminal state, as in the paper's JaxMARL code: no bootstrap across it.
     """
-    next_ = batch["next"]
-    reward = next_["agents", "reward"] + shaping_weight * next_["agents", "shaped_reward"]
-    next_["agents", "reward"] = reward  # the loss and the logs see the reward that was optimised
-    done = next_["done"].unsqueeze(-2).expand_as(reward)  # [B, T, 1] -> [B, T, 2, 1]
+    reward = batch.get(REWARD) + shaping_weight * batch.get(SHAPED_REWARD)
+    batch.set(TRAIN_REWARD, reward)
+    done = batch.get(("next", "done")).unsqueeze(-2).expand_as(reward)  # [B, T, 1] -> [B, T, 2, 1]
     value = batch.get(VALUE)
     with torch.no_grad():
-        after = critic(next_[:, -1].clone()).get(VALUE)
+        after = critic(batch["next"][:, -1].clone()).get(VALUE)
     next_value = torch.cat([value[:, 1:], after.unsqueeze(1)], dim=1)
     # The functional GAE wants time next to the feature dim: [B, 2, T, 1].
     advantage, target = generalized_advantage_estimate(
@@ -154,57 +182,114 @@ def compute_advantages(batch: TensorDictBase, critic, config: TrainConfig, shapi
     batch.set(VALUE_TARGET, target.transpose(1, 2))
 
 
-def explained_variance(value: torch.Tensor, target: torch.Tensor) -> float:
+def total_loss(losses: dict[str, torch.Tensor]) -> torch.Tensor:
+    """The sum of the "loss_*" terms (TorchRL's convention: each already weighted by its coefficient)."""
+    return sum(value for key, value in losses.items() if key.startswith("loss_"))
+
+
+def check_finite(losses: dict[str, torch.Tensor], update: int, env_steps: int) -> None:
+    """Raises TrainingDiverged naming every loss term that is NaN or infinite."""
+    bad = [f"{metric_name(key)}={float(value.detach())}" for key, value in losses.items()
+           if key.startswith("loss_") and not torch.isfinite(value)]
+    if bad:
+        raise TrainingDiverged(
+            f"{', '.join(bad)} at update {update} ({env_steps:,} env steps): training diverged; the weights before "
+            "that minibatch are in the latest checkpoint. Lower lr or max_grad_norm, or check the reward and model"
+        )
+
+
+def metric_name(key: str) -> str | None:
+    """The logged name of a loss output (None: not logged)."""
+    if key in PPO_METRICS:
+        return PPO_METRICS[key]
+    return f"losses/{key.removeprefix('loss_')}" if key.startswith("loss_") else f"charts/{key}"
+
+
+def explained_variance(value: torch.Tensor, target: torch.Tensor) -> float | None:
+    """1 - Var[target - value] / Var[target]; None where the targets do not vary (it is undefined there)."""
     variance = target.var()
-    return float("nan") if variance == 0 else float(1 - (target - value).var() / variance)
+    return None if variance == 0 else float(1 - (target - value).var() / variance)
 
 
-def shaping_weight_at(config: TrainConfig, env_steps: int) -> float:
-    if config.shaping_anneal_steps <= 0:
-        return config.shaping_weight
-    return config.shaping_weight * max(0.0, 1.0 - env_steps / config.shaping_anneal_steps)
+# ------------------------------------------------------------------------------------- start, resume, stop
+def start_fresh(run: Path) -> None:
+    """A run directory without a checkpoint (a run killed before its first one) starts clean: its logs are
+    removed, so the new run's logs are not appended to them."""
+    for logs in ("csv", "tensorboard"):
+        shutil.rmtree(run / logs, ignore_errors=True)
 
 
-class _StopRequest:
-    """First Ctrl-C (or SIGTERM): finish the current update, checkpoint, exit. Second Ctrl-C: stop now."""
+def restore(checkpoint_path: Path, identity: dict, parts: dict, algorithm: Algorithm, device: str) -> dict:
+    """Loads a run's latest checkpoint into `parts` (name -> module with `load_state_dict`: the networks, the
+    optimizer, the env's kitchens) and the algorithm; returns the checkpoint (its counters and RNG states)."""
+    state = load_checkpoint(checkpoint_path, map_location=device)
+    check_identity(state, identity)
+    for name, part in parts.items():
+        part.load_state_dict(state[name])
+    algorithm.load_state_dict(state["algorithm"])
+    return state
+
+
+def drop_csv_rows_after(csv_dir: Path, env_steps: int) -> None:
+    """Removes the CSV rows a killed run logged after its last checkpoint, so a resumed run does not repeat them."""
+    for path in csv_dir.rglob("*.csv"):
+        rows = [line for line in path.read_text().splitlines() if line and int(float(line.split(",")[0])) <= env_steps]
+        path.write_text("".join(row + "\n" for row in rows))
+
+
+class StopRequest:
+    """First Ctrl-C (or SIGTERM): finish the current update, checkpoint, stop. Second one: stop at once."""
 
     def __init__(self):
-        self.requested = False
+        self.signum: int | None = None
         self._previous = {}
 
     def __enter__(self):
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for signum in (signal.SIGINT, signal.SIGTERM):
             try:
-                self._previous[sig] = signal.signal(sig, self._handle)
+                self._previous[signum] = signal.signal(signum, self._handle)
             except ValueError:  # not the main thread: leave signals alone
                 pass
         return self
 
     def _handle(self, signum, frame):
-        if self.requested:
-            raise KeyboardInterrupt
-        self.requested = True
+        if self.signum is not None:
+            raise RunStopped(signum, f"stopped by {signal.Signals(signum).name} before the update ended; "
+                                     "its latest checkpoint is the last one written")
+        self.signum = signum
         tqdm.write("stopping after this update (checkpoint first); press Ctrl-C again to stop at once")
 
     def __exit__(self, *exc):
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
 
 
+# ------------------------------------------------------------------------------------------------ training
 def train(
     config: TrainConfig,
     actor_critic: ActorCritic | None = None,
     resume: bool = False,
     on_update: Callable[[int, dict], bool | None] | None = None,
     run: Path | None = None,
+    allow_unsolvable: bool = False,
 ) -> Path:
-    """Trains a self-play team; returns the run directory (config.yaml, checkpoints/, tensorboard/, csv/).
+    """Trains a team; returns the run directory (config.yaml, checkpoints/, tensorboard/, csv/).
 
     `actor_critic`: your own networks honouring the keys of `torch_kitchen.models` (default: built from
-    `config.architecture`). `resume`: continue the run in `config.run_path` from its latest checkpoint.
-    `on_update(update, metrics)`: called after every update; returning True stops the run after a checkpoint.
-    `run`: the run directory (default `config.run_path`).
+    `config.architecture`). `resume`: continue the run from its latest checkpoint. `on_update(update,
+    metrics)`: called after every update; returning True stops the run after a checkpoint. `run`: the run
+    directory (default `config.run_path`). `allow_unsolvable`: train on level files the checker calls
+    unsolvable (with a warning) instead of refusing them.
+
+    Raises ConfigError for a config no run can use (before any work), RunStopped after a signal (with a
+    checkpoint), TrainingDiverged when a loss is NaN or infinite (with a checkpoint of the last good state).
     """
+    config.check()
+    config.check_run_location()
+    for warning in config.check_levels(allow_unsolvable):
+        print(f"kitchen-train: warning: {warning}", file=sys.stderr)
+    if note := config.step_note():
+        print(f"kitchen-train: {note}", file=sys.stderr)
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
     run = Path(run) if run is not None else config.run_path
@@ -215,237 +300,208 @@ def train(
             "name=, seed= or run_dir="
         )
 
-    # ---------------------------------------------------------------- environment and networks
+    # ---------------------------------------------------------------- environment, networks, algorithm
     kitchen = make_env(config)
     obs_shape = kitchen.kitchen.obs_shape
     if actor_critic is None:
         actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
-    check_algorithm(config, actor_critic)
     identity = model_identity(config.architecture, obs_shape, config.hidden, config.share_params)
     actor, critic = actor_critic.actor.to(config.device), actor_critic.critic.to(config.device)
-    predictor = actor_critic.predictor  # E3T's partner predictor, part of the actor
-    e3t = config.algorithm == "e3t"
-    # E3T: which agent is the mixed partner (per kitchen and episode), and the optional slow copy of the ego.
-    seats = PartnerSeats(config.seed) if e3t else None
-    copied = copy.deepcopy(actor).requires_grad_(False) if e3t and config.partner_policy == "copy" else None
-    env = with_model_transforms(kitchen, actor_critic, *([seats] if e3t else []))
-    acting = [actor, PartnerMixture(config.partner_epsilon, copied)] if e3t else [actor]
-    policy = TensorDictSequential(*acting, critic)  # the critic runs while acting: its values feed GAE
+    algorithm = make_algorithm(config, actor_critic)
+    env = with_model_transforms(kitchen, actor_critic, *algorithm.env_transforms())
+    # The critic runs while acting: its values feed GAE.
+    policy = TensorDictSequential(actor, *algorithm.acting_modules(), critic)
 
     # ---------------------------------------------------------------- loss and optimizer
-    loss_module = make_loss(config, actor_critic)
-    parameters = [*loss_module.parameters(), *(predictor.parameters() if predictor is not None else [])]
+    loss_module = make_loss(config, actor_critic, algorithm)
+    parameters = [*loss_module.parameters(), *algorithm.parameters()]
     optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps)
 
-    # ---------------------------------------------------------------- resume or start
-    update, env_steps = 0, 0
-    if resume:
-        state = load_checkpoint(checkpoint_path, map_location=config.device)
-        check_identity(state, identity)
-        actor.load_state_dict(state["actor"])
-        critic.load_state_dict(state["critic"])
-        optimizer.load_state_dict(state["optimizer"])
-        kitchen.load_state_dict(state["env"])  # the collector's first reset hands these kitchens out
-        if seats is not None:
-            seats.load_state_dict(state["partner_seats"])
-        if copied is not None:
-            copied.load_state_dict(state["partner_copy"])
-        update, env_steps = state["update"], state["env_steps"]
+    # ---------------------------------------------------------------- resume or start fresh
+    parts = {"actor": actor, "critic": critic, "optimizer": optimizer, "env": kitchen}
+    update, env_steps, saved = 0, 0, None
+    if resume:  # the collector's first reset hands out the restored kitchens
+        saved = restore(checkpoint_path, identity, parts, algorithm, config.device)
+        update, env_steps = saved["update"], saved["env_steps"]
+        drop_csv_rows_after(run / "csv", env_steps)
+    else:
+        start_fresh(run)
     run.mkdir(parents=True, exist_ok=True)
     save_config(config, run / "config.yaml")
-    purge = env_steps + 1 if resume else None
-    loggers = [_TensorboardLogger("tensorboard", str(run), purge_step=purge), CSVLogger("csv", str(run))]
-    if resume:
-        _drop_csv_rows_after(run / "csv", env_steps)
+    loggers = make_loggers(config, run, purge_step=env_steps + 1 if resume else None)
+    if not resume:
+        for logger in loggers:
+            logger.log_hparams(hyperparameters(config))
 
     def checkpoint():
-        save_checkpoint(
-            checkpoint_path,
-            {
-                "config": config.to_dict(),
-                "model": identity,
-                "actor": actor.state_dict(),
-                "critic": critic.state_dict(),
-                "optimizer": optimizer.state_dict(),
-                "update": update,
-                "env_steps": env_steps,
-                "torch_rng": torch.get_rng_state(),
-                "env": kitchen.state_dict(),
-                **({"partner_seats": seats.state_dict()} if seats is not None else {}),
-                **({"partner_copy": copied.state_dict()} if copied is not None else {}),
-            },
-        )
+        save_checkpoint(checkpoint_path, {
+            "config": config.to_dict(),
+            "model": identity,
+            **{name: part.state_dict() for name, part in parts.items()},
+            "algorithm": algorithm.state_dict(),
+            "update": update,
+            "env_steps": env_steps,
+            "rng": capture_rng_states(),
+        })  # fmt: skip
 
     remaining = config.num_updates - update
     if remaining <= 0:
         print(f"{run}: already trained for {update} updates ({env_steps:,} steps); raise total_steps to go on")
         return run
     collector = make_collector(env, policy, config.frames_per_batch, remaining * config.frames_per_batch)
-    if resume:  # after the collector, whose construction runs the policy once (and draws random actions)
-        torch.set_rng_state(state["torch_rng"])
-    bar = tqdm(
-        total=config.num_updates * config.frames_per_batch,
-        initial=env_steps,
-        unit="step",
-        unit_scale=True,
-        disable=not config.progress,
-        dynamic_ncols=True,
-    )
+    if saved is not None:  # after the collector, whose construction runs the policy once (and draws actions)
+        restore_rng_states(saved["rng"])
+    bar = tqdm(total=config.num_updates * config.frames_per_batch, initial=env_steps, unit="step", unit_scale=True,
+               disable=not config.progress, dynamic_ncols=True)
     recent_deliveries = deque(maxlen=10 * config.num_envs)
 
     # ---------------------------------------------------------------- training loop
-    with _StopRequest() as stop:
-        started = time.perf_counter()
-        for batch in collector:
-            update += 1
-            env_steps += batch.numel()
-            collected = time.perf_counter()
-
-            # --- learning rate and reward shaping for this update
-            lr = config.lr * (1.0 - (update - 1) / config.num_updates) if config.anneal_lr else config.lr
-            for group in optimizer.param_groups:
-                group["lr"] = lr
-            shaping = shaping_weight_at(config, env_steps)
-            sparse_return = batch["next", "agents", "reward"].mean() * config.max_steps
-            shaped_return = batch["next", "agents", "shaped_reward"].mean() * config.max_steps
-
-            # --- advantages (GAE) over the whole batch
-            compute_advantages(batch, critic, config, shaping)
-            if e3t:
-                batch.set(EGO, ~batch.get(MIXED))
-
-            # --- PPO epochs over minibatches of whole kitchen sequences (E3T: plus the partner predictor)
-            stats = []
-            with set_recurrent_mode(actor_critic.recurrent):
-                for _ in range(config.epochs):
-                    for kitchens in torch.randperm(config.num_envs).chunk(config.minibatches):
-                        minibatch = batch[kitchens.to(batch.device)]
-                        if e3t:
-                            normalize_ego_advantage(minibatch)
-                        losses = loss_module(minibatch)
-                        total = losses["loss_objective"] + losses["loss_critic"] + losses["loss_entropy"]
-                        if predictor is not None:
-                            prediction_loss, accuracy = partner_prediction_loss(predictor, minibatch)
-                            total = total + config.predictor_coef * prediction_loss
-                            losses.set("loss_partner_prediction", prediction_loss).set("partner_accuracy", accuracy)
-                        optimizer.zero_grad()
-                        total.backward()
-                        grad_norm = torch.nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
-                        optimizer.step()
-                        stats.append(losses.detach().set("grad_norm", grad_norm.detach()))
-            stats = torch.stack(stats).apply(lambda x: x.float().mean(), batch_size=[])
-            if copied is not None:  # the slow copy follows the ego
-                with torch.no_grad():
-                    for slow, ego in zip(copied.parameters(), actor.parameters()):
-                        slow.lerp_(ego, config.partner_copy_rate)
-
-            # --- logging
-            finished = finished_episode_deliveries(batch)
-            recent_deliveries.extend(finished.tolist())
-            now = time.perf_counter()
-            metrics = {
-                "charts/episode_deliveries": float(finished.mean()) if finished.numel() else float("nan"),
-                "charts/episode_return": float(sparse_return),
-                "charts/shaped_return": float(shaped_return),
-                "charts/steps_per_second": batch.numel() / (now - started),
-                "charts/collect_seconds": collected - started,
-                "charts/update_seconds": now - collected,
-                "charts/learning_rate": lr,
-                "charts/shaping_weight": shaping,
-                "losses/policy": float(stats["loss_objective"]),
-                "losses/value": float(stats["loss_critic"]),
-                "losses/entropy_loss": float(stats["loss_entropy"]),
-                "losses/entropy": float(stats.get("entropy", float("nan"))),
-                "losses/approx_kl": float(stats.get("kl_approx", float("nan"))),
-                "losses/clip_fraction": float(stats.get("clip_fraction", float("nan"))),
-                "losses/grad_norm": float(stats["grad_norm"]),
-                "losses/explained_variance": explained_variance(batch.get(VALUE), batch.get(VALUE_TARGET)),
-                "losses/partner_prediction": float(stats.get("loss_partner_prediction", float("nan"))),
-                "charts/partner_accuracy": float(stats.get("partner_accuracy", float("nan"))),
-            }
-            for logger in loggers:
-                for name, value in metrics.items():
-                    if not math.isnan(value):
-                        logger.log_scalar(name, value, step=env_steps)
-            bar.update(batch.numel())
-            recent = sum(recent_deliveries) / max(1, len(recent_deliveries))
-            bar.set_postfix(deliveries=f"{recent:.2f}", sps=f"{metrics['charts/steps_per_second']:,.0f}")
-
-            # --- checkpoint, and stop if asked
-            asked = bool(on_update(update, metrics)) if on_update is not None else False
-            last = update == config.num_updates or asked or stop.requested
-            if last or update % config.checkpoint_every == 0:
-                checkpoint()
-            if last:
-                break
+    try:
+        with StopRequest() as stop:
             started = time.perf_counter()
-    collector.shutdown()
-    bar.close()
+            for batch in collector:
+                update += 1
+                env_steps += batch.numel()
+                collected = time.perf_counter()
+
+                # --- learning rate and reward shaping for this update
+                lr = config.lr * (1.0 - (update - 1) / config.num_updates) if config.anneal_lr else config.lr
+                for group in optimizer.param_groups:
+                    group["lr"] = lr
+                shaping = shaping_weight_at(config, env_steps)
+
+                # --- advantages (GAE) over the whole batch
+                compute_advantages(batch, critic, config, shaping)
+                algorithm.process_batch(batch)
+
+                # --- PPO epochs over minibatches of whole kitchen sequences
+                stats = []
+                with set_recurrent_mode(actor_critic.recurrent):
+                    for _ in range(config.epochs):
+                        for kitchens in torch.randperm(config.num_envs).chunk(config.minibatches):
+                            minibatch = batch[kitchens.to(batch.device)]
+                            algorithm.process_minibatch(minibatch)
+                            losses = {**loss_module(minibatch), **algorithm.auxiliary_losses(minibatch)}
+                            total = total_loss(losses)
+                            if not torch.isfinite(total):
+                                checkpoint()
+                                check_finite(losses, update, env_steps)
+                            optimizer.zero_grad()
+                            total.backward()
+                            losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
+                            optimizer.step()
+                            stats.append({key: value.detach().float() for key, value in losses.items()})
+                algorithm.after_update()
+
+                # --- logging
+                finished = finished_episode_deliveries(batch)
+                recent_deliveries.extend(finished.tolist())
+                now = time.perf_counter()
+                metrics = {
+                    "charts/episode_return": float(batch.get(REWARD).mean()) * config.max_steps,
+                    "charts/shaped_return": float(batch.get(SHAPED_REWARD).mean()) * config.max_steps,
+                    "charts/steps_per_second": batch.numel() / (now - started),
+                    "charts/collect_seconds": collected - started,
+                    "charts/update_seconds": now - collected,
+                    "charts/learning_rate": lr,
+                    "charts/shaping_weight": shaping,
+                }
+                if finished.numel():
+                    metrics["charts/episode_deliveries"] = float(finished.mean())
+                for key in stats[0]:
+                    if name := metric_name(key):
+                        metrics[name] = float(torch.stack([s[key] for s in stats]).mean())
+                variance = explained_variance(batch.get(VALUE), batch.get(VALUE_TARGET))
+                if variance is not None:
+                    metrics["losses/explained_variance"] = variance
+                for logger in loggers:
+                    logger.log_metrics(metrics, step=env_steps)
+                bar.update(batch.numel())
+                recent = sum(recent_deliveries) / max(1, len(recent_deliveries))
+                bar.set_postfix(deliveries=f"{recent:.2f}", sps=f"{metrics['charts/steps_per_second']:,.0f}")
+
+                # --- checkpoint, and stop if asked
+                asked = bool(on_update(update, metrics)) if on_update is not None else False
+                last = update == config.num_updates or asked or stop.signum is not None
+                if last or update % config.checkpoint_every == 0:
+                    checkpoint()
+                if stop.signum is not None:
+                    raise RunStopped(stop.signum, f"stopped by {signal.Signals(stop.signum).name} at update {update} "
+                                                  f"({env_steps:,} of {config.num_updates * config.frames_per_batch:,}"
+                                                  " env steps), checkpoint written")
+                if last:
+                    break
+                started = time.perf_counter()
+    finally:
+        collector.shutdown()
+        bar.close()
     return run
 
 
-def check_algorithm(config: TrainConfig, actor_critic: ActorCritic) -> None:
-    """E3T needs a model with a partner predictor (e3t_mlp, e3t_gnn); IPPO one without."""
-    if config.algorithm == "e3t" and actor_critic.predictor is None:
-        raise ConfigError(
-            f"algorithm=e3t needs a model with a partner predictor, and {config.architecture!r} has none: use "
-            "architecture=e3t_mlp or e3t_gnn (configs/e3t/)"
-        )
-    if config.algorithm != "e3t" and actor_critic.predictor is not None:
-        raise ConfigError(
-            f"{config.architecture!r} carries E3T's partner predictor, which only algorithm=e3t trains: set "
-            "algorithm=e3t, or choose an architecture without it (mlp, gnn, ...)"
-        )
-
-
-def _drop_csv_rows_after(csv_dir: Path, env_steps: int) -> None:
-    """Removes the CSV rows a killed run logged after its last checkpoint, so a resumed run does not repeat them."""
-    for path in csv_dir.rglob("*.csv"):
-        rows = [line for line in path.read_text().splitlines() if line and int(float(line.split(",")[0])) <= env_steps]
-        path.write_text("".join(row + "\n" for row in rows))
-
-
-# -------------------------------------------------------------------------------------- command line
+# -------------------------------------------------------------------------------------------- command line
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="kitchen-train",
-        description="Train a self-play team with IPPO or E3T (TorchRL) on Single or Infinite Kitchen levels.",
-        epilog="Overrides: any config key as key=value, e.g. seed=3 levels=cramped_room_7x7 total_steps=2e6.",
+        description="Train a team with IPPO or E3T (TorchRL) on Single or Infinite Kitchen levels. Overrides: any "
+                    "config key as key=value, e.g. seed=3 levels=cramped_room_7x7 total_steps=2e6.",
+        epilog=config_help(TrainConfig),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("config", nargs="?", help="a YAML config (configs/...); omit it with --resume")
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     parser.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its latest checkpoint")
+    parser.add_argument("--allow-unsolvable", action="store_true",
+                        help="train on level files the solvability checker calls unsolvable (with a warning)")
+    parser.add_argument("--eval-on-stop", action="store_true",
+                        help="evaluate the team even when the run is stopped before total_steps")
     return parser
+
+
+def config_of(args: argparse.Namespace) -> TrainConfig:
+    """The config a command line asks for: a YAML file and overrides, or a saved run's config and overrides."""
+    if args.resume:
+        # With --resume, the positional arguments are all overrides (e.g. total_steps=...).
+        overrides = ([args.config] if args.config else []) + args.overrides
+        saved = Path(args.resume) / "config.yaml"
+        if not saved.is_file():
+            raise ConfigError(f"{args.resume} is not a run directory (no config.yaml in it)")
+        return load_config(saved, overrides)
+    if args.config is None:
+        raise ConfigError("give a config file (e.g. configs/ippo/mlp_ik.yaml) or --resume RUN_DIR")
+    if "=" in args.config:
+        raise ConfigError(f"the first argument must be a config file, got the override {args.config!r}")
+    return load_config(args.config, args.overrides)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    config, stopped = None, None
     try:
-        if args.resume:
-            # With --resume, the positional arguments are all overrides (e.g. total_steps=...).
-            overrides = ([args.config] if args.config else []) + args.overrides
-            saved = Path(args.resume) / "config.yaml"
-            if not saved.is_file():
-                raise ConfigError(f"{args.resume} is not a run directory (no config.yaml in it)")
-            config = load_config(saved, overrides)
-        else:
-            if args.config is None:
-                raise ConfigError("give a config file (e.g. configs/ippo/mlp_ik.yaml) or --resume RUN_DIR")
-            if "=" in args.config:
-                raise ConfigError(f"the first argument must be a config file, got the override {args.config!r}")
-            config = load_config(args.config, args.overrides)
-        run = train(config, resume=bool(args.resume), run=Path(args.resume) if args.resume else None)
-        if config.eval_episodes > 0:
+        config = config_of(args)
+        run = Path(args.resume) if args.resume else None
+        try:
+            run = train(config, resume=bool(args.resume), run=run, allow_unsolvable=args.allow_unsolvable)
+        except RunStopped as error:
+            stopped = error
+            print(f"kitchen-train: {error}; continue with `kitchen-train --resume {run or config.run_path}`",
+                  file=sys.stderr)
+        if config.eval_episodes > 0 and (stopped is None or args.eval_on_stop):
             from trainers.evaluate import report_trained_team
 
-            report_trained_team(run)
+            report_trained_team(run or config.run_path)
     except (ConfigError, CheckpointError, ValueError) as error:
         print(f"kitchen-train: error: {error}", file=sys.stderr)
         return 2
+    except TrainingDiverged as error:
+        print(f"kitchen-train: error: {error}", file=sys.stderr)
+        return 1
+    except RunStopped as error:  # a second signal, during the evaluation or while stopping
+        print(f"kitchen-train: {error}", file=sys.stderr)
+        return error.exit_code
     except KeyboardInterrupt:
         print("kitchen-train: stopped; resume from the last checkpoint with --resume", file=sys.stderr)
         return 130
-    return 0
+    return stopped.exit_code if stopped is not None else 0
 
 
 if __name__ == "__main__":

@@ -98,20 +98,26 @@ def test_onions_fill_the_pot_and_the_third_starts_cooking():
 
 @pytest.mark.parametrize("status", [20, 12, 0])
 def test_full_cooking_or_ready_pot_refuses_onions(status):
-    start = scenario(agent_pos=[(3, 1), (5, 5)], agent_dir=(NORTH, NORTH), agent_inv=(ONION, EMPTY), pot_status={(3, 0): status})
+    start = scenario(
+        agent_pos=[(3, 1), (5, 5)], agent_dir=(NORTH, NORTH), agent_inv=(ONION, EMPTY), pot_status={(3, 0): status}
+    )
     state, _, _, shaped = act(start, INTERACT)
     assert int(state.agent_inv[0]) == ONION and shaped.tolist() == [0, 0]
 
 
 def test_ready_soup_goes_onto_a_plate():
-    start = scenario(agent_pos=[(3, 1), (5, 5)], agent_dir=(NORTH, NORTH), agent_inv=(PLATE, EMPTY), pot_status={(3, 0): 0})
+    start = scenario(
+        agent_pos=[(3, 1), (5, 5)], agent_dir=(NORTH, NORTH), agent_inv=(PLATE, EMPTY), pot_status={(3, 0): 0}
+    )
     state, _, _, shaped = act(start, INTERACT)
     assert int(state.agent_inv[0]) == DISH and contents_at(state, 3, 0) == POT_EMPTY and shaped.tolist() == [5, 0]
 
 
 @pytest.mark.parametrize("held, status", [(EMPTY, 0), (PLATE, 5), (PLATE, POT_EMPTY), (PLATE, 21)])
 def test_pot_does_nothing_otherwise(held, status):
-    start = scenario(agent_pos=[(3, 1), (5, 5)], agent_dir=(NORTH, NORTH), agent_inv=(held, EMPTY), pot_status={(3, 0): status})
+    start = scenario(
+        agent_pos=[(3, 1), (5, 5)], agent_dir=(NORTH, NORTH), agent_inv=(held, EMPTY), pot_status={(3, 0): status}
+    )
     state, *_ = act(start, INTERACT)
     assert int(state.agent_inv[0]) == held
     assert contents_at(state, 3, 0) == (status - 1 if 1 <= status <= 20 else status)
@@ -153,19 +159,25 @@ def test_plate_shaping_only_when_useful():
 
 
 def test_plate_from_a_counter_never_pays():
-    start = scenario(agent_pos=[(1, 2), (5, 5)], agent_dir=(WEST, NORTH), pot_status={(3, 0): 10}, counter_items={(0, 2): PLATE})
+    start = scenario(
+        agent_pos=[(1, 2), (5, 5)], agent_dir=(WEST, NORTH), pot_status={(3, 0): 10}, counter_items={(0, 2): PLATE}
+    )
     state, _, _, shaped = act(start, INTERACT)
     assert int(state.agent_inv[0]) == PLATE and shaped.tolist() == [0, 0]
 
 
 def test_agent_one_acts_on_the_world_agent_zero_left():
     # Both bring the third onion to the middle pot: only agent 0's goes in.
-    start = scenario(agent_pos=[(2, 3), (4, 3)], agent_dir=(EAST, WEST), agent_inv=(ONION, ONION), pot_status={(3, 3): 21})
+    start = scenario(
+        agent_pos=[(2, 3), (4, 3)], agent_dir=(EAST, WEST), agent_inv=(ONION, ONION), pot_status={(3, 3): 21}
+    )
     state, _, _, shaped = act(start, INTERACT, INTERACT)
     assert int(state.agent_inv[0]) == EMPTY and int(state.agent_inv[1]) == ONION
     assert contents_at(state, 3, 3) == 19 and shaped.tolist() == [3, 0]
     # Agent 0 takes the soup; agent 1's plate then meets an empty pot.
-    start = scenario(agent_pos=[(2, 3), (4, 3)], agent_dir=(EAST, WEST), agent_inv=(PLATE, PLATE), pot_status={(3, 3): 0})
+    start = scenario(
+        agent_pos=[(2, 3), (4, 3)], agent_dir=(EAST, WEST), agent_inv=(PLATE, PLATE), pot_status={(3, 3): 0}
+    )
     state, _, _, shaped = act(start, INTERACT, INTERACT)
     assert state.agent_inv.tolist() == [DISH, PLATE] and shaped.tolist() == [5, 0]
 
@@ -218,7 +230,9 @@ def test_interactions_use_the_facing_from_before_the_step():
 
 # ---------------------------------------------------------------------------------------------- time
 def test_soup_is_ready_nineteen_steps_after_the_third_onion():
-    start = scenario(agent_pos=[(3, 1), (5, 5)], agent_dir=(NORTH, NORTH), agent_inv=(ONION, EMPTY), pot_status={(3, 0): 21})
+    start = scenario(
+        agent_pos=[(3, 1), (5, 5)], agent_dir=(NORTH, NORTH), agent_inv=(ONION, EMPTY), pot_status={(3, 0): 21}
+    )
     state, *_ = act(start, INTERACT)
     statuses = [contents_at(state, 3, 0)]
     for _ in range(20):

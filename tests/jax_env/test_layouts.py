@@ -64,7 +64,12 @@ def test_registered_layouts_match_jaxmarl_cells():
         flat = layout.grid.reshape(-1)
         assert (layout.height, layout.width) == (ref["height"], ref["width"])
         assert np.array_equal(np.flatnonzero(flat != FLOOR), np.sort(np.asarray(ref["wall_idx"])))
-        for kind, key in [(GOAL, "goal_idx"), (POT, "pot_idx"), (ONION_PILE, "onion_pile_idx"), (PLATE_PILE, "plate_pile_idx")]:
+        for kind, key in [
+            (GOAL, "goal_idx"),
+            (POT, "pot_idx"),
+            (ONION_PILE, "onion_pile_idx"),
+            (PLATE_PILE, "plate_pile_idx"),
+        ]:
             assert np.array_equal(np.flatnonzero(flat == kind), np.sort(np.asarray(ref[key]))), (name, key)
         assert np.any(flat == COUNTER)
 

@@ -63,7 +63,9 @@ def test_random_rollouts_match_reference_through_auto_resets(name):
         key_act, key_step = jax.random.split(key)
         actions = jax.random.randint(key_act, (num_envs, 2), 0, 6, dtype=jnp.int32)
         step_keys = jax.random.split(key_step, num_envs)
-        r_obs, ref_state, r_rew, r_done, r_info = jax.vmap(ref.step)(step_keys, ref_state, jax.vmap(_ref_actions)(actions))
+        r_obs, ref_state, r_rew, r_done, r_info = jax.vmap(ref.step)(
+            step_keys, ref_state, jax.vmap(_ref_actions)(actions)
+        )
         obs, state, rew, done, info = jax.vmap(env.step)(step_keys, state, actions)
         r_shaped = jnp.stack([r_info["shaped_reward"]["agent_0"], r_info["shaped_reward"]["agent_1"]], -1)
         r_reward = jnp.stack([r_rew["agent_0"], r_rew["agent_1"]], -1)
@@ -78,9 +80,7 @@ def test_random_rollouts_match_reference_through_auto_resets(name):
         return (ref_state, state), (checks, done)
 
     step_keys = jax.random.split(jax.random.PRNGKey(11), num_steps)
-    _, (checks, dones) = jax.jit(lambda c: jax.lax.scan(one_step, c, step_keys))(
-        (ref_state, state)
-    )
+    _, (checks, dones) = jax.jit(lambda c: jax.lax.scan(one_step, c, step_keys))((ref_state, state))
     checks = np.asarray(checks)
     for index, what in enumerate(["observation", "reward", "shaped reward", "done"]):
         assert checks[:, index].all(), f"{name}: {what} differs, {_first_mismatch(checks[:, index])}"

@@ -1,3 +1,5 @@
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -6,6 +8,7 @@ import torch
 from torchrl.collectors import Collector
 from torchrl.envs.utils import RandomPolicy, check_env_specs
 
+from jax_env import State
 from torch_kitchen.env import KitchenEnv
 
 
@@ -43,7 +46,9 @@ def test_torchrl_rollout_equals_the_raw_jax_stepper():
         td["agents", "action"] = actions[t]
         out = env.step(td)["next"]
         states, reward, done, info = step(states, jnp.asarray(actions[t].numpy(), jnp.int32))
-        np.testing.assert_array_equal(out["agents", "observation"].numpy(), np.asarray(jax.vmap(env.kitchen.get_obs)(states)))
+        np.testing.assert_array_equal(
+            out["agents", "observation"].numpy(), np.asarray(jax.vmap(env.kitchen.get_obs)(states))
+        )
         np.testing.assert_array_equal(out["agents", "reward"].numpy()[..., 0], np.asarray(reward))
         np.testing.assert_array_equal(out["agents", "shaped_reward"].numpy()[..., 0], np.asarray(info["shaped_reward"]))
         np.testing.assert_array_equal(out["done"].numpy()[:, 0], np.asarray(done))
@@ -131,15 +136,24 @@ def test_cuda_without_a_gpu_jax_says_what_to_install():
         KitchenEnv(num_envs=2, levels="cramped_room_7x7", device="cuda")
 
 
-def test_state_dict_restores_the_kitchens_mid_episode():
+def _through_a_file(state_dict, tmp_path):
+    """The state dict as a checkpoint holds it: saved, and read back with torch's weights-only unpickler."""
+    torch.save(state_dict, tmp_path / "env.pt")
+    return torch.load(tmp_path / "env.pt", weights_only=True)
+
+
+def test_state_dict_restores_the_kitchens_mid_episode(tmp_path):
     actions = torch.randint(0, 6, (12, 5, 2), generator=torch.Generator().manual_seed(1))
     env = KitchenEnv(num_envs=5, levels="infinite", max_steps=8, seed=4)
     td = env.reset()
     for t in range(6):
         _, td = env.step_and_maybe_reset(td.set(("agents", "action"), actions[t]))
-    saved = env.state_dict()
+    saved = _through_a_file(env.state_dict(), tmp_path)
     twin = KitchenEnv(num_envs=5, levels="infinite", max_steps=8, seed=99)
     twin.load_state_dict(saved)
+    for restored, original in zip(jax.tree_util.tree_leaves(twin.states), jax.tree_util.tree_leaves(env.states)):
+        assert restored.dtype == original.dtype
+        np.testing.assert_array_equal(np.asarray(restored), np.asarray(original))
     twin_td = twin.reset()  # hands out the restored kitchens, not new ones
     np.testing.assert_array_equal(twin_td["agents", "observation"].numpy(), td["agents", "observation"].numpy())
     np.testing.assert_array_equal(twin_td["episode_deliveries"].numpy(), td["episode_deliveries"].numpy())
@@ -156,3 +170,29 @@ def test_state_dict_of_another_batch_is_refused():
     saved = KitchenEnv(num_envs=3, levels="infinite").state_dict()
     with pytest.raises(ValueError, match="num_envs and levels"):
         KitchenEnv(num_envs=4, levels="infinite").load_state_dict(saved)
+
+
+def test_the_env_state_is_tensors_named_by_the_state_fields():
+    env = KitchenEnv(num_envs=3, levels="infinite", max_steps=8)
+    state = env.get_extra_state()
+    assert set(state) == {"key", "states", "deliveries"}
+    assert list(state["states"]) == [field.name for field in dataclasses.fields(State)]
+    for name, tensor in state["states"].items():
+        assert tensor.device.type == "cpu"
+        assert tensor.numpy().dtype == getattr(env.states, name).dtype
+    assert state["deliveries"].dtype == torch.int32 and state["deliveries"].shape == (3,)
+
+
+def test_the_jax_key_round_trips_bit_for_bit(tmp_path):
+    # Values with the top bit set, which a signed 32-bit store would mangle.
+    key = jnp.asarray([0xFFFFFFFF, 0x80000001], dtype=jnp.uint32)
+    env = KitchenEnv(num_envs=2, levels="infinite", max_steps=8)
+    env.reset()
+    env._key = key
+    twin = KitchenEnv(num_envs=2, levels="infinite", max_steps=8, seed=5)
+    twin.load_state_dict(_through_a_file(env.state_dict(), tmp_path))
+    assert twin._key.dtype == jnp.uint32
+    np.testing.assert_array_equal(np.asarray(twin._key), np.asarray(key))
+    twin.reset()  # hands out the restored kitchens; from here on the key decides
+    observation = ("agents", "observation")
+    np.testing.assert_array_equal(twin.reset()[observation].numpy(), env.reset()[observation].numpy())

@@ -3,15 +3,15 @@ partner predictor learning a scripted partner but not a random one."""
 
 import pytest
 import torch
+from scripted_cook import TWO_BOOTHS, scripted_team
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.envs.utils import check_env_specs
 
 from jax_env import NUM_ACTIONS, STAY
-from scripted_cook import TWO_BOOTHS, scripted_team
 from torch_kitchen.env import KitchenEnv, with_transforms
-from torch_kitchen.models import make_actor_critic, sampling_actor
+from torch_kitchen.models import make_actor_critic, sampling_actor, split_partner_predictor
 from torch_kitchen.partner import NO_ACTION, PartnerContext, PartnerMixture, PartnerSeats
-from trainers.ippo import partner_prediction_loss
+from trainers.algorithms.e3t import partner_prediction_loss
 
 EPSILON = 0.3
 
@@ -113,7 +113,7 @@ def train_predictor(training, fresh, iterations=150):
     """Trains an E3T MLP's partner predictor on `training`; its accuracy on `fresh` data."""
     torch.manual_seed(0)
     obs_shape = tuple(training["agents", "observation"].shape[-3:])
-    predictor = make_actor_critic("e3t_mlp", obs_shape, hidden=32).predictor
+    predictor, _ = split_partner_predictor(make_actor_critic("e3t_mlp", obs_shape, hidden=32).actor)
     optimizer = torch.optim.Adam(predictor.parameters(), lr=3e-3)
     for _ in range(iterations):
         loss, _ = partner_prediction_loss(predictor, training)
@@ -165,7 +165,8 @@ def test_sequence_logits_equal_the_step_by_step_predictions(architecture, share_
     env = with_transforms(KitchenEnv(3, levels="infinite", max_steps=6), actor_critic.env_transforms())
     with torch.no_grad():
         data = env.rollout(20, actor_critic.actor, break_when_any_done=False)[:, 4:]  # from mid-episode
-        sequence = actor_critic.predictor.sequence_logits(data)
+        predictor, _ = split_partner_predictor(actor_critic.actor)
+        sequence = predictor.sequence_logits(data)
     torch.testing.assert_close(sequence, data["agents", "partner_logits"])
 
 

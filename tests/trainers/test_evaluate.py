@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 from PIL import Image
+from scripted_cook import TWO_BOOTHS, save_scripted_team, scripted_team
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from jax_env import get_layout, parse_layout, save_layout
-from scripted_cook import TWO_BOOTHS, save_scripted_team, scripted_team
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.models import make_actor_critic
 from trainers.checkpoint import CheckpointError, model_identity, save_checkpoint

@@ -1,20 +1,26 @@
 import csv
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
 import torch
 from PIL import Image
-from tensordict.nn import TensorDictSequential
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+from tensordict.nn import TensorDictSequential
 from torchrl.modules import set_recurrent_mode
 
+import trainers.ippo
 from torch_kitchen.models import make_actor_critic
-from trainers.checkpoint import load_checkpoint
-from trainers.config import load_config
-from trainers.evaluate import load_team
 from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
-from trainers.ippo import (EGO, compute_advantages, main, make_env, make_loss, normalize_ego_advantage, train,
-                           with_model_transforms)
+from trainers.algorithms import ALGORITHMS, IPPO, register_algorithm
+from trainers.algorithms.e3t import EGO, normalize_ego_advantage
+from trainers.checkpoint import load_checkpoint
+from trainers.config import TrainConfig, load_config
+from trainers.evaluate import load_team
+from trainers.ippo import compute_advantages, main, make_algorithm, make_env, make_loss, train, with_model_transforms
 from trainers.rollout import make_collector
 
 MAIN_CONFIG = str(Path(__file__).resolve().parents[2] / "configs" / "main.yaml")
@@ -92,7 +98,7 @@ def test_every_architecture_trains_and_reloads(tmp_path, architecture, share_par
     run = train(config, on_update=lambda update, metrics: losses.append(metrics["losses/value"]) and False)
     assert len(losses) == 2 and all(torch.isfinite(torch.tensor(losses)))
     team = load_team(run)
-    trained = torch.load(run / "checkpoints" / "latest.pt", weights_only=False)["actor"]
+    trained = torch.load(run / "checkpoints" / "latest.pt", weights_only=True)["actor"]
     for name, tensor in team.actor_critic.actor.state_dict().items():
         assert torch.equal(tensor, trained[name]), name
 
@@ -169,7 +175,7 @@ def test_ppo_updates_lower_the_loss_on_a_fixed_batch(tmp_path, architecture):
     batch = next(iter(collector)).clone()
     collector.shutdown()
     compute_advantages(batch, actor_critic.critic, config, shaping_weight=1.0)
-    loss_module = make_loss(config, actor_critic)
+    loss_module = make_loss(config, actor_critic, make_algorithm(config, actor_critic))
     optimizer = torch.optim.Adam(loss_module.parameters(), lr=1e-3)
 
     def total_loss():
@@ -204,7 +210,7 @@ def test_e3t_ppo_learns_from_the_ego_transitions_only(tmp_path):
     actor_critic = make_actor_critic("e3t_mlp", (7, 7, 26), hidden=16, share_params=True)
     batch = e3t_batch(config, actor_critic)
     assert (batch.get(EGO).sum(-1) == 1).all()
-    loss_module = make_loss(config, actor_critic)
+    loss_module = make_loss(config, actor_critic, make_algorithm(config, actor_critic))
 
     def losses(data):
         data = data.clone()
@@ -245,7 +251,7 @@ def test_e3t_through_the_entry_point_teaches_the_predictor_keeps_a_slow_copy_and
     initial = make_actor_critic("e3t_mlp", (7, 7, 26), hidden=16).actor.state_dict()
     moved = 0
     for name, ego in state["actor"].items():
-        copy, start = state["partner_copy"][name], initial[name]
+        copy, start = state["algorithm"]["partner_copy"][name], initial[name]
         # After 3 updates at rate 0.5 the copy has moved 7/8 of the way: neither where it started nor the ego.
         if not torch.equal(ego, start):
             moved += 1
@@ -254,3 +260,139 @@ def test_e3t_through_the_entry_point_teaches_the_predictor_keeps_a_slow_copy_and
     assert "| e3t_mlp_ik | cramped_room_7x7 |" in (run / "eval.md").read_text()
     with Image.open(run / "team.gif") as gif:
         assert gif.n_frames > 1
+
+
+# ------------------------------------------------------------------------------------- stops that tell the truth
+def test_sigterm_stops_the_entry_point_with_143_after_a_checkpoint_and_no_evaluation(tmp_path):
+    """The real command in a process of its own, stopped as a scheduler or `kill` would stop it."""
+    argv = [sys.executable, "-m", "trainers.ippo", MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "total_steps=1e6",
+            "checkpoint_every=1", "eval_episodes=2"]
+    process = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[2])
+    run = tmp_path / "main" / "seed0"
+    deadline = time.monotonic() + 120
+    while not (run / "checkpoints" / "latest.pt").exists() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 143, err
+    assert "stopped by SIGTERM at update" in err and f"kitchen-train --resume {run}" in err
+    assert 1 <= load_checkpoint(run)["update"] < 1e6 / 64
+    assert not (run / "eval.md").exists()
+
+
+def signal_at_update(monkeypatch, update, signum):
+    """Makes the trainer receive `signum` while it computes the advantages of `update`."""
+    real, calls = trainers.ippo.compute_advantages, []
+
+    def compute_advantages(*args, **kwargs):
+        calls.append(None)
+        if len(calls) == update:
+            signal.raise_signal(signum)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(trainers.ippo, "compute_advantages", compute_advantages)
+
+
+def test_ctrl_c_exits_130_after_checkpointing_the_update_and_evaluates_only_when_asked(tmp_path, monkeypatch, capsys):
+    argv = [MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "total_steps=640", "checkpoint_every=100", "eval_episodes=1",
+            "eval_heldout=0", "gif=false"]
+    signal_at_update(monkeypatch, 2, signal.SIGINT)
+    assert main(argv) == 130
+    run = tmp_path / "main" / "seed0"
+    assert "stopped by SIGINT at update 2 (128 of 640 env steps)" in capsys.readouterr().err
+    assert load_checkpoint(run)["update"] == 2 and not (run / "eval.md").exists()
+
+    signal_at_update(monkeypatch, 1, signal.SIGINT)
+    assert main(["--resume", str(run), "--eval-on-stop"]) == 130
+    assert load_checkpoint(run)["update"] == 3
+    assert (run / "eval.md").read_text().startswith("Partly trained: 192 of 640 env steps")
+
+
+def test_a_run_killed_before_its_first_checkpoint_starts_clean_when_run_again(tmp_path):
+    argv = [MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "total_steps=192", "checkpoint_every=100", "eval_episodes=0"]
+    config = load_config(argv[0], argv[1:])
+
+    def killed_at_update_2(update, metrics):
+        if update == 2:
+            raise KeyboardInterrupt  # the process dies here: no checkpoint yet
+
+    with pytest.raises(KeyboardInterrupt):
+        train(config, on_update=killed_at_update_2)
+    run = config.run_path
+    assert not (run / "checkpoints" / "latest.pt").exists() and read_metrics(run)["losses/policy"]
+    assert main(argv) == 0
+    for name, rows in read_metrics(run).items():
+        assert [step for step, _ in rows] == [64, 128, 192], name
+    events = EventAccumulator(str(run / "tensorboard"))
+    events.Reload()
+    assert [event.step for event in events.Scalars("losses/policy")] == [64, 128, 192]
+
+
+def test_a_nan_loss_stops_the_run_with_a_clear_error_and_the_last_good_weights(tmp_path, monkeypatch, capsys):
+    real, calls = trainers.ippo.compute_advantages, []
+
+    def nan_advantages_at_update_2(batch, *args, **kwargs):
+        real(batch, *args, **kwargs)
+        calls.append(None)
+        if len(calls) == 2:
+            batch.set(("agents", "advantage"), torch.full_like(batch.get(("agents", "advantage")), float("nan")))
+
+    monkeypatch.setattr(trainers.ippo, "compute_advantages", nan_advantages_at_update_2)
+    argv = [MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "total_steps=256", "checkpoint_every=100"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "kitchen-train: error: losses/policy=nan at update 2 (128 env steps): training diverged" in err
+    assert "Traceback" not in err
+    state = load_checkpoint(tmp_path / "main" / "seed0")
+    assert state["update"] == 2
+    assert all(torch.isfinite(tensor).all() for tensor in state["actor"].values())
+    assert not (tmp_path / "main" / "seed0" / "eval.md").exists()
+
+
+# ------------------------------------------------------------------------------------------ algorithms as parts
+class CountingIPPO(IPPO):
+    """IPPO plus a logged auxiliary term and a counter of updates that travels in checkpoints."""
+
+    def __init__(self, config, actor_critic):
+        super().__init__(config, actor_critic)
+        self.updates = 0
+
+    def auxiliary_losses(self, minibatch):
+        value = minibatch.get(("agents", "state_value"))
+        return {"loss_zero": 0.0 * value.mean(), "mean_value": value.mean().detach()}
+
+    def after_update(self):
+        self.updates += 1
+
+    def state_dict(self):
+        return {"updates": self.updates}
+
+    def load_state_dict(self, state):
+        self.updates = state["updates"]
+
+
+def test_an_algorithm_added_by_registration_trains_logs_and_checkpoints(tmp_path, monkeypatch):
+    monkeypatch.setitem(ALGORITHMS, "counting_ippo", CountingIPPO)
+    config = tiny_config(tmp_path, "algorithm=counting_ippo", updates=3)
+    run = train(config)
+    metrics = read_metrics(run)
+    assert [step for step, _ in metrics["losses/zero"]] == [64, 128, 192]
+    assert [step for step, _ in metrics["charts/mean_value"]] == [64, 128, 192]
+    assert "losses/partner_prediction" not in metrics  # metrics are logged only where they apply
+    assert load_checkpoint(run)["algorithm"] == {"updates": 3}
+    with pytest.raises(ValueError, match="already registered"):
+        register_algorithm("ippo", CountingIPPO)
+
+
+def test_help_lists_every_config_key_and_hyperparameters_reach_tensorboard(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["--help"])
+    assert exit_.value.code == 0
+    text = capsys.readouterr().out
+    for name in TrainConfig.__dataclass_fields__:
+        assert f"{name} " in text or f"{name}:" in text, name
+    run = train(tiny_config(tmp_path))
+    [hparams_dir] = [path for path in (run / "tensorboard").iterdir() if path.is_dir()]
+    events = EventAccumulator(str(hparams_dir))
+    events.Reload()
+    assert events.PluginTagToContent("hparams")

@@ -1,0 +1,68 @@
+"""One test per TorchRL hook of `torch_kitchen.torchrl_internals`: a TorchRL release that changes one fails here."""
+
+import functools
+
+import pytest
+import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+from torch import nn
+
+from torch_kitchen.models import make_encoder
+from torch_kitchen.torchrl_internals import TEMPLATE, MultiAgentNet, PurgingTensorboardLogger
+
+
+def test_multi_agent_net_builds_one_network_per_agent_through_build_single_net():
+    torch.manual_seed(0)
+    net = MultiAgentNet(lambda: nn.Linear(3, 2), (3,), share_params=False)
+    inputs = torch.randn(5, 2, 3)
+    outputs = net(inputs)
+    assert outputs.shape == (5, 2, 2)
+    # Each agent's slice goes through its own stacked parameters.
+    for agent in range(2):
+        weight, bias = net.params["weight"][agent], net.params["bias"][agent]
+        torch.testing.assert_close(outputs[:, agent], inputs[:, agent] @ weight.T + bias)
+    assert not torch.allclose(net.params["weight"][0], net.params["weight"][1])
+    shared = MultiAgentNet(lambda: nn.Linear(3, 2), (3,), share_params=True)
+    assert shared.params["weight"].shape == (2, 3)
+
+
+def test_multi_agent_net_checks_its_inputs_through_pre_forward_check():
+    net = MultiAgentNet(lambda: nn.Linear(3, 2), (3,))
+    with pytest.raises(ValueError, match=r"expects inputs \[..., 2, 3\], got \[5, 2, 4\]"):
+        net(torch.randn(5, 2, 4))
+
+    class Doubling(MultiAgentNet):
+        def check_input(self, inputs):
+            return 2 * super().check_input(inputs)
+
+    doubled = Doubling(lambda: nn.Identity(), (3,))
+    inputs = torch.randn(4, 2, 3)
+    torch.testing.assert_close(doubled(inputs), 2 * inputs)
+
+
+@pytest.mark.parametrize("share_params", [True, False])
+def test_the_template_network_stays_out_of_state_dicts(share_params):
+    """torch-geometric's GATConv saves entries even in MultiAgentNetBase's parameter-less template."""
+    build = functools.partial(make_encoder, "gnn", (4, 5, 26), 8)
+    net = MultiAgentNet(build, (4, 5, 26), share_params=share_params)
+    state = net.state_dict()
+    assert hasattr(net, TEMPLATE)
+    assert state and not any(TEMPLATE in key for key in state)
+    other = MultiAgentNet(build, (4, 5, 26), share_params=share_params)
+    other.load_state_dict(state)
+    observation = torch.rand(3, 2, 4, 5, 26)
+    torch.testing.assert_close(other(observation), net(observation))
+
+
+def test_the_tensorboard_logger_purges_events_at_and_after_the_purge_step(tmp_path):
+    first = PurgingTensorboardLogger("tensorboard", str(tmp_path))
+    for step in range(1, 6):
+        first.log_scalar("x", float(step), step=step)
+    first.experiment.close()
+    resumed = PurgingTensorboardLogger("tensorboard", str(tmp_path), purge_step=3)
+    for step in (3, 4):
+        resumed.log_scalar("x", 10.0 * step, step=step)
+    resumed.experiment.close()
+    events = EventAccumulator(str(tmp_path / "tensorboard"))
+    events.Reload()
+    assert [(event.step, event.value) for event in events.Scalars("x")] == [(1, 1.0), (2, 2.0), (3, 30.0), (4, 40.0)]

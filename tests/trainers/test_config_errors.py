@@ -1,0 +1,313 @@
+"""Every bad config value is refused by `check()` (or the YAML reader) with one line that says what to change."""
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+import jax
+import pytest
+import torch
+
+from jax_env import get_layout, save_layout
+from trainers.config import (
+    ConfigError,
+    EvalConfig,
+    TrainConfig,
+    check_device,
+    config_help,
+    load_config,
+    save_config,
+)
+
+# A 5x5 kitchen whose only pot is walled in: no team can ever cook. The same kitchen with the pot in reach.
+WALLED_POT = "WWWWW\nOA  W\nB  AW\nWWXWW\nWPWWW\n"
+OPEN_POT = "WWPWW\nOA  W\nB  AW\nWWXWW\nWWWWW\n"
+ALLOWED_DEVICES = r"use device=cpu, device=cuda or device=cuda:<index>"
+COUNTS = "max_steps num_envs rollout_steps total_steps hidden epochs minibatches checkpoint_every threads".split()
+NON_NEGATIVE = "eval_episodes shaping_anneal_steps entropy_coef value_coef predictor_coef shaping_weight".split()
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        *[(f"{name}=0", rf"^{name} must be at least 1, got 0$") for name in COUNTS],
+        *[(f"{name}=-1", rf"^{name} must be at least 0, got -1") for name in NON_NEGATIVE],
+        ("lr=0", r"^lr must be greater than 0, got 0.0$"),
+        ("adam_eps=-1e-5", r"^adam_eps must be greater than 0, got -1e-05$"),
+        ("clip_epsilon=-1", r"^clip_epsilon must be greater than 0, got -1.0$"),
+        ("max_grad_norm=0", r"^max_grad_norm must be greater than 0, got 0.0$"),
+        ("gamma=5", r"^gamma must lie in \[0, 1\], got 5.0$"),
+        ("gae_lambda=-3", r"^gae_lambda must lie in \[0, 1\], got -3.0$"),
+        ("partner_epsilon=1.5", r"^partner_epsilon must lie in \[0, 1\], got 1.5$"),
+        ("partner_copy_rate=-0.1", r"^partner_copy_rate must lie in \[0, 1\], got -0.1$"),
+        ("lr=nan", r"^lr must be a finite number, got nan$"),
+        ("gamma=.inf", r"^gamma must be a finite number, got inf$"),
+        ("seed=-1", r"^seed must be an integer in \[0, 4294967295\] .*, got -1$"),
+        ("seed=4294967296", r"^seed must be an integer in \[0, 4294967295\] .*, got 4294967296$"),
+        (f"seed={2**63}", rf"^seed must be an integer in \[0, 4294967295\] .*, got {2**63}$"),
+        ("eval_heldout=200", r"^eval_heldout must be between 0 and 100 \(the held-out levels\), got 200$"),
+        ("eval_heldout=-1", r"^eval_heldout must be between 0 and 100"),
+        ("device=tpu", rf"^device=tpu is not a device: {ALLOWED_DEVICES}$"),
+        ("device=garbage", rf"^device=garbage is not a device: {ALLOWED_DEVICES}$"),
+        ("device=meta", rf"^device=meta is not supported: {ALLOWED_DEVICES}$"),
+        ("device=cpu:1", rf"^device=cpu:1 is not supported: {ALLOWED_DEVICES}$"),
+        ("name=../..", r"^name='../..' must be a relative path inside run_dir, without '..'"),
+        ("name=a/../../b", r"^name='a/../../b' must be a relative path inside run_dir"),
+        ("name=/tmp/elsewhere", r"^name='/tmp/elsewhere' must be a relative path inside run_dir"),
+        ("name=.", r"^name='.' must be a relative path inside run_dir"),
+        ("name=''", r"^name='' must be a relative path inside run_dir"),
+        ("levels=[infinite, cramped_room_7x7]", r"^levels=infinite stands alone: it cannot be one entry of a list"),
+        ("levels=[]", r"^levels is empty"),
+        ("algorithm=ppo", r"^algorithm must be one of ippo, e3t, got 'ppo'$"),
+        ("partner_policy=slow", r"^partner_policy must be one of ego, copy, got 'slow'$"),
+    ],
+)
+def test_bad_overrides_are_refused_before_any_work(override, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(None, [override])
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"seed": "a"}, r"^seed must be int, got 'a'$"),
+        ({"seed": 1.0}, r"^seed must be int, got 1.0$"),
+        ({"seed": 2**64}, r"^seed must be an integer in \[0, 4294967295\]"),
+        ({"num_envs": True}, r"^num_envs must be int, got True$"),
+        ({"lr": "fast"}, r"^lr must be float, got 'fast'$"),
+        ({"share_params": 1}, r"^share_params must be bool, got 1$"),
+        ({"levels": ("a", "b")}, r"^levels must be str \| list\[str\], got \('a', 'b'\)$"),
+        ({"levels": ["a", 3]}, r"^levels must be str \| list\[str\], got \['a', 3\]$"),
+        ({"name": Path("run")}, r"^name must be str, got PosixPath\('run'\)$"),
+        ({"device": None}, r"^device must be str, got None$"),
+        ({"gamma": 5}, r"^gamma must lie in \[0, 1\], got 5$"),
+        ({"clip_epsilon": -1.0}, r"^clip_epsilon must be greater than 0, got -1.0$"),
+        ({"checkpoint_every": 0}, r"^checkpoint_every must be at least 1, got 0$"),
+        ({"eval_heldout": 101}, r"^eval_heldout must be between 0 and 100"),
+        ({"name": "../.."}, r"^name='../..' must be a relative path inside run_dir"),
+    ],
+)
+def test_configs_built_in_python_are_checked_too(kwargs, message):
+    with pytest.raises(ConfigError, match=message):
+        TrainConfig(**kwargs).check()
+
+
+def test_values_at_the_edges_are_accepted():
+    config = load_config(None, [
+        "seed=4294967295", "eval_heldout=100", "gamma=1", "gae_lambda=0", "lr=1", "shaping_weight=0",
+        "eval_episodes=0", "name=ablation/mlp", "device=cpu:0",
+    ])  # fmt: skip
+    assert (config.seed, config.lr, config.gamma) == (2**32 - 1, 1.0, 1.0)
+    assert config.run_path == Path("runs/ablation/mlp/seed4294967295")
+    assert TrainConfig().check() == TrainConfig() and EvalConfig().check() == EvalConfig()
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"rollouts": 0}, r"^rollouts must be at least 1, got 0$"),
+        ({"max_steps": 0}, r"^max_steps must be at least 1, got 0$"),
+        ({"max_envs": -5}, r"^max_envs must be at least 1, got -5$"),
+        ({"threads": 0}, r"^threads must be at least 1, got 0$"),
+        ({"heldout": 101}, r"^heldout must be between 0 and 100 \(the held-out levels\), got 101$"),
+        ({"heldout": -1}, r"^heldout must be between 0 and 100"),
+        ({"seed": -1}, r"^seed must be an integer in \[0, 4294967295\]"),
+        ({"device": "tpu"}, rf"^device=tpu is not a device: {ALLOWED_DEVICES}$"),
+        ({"layouts": "cramped_room_7x7"}, r"^layouts must be list\[str\], got 'cramped_room_7x7'$"),
+        ({"conditions": {"a": 3}}, r"^conditions must be dict\[str, str \| list\[str\]\], got \{'a': 3\}$"),
+        ({"rollouts": "5"}, r"^rollouts must be int, got '5'$"),
+        ({"layouts": [], "heldout": 0}, r"^nothing to evaluate on"),
+        ({"cross": [["a", "b"]]}, r"^cross names the condition 'a', which is not among the conditions: \(none\)$"),
+    ],
+)
+def test_bad_eval_configs_are_refused(kwargs, message):
+    with pytest.raises(ConfigError, match=message):
+        EvalConfig(**kwargs).check()
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("rollouts=0", r"^rollouts must be at least 1, got 0$"),
+        ("threads=0", r"^threads must be at least 1, got 0$"),
+        ("max_envs=0", r"^max_envs must be at least 1, got 0$"),
+        ("heldout=200", r"^heldout must be between 0 and 100"),
+        ("seed=-1", r"^seed must be an integer in \[0, 4294967295\]"),
+        ("device=tpu", rf"^device=tpu is not a device: {ALLOWED_DEVICES}$"),
+        ("layouts=cramped_room_7x7", r"^layouts in the command line must be list\[str\], got 'cramped_room_7x7'$"),
+    ],
+)
+def test_bad_eval_overrides_are_refused(override, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(None, [override], schema=EvalConfig)
+
+
+def test_cuda_is_refused_where_this_machine_has_no_such_gpu(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    for device in ("cuda", "cuda:0"):
+        message = rf"^device={device}, but torch sees no CUDA GPU on this machine: use device=cpu$"
+        with pytest.raises(ConfigError, match=message):
+            load_config(None, [f"device={device}"])
+        with pytest.raises(ConfigError, match=message):
+            EvalConfig(device=device).check()
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    with pytest.raises(ConfigError, match=r"^device=cuda:3, but torch sees 2 CUDA GPU\(s\) here: use cuda:0 to cuda:1"):
+        check_device("cuda:3")
+
+    def no_jax_gpu(backend=None):
+        raise RuntimeError("Unknown backend gpu")
+
+    monkeypatch.setattr(jax, "devices", no_jax_gpu)  # torch sees GPUs, but this JAX is a CPU build
+    with pytest.raises(ConfigError, match=r"^device=cuda:1, but JAX sees 0 GPU\(s\) here .*or use device=cpu$"):
+        check_device("cuda:1")
+    monkeypatch.setattr(jax, "devices", lambda backend=None: ["gpu0", "gpu1"])
+    check_device("cuda:1")
+    check_device("cuda")
+    assert TrainConfig(device="cuda:1").check().device == "cuda:1"
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("base: 5\n", r"^base in .*bad\.yaml must be the path of a config file \(relative to this one\), got 5$"),
+        ("base: [a.yaml]\n", r"^base in .*bad\.yaml must be the path of a config file .*, got \['a.yaml'\]$"),
+        ("base:\nseed: 1\n", r"^base in .*bad\.yaml must be the path of a config file .*, got None$"),
+        ("base: ''\n", r"^base in .*bad\.yaml must be the path of a config file .*, got ''$"),
+        ("5: 3\n", r"^the key 5 in .*bad\.yaml is not a config key \(keys are names\): valid keys: name, run_dir"),
+        ("seed: 1\ntrue: 3\n", r"^the key True in .*bad\.yaml is not a config key"),
+        ("seed: -4\n", r"^seed must be an integer in \[0, 4294967295\]"),
+        ("gamma: 5\n", r"^gamma must lie in \[0, 1\], got 5.0$"),
+        ("device: tpu\n", r"^device=tpu is not a device"),
+        ("num_env: 8\n", r"^unknown config key 'num_env' in .*bad\.yaml \(did you mean 'num_envs'\?\)"),
+    ],
+)
+def test_broken_yaml_files_name_the_file(tmp_path, text, message):
+    (tmp_path / "bad.yaml").write_text(text)
+    with pytest.raises(ConfigError, match=message):
+        load_config(tmp_path / "bad.yaml")
+
+
+def test_a_base_chain_still_merges(tmp_path):
+    (tmp_path / "base.yaml").write_text("seed: 1\nlr: 1e-3\n")
+    (tmp_path / "run.yaml").write_text("base: base.yaml\nseed: 2\n")
+    config = load_config(tmp_path / "run.yaml")
+    assert (config.seed, config.lr) == (2, 1e-3)
+
+
+def test_a_saved_config_loads_back_equal(tmp_path):
+    config = load_config(None, ["seed=3", "levels=[cramped_room_7x7, coord_ring_7x7]", "name=ablation/mlp"])
+    save_config(config, tmp_path / "config.yaml")
+    assert load_config(tmp_path / "config.yaml") == config
+    evaluation = EvalConfig(conditions={"a": "runs/a/seed*"}, heldout=3)
+    save_config(evaluation, tmp_path / "eval.yaml")
+    assert load_config(tmp_path / "eval.yaml", schema=EvalConfig) == evaluation
+
+
+def test_a_file_where_the_run_directory_must_go_is_refused(tmp_path):
+    (tmp_path / "x").write_text("not a folder")
+    config = TrainConfig(run_dir=str(tmp_path / "x" / "y")).check()  # check() does not look at the disk
+    with pytest.raises(ConfigError, match=rf"^run_dir={tmp_path}/x/y: {tmp_path}/x is a file, not a folder$"):
+        config.check_run_location()
+    with pytest.raises(ConfigError, match=rf"^run_dir={tmp_path}/x: {tmp_path}/x is a file, not a folder$"):
+        TrainConfig(run_dir=str(tmp_path / "x")).check_run_location()
+
+    runs = tmp_path / "runs"
+    (runs / "ablation").mkdir(parents=True)
+    (runs / "ablation" / "mlp").write_text("")
+    with pytest.raises(ConfigError, match=rf"^name=ablation/mlp: {runs}/ablation/mlp is a file, not a folder"):
+        TrainConfig(run_dir=str(runs), name="ablation/mlp").check_run_location()
+    (runs / "ippo").mkdir()
+    (runs / "ippo" / "seed0").write_text("")
+    with pytest.raises(ConfigError, match=rf"^name=ippo: {runs}/ippo/seed0 is a file, not a folder"):
+        TrainConfig(run_dir=str(runs), name="ippo").check_run_location()
+
+    TrainConfig(run_dir=str(runs), name="ippo", seed=1).check_run_location()  # not made yet: fine
+    (runs / "ippo" / "seed1").mkdir()
+    TrainConfig(run_dir=str(runs), name="ippo", seed=1).check_run_location()  # already a folder (resume): fine
+
+
+def test_unsolvable_levels_are_refused_unless_allowed(tmp_path):
+    walled = tmp_path / "walled_pot.txt"
+    walled.write_text(WALLED_POT)
+    config = load_config(None, [f"levels={walled}"])  # loading the config does not read the level
+    with pytest.raises(ConfigError, match=rf"^levels: {walled} is unsolvable, .*fix the layout, or pass "
+                                          r"--allow-unsolvable to train on it anyway$"):  # fmt: skip
+        config.check_levels()
+    warnings = config.check_levels(allow_unsolvable=True)
+    assert len(warnings) == 1 and str(walled) in warnings[0] and "unsolvable" in warnings[0]
+
+    other = tmp_path / "walled_too.txt"
+    other.write_text(WALLED_POT)
+    solvable = tmp_path / "open_pot.txt"
+    solvable.write_text(OPEN_POT)
+    config = TrainConfig(levels=[str(walled), str(solvable), str(other)])
+    with pytest.raises(ConfigError, match=rf"^levels: {walled}, {other} are unsolvable, .*to train on them anyway$"):
+        config.check_levels()
+    assert len(config.check_levels(allow_unsolvable=True)) == 2
+    assert TrainConfig(levels=str(solvable)).check_levels() == []
+
+
+@pytest.mark.parametrize(
+    "levels",
+    ["infinite", "heldout", "cramped_room_7x7", ["cramped_room_7x7", "forced_coord_7x7"], "saved"],
+)
+def test_solvable_and_generated_levels_pass(tmp_path, levels):
+    if levels == "saved":  # a layout written by save_layout reads back as a level file
+        levels = save_layout(get_layout("coord_ring_7x7"), str(tmp_path / "ring.txt"))
+    assert TrainConfig(levels=levels).check().check_levels() == []
+
+
+def test_levels_that_cannot_be_loaded_are_named(tmp_path):
+    with pytest.raises(ConfigError, match=r"^levels: cannot load 'no_such_kitchen': unknown layout 'no_such_kitchen'"):
+        TrainConfig(levels="no_such_kitchen").check_levels()
+    missing = tmp_path / "missing.txt"
+    with pytest.raises(ConfigError, match=rf"^levels: cannot load '{missing}': layout file .* does not exist$"):
+        TrainConfig(levels=["cramped_room_7x7", str(missing)]).check_levels()
+    ragged = tmp_path / "ragged.txt"
+    ragged.write_text("WWWPW\nOA AW\nBWX\n")
+    with pytest.raises(ConfigError, match=rf"^levels: cannot load '{ragged}': layout 'ragged': row 2 has 3 cells"):
+        TrainConfig(levels=str(ragged)).check_levels()
+    with pytest.raises(ConfigError, match=r"^levels must all have one size.*: cramped_room is 4x5, cramped_room_7"):
+        TrainConfig(levels=["cramped_room", "cramped_room_7x7"]).check_levels()
+
+
+def test_updates_round_up_and_say_so():
+    config = TrainConfig(num_envs=8, rollout_steps=256, total_steps=1_000_000)
+    assert config.num_updates == 489 and config.num_updates * config.frames_per_batch >= config.total_steps
+    assert config.step_note() == (
+        "total_steps=1,000,000 is not a multiple of the 2,048 steps of an update (num_envs x rollout_steps): "
+        "training 489 updates = 1,001,472 steps"
+    )
+    exact = TrainConfig(num_envs=8, rollout_steps=256, total_steps=2048 * 3)
+    assert (exact.num_updates, exact.step_note()) == (3, None)
+    small = TrainConfig(num_envs=8, rollout_steps=256, total_steps=10)
+    assert small.num_updates == 1 and "training 1 updates = 2,048 steps" in small.step_note()
+
+
+def test_config_help_lists_every_key_with_type_default_and_meaning():
+    for schema in (TrainConfig, EvalConfig):
+        text = config_help(schema)
+        for field in dataclasses.fields(schema):
+            assert field.metadata["help"], field.name
+            assert f"\n    {field.name}: " in text, field.name
+            assert f"\n        {field.metadata['help']}\n" in text + "\n", field.name
+    text = config_help(TrainConfig)
+    assert "    total_steps: int = 20000000\n        env steps over the run" in text
+    assert "    levels: str | list[str] = infinite\n" in text and "    share_params: bool = true\n" in text
+    groups = [line.strip() for line in text.splitlines() if line.startswith("  ") and not line.startswith("   ")]
+    assert groups == ["run:", "environment:", "model:", "PPO:", "E3T (algorithm: e3t):",
+                      "logging, checkpoints, final evaluation:"]  # fmt: skip
+    assert "    layouts: list[str] = [cramped_room_7x7, " in config_help(EvalConfig)
+
+    # As an epilog, argparse keeps its lines.
+    parser = argparse.ArgumentParser(epilog=text, formatter_class=argparse.RawDescriptionHelpFormatter)
+    assert text in parser.format_help()
+
+
+def test_list_and_dict_defaults_are_not_shared():
+    first, second = EvalConfig(), EvalConfig()
+    first.layouts.append("extra")
+    first.conditions["a"] = "runs/a"
+    assert "extra" not in second.layouts and second.conditions == {}

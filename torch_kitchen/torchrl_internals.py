@@ -1,0 +1,74 @@
+"""The TorchRL hooks this project relies on that are not public API, all in this one module.
+
+Each is tested in `tests/torch_kitchen/test_torchrl_internals.py`, so a TorchRL release that renames one fails
+there, with the hook named, rather than somewhere deep in training.
+
+- `MultiAgentNetBase` builds each agent's network through `_build_single_net()`, checks inputs in
+  `_pre_forward_check()` and keeps a parameter-less template of the network in `_empty_net`. `MultiAgentNet`
+  turns these into a plain `build` callable and a public `check_input()`.
+- `TensorboardLogger` opens its `SummaryWriter` in `_create_experiment()`. `PurgingTensorboardLogger` opens it
+  with `purge_step`, so that a resumed run drops the events a killed run wrote after its last checkpoint.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+from torch import nn
+from torch.utils.tensorboard import SummaryWriter
+from torchrl.modules.models.multiagent import MultiAgentNetBase
+from torchrl.record.loggers import TensorboardLogger
+
+TEMPLATE = "_empty_net"  # MultiAgentNetBase's parameter-less copy of one agent's network
+
+
+def _drop_template_entries(module: nn.Module, state_dict: dict, prefix: str, local_metadata) -> None:
+    for key in [key for key in state_dict if key.startswith(prefix + TEMPLATE + ".")]:
+        del state_dict[key]
+
+
+class MultiAgentNet(MultiAgentNetBase):
+    """Any torch module applied to each agent: float [..., n_agents, *in_shape] -> [..., n_agents, *out].
+
+    `build()` makes one agent's module (it must accept any leading dims). Shared: one module over both agents.
+    Not shared: one module per agent, agent i's on input[..., i, *in_shape] (vmapped over stacked parameters).
+    Subclasses refine `check_input`, which sees (and may convert) every input before the networks do.
+    """
+
+    def __init__(self, build: Callable[[], nn.Module], in_shape: tuple[int, ...], *, n_agents: int = 2,
+                 share_params: bool = True):
+        self.build = build
+        self.in_shape = tuple(in_shape)
+        super().__init__(n_agents=n_agents, centralized=False, share_params=share_params,
+                         agent_dim=-len(in_shape) - 1)
+        # torch-geometric layers save their weights themselves, even from the parameter-less template that
+        # MultiAgentNetBase keeps; those entries are not parameters and must stay out of checkpoints.
+        self.register_state_dict_post_hook(_drop_template_entries)
+
+    def check_input(self, inputs: torch.Tensor) -> torch.Tensor:
+        """Raises ValueError unless `inputs` is [..., n_agents, *in_shape]; returns what the networks read."""
+        expected = (self.n_agents, *self.in_shape)
+        if tuple(inputs.shape[-len(expected):]) != expected:
+            raise ValueError(f"{type(self).__name__} expects inputs [..., {', '.join(map(str, expected))}], "
+                             f"got {list(inputs.shape)}")
+        return inputs
+
+    def _build_single_net(self, *, device=None, **kwargs) -> nn.Module:
+        # MultiAgentNetBase rebuilds a parameter-less copy under `torch.device("meta")`: no device to pass on.
+        return self.build()
+
+    def _pre_forward_check(self, inputs: torch.Tensor) -> torch.Tensor:
+        return self.check_input(inputs)
+
+
+class PurgingTensorboardLogger(TensorboardLogger):
+    """TorchRL's TensorBoard logger whose writer discards earlier events at steps >= `purge_step` (None: none)."""
+
+    def __init__(self, exp_name: str, log_dir: str, purge_step: int | None = None):
+        self.purge_step = purge_step
+        super().__init__(exp_name=exp_name, log_dir=log_dir)
+
+    def _create_experiment(self) -> SummaryWriter:
+        return SummaryWriter(log_dir=str(Path(self.log_dir) / self.exp_name), purge_step=self.purge_step)

@@ -1,0 +1,28 @@
+"""The algorithms of the PPO core, by name: `algorithm: <name>` in a config picks one.
+
+    ippo   independent PPO in self-play (`trainers.algorithms.ippo`)
+    e3t    E3T's mixed partner and partner predictor (`trainers.algorithms.e3t`)
+
+Add one by subclassing `Algorithm` (its docstring lists the hooks) and calling `register_algorithm(name, cls)`
+before the config is checked; `examples/` and the README show how.
+"""
+
+from __future__ import annotations
+
+from trainers.algorithms.base import Algorithm
+from trainers.algorithms.e3t import E3T
+from trainers.algorithms.ippo import IPPO
+
+ALGORITHMS: dict[str, type[Algorithm]] = {"ippo": IPPO, "e3t": E3T}
+
+
+def register_algorithm(name: str, algorithm: type[Algorithm]) -> None:
+    """Makes `algorithm: name` train with `algorithm`; a name can be registered once."""
+    if name in ALGORITHMS:
+        raise ValueError(f"algorithm {name!r} is already registered")
+    if not (isinstance(algorithm, type) and issubclass(algorithm, Algorithm)):
+        raise TypeError(f"an algorithm must be a subclass of trainers.algorithms.Algorithm, got {algorithm!r}")
+    ALGORITHMS[name] = algorithm
+
+
+__all__ = ["ALGORITHMS", "Algorithm", "E3T", "IPPO", "register_algorithm"]

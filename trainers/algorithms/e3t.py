@@ -1,0 +1,108 @@
+"""E3T (Yan et al., 2023): a mixed partner in every episode, PPO on the ego's transitions, a partner predictor.
+
+In every episode one agent per kitchen, drawn by `PartnerSeats`, is the mixed partner: it acts from
+(1 - eps) * pi + eps * uniform (`PartnerMixture`), pi the ego's own policy or, with `partner_policy: copy`, a
+slow copy of it that follows the ego by `partner_copy_rate` after every update. PPO learns from the ego's
+transitions only (TorchRL's `loss_mask_key`), with advantages standardised over those. The actor's
+`PartnerPredictor` (models e3t_mlp, e3t_gnn) is trained by cross-entropy against the partner's actual actions;
+the PPO loss differentiates the policy without it, reading the prediction stored while acting, so its
+probability ratios compare the policy on the very inputs it acted on.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import Transform
+from torchrl.objectives import ClipPPOLoss
+
+from torch_kitchen.models import ActorCritic, split_partner_predictor
+from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
+from trainers.algorithms.base import Algorithm
+from trainers.config import ConfigError, TrainConfig
+
+ACTION, ADVANTAGE = ("agents", "action"), ("agents", "advantage")
+EGO = ("agents", "ego")  # bool [B, T, 2]: the transitions PPO learns from
+
+
+def normalize_ego_advantage(minibatch: TensorDictBase) -> None:
+    """Standardises the advantages with the mean and deviation of the ego's transitions (IPPO's loss pools all
+    of a minibatch's; here the mixed partner's would skew them)."""
+    advantage, ego = minibatch.get(ADVANTAGE), minibatch.get(EGO).unsqueeze(-1)
+    mean = advantage[ego].mean()
+    std = advantage[ego].std(correction=0).clamp_min(1e-4) if ego.sum() > 1 else advantage.new_ones(())
+    minibatch.set(ADVANTAGE, (advantage - mean) / std)
+
+
+def partner_prediction_loss(predictor, minibatch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cross-entropy of every agent's predicted partner action against the action the partner took at that step,
+    and the accuracy of the most likely one, over whole kitchen sequences [mb, T]. The predictor reads only the
+    context of earlier steps."""
+    logits = predictor.sequence_logits(minibatch)  # [mb, T, 2, 6]
+    partner_action = minibatch.get(ACTION).flip(-1)
+    loss = torch.nn.functional.cross_entropy(logits.flatten(0, -2), partner_action.flatten())
+    accuracy = (logits.argmax(-1) == partner_action).float().mean()
+    return loss, accuracy.detach()
+
+
+class E3T(Algorithm):
+    def __init__(self, config: TrainConfig, actor_critic: ActorCritic):
+        super().__init__(config, actor_critic)
+        try:
+            self.predictor, self.policy = split_partner_predictor(actor_critic.actor)
+        except ValueError:
+            raise ConfigError(
+                f"algorithm=e3t needs a model with a partner predictor, and {config.architecture!r} has none: use "
+                "architecture=e3t_mlp or e3t_gnn (configs/e3t/)"
+            ) from None
+        self.seats = PartnerSeats(config.seed)
+        # The slow copy acts for the mixed partner with `partner_policy: copy`; None: the ego's own policy.
+        self.partner = None
+        if config.partner_policy == "copy":
+            self.partner = copy.deepcopy(actor_critic.actor).requires_grad_(False)
+
+    def env_transforms(self) -> list[Transform]:
+        return [self.seats]
+
+    def acting_modules(self) -> list[TensorDictModuleBase]:
+        return [PartnerMixture(self.config.partner_epsilon, self.partner)]
+
+    def loss_actor(self) -> TensorDictModuleBase:
+        return self.policy
+
+    def configure_loss(self, loss: ClipPPOLoss) -> None:
+        loss.loss_mask_key = EGO
+        loss.normalize_advantage = False  # `normalize_ego_advantage` does it over the ego's transitions
+
+    def parameters(self) -> list[torch.nn.Parameter]:
+        return list(self.predictor.parameters())
+
+    def process_batch(self, batch: TensorDictBase) -> None:
+        batch.set(EGO, ~batch.get(MIXED))
+
+    def process_minibatch(self, minibatch: TensorDictBase) -> None:
+        normalize_ego_advantage(minibatch)
+
+    def auxiliary_losses(self, minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
+        loss, accuracy = partner_prediction_loss(self.predictor, minibatch)
+        return {"loss_partner_prediction": self.config.predictor_coef * loss, "partner_accuracy": accuracy}
+
+    def after_update(self) -> None:
+        if self.partner is not None:
+            with torch.no_grad():
+                for slow, ego in zip(self.partner.parameters(), self.actor_critic.actor.parameters()):
+                    slow.lerp_(ego, self.config.partner_copy_rate)
+
+    def state_dict(self) -> dict:
+        state = {"partner_seats": self.seats.state_dict()}
+        if self.partner is not None:
+            state["partner_copy"] = self.partner.state_dict()
+        return state
+
+    def load_state_dict(self, state: dict) -> None:
+        self.seats.load_state_dict(state["partner_seats"])
+        if self.partner is not None:
+            self.partner.load_state_dict(state["partner_copy"])
