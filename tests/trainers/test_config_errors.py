@@ -311,3 +311,69 @@ def test_list_and_dict_defaults_are_not_shared():
     first.layouts.append("extra")
     first.conditions["a"] = "runs/a"
     assert "extra" not in second.layouts and second.conditions == {}
+
+
+# --------------------------------------------------------------------------- through the command line, as measured
+TINY_RUN = ["num_envs=4", "rollout_steps=16", "max_steps=16", "hidden=16", "minibatches=2", "epochs=2",
+            "progress=false", "levels=cramped_room_7x7", "total_steps=64", "eval_episodes=0"]
+
+
+def cli_cases(tmp_path: Path) -> list[tuple[list[str], str]]:
+    """(arguments after the config file, the error's start) for every bad value found by trying the CLI."""
+    (tmp_path / "a_file").write_text("")
+    walled = tmp_path / "walled_pot.txt"
+    walled.write_text(WALLED_POT)
+    cases = [
+        (["checkpoint_every=0"], "checkpoint_every must be at least 1"),
+        (["device=tpu"], "device=tpu is not a device"),
+        (["threads=0"], "threads must be at least 1"),
+        ([f"seed={2**63}"], "seed must be an integer in [0, 4294967295]"),
+        (["gamma=5"], "gamma must lie in [0, 1]"),
+        (["gae_lambda=-3"], "gae_lambda must lie in [0, 1]"),
+        (["clip_epsilon=-1"], "clip_epsilon must be greater than 0"),
+        (["eval_heldout=200"], "eval_heldout must be between 0 and 100"),
+        (["name=../.."], "name='../..' must be a relative path inside run_dir"),
+        ([f"run_dir={tmp_path / 'a_file' / 'runs'}"], f"run_dir={tmp_path / 'a_file' / 'runs'}: "),
+        ([f"levels={walled}"], f"levels: {walled} is unsolvable"),
+        (["loggers=[tensorboard, notebook]"], "loggers holds 'notebook'"),
+        (["algorithm=mappo"], "algorithm must be one of ippo, e3t"),
+    ]
+    if not torch.cuda.is_available():
+        cases.append((["device=cuda"], "device=cuda, but torch sees no CUDA GPU on this machine: use device=cpu"))
+    return cases
+
+
+def test_every_bad_value_gets_one_line_and_exit_2_before_any_work(tmp_path, capsys):
+    from trainers.ippo import main
+
+    runs = tmp_path / "runs"
+    for arguments, start in cli_cases(tmp_path):
+        argv = [str(Path(__file__).resolve().parents[2] / "configs" / "main.yaml"), *TINY_RUN, f"run_dir={runs}",
+                *arguments]
+        assert main(argv) == 2, arguments
+        err = capsys.readouterr().err
+        assert err.startswith(f"kitchen-train: error: {start}") and err.count("\n") == 1, (arguments, err)
+        assert not runs.exists(), arguments  # refused before anything was written
+
+
+@pytest.mark.parametrize("text, start", [("base: 5\n", "base"), ("5: 3\n", "5")])
+def test_bad_yaml_files_get_one_line_and_exit_2(tmp_path, capsys, text, start):
+    from trainers.ippo import main
+
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    assert main([str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("kitchen-train: error: ") and str(path) in err and err.count("\n") == 1, err
+
+
+def test_an_unsolvable_level_trains_with_allow_unsolvable_and_a_warning(tmp_path, capsys):
+    from trainers.ippo import main
+
+    walled = tmp_path / "walled_pot.txt"
+    walled.write_text(WALLED_POT)
+    argv = [str(Path(__file__).resolve().parents[2] / "configs" / "main.yaml"), *TINY_RUN, f"run_dir={tmp_path}",
+            f"levels={walled}", "--allow-unsolvable"]
+    assert main(argv) == 0
+    assert f"kitchen-train: warning: level {walled} is unsolvable" in capsys.readouterr().err
+    assert (tmp_path / "main" / "seed0" / "checkpoints" / "latest.pt").exists()

@@ -1,0 +1,92 @@
+"""Training throughput of the working tree against an earlier revision, in one run, as a ratio.
+
+Checks out `REVISION` into a temporary git worktree and runs `benchmarks/train.py` (modes `throughput` and `e3t`)
+from each checkout in turn, alternating (earlier, current, earlier, current, ...) so that both see the same
+machine state; every measurement is a separate process. Prints, and writes to `--out`, a Markdown table of the
+median steps/s of each side and current / earlier.
+
+    python benchmarks/train_revisions.py 93900fa --archs mlp gnn --e3t mlp --repeats 2 --out results.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def measure(checkout: Path, mode: str, names: list[str], envs: int, updates: int, threads: int) -> dict[str, float]:
+    """Steps/s per measured configuration of one `benchmarks/train.py` run from `checkout`."""
+    option = "--archs" if mode == "throughput" else "--encoders"
+    command = [sys.executable, "benchmarks/train.py", mode, option, *names, "--envs", str(envs), "--updates",
+               str(updates), "--threads", str(threads)]
+    environment = {**os.environ, "PYTHONPATH": str(checkout)}
+    output = subprocess.run(command, cwd=checkout, env=environment, capture_output=True, text=True, check=True).stdout
+    rates = {}
+    for line in output.splitlines():
+        fields = line.split()
+        if mode == "throughput" and len(fields) == 4 and fields[0] in names:
+            rates[f"IPPO {fields[0]}"] = float(fields[3].replace(",", ""))
+        elif mode == "e3t" and len(fields) == 5 and fields[0] in names:
+            rates[f"IPPO {fields[0]} (e3t run)"] = float(fields[2].replace(",", ""))
+            rates[f"E3T e3t_{fields[0]}"] = float(fields[3].replace(",", ""))
+    return rates
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("revision", help="the earlier git revision to compare against")
+    parser.add_argument("--archs", nargs="*", default=["mlp", "gnn"], help="IPPO architectures")
+    parser.add_argument("--e3t", nargs="*", default=["mlp"], help="E3T encoders (each also runs IPPO beside it)")
+    parser.add_argument("--envs", type=int, default=32)
+    parser.add_argument("--updates", type=int, default=3, help="updates per measurement (the first is not timed)")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--out", help="also write the Markdown table here")
+    args = parser.parse_args(argv)
+
+    runs = {"earlier": {}, "current": {}}
+    with tempfile.TemporaryDirectory() as scratch:
+        earlier = Path(scratch) / "earlier"
+        subprocess.run(["git", "worktree", "add", "--detach", str(earlier), args.revision], cwd=ROOT, check=True,
+                       capture_output=True)
+        try:
+            for repeat in range(args.repeats):
+                for side, checkout in (("earlier", earlier), ("current", ROOT)):
+                    for mode, names in (("throughput", args.archs), ("e3t", args.e3t)):
+                        if names:
+                            rates = measure(checkout, mode, names, args.envs, args.updates, args.threads)
+                            for name, rate in rates.items():
+                                runs[side].setdefault(name, []).append(rate)
+                            print(f"repeat {repeat + 1} {side:8s} {mode:10s} {rates}", flush=True)
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(earlier)], cwd=ROOT, check=False)
+
+    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {args.threads}"
+    lines = [
+        f"Training steps/s, {args.envs} kitchens x 256 steps, hidden 256, Infinite Kitchen; median of {args.repeats} "
+        f"alternating runs per side; {machine}.",
+        f"Earlier: `{args.revision}`. Command: `python benchmarks/train_revisions.py {' '.join(argv or sys.argv[1:])}`",
+        "",
+        "| configuration | earlier steps/s | current steps/s | current / earlier |",
+        "|---|---:|---:|---:|",
+    ]
+    for name in runs["earlier"]:
+        before, after = statistics.median(runs["earlier"][name]), statistics.median(runs["current"][name])
+        lines.append(f"| {name} | {before:,.0f} | {after:,.0f} | {after / before:.2f} |")
+    table = "\n".join(lines) + "\n"
+    print(table)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(table)
+
+
+if __name__ == "__main__":
+    main()
