@@ -4,11 +4,14 @@ Throughput: env steps per second of `trainers.ippo.train` for each architecture 
 updates after the first (which compiles the env). E3T: the same for E3T and for IPPO with the same encoder, one
 after the other in the same run, and their ratio. Learning check: Single Kitchen on `cramped_room_7x7` with the
 MLP and the shaped reward, run until the mean deliveries of the last episodes reach the target (or the budget
-ends), reporting steps and wall time.
+ends), reporting steps and wall time. Reference: our trainer and the pure-JAX PPO of `benchmarks/jax_ppo.py` (a
+yardstick: the whole run compiled as one XLA program) on the same kitchens, network and batch, in one run, and
+the ratio of their steps/s.
 
     python benchmarks/train.py throughput [--archs mlp gnn] [--envs 32 1024] [--device cpu|cuda]
     python benchmarks/train.py e3t [--encoders mlp gnn] [--envs 32] [--device cpu|cuda]
     python benchmarks/train.py learning [--target 5] [--budget 2e7] [--threads 2] [key=value ...]
+    python benchmarks/train.py reference [--setting jaxmarl|ik] [--updates 3] [--threads 2] [--device cpu|cuda]
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import platform
 import tempfile
 import time
 from collections import deque
+from collections.abc import Sequence
 
 import torch
 
@@ -26,8 +30,9 @@ from trainers.ippo import train
 
 
 def throughput(architecture: str, num_envs: int, rollout_steps: int, updates: int, device: str, threads: int,
-               algorithm: str = "ippo") -> float:
-    """Mean env steps per second of updates 2..`updates` (collection + PPO epochs)."""
+               algorithm: str = "ippo", overrides: Sequence[str] = ()) -> float:
+    """Mean env steps per second of updates 2..`updates` (collection + PPO epochs); `overrides` (key=value) come
+    last."""
     rates = []
     with tempfile.TemporaryDirectory() as run_dir:
         config = load_config(
@@ -44,6 +49,7 @@ def throughput(architecture: str, num_envs: int, rollout_steps: int, updates: in
                 "progress=false",
                 "eval_episodes=0",
                 "checkpoint_every=1000",
+                *overrides,
             ],
         )
         train(config, on_update=lambda update, metrics: rates.append(metrics["charts/steps_per_second"]) and False)
@@ -102,6 +108,26 @@ def learning_check(target: float, budget: int, threads: int, device: str, seed: 
         print(f"target {target} not reached within {budget:,} steps ({time.perf_counter() - start:.0f} s)")
 
 
+def reference(setting: str, updates: int, device: str, threads: int) -> None:
+    """Steps/s of our trainer (updates 2..`updates`) and of the JAX reference (all `updates`, compilation excluded,
+    the median of 3 runs) on one setting of `benchmarks/jax_ppo.py`, one after the other, and their ratio.
+
+    The reference runs as one XLA program on JAX's own CPU thread pool, as the JAX env inside our trainer does;
+    `threads` sets torch's threads only.
+    """
+    from jax_ppo import SETTINGS, run_reference, setting_overrides  # flax and optax come with the test extra
+
+    overrides = setting_overrides(setting)
+    num_envs, rollout_steps = SETTINGS[setting]["num_envs"], SETTINGS[setting]["rollout_steps"]
+    ours = throughput("mlp", num_envs, rollout_steps, updates, device, threads, overrides=overrides)
+    config = load_config(None, [*overrides, f"total_steps={updates * num_envs * rollout_steps}", f"device={device}",
+                                f"threads={threads}"])
+    jax_rate, _ = run_reference(config, repeats=3)
+    print(f"setting {setting}: {' '.join(overrides)}")
+    print(f"{'ours steps/s':>13s} {'JAX steps/s':>12s} {'ours / JAX':>11s}")
+    print(f"{ours:13,.0f} {jax_rate:12,.0f} {ours / jax_rate:11.3f}", flush=True)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="mode", required=True)
@@ -125,9 +151,17 @@ def main(argv=None):
     learn.add_argument("--device", default="cpu")
     learn.add_argument("--seed", type=int, default=0)
     learn.add_argument("overrides", nargs="*", help="config overrides, key=value")
+    ref = sub.add_parser("reference")
+    ref.add_argument("--setting", choices=["jaxmarl", "ik"], default="jaxmarl")
+    ref.add_argument("--updates", type=int, default=3, help="updates per measurement (ours: the first is not timed)")
+    ref.add_argument("--device", default="cpu")
+    ref.add_argument("--threads", type=int, default=2)
     args = parser.parse_args(argv)
     print(f"device: {args.device}, {platform.processor() or platform.machine()}, torch threads: {args.threads}")
 
+    if args.mode == "reference":
+        reference(args.setting, args.updates, args.device, args.threads)
+        return
     if args.mode == "learning":
         learning_check(args.target, int(args.budget), args.threads, args.device, args.seed, args.overrides)
         return

@@ -146,6 +146,11 @@ def hyperparameters(config: TrainConfig) -> dict[str, int | float | str | bool]:
 
 
 # ------------------------------------------------------------------------------------------- each update
+def learning_rate_at(config: TrainConfig, update: int) -> float:
+    """The learning rate of update `update` (1-based): annealed linearly towards 0 over the run if `anneal_lr`."""
+    return config.lr * (1.0 - (update - 1) / config.num_updates) if config.anneal_lr else config.lr
+
+
 def shaping_weight_at(config: TrainConfig, env_steps: int) -> float:
     if config.shaping_anneal_steps <= 0:
         return config.shaping_weight
@@ -365,7 +370,7 @@ def train(
                 collected = time.perf_counter()
 
                 # --- learning rate and reward shaping for this update
-                lr = config.lr * (1.0 - (update - 1) / config.num_updates) if config.anneal_lr else config.lr
+                lr = learning_rate_at(config, update)
                 for group in optimizer.param_groups:
                     group["lr"] = lr
                 shaping = shaping_weight_at(config, env_steps)
