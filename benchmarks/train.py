@@ -12,6 +12,7 @@ the ratio of their steps/s.
     python benchmarks/train.py e3t [--encoders mlp gnn] [--envs 32] [--device cpu|cuda]
     python benchmarks/train.py learning [--target 5] [--budget 2e7] [--threads 2] [key=value ...]
     python benchmarks/train.py reference [--setting jaxmarl|ik] [--updates 3] [--threads 2] [--device cpu|cuda]
+    python benchmarks/train.py parity [--setting jaxmarl] [--budget 3e6] [--rows 10] [--seed 0]
 """
 
 from __future__ import annotations
@@ -128,6 +129,41 @@ def reference(setting: str, updates: int, device: str, threads: int) -> None:
     print(f"{ours:13,.0f} {jax_rate:12,.0f} {ours / jax_rate:11.3f}", flush=True)
 
 
+def parity(setting: str, budget: int, rows: int, threads: int, seed: int) -> None:
+    """Learning per sample of ours and of the JAX reference on one setting of `benchmarks/jax_ppo.py`, in one run:
+    the mean deliveries per episode of the episodes that ended in each `budget / rows` window of env steps."""
+    import numpy as np
+    from jax_ppo import run_reference, setting_overrides
+
+    overrides = [*setting_overrides(setting), f"total_steps={budget}", f"threads={threads}", f"seed={seed}"]
+    ours = []  # (env steps, mean deliveries of the episodes that ended in the update, or None)
+    with tempfile.TemporaryDirectory() as run_dir:
+        config = load_config(None, [*overrides, f"run_dir={run_dir}", "progress=false", "eval_episodes=0",
+                                    "checkpoint_every=1000000", "loggers=[csv]"])
+
+        def on_update(update, metrics):
+            ours.append((update * config.frames_per_batch, metrics.get("charts/episode_deliveries")))
+
+        started = time.perf_counter()
+        train(config, on_update=on_update)
+        ours_seconds = time.perf_counter() - started
+    rate, reference = run_reference(config)
+    steps, window = np.asarray(reference["charts/env_steps"]), budget / rows
+    print(f"setting {setting}, seed {seed}: ours {ours_seconds:.0f} s ({budget / ours_seconds:,.0f} steps/s), "
+          f"reference {budget / rate:.0f} s ({rate:,.0f} steps/s)")
+    print(f"{'env steps up to':>16s} {'ours deliveries':>16s} {'reference deliveries':>21s}")
+    for row in range(1, rows + 1):
+        low, high = (row - 1) * window, row * window
+        # All kitchens start together and episodes have one length: every update where some end ends all of them.
+        mine = [value for step, value in ours if low < step <= high and value is not None]
+        in_window = (steps > low) & (steps <= high)
+        episodes = reference["charts/episodes"][in_window]
+        delivered = np.nan_to_num(reference["charts/episode_deliveries"][in_window]) * episodes
+        mine_mean = sum(mine) / len(mine) if mine else float("nan")
+        theirs = delivered.sum() / episodes.sum() if episodes.sum() else float("nan")
+        print(f"{high:16,.0f} {mine_mean:16.2f} {theirs:21.2f}", flush=True)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="mode", required=True)
@@ -156,8 +192,19 @@ def main(argv=None):
     ref.add_argument("--updates", type=int, default=3, help="updates per measurement (ours: the first is not timed)")
     ref.add_argument("--device", default="cpu")
     ref.add_argument("--threads", type=int, default=2)
+    par = sub.add_parser("parity")
+    par.add_argument("--setting", choices=["jaxmarl", "ik"], default="jaxmarl")
+    par.add_argument("--budget", type=float, default=3e6)
+    par.add_argument("--rows", type=int, default=10)
+    par.add_argument("--seed", type=int, default=0)
+    par.add_argument("--device", default="cpu")
+    par.add_argument("--threads", type=int, default=1)
     args = parser.parse_args(argv)
     print(f"device: {args.device}, {platform.processor() or platform.machine()}, torch threads: {args.threads}")
+
+    if args.mode == "parity":
+        parity(args.setting, int(args.budget), args.rows, args.threads, args.seed)
+        return
 
     if args.mode == "reference":
         reference(args.setting, args.updates, args.device, args.threads)

@@ -134,8 +134,9 @@ def make_loggers(config: TrainConfig, run: Path, purge_step: int | None) -> list
     for name in config.loggers:
         if name == "tensorboard":
             loggers.append(PurgingTensorboardLogger("tensorboard", str(run), purge_step=purge_step))
-        else:
-            loggers.append(get_logger(name, logger_name=str(run), experiment_name=name))
+        else:  # the CSV files go to run/csv; a tracking service names the experiment after the run
+            experiment = "csv" if name == "csv" else f"{config.name}-seed{config.seed}"
+            loggers.append(get_logger(name, logger_name=str(run), experiment_name=experiment))
     return loggers
 
 
