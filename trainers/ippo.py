@@ -334,10 +334,6 @@ def train(
         start_fresh(run)
     run.mkdir(parents=True, exist_ok=True)
     save_config(config, run / "config.yaml")
-    loggers = make_loggers(config, run, purge_step=env_steps + 1 if resume else None)
-    if not resume:
-        for logger in loggers:
-            logger.log_hparams(hyperparameters(config))
 
     def checkpoint():
         save_checkpoint(checkpoint_path, {
@@ -354,6 +350,10 @@ def train(
     if remaining <= 0:
         print(f"{run}: already trained for {update} updates ({env_steps:,} steps); raise total_steps to go on")
         return run
+    loggers = make_loggers(config, run, purge_step=env_steps + 1 if resume else None)
+    if not resume:
+        for logger in loggers:
+            logger.log_hparams(hyperparameters(config))
     collector = make_collector(env, policy, config.frames_per_batch, remaining * config.frames_per_batch)
     if saved is not None:  # after the collector, whose construction runs the policy once (and draws actions)
         restore_rng_states(saved["rng"])
@@ -441,6 +441,8 @@ def train(
     finally:
         collector.shutdown()
         bar.close()
+        for logger in loggers:
+            logger.close()
     return run
 
 
