@@ -11,7 +11,7 @@ the ratio of their steps/s.
     python benchmarks/train.py throughput [--archs mlp gnn] [--envs 32 1024] [--device cpu|cuda]
     python benchmarks/train.py e3t [--encoders mlp gnn] [--envs 32] [--device cpu|cuda]
     python benchmarks/train.py learning [--target 5] [--budget 2e7] [--threads 2] [key=value ...]
-    python benchmarks/train.py reference [--setting jaxmarl|ik] [--updates 3] [--threads 2] [--device cpu|cuda]
+    python benchmarks/train.py reference [--setting jaxmarl|ik] [--updates 3] [--threads 2] [--compile]
     python benchmarks/train.py parity [--setting jaxmarl] [--budget 3e6] [--rows 10] [--seed 0]
 """
 
@@ -109,7 +109,7 @@ def learning_check(target: float, budget: int, threads: int, device: str, seed: 
         print(f"target {target} not reached within {budget:,} steps ({time.perf_counter() - start:.0f} s)")
 
 
-def reference(setting: str, updates: int, device: str, threads: int) -> None:
+def reference(setting: str, updates: int, device: str, threads: int, compile_policy: bool = False) -> None:
     """Steps/s of our trainer (updates 2..`updates`) and of the JAX reference (all `updates`, compilation excluded,
     the median of 3 runs) on one setting of `benchmarks/jax_ppo.py`, one after the other, and their ratio.
 
@@ -118,7 +118,7 @@ def reference(setting: str, updates: int, device: str, threads: int) -> None:
     """
     from jax_ppo import SETTINGS, run_reference, setting_overrides  # flax and optax come with the test extra
 
-    overrides = setting_overrides(setting)
+    overrides = [*setting_overrides(setting), f"compile_policy={compile_policy}"]
     num_envs, rollout_steps = SETTINGS[setting]["num_envs"], SETTINGS[setting]["rollout_steps"]
     ours = throughput("mlp", num_envs, rollout_steps, updates, device, threads, overrides=overrides)
     config = load_config(None, [*overrides, f"total_steps={updates * num_envs * rollout_steps}", f"device={device}",
@@ -192,6 +192,7 @@ def main(argv=None):
     ref.add_argument("--updates", type=int, default=3, help="updates per measurement (ours: the first is not timed)")
     ref.add_argument("--device", default="cpu")
     ref.add_argument("--threads", type=int, default=2)
+    ref.add_argument("--compile", action="store_true", help="ours with compile_policy=true")
     par = sub.add_parser("parity")
     par.add_argument("--setting", choices=["jaxmarl", "ik"], default="jaxmarl")
     par.add_argument("--budget", type=float, default=3e6)
@@ -207,7 +208,7 @@ def main(argv=None):
         return
 
     if args.mode == "reference":
-        reference(args.setting, args.updates, args.device, args.threads)
+        reference(args.setting, args.updates, args.device, args.threads, args.compile)
         return
     if args.mode == "learning":
         learning_check(args.target, int(args.budget), args.threads, args.device, args.seed, args.overrides)

@@ -56,6 +56,9 @@ class TrainConfig:
     seed: int = option(0, "seeds torch, the levels and the resets; the 6 teams of a condition are seeds 0..5")
     device: str = option("cpu", '"cpu" or "cuda[:i]"; the env and the networks share it')
     threads: int = option(1, "torch CPU threads (1 is fastest for small networks on a shared CPU)")
+    compile_policy: bool = option(
+        False, "torch.compile the acting policy: the same actions, faster collection after a one-off compilation"
+    )
 
     algorithm: str = option(
         "ippo", '"ippo" (self-play), "e3t" (mixed partner + partner model; e3t_* architectures), or a registered one'

@@ -354,7 +354,8 @@ def train(
     if not resume:
         for logger in loggers:
             logger.log_hparams(hyperparameters(config))
-    collector = make_collector(env, policy, config.frames_per_batch, remaining * config.frames_per_batch)
+    collector = make_collector(env, policy, config.frames_per_batch, remaining * config.frames_per_batch,
+                               compile_policy=config.compile_policy)
     if saved is not None:  # after the collector, whose construction runs the policy once (and draws actions)
         restore_rng_states(saved["rng"])
     bar = tqdm(total=config.num_updates * config.frames_per_batch, initial=env_steps, unit="step", unit_scale=True,

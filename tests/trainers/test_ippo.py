@@ -396,3 +396,18 @@ def test_help_lists_every_config_key_and_hyperparameters_reach_tensorboard(tmp_p
     events = EventAccumulator(str(hparams_dir))
     events.Reload()
     assert events.PluginTagToContent("hparams")
+
+
+def test_a_compiled_acting_policy_takes_the_same_actions_and_learns_the_same(tmp_path):
+    """torch.compile'd collection: the same sampled actions (so the same returns), log-probabilities equal to
+    float32 rounding (fused kernels), hence the same losses to 1e-5."""
+    metrics = {}
+    for compiled in ("false", "true"):
+        run = train(tiny_config(tmp_path / compiled, "shaping_weight=1", f"compile_policy={compiled}", updates=2))
+        metrics[compiled] = read_metrics(run)
+    assert metrics["false"].keys() == metrics["true"].keys()
+    for name in ("charts/episode_return", "charts/shaped_return", "charts/episode_deliveries"):
+        assert metrics["true"][name] == metrics["false"][name], name
+    for name in metrics["false"]:
+        torch.testing.assert_close(torch.tensor(metrics["true"][name]), torch.tensor(metrics["false"][name]),
+                                   rtol=1e-4, atol=1e-5, msg=name)
