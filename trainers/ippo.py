@@ -193,15 +193,14 @@ def total_loss(losses: dict[str, torch.Tensor]) -> torch.Tensor:
     return sum(value for key, value in losses.items() if key.startswith("loss_"))
 
 
-def check_finite(losses: dict[str, torch.Tensor], update: int, env_steps: int) -> None:
-    """Raises TrainingDiverged naming every loss term that is NaN or infinite."""
+def diverged(losses: dict[str, torch.Tensor], update: int, env_steps: int) -> TrainingDiverged:
+    """The error naming every loss term that is NaN or infinite."""
     bad = [f"{metric_name(key)}={float(value.detach())}" for key, value in losses.items()
            if key.startswith("loss_") and not torch.isfinite(value)]
-    if bad:
-        raise TrainingDiverged(
-            f"{', '.join(bad)} at update {update} ({env_steps:,} env steps): training diverged; the weights before "
-            "that minibatch are in the latest checkpoint. Lower lr or max_grad_norm, or check the reward and model"
-        )
+    return TrainingDiverged(
+        f"{', '.join(bad)} at update {update} ({env_steps:,} env steps): training diverged; the weights before "
+        "that minibatch are in the latest checkpoint. Lower lr or max_grad_norm, or check the reward and model"
+    )
 
 
 def metric_name(key: str) -> str | None:
@@ -390,9 +389,9 @@ def train(
                             algorithm.process_minibatch(minibatch)
                             losses = {**loss_module(minibatch), **algorithm.auxiliary_losses(minibatch)}
                             total = total_loss(losses)
-                            if not torch.isfinite(total):
+                            if not torch.isfinite(total):  # keep the last good weights, then stop
                                 checkpoint()
-                                check_finite(losses, update, env_steps)
+                                raise diverged(losses, update, env_steps)
                             optimizer.zero_grad()
                             total.backward()
                             losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
