@@ -266,7 +266,7 @@ def check_supported(config: TrainConfig) -> None:
         )
     if config.num_envs % config.minibatches:
         raise ValueError(f"minibatches ({config.minibatches}) must divide num_envs ({config.num_envs})")
-    if config.num_updates * config.frames_per_batch >= 2**31:
+    if config.planned_steps >= 2**31:
         raise ValueError("the reference counts env steps in int32: keep total_steps below 2**31")
 
 
@@ -380,8 +380,16 @@ def run_reference(config: TrainConfig | Sequence[str], seed: int | None = None, 
             start = time.perf_counter()
             metrics = jax.block_until_ready(compiled(rng))
             seconds.append(time.perf_counter() - start)
-    steps_per_second = config.num_updates * config.frames_per_batch / float(np.median(seconds))
+    steps_per_second = config.planned_steps / float(np.median(seconds))
     return steps_per_second, {key: np.asarray(value) for key, value in metrics.items()}
+
+
+def pooled_deliveries(metrics: dict[str, np.ndarray], updates) -> float:
+    """Mean deliveries of every episode that ended in `updates` (an index or mask into the per-update metrics);
+    NaN where none ended."""
+    episodes = metrics["charts/episodes"][updates]
+    delivered = np.nan_to_num(metrics["charts/episode_deliveries"][updates]) * episodes
+    return float(delivered.sum() / episodes.sum()) if episodes.sum() else float("nan")
 
 
 def describe(steps_per_second: float, metrics: dict[str, np.ndarray], every: int = 1) -> str:
@@ -398,10 +406,8 @@ def describe(steps_per_second: float, metrics: dict[str, np.ndarray], every: int
     lines = ["  ".join(f"{name:>{len(fmt.format(0.0))}s}" for name, (_, fmt) in columns.items())]
     updates, previous = len(metrics["charts/env_steps"]), 0
     for index in sorted({*range(0, updates, every), updates - 1}):
-        episodes = metrics["charts/episodes"][previous:index + 1]
-        delivered = np.nan_to_num(metrics["charts/episode_deliveries"][previous:index + 1]) * episodes
         row = {key: float(metrics[key][index]) for key, _ in columns.values()}
-        row["charts/episode_deliveries"] = delivered.sum() / episodes.sum() if episodes.sum() else np.nan
+        row["charts/episode_deliveries"] = pooled_deliveries(metrics, slice(previous, index + 1))
         lines.append("  ".join(fmt.format(row[key]) for key, fmt in columns.values()))
         previous = index + 1
     lines.append(f"{steps_per_second:,.0f} env steps/s (compiled run, compilation excluded)")

@@ -133,7 +133,7 @@ def parity(setting: str, budget: int, rows: int, threads: int, seed: int) -> Non
     """Learning per sample of ours and of the JAX reference on one setting of `benchmarks/jax_ppo.py`, in one run:
     the mean deliveries per episode of the episodes that ended in each `budget / rows` window of env steps."""
     import numpy as np
-    from jax_ppo import run_reference, setting_overrides
+    from jax_ppo import pooled_deliveries, run_reference, setting_overrides
 
     overrides = [*setting_overrides(setting), f"total_steps={budget}", f"threads={threads}", f"seed={seed}"]
     ours = []  # (env steps, mean deliveries of the episodes that ended in the update, or None)
@@ -156,11 +156,8 @@ def parity(setting: str, budget: int, rows: int, threads: int, seed: int) -> Non
         low, high = (row - 1) * window, row * window
         # All kitchens start together and episodes have one length: every update where some end ends all of them.
         mine = [value for step, value in ours if low < step <= high and value is not None]
-        in_window = (steps > low) & (steps <= high)
-        episodes = reference["charts/episodes"][in_window]
-        delivered = np.nan_to_num(reference["charts/episode_deliveries"][in_window]) * episodes
         mine_mean = sum(mine) / len(mine) if mine else float("nan")
-        theirs = delivered.sum() / episodes.sum() if episodes.sum() else float("nan")
+        theirs = pooled_deliveries(reference, (steps > low) & (steps <= high))
         print(f"{high:16,.0f} {mine_mean:16.2f} {theirs:21.2f}", flush=True)
 
 

@@ -130,6 +130,11 @@ class TrainConfig:
         """Updates of the run: total_steps rounded up to whole updates (`step_note` says so when it rounds)."""
         return max(1, -(-self.total_steps // self.frames_per_batch))
 
+    @property
+    def planned_steps(self) -> int:
+        """The env steps the run trains for: `num_updates` whole updates (at least total_steps)."""
+        return self.num_updates * self.frames_per_batch
+
     def step_note(self) -> str | None:
         """One line for the trainer to print when total_steps is not a whole number of updates, else None."""
         if self.total_steps % self.frames_per_batch == 0:
@@ -137,7 +142,7 @@ class TrainConfig:
         return (
             f"total_steps={self.total_steps:,} is not a multiple of the {self.frames_per_batch:,} steps of an update "
             f"(num_envs x rollout_steps): training {self.num_updates:,} updates = "
-            f"{self.num_updates * self.frames_per_batch:,} steps"
+            f"{self.planned_steps:,} steps"
         )
 
     def to_dict(self) -> dict:

@@ -60,7 +60,7 @@ class Team:
     @property
     def fully_trained(self) -> bool:
         """Whether the team ran its config's whole budget (False for a run stopped early)."""
-        return self.env_steps is None or self.env_steps >= self.config.num_updates * self.config.frames_per_batch
+        return self.env_steps is None or self.env_steps >= self.config.planned_steps
 
     @property
     def regime(self) -> str:
@@ -478,8 +478,7 @@ def report_trained_team(run: str | Path, episodes: int | None = None, num_heldou
         out_dir=str(run),
     ).check())  # fmt: skip
     if not team.fully_trained:
-        budget = config.num_updates * config.frames_per_batch
-        note = f"Partly trained: {team.env_steps:,} of {budget:,} env steps (the run stopped early).\n\n"
+        note = f"Partly trained: {team.env_steps:,} of {config.planned_steps:,} env steps (the run stopped early).\n\n"
         (out / "eval.md").write_text(note + (out / "eval.md").read_text())
         print(note.strip())
     if config.gif:

@@ -357,7 +357,7 @@ def train(
                                compile_policy=config.compile_policy)
     if saved is not None:  # after the collector, whose construction runs the policy once (and draws actions)
         restore_rng_states(saved["rng"])
-    bar = tqdm(total=config.num_updates * config.frames_per_batch, initial=env_steps, unit="step", unit_scale=True,
+    bar = tqdm(total=config.planned_steps, initial=env_steps, unit="step", unit_scale=True,
                disable=not config.progress, dynamic_ncols=True)
     recent_deliveries = deque(maxlen=10 * config.num_envs)
 
@@ -433,8 +433,8 @@ def train(
                     checkpoint()
                 if stop.signum is not None:
                     raise RunStopped(stop.signum, f"stopped by {signal.Signals(stop.signum).name} at update {update} "
-                                                  f"({env_steps:,} of {config.num_updates * config.frames_per_batch:,}"
-                                                  " env steps), checkpoint written")
+                                                  f"({env_steps:,} of {config.planned_steps:,} env steps), "
+                                                  "checkpoint written")
                 if last:
                     break
                 started = time.perf_counter()

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
+from tiny import TINY
 
 from torch_kitchen.models import make_actor_critic
 from trainers.config import load_config
@@ -35,23 +36,12 @@ jax_ppo = importlib.util.module_from_spec(_spec)
 sys.modules[_spec.name] = jax_ppo  # flax's dataclasses look their module up there
 _spec.loader.exec_module(jax_ppo)
 
-# 4 kitchens x 16 steps, 16-step episodes (every update ends one per kitchen), 2 updates, shaping annealed.
-TINY = [
-    "num_envs=4",
-    "rollout_steps=16",
-    "max_steps=16",
-    "hidden=16",
-    "minibatches=2",
-    "epochs=2",
-    "levels=cramped_room_7x7",
-    "total_steps=128",
-    "shaping_weight=1",
-    "shaping_anneal_steps=1000",
-]
+# The shared tiny run (16-step episodes: every update ends one per kitchen), 2 updates, shaping annealed.
+TINY_JAX = [*TINY, "total_steps=128", "shaping_weight=1", "shaping_anneal_steps=1000"]
 
 
 def tiny_config(*overrides):
-    return load_config(None, [*TINY, *overrides])
+    return load_config(None, [*TINY_JAX, *overrides])
 
 
 def test_the_reference_runs_with_finite_metrics_and_is_seeded():

@@ -9,6 +9,7 @@ from collections import OrderedDict
 import numpy as np
 import pytest
 import torch
+from tiny import TINY
 
 from trainers.checkpoint import (
     FORMAT,
@@ -24,8 +25,6 @@ from trainers.config import load_config, save_config
 
 IDENTITY = model_identity("mlp", (7, 7, 26), 16, True)
 REFUSED = "holds objects other than tensors and plain values .*: not an Infinite Kitchen checkpoint \\(refused"
-TINY = ["num_envs=4", "rollout_steps=16", "max_steps=16", "hidden=16", "minibatches=2", "epochs=2", "threads=1",
-        "progress=false", "eval_episodes=0", "levels=cramped_room_7x7"]  # fmt: skip
 
 
 class CreatesAFile:

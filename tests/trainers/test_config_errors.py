@@ -7,6 +7,7 @@ from pathlib import Path
 import jax
 import pytest
 import torch
+from tiny import TINY
 
 from jax_env import get_layout, save_layout
 from trainers.config import (
@@ -314,8 +315,7 @@ def test_list_and_dict_defaults_are_not_shared():
 
 
 # --------------------------------------------------------------------------- through the command line, as measured
-TINY_RUN = ["num_envs=4", "rollout_steps=16", "max_steps=16", "hidden=16", "minibatches=2", "epochs=2",
-            "progress=false", "levels=cramped_room_7x7", "total_steps=64", "eval_episodes=0"]
+TINY_RUN = [*TINY, "total_steps=64"]
 
 
 def cli_cases(tmp_path: Path) -> list[tuple[list[str], str]]:

@@ -10,6 +10,7 @@ import torch
 from PIL import Image
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 from tensordict.nn import TensorDictSequential
+from tiny import TINY
 from torchrl.modules import set_recurrent_mode
 
 import trainers.ippo
@@ -24,19 +25,6 @@ from trainers.ippo import compute_advantages, main, make_algorithm, make_env, ma
 from trainers.rollout import make_collector
 
 MAIN_CONFIG = str(Path(__file__).resolve().parents[2] / "configs" / "main.yaml")
-# A few seconds per run: 4 kitchens x 16 steps per update, 16-step episodes, narrow networks.
-TINY = [
-    "num_envs=4",
-    "rollout_steps=16",
-    "max_steps=16",
-    "hidden=16",
-    "minibatches=2",
-    "epochs=2",
-    "threads=1",
-    "progress=false",
-    "eval_episodes=0",
-    "levels=cramped_room_7x7",
-]
 TIMING = {"steps_per_second", "collect_seconds", "update_seconds"}
 
 
