@@ -5,14 +5,26 @@ BIN := $(VENV)/bin
 
 .PHONY: setup main test lint bench
 
-setup: $(VENV)/.installed
+# DEVICE=cuda: the CUDA builds of torch and JAX, and the main job on the GPU (`make main DEVICE=cuda`).
+DEVICE ?= cpu
+# The JAX CUDA plugin to install with DEVICE=cuda (jax[cuda12] for a driver older than CUDA 13's).
+JAX_CUDA ?= cuda13
+STAMP := $(VENV)/.installed-$(DEVICE)
 
-# torch is pinned to the CPU build first so the bounded range in setup.cfg never pulls CUDA packages.
-$(VENV)/.installed: setup.cfg pyproject.toml
+setup: $(STAMP)
+
+# CPU: torch is pinned to the CPU build first so the bounded range in setup.cfg never pulls CUDA packages.
+# CUDA: PyPI's Linux torch wheel is the CUDA build; JAX gets the CUDA plugin of the same JAX version.
+$(STAMP): setup.cfg pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
+	rm -f $(VENV)/.installed-*
 	$(BIN)/pip install -q "torch==2.13.0"
 	$(BIN)/pip install -q -e ".[test]"
+	if [ "$(DEVICE)" = cuda ]; then \
+		$(BIN)/pip install -q "jax[$(JAX_CUDA)]==$$($(BIN)/python -c 'import jax; print(jax.__version__)')"; \
+		$(BIN)/python -c 'import torch, jax; assert torch.cuda.is_available(), "this torch has no CUDA"; print("torch", torch.__version__, torch.cuda.get_device_name(0), "| jax", jax.devices())'; \
+	fi
 	touch $@
 
 # Trains configs/main.yaml into runs/main/seed0. Called again, it resumes a stopped or killed run, re-evaluates a
@@ -22,7 +34,7 @@ main: setup
 	if [ -f $(MAIN_RUN)/checkpoints/latest.pt ]; then \
 		$(BIN)/kitchen-train --resume $(MAIN_RUN); \
 	else \
-		$(BIN)/kitchen-train configs/main.yaml; \
+		$(BIN)/kitchen-train configs/main.yaml device=$(DEVICE); \
 	fi
 
 test: setup

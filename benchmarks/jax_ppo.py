@@ -68,6 +68,9 @@ SETTINGS = {
         "shaping_weight": 0.0, "share_params": True,
     },
 }  # fmt: skip
+# The paper's protocol: 6 teams (seeds) of the IK shape in one process; the yardstick vmaps its run over the seeds.
+SETTINGS["protocol"] = {**SETTINGS["ik"], "teams": 6}
+SETTINGS["protocol_gnn"] = {**SETTINGS["protocol"], "architecture": "gnn"}  # ours only: the yardstick has no GNN
 
 # Torch's `clip_grad_norm_` divides by norm + 1e-6 (optax's `clip_by_global_norm` does not add it).
 GRAD_NORM_EPS = 1e-6
@@ -367,20 +370,24 @@ def run_reference(config: TrainConfig | Sequence[str], seed: int | None = None, 
 
     Returns (env steps per second of the compiled run, compilation excluded, the median of `repeats` runs of the
     same program; metrics name -> [num_updates]). Runs on the JAX device matching `config.device`; `seed`
-    defaults to `config.seed`.
+    defaults to `config.seed`. With `config.teams` = K > 1 the run is vmapped over seeds seed .. seed + K - 1 (the
+    steps/s count every team's; metrics [K, num_updates]), as PureJaxRL trains several seeds.
     """
     if not isinstance(config, TrainConfig):
         config = load_config(None, list(config))
     device = jax_device_for(torch.device(config.device))
-    rng = jax.device_put(jax.random.PRNGKey(config.seed if seed is None else seed), device)
+    first = config.seed if seed is None else seed
+    keys = [jax.random.PRNGKey(first + team) for team in range(config.teams)]
+    rng = jax.device_put(keys[0] if config.teams == 1 else jnp.stack(keys), device)
+    train = make_train(config) if config.teams == 1 else jax.vmap(make_train(config))
     seconds = []
     with jax.default_device(device):
-        compiled = jax.jit(make_train(config)).lower(rng).compile()
+        compiled = jax.jit(train).lower(rng).compile()
         for _ in range(repeats):
             start = time.perf_counter()
             metrics = jax.block_until_ready(compiled(rng))
             seconds.append(time.perf_counter() - start)
-    steps_per_second = config.planned_steps / float(np.median(seconds))
+    steps_per_second = config.teams * config.planned_steps / float(np.median(seconds))
     return steps_per_second, {key: np.asarray(value) for key, value in metrics.items()}
 
 

@@ -15,6 +15,10 @@ Keys (B = num_envs, H x W the kitchen, 7x7 for the Infinite Kitchen):
     "episode_deliveries"         float32 [B, 1]            soups delivered so far this episode (the episode's
                                                            total on its last step)
     "done" / "truncated"         bool    [B, 1]            the time limit; "terminated" is always False
+
+Teams: with a list of K seeds the kitchens form K teams of B/K (team k holds rows k*B/K .. (k+1)*B/K - 1), each
+with its own key, so team k sees exactly the levels and resets of an env of B/K kitchens seeded with seed k. The
+trainer steps several independently trained teams in one batch this way (`trainers.ippo.train_teams`).
 """
 
 from __future__ import annotations
@@ -77,7 +81,8 @@ class KitchenEnv(EnvBase):
         shaping: weights of the shaped rewards reported in ("agents", "shaped_reward").
         generator: the Infinite Kitchen generator's probabilities.
         device: "cpu" or "cuda[:i]"; JAX runs on the same device.
-        seed: seed of the levels, start facings and resets (also `set_seed`).
+        seed: seed of the levels, start facings and resets (also `set_seed`); a list of K seeds splits the
+            kitchens into K teams, one seed each (see the module docstring).
         pin_levels: kitchen b always plays level b % len(levels) of a list (or of "heldout") instead of a
             random one per episode: evaluation lays out its batch so that every test grid gets its kitchens.
     """
@@ -92,11 +97,15 @@ class KitchenEnv(EnvBase):
         shaping: ShapingWeights | Sequence[float] = ShapingWeights(),
         generator: GeneratorConfig = GeneratorConfig(),
         device: str | torch.device = "cpu",
-        seed: int = 0,
+        seed: int | Sequence[int] = 0,
         pin_levels: bool = False,
     ):
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
+        self.teams = 1 if isinstance(seed, int) else len(seed)
+        if self.teams < 1 or num_envs % self.teams:
+            raise ValueError(f"{self.teams} team seeds cannot split {num_envs} kitchens into equal teams")
+        team_size = self.team_size = num_envs // self.teams
         device = torch.device(device)
         self._jax_device = jax_device_for(device)
         super().__init__(batch_size=torch.Size([num_envs]), device=device)
@@ -107,21 +116,35 @@ class KitchenEnv(EnvBase):
         kitchen = self.kitchen
         if pin_levels and kitchen.num_levels == 0:
             raise ValueError("pin_levels needs a list of levels (or 'heldout'); the Infinite Kitchen generates them")
-        # The level of every kitchen, or None: a fresh draw per episode.
-        self.pinned_levels = np.arange(num_envs) % kitchen.num_levels if pin_levels else None
-        levels_of_envs = None if self.pinned_levels is None else jnp.asarray(self.pinned_levels, jnp.int32)
+        # The level of every kitchen of a team, or None: a fresh draw per episode.
+        levels_of_team = np.arange(team_size) % kitchen.num_levels if pin_levels else None
+        self.pinned_levels = None if levels_of_team is None else np.tile(levels_of_team, self.teams)
+        levels_of_team = None if levels_of_team is None else jnp.asarray(levels_of_team, jnp.int32)
 
         def observe(states, deliveries):
             """The outputs of kitchens as they stand: nothing earned, not done (resets and restores)."""
             zeros = jnp.zeros((num_envs, 2), jnp.float32)
             return self._outputs(states, deliveries, zeros, zeros, jnp.zeros(num_envs, bool))
 
-        def reset_all(key):
-            _, states = kitchen.reset_batch(key, num_envs, levels_of_envs)
-            return observe(states, jnp.zeros(num_envs, jnp.int32))
+        # Resets run per team (vmapped over the teams' keys) on [teams, team_size] views of the kitchens.
+        def by_team(tree):
+            return jax.tree_util.tree_map(lambda x: x.reshape(self.teams, team_size, *x.shape[1:]), tree)
 
-        def reset_masked(key, states, deliveries, mask):
-            return observe(kitchen.reset_where(key, states, mask, levels_of_envs), jnp.where(mask, 0, deliveries))
+        def flat(tree):
+            return jax.tree_util.tree_map(lambda x: x.reshape(num_envs, *x.shape[2:]), tree)
+
+        def reset_all(keys):
+            _, states = jax.vmap(lambda key: kitchen.reset_batch(key, team_size, levels_of_team))(keys)
+            return observe(flat(states), jnp.zeros(num_envs, jnp.int32))
+
+        def reset_masked(keys, states, deliveries, mask):
+            reset = jax.vmap(lambda key, states, mask: kitchen.reset_where(key, states, mask, levels_of_team))
+            states = flat(reset(keys, by_team(states), by_team(mask)))
+            return observe(states, jnp.where(mask, 0, deliveries))
+
+        def split_keys(keys):
+            keys = jax.vmap(jax.random.split)(keys)  # [teams, 2, 2]
+            return keys[:, 0], keys[:, 1]
 
         def step(states, deliveries, actions):
             states, reward, done, info = jax.vmap(kitchen.step_env)(states, actions)
@@ -131,6 +154,7 @@ class KitchenEnv(EnvBase):
         self._observe = jax.jit(observe)
         self._reset_masked = jax.jit(reset_masked)
         self._step_jax = jax.jit(step)
+        self._split_keys = jax.jit(split_keys)
         self._states = None  # the JAX kitchens, batched
         self._deliveries = None  # int32 [B]: soups delivered this episode
         self._last_obs = None  # the JAX array behind the last observation handed out (zero-copy checks)
@@ -175,7 +199,8 @@ class KitchenEnv(EnvBase):
         return states, deliveries, (jax.vmap(self.kitchen.get_obs)(states), scalars, done[:, None])
 
     def _next_key(self) -> jax.Array:
-        self._key, key = jax.random.split(self._key)
+        """uint32 [teams, 2]: a fresh key per team (each team's stream advances as a one-team env's would)."""
+        self._key, key = self._split_keys(self._key)
         return key
 
     # ------------------------------------------------------------------------------------------ torch side
@@ -224,44 +249,76 @@ class KitchenEnv(EnvBase):
         self._states, self._deliveries, out = self._step_jax(self._states, self._deliveries, actions)
         return self._to_tensordict(out, with_reward=True)
 
-    def _set_seed(self, seed: int | None) -> None:
-        self._key = jax.device_put(jax.random.PRNGKey(0 if seed is None else seed), self._jax_device)
+    def _set_seed(self, seed: int | Sequence[int] | None) -> None:
+        seeds = [0 if seed is None else seed] if seed is None or isinstance(seed, int) else list(seed)
+        if len(seeds) != self.teams:
+            raise ValueError(f"this env has {self.teams} teams and needs as many seeds, got {seed}")
+        keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
+        self._key = jax.device_put(keys, self._jax_device)  # uint32 [teams, 2]
         self._states = None  # the next reset starts every kitchen from the new seed
 
-    # Checkpoints: `env.state_dict()` carries the kitchens, the episode counters and the key, so a resumed run
-    # continues with exactly the levels and episodes it would have seen. All of it is CPU tensors, so that a
-    # checkpoint loads with `torch.load(weights_only=True)`: data, never code.
-    def get_extra_state(self) -> dict:
-        """The key (int64 [2]), the kitchens (`State`'s fields by name, in their own dtypes) and the deliveries."""
+    # Checkpoints: a team's state (`team_state`) carries its kitchens, episode counters and key, so a resumed run
+    # continues with exactly the levels and episodes it would have seen; `env.state_dict()` holds every team's. All
+    # of it is CPU tensors, so that a checkpoint loads with `torch.load(weights_only=True)`: data, never code.
+    def team_state(self, team: int = 0) -> dict:
+        """Team `team`'s key (int64 [2]), kitchens (`State`'s fields by name, in their own dtypes, [team_size, ...])
+        and deliveries: what a one-team env with that team's seed would save."""
         if self._states is None:
             self.reset()
+        rows = self._team_rows(team)
         return {
             # The key is uint32, which torch supports only in part; int64 holds every value exactly.
-            "key": _to_tensor(self._key, np.int64),
-            "states": {field.name: _to_tensor(getattr(self._states, field.name)) for field in _STATE_FIELDS},
-            "deliveries": _to_tensor(self._deliveries),
+            "key": _to_tensor(self._key[team], np.int64),
+            "states": {field.name: _to_tensor(getattr(self._states, field.name)[rows]) for field in _STATE_FIELDS},
+            "deliveries": _to_tensor(self._deliveries[rows]),
         }
 
-    def set_extra_state(self, state: dict) -> None:
-        """Restores the kitchens of `get_extra_state`; the next full `reset()` hands them out as they were."""
+    def load_team_state(self, team: int, state: dict) -> None:
+        """Restores one team's `team_state`; once every team's is loaded, the next full `reset()` hands the kitchens
+        out as they were."""
         expected_states, expected_deliveries, _ = jax.eval_shape(self._reset_all, self._key)
         expected = {field.name: getattr(expected_states, field.name) for field in _STATE_FIELDS}
         saved = state["states"]
-        if {name: tuple(value.shape) for name, value in saved.items()} != {k: v.shape for k, v in expected.items()}:
+        team_shapes = {name: (self.team_size, *value.shape[1:]) for name, value in expected.items()}
+        if {name: tuple(value.shape) for name, value in saved.items()} != team_shapes:
             raise ValueError(
-                f"this env state holds {len(state['deliveries'])} kitchens of another shape; the env has "
-                f"{self.num_envs} {self.kitchen.obs_shape[0]}x{self.kitchen.obs_shape[1]} kitchens: build the env "
+                f"this env state holds {len(state['deliveries'])} kitchens of another shape; the env's teams have "
+                f"{self.team_size} {self.kitchen.obs_shape[0]}x{self.kitchen.obs_shape[1]} kitchens: build the env "
                 "with the num_envs and levels the state was saved with"
             )
-        if tuple(state["key"].shape) != self._key.shape:
+        if tuple(state["key"].shape) != self._key.shape[1:]:
             raise ValueError(
                 f"this env state holds a JAX key of shape {tuple(state['key'].shape)}, this JAX makes keys of shape "
-                f"{self._key.shape}: load it with the JAX PRNG implementation it was saved with"
+                f"{self._key.shape[1:]}: load it with the JAX PRNG implementation it was saved with"
             )
-        self._key = self._to_jax(state["key"], self._key.dtype)
-        self._states = State(**{name: self._to_jax(saved[name], value.dtype) for name, value in expected.items()})
-        self._deliveries = self._to_jax(state["deliveries"], expected_deliveries.dtype)
+        if self._states is None:  # a frame for the teams' rows, every one of them overwritten by its team's state
+            self._states, self._deliveries, _ = self._reset_all(self._key)
+        rows = self._team_rows(team)
+        self._key = self._key.at[team].set(self._to_jax(state["key"], self._key.dtype))
+        self._states = State(**{
+            name: getattr(self._states, name).at[rows].set(self._to_jax(saved[name], value.dtype))
+            for name, value in expected.items()
+        })  # fmt: skip
+        self._deliveries = self._deliveries.at[rows].set(self._to_jax(state["deliveries"], expected_deliveries.dtype))
         self._restored = True
+
+    def get_extra_state(self) -> dict:
+        """One team: its `team_state`; several: {"teams": [team_state(k) for every team]}."""
+        if self.teams == 1:
+            return self.team_state(0)
+        return {"teams": [self.team_state(team) for team in range(self.teams)]}
+
+    def set_extra_state(self, state: dict) -> None:
+        teams = state["teams"] if "teams" in state else [state]
+        if len(teams) != self.teams:
+            raise ValueError(f"this env state holds {len(teams)} teams, the env has {self.teams}")
+        for team, team_state in enumerate(teams):
+            self.load_team_state(team, team_state)
+
+    def _team_rows(self, team: int) -> slice:
+        if not 0 <= team < self.teams:
+            raise IndexError(f"team {team} of an env with {self.teams} teams")
+        return slice(team * self.team_size, (team + 1) * self.team_size)
 
     def _to_jax(self, tensor: torch.Tensor, dtype) -> jax.Array:
         # Through NumPy on the CPU: a checkpoint may have been loaded onto any torch device.

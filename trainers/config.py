@@ -54,6 +54,10 @@ class TrainConfig:
     name: str = option("ippo_mlp_ik", "the run directory is {run_dir}/{name}/seed{seed}", group="run")
     run_dir: str = option("runs", "the folder that holds the runs")
     seed: int = option(0, "seeds torch, the levels and the resets; the 6 teams of a condition are seeds 0..5")
+    teams: int = option(
+        1, "train seeds seed .. seed+teams-1 at once, one batch of teams x num_envs kitchens; each team writes "
+           "its own run directory, as a run of its own would"
+    )
     device: str = option("cpu", '"cpu" or "cuda[:i]"; the env and the networks share it')
     threads: int = option(1, "torch CPU threads (1 is fastest for small networks on a shared CPU)")
     compile_policy: bool = option(
@@ -155,7 +159,9 @@ class TrainConfig:
         _check_name(self.name)
         _check_seed(self.seed)
         counts = ["max_steps", "num_envs", "rollout_steps", "total_steps", "hidden", "epochs", "minibatches"]
-        _at_least(self, [*counts, "checkpoint_every", "threads"], 1)
+        _at_least(self, [*counts, "checkpoint_every", "threads", "teams"], 1)
+        if self.seed + self.teams - 1 > MAX_SEED:
+            raise ConfigError(f"teams={self.teams} from seed={self.seed} go past the largest seed, {MAX_SEED}")
         weights = ["entropy_coef", "value_coef", "predictor_coef", "shaping_weight"]
         _at_least(self, ["eval_episodes", "shaping_anneal_steps", *weights], 0)
         for name in ("lr", "adam_eps", "clip_epsilon", "max_grad_norm"):
@@ -264,6 +270,10 @@ class EvalConfig:
         8192, "kitchens stepped together (pairs x rollouts x grids are cut into batches of this)", group="execution"
     )
     seed: int = option(0, "the same seed gives the same numbers")
+    teams: int = option(
+        1, "train seeds seed .. seed+teams-1 at once, one batch of teams x num_envs kitchens; each team writes "
+           "its own run directory, as a run of its own would"
+    )
     device: str = option("cpu", '"cpu" or "cuda[:i]"')
     threads: int = option(1, "torch CPU threads")
     progress: bool = option(True, "a progress bar")

@@ -13,6 +13,7 @@ the loop only through its named hooks; this file knows none of them by name.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import shutil
 import signal
 import sys
@@ -33,6 +34,7 @@ from tqdm import tqdm
 
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.models import ActorCritic, make_actor_critic
+from torch_kitchen.teams import RandomStream, TeamPolicy, TeamTransform, team_rows
 from torch_kitchen.torchrl_internals import PurgingTensorboardLogger
 from trainers.algorithms import ALGORITHMS, Algorithm
 from trainers.checkpoint import (
@@ -84,8 +86,9 @@ class TrainingDiverged(RuntimeError):
 
 
 # ------------------------------------------------------------------------------------------ building parts
-def make_env(config: TrainConfig, num_envs: int | None = None, levels=None, seed: int | None = None) -> KitchenEnv:
-    """The `KitchenEnv` of a config (evaluation passes its own batch, levels and seed)."""
+def make_env(config: TrainConfig, num_envs: int | None = None, levels=None,
+             seed: int | Sequence[int] | None = None) -> KitchenEnv:
+    """The `KitchenEnv` of a config (evaluation passes its own batch, levels and seed; several teams their seeds)."""
     return KitchenEnv(
         num_envs=num_envs or config.num_envs,
         levels=config.levels if levels is None else levels,
@@ -224,14 +227,15 @@ def start_fresh(run: Path) -> None:
         shutil.rmtree(run / logs, ignore_errors=True)
 
 
-def restore(checkpoint_path: Path, identity: dict, parts: dict, algorithm: Algorithm, device: str) -> dict:
-    """Loads a run's latest checkpoint into `parts` (name -> module with `load_state_dict`: the networks, the
-    optimizer, the env's kitchens) and the algorithm; returns the checkpoint (its counters and RNG states)."""
-    state = load_checkpoint(checkpoint_path, map_location=device)
-    check_identity(state, identity)
-    for name, part in parts.items():
+def restore(team: Team) -> dict:
+    """Loads `team`'s latest checkpoint into its parts (networks, optimizer, its kitchens) and its algorithm, and
+    sets its counters; returns the checkpoint (for its RNG states)."""
+    state = load_checkpoint(team.checkpoint_path, map_location=team.config.device)
+    check_identity(state, team.identity)
+    for name, part in team.parts.items():
         part.load_state_dict(state[name])
-    algorithm.load_state_dict(state["algorithm"])
+    team.algorithm.load_state_dict(state["algorithm"])
+    team.update, team.env_steps = state["update"], state["env_steps"]
     return state
 
 
@@ -269,6 +273,171 @@ class StopRequest:
             signal.signal(signum, handler)
 
 
+# ------------------------------------------------------------------------------------------------- teams
+class TeamKitchens:
+    """A team's rows of the shared `KitchenEnv`, checkpointed as `env.state_dict()` of a run of its own."""
+
+    def __init__(self, env: KitchenEnv, team: int):
+        self.env, self.team = env, team
+
+    def state_dict(self) -> dict:
+        return {"_extra_state": self.env.team_state(self.team)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.env.load_team_state(self.team, state["_extra_state"])
+
+
+@dataclasses.dataclass
+class Team:
+    """One trained team: its config and run directory, networks, algorithm, loss and optimizer, random stream,
+    counters and loggers. A run trains one team, or several in one batch of kitchens (`train_teams`)."""
+
+    config: TrainConfig
+    run: Path
+    stream: RandomStream
+    actor_critic: ActorCritic
+    algorithm: Algorithm
+    policy: TensorDictSequential  # acts while collecting: the actor, the algorithm's modules, the critic
+    loss_module: ClipPPOLoss
+    optimizer: torch.optim.Optimizer
+    parameters: list[torch.nn.Parameter]
+    identity: dict
+    parts: dict  # what its checkpoint holds, by name: anything with state_dict() / load_state_dict()
+    update: int = 0
+    env_steps: int = 0
+    loggers: list[Logger] = dataclasses.field(default_factory=list)
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.run / "checkpoints" / LATEST
+
+    def checkpoint(self) -> None:
+        with self.stream.active():
+            rng = capture_rng_states()
+        save_checkpoint(self.checkpoint_path, {
+            "config": self.config.to_dict(),
+            "model": self.identity,
+            **{name: part.state_dict() for name, part in self.parts.items()},
+            "algorithm": self.algorithm.state_dict(),
+            "update": self.update,
+            "env_steps": self.env_steps,
+            "rng": rng,
+        })  # fmt: skip
+
+
+def team_configs(config: TrainConfig) -> list[TrainConfig]:
+    """The configs of the `config.teams` teams of a config: seeds seed .. seed + teams - 1, each a run of its own."""
+    return [dataclasses.replace(config, seed=config.seed + team, teams=1) for team in range(config.teams)]
+
+
+def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
+               actor_critic: ActorCritic | None = None) -> Team:
+    """Team `index` of the batch: networks (from `config.architecture` unless given), algorithm, loss and
+    optimizer, all built in the team's own random stream, seeded with its seed."""
+    stream = RandomStream(config.seed, config.device)
+    obs_shape = kitchen.kitchen.obs_shape
+    with stream.active():
+        if actor_critic is None:
+            actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
+        actor, critic = actor_critic.actor.to(config.device), actor_critic.critic.to(config.device)
+        algorithm = make_algorithm(config, actor_critic)
+        # The critic runs while acting: its values feed GAE.
+        policy = TensorDictSequential(actor, *algorithm.acting_modules(), critic)
+        loss_module = make_loss(config, actor_critic, algorithm)
+        parameters = [*loss_module.parameters(), *algorithm.parameters()]
+        optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps)
+    return Team(
+        config=config, run=run, stream=stream, actor_critic=actor_critic, algorithm=algorithm, policy=policy,
+        loss_module=loss_module, optimizer=optimizer, parameters=parameters,
+        identity=model_identity(config.architecture, obs_shape, config.hidden, config.share_params),
+        parts={"actor": actor, "critic": critic, "optimizer": optimizer, "env": TeamKitchens(kitchen, index)},
+    )  # fmt: skip
+
+
+def algorithm_transforms(teams: list[Team]) -> list[Transform]:
+    """The env transforms of the teams' algorithms: each team's own, on its rows, where there are several."""
+    if len(teams) == 1:
+        return teams[0].algorithm.env_transforms()
+    per_team = [team.algorithm.env_transforms() for team in teams]
+    return [TeamTransform(transforms, teams[0].config.num_envs) for transforms in zip(*per_team)]
+
+
+def ppo_update(team: Team, batch: TensorDictBase) -> dict[str, float]:
+    """One PPO update of `team` on its batch [num_envs, rollout_steps] (run in the team's random stream): the
+    training reward, GAE, then `epochs` passes of minibatches of whole kitchen sequences; returns its metrics."""
+    config, optimizer = team.config, team.optimizer
+    team.update += 1
+    team.env_steps += batch.numel()
+
+    # --- learning rate and reward shaping for this update
+    lr = learning_rate_at(config, team.update)
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    shaping = shaping_weight_at(config, team.env_steps)
+
+    # --- advantages (GAE) over the whole batch
+    compute_advantages(batch, team.actor_critic.critic, config, shaping)
+    team.algorithm.process_batch(batch)
+
+    # --- PPO epochs over minibatches of whole kitchen sequences
+    stats = []
+    with set_recurrent_mode(team.actor_critic.recurrent):
+        for _ in range(config.epochs):
+            for kitchens in torch.randperm(config.num_envs).chunk(config.minibatches):
+                minibatch = batch[kitchens.to(batch.device)]
+                team.algorithm.process_minibatch(minibatch)
+                losses = {**team.loss_module(minibatch), **team.algorithm.auxiliary_losses(minibatch)}
+                total = total_loss(losses)
+                if not torch.isfinite(total):  # keep the last good weights, then stop
+                    team.checkpoint()
+                    raise diverged(losses, team.update, team.env_steps)
+                optimizer.zero_grad()
+                total.backward()
+                losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(team.parameters, config.max_grad_norm)
+                optimizer.step()
+                stats.append({key: value.detach().float() for key, value in losses.items()})
+    team.algorithm.after_update()
+
+    # --- metrics
+    metrics = {
+        "charts/episode_return": float(batch.get(REWARD).mean()) * config.max_steps,
+        "charts/shaped_return": float(batch.get(SHAPED_REWARD).mean()) * config.max_steps,
+        "charts/learning_rate": lr,
+        "charts/shaping_weight": shaping,
+    }
+    finished = finished_episode_deliveries(batch)
+    if finished.numel():
+        metrics["charts/episode_deliveries"] = float(finished.mean())
+    for key in stats[0]:
+        if name := metric_name(key):
+            metrics[name] = float(torch.stack([s[key] for s in stats]).mean())
+    variance = explained_variance(batch.get(VALUE), batch.get(VALUE_TARGET))
+    if variance is not None:
+        metrics["losses/explained_variance"] = variance
+    return metrics
+
+
+def check_teams(configs: Sequence[TrainConfig]) -> None:
+    """Teams trained in one batch share every setting but the seed; each is checked as a run of its own."""
+    for config in configs:
+        config.check()
+        config.check_run_location()
+        if config.teams != 1:
+            raise ConfigError(f"teams={config.teams}: a team's own config has teams=1 (see `team_configs`)")
+    lead = dataclasses.replace(configs[0], seed=0)
+    for config in configs[1:]:
+        differ = [key for key, value in dataclasses.asdict(lead).items()
+                  if key != "seed" and getattr(config, key) != value]
+        if differ:
+            raise ConfigError(
+                f"teams trained together share every setting but the seed; seed {config.seed} differs from seed "
+                f"{configs[0].seed} in {', '.join(differ)}"
+            )
+    seeds = [config.seed for config in configs]
+    if len(set(seeds)) < len(seeds):
+        raise ConfigError(f"teams trained together need different seeds, got {seeds}")
+
+
 # ------------------------------------------------------------------------------------------------ training
 def train(
     config: TrainConfig,
@@ -284,166 +453,137 @@ def train(
     `config.architecture`). `resume`: continue the run from its latest checkpoint. `on_update(update,
     metrics)`: called after every update; returning True stops the run after a checkpoint. `run`: the run
     directory (default `config.run_path`). `allow_unsolvable`: train on level files the checker calls
-    unsolvable (with a warning) instead of refusing them.
+    unsolvable (with a warning) instead of refusing them. `config.teams > 1`: use `train_teams`.
 
     Raises ConfigError for a config no run can use (before any work), RunStopped after a signal (with a
     checkpoint), TrainingDiverged when a loss is NaN or infinite (with a checkpoint of the last good state).
     """
-    config.check()
-    config.check_run_location()
-    for warning in config.check_levels(allow_unsolvable):
+    if config.teams != 1:
+        raise ConfigError(f"teams={config.teams}: train several teams with train_teams(team_configs(config))")
+    runs = None if run is None else [run]
+    return train_teams([config], runs, resume, on_update, allow_unsolvable, actor_critic)[0]
+
+
+def train_teams(
+    configs: Sequence[TrainConfig],
+    runs: Sequence[Path] | None = None,
+    resume: bool = False,
+    on_update: Callable[[int, dict], bool | None] | None = None,
+    allow_unsolvable: bool = False,
+    actor_critic: ActorCritic | None = None,
+) -> list[Path]:
+    """Trains one team per config (configs equal but for the seed, e.g. `team_configs(config)`) in one batch of
+    kitchens; returns their run directories. Each team trains, logs and checkpoints exactly as a run of its own
+    with its seed would (`train`), and can be resumed alone; `resume` continues them all from their checkpoints,
+    which must be at the same update. `on_update(update, metrics)` is called for every team; `actor_critic` only
+    for a single team. Raises as `train` does.
+    """
+    check_teams(configs)
+    lead, num_teams = configs[0], len(configs)
+    for warning in lead.check_levels(allow_unsolvable):
         print(f"kitchen-train: warning: {warning}", file=sys.stderr)
-    if note := config.step_note():
+    if note := lead.step_note():
         print(f"kitchen-train: {note}", file=sys.stderr)
-    torch.set_num_threads(config.threads)
-    torch.manual_seed(config.seed)
-    run = Path(run) if run is not None else config.run_path
-    checkpoint_path = run / "checkpoints" / LATEST
-    if not resume and checkpoint_path.exists():
-        raise ConfigError(
-            f"{run} already holds a trained run; resume it with `kitchen-train --resume {run}`, or choose another "
-            "name=, seed= or run_dir="
-        )
+    if actor_critic is not None and num_teams > 1:
+        raise ConfigError("a given actor_critic trains one team; build the teams from config.architecture")
+    torch.set_num_threads(lead.threads)
+    runs = [Path(run) for run in runs] if runs is not None else [config.run_path for config in configs]
+    for run in runs:
+        if not resume and (run / "checkpoints" / LATEST).exists():
+            raise ConfigError(
+                f"{run} already holds a trained run; resume it with `kitchen-train --resume {run}`, or choose "
+                "another name=, seed= or run_dir="
+            )
 
-    # ---------------------------------------------------------------- environment, networks, algorithm
-    kitchen = make_env(config)
-    obs_shape = kitchen.kitchen.obs_shape
-    if actor_critic is None:
-        actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
-    identity = model_identity(config.architecture, obs_shape, config.hidden, config.share_params)
-    actor, critic = actor_critic.actor.to(config.device), actor_critic.critic.to(config.device)
-    algorithm = make_algorithm(config, actor_critic)
-    env = with_model_transforms(kitchen, actor_critic, *algorithm.env_transforms())
-    # The critic runs while acting: its values feed GAE.
-    policy = TensorDictSequential(actor, *algorithm.acting_modules(), critic)
-
-    # ---------------------------------------------------------------- loss and optimizer
-    loss_module = make_loss(config, actor_critic, algorithm)
-    parameters = [*loss_module.parameters(), *algorithm.parameters()]
-    optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps)
+    # ---------------------------------------------------------------- environment and teams
+    kitchen = make_env(lead, num_envs=num_teams * lead.num_envs, seed=[config.seed for config in configs])
+    teams = [build_team(config, run, kitchen, index, actor_critic)
+             for index, (config, run) in enumerate(zip(configs, runs))]
+    env = with_model_transforms(kitchen, teams[0].actor_critic, *algorithm_transforms(teams))
+    policies = [torch.compile(team.policy) if lead.compile_policy else team.policy for team in teams]
+    policy = TeamPolicy(policies, [team.stream for team in teams], lead.num_envs)
 
     # ---------------------------------------------------------------- resume or start fresh
-    parts = {"actor": actor, "critic": critic, "optimizer": optimizer, "env": kitchen}
-    update, env_steps, saved = 0, 0, None
+    saved = [None] * num_teams
     if resume:  # the collector's first reset hands out the restored kitchens
-        saved = restore(checkpoint_path, identity, parts, algorithm, config.device)
-        update, env_steps = saved["update"], saved["env_steps"]
-        drop_csv_rows_after(run / "csv", env_steps)
+        saved = [restore(team) for team in teams]
+        if len({team.update for team in teams}) > 1:
+            at = ", ".join(f"{team.run} at update {team.update}" for team in teams)
+            raise ConfigError(f"teams resumed together must be at the same update ({at}): resume them one by one")
+        for team in teams:
+            drop_csv_rows_after(team.run / "csv", team.env_steps)
     else:
-        start_fresh(run)
-    run.mkdir(parents=True, exist_ok=True)
-    save_config(config, run / "config.yaml")
+        for team in teams:
+            start_fresh(team.run)
+    for team in teams:
+        team.run.mkdir(parents=True, exist_ok=True)
+        save_config(team.config, team.run / "config.yaml")
 
-    def checkpoint():
-        save_checkpoint(checkpoint_path, {
-            "config": config.to_dict(),
-            "model": identity,
-            **{name: part.state_dict() for name, part in parts.items()},
-            "algorithm": algorithm.state_dict(),
-            "update": update,
-            "env_steps": env_steps,
-            "rng": capture_rng_states(),
-        })  # fmt: skip
-
-    remaining = config.num_updates - update
+    remaining = lead.num_updates - teams[0].update
     if remaining <= 0:
-        print(f"{run}: already trained for {update} updates ({env_steps:,} steps); raise total_steps to go on")
-        return run
-    loggers = make_loggers(config, run, purge_step=env_steps + 1 if resume else None)
-    if not resume:
-        for logger in loggers:
-            logger.log_hparams(hyperparameters(config))
-    collector = make_collector(env, policy, config.frames_per_batch, remaining * config.frames_per_batch,
-                               compile_policy=config.compile_policy)
-    if saved is not None:  # after the collector, whose construction runs the policy once (and draws actions)
-        restore_rng_states(saved["rng"])
-    bar = tqdm(total=config.planned_steps, initial=env_steps, unit="step", unit_scale=True,
-               disable=not config.progress, dynamic_ncols=True)
-    recent_deliveries = deque(maxlen=10 * config.num_envs)
+        for team in teams:
+            print(f"{team.run}: already trained for {team.update} updates ({team.env_steps:,} steps); raise "
+                  "total_steps to go on")
+        return runs
+    for team in teams:
+        team.loggers = make_loggers(team.config, team.run, purge_step=team.env_steps + 1 if resume else None)
+        if not resume:
+            for logger in team.loggers:
+                logger.log_hparams(hyperparameters(team.config))
+    frames_per_batch = num_teams * lead.frames_per_batch
+    collector = make_collector(env, policy, frames_per_batch, remaining * frames_per_batch)
+    for team, state in zip(teams, saved):
+        if state is not None:  # after the collector, whose construction runs the policy once (and draws actions)
+            with team.stream.active():
+                restore_rng_states(state["rng"])
+    bar = tqdm(total=num_teams * lead.planned_steps, initial=sum(team.env_steps for team in teams), unit="step",
+               unit_scale=True, disable=not lead.progress, dynamic_ncols=True)
+    recent_deliveries = deque(maxlen=10 * num_teams * lead.num_envs)
 
     # ---------------------------------------------------------------- training loop
     try:
         with StopRequest() as stop:
             started = time.perf_counter()
             for batch in collector:
-                update += 1
-                env_steps += batch.numel()
                 collected = time.perf_counter()
-
-                # --- learning rate and reward shaping for this update
-                lr = learning_rate_at(config, update)
-                for group in optimizer.param_groups:
-                    group["lr"] = lr
-                shaping = shaping_weight_at(config, env_steps)
-
-                # --- advantages (GAE) over the whole batch
-                compute_advantages(batch, critic, config, shaping)
-                algorithm.process_batch(batch)
-
-                # --- PPO epochs over minibatches of whole kitchen sequences
-                stats = []
-                with set_recurrent_mode(actor_critic.recurrent):
-                    for _ in range(config.epochs):
-                        for kitchens in torch.randperm(config.num_envs).chunk(config.minibatches):
-                            minibatch = batch[kitchens.to(batch.device)]
-                            algorithm.process_minibatch(minibatch)
-                            losses = {**loss_module(minibatch), **algorithm.auxiliary_losses(minibatch)}
-                            total = total_loss(losses)
-                            if not torch.isfinite(total):  # keep the last good weights, then stop
-                                checkpoint()
-                                raise diverged(losses, update, env_steps)
-                            optimizer.zero_grad()
-                            total.backward()
-                            losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
-                            optimizer.step()
-                            stats.append({key: value.detach().float() for key, value in losses.items()})
-                algorithm.after_update()
-
-                # --- logging
-                finished = finished_episode_deliveries(batch)
-                recent_deliveries.extend(finished.tolist())
-                now = time.perf_counter()
-                metrics = {
-                    "charts/episode_return": float(batch.get(REWARD).mean()) * config.max_steps,
-                    "charts/shaped_return": float(batch.get(SHAPED_REWARD).mean()) * config.max_steps,
-                    "charts/steps_per_second": batch.numel() / (now - started),
-                    "charts/collect_seconds": collected - started,
-                    "charts/update_seconds": now - collected,
-                    "charts/learning_rate": lr,
-                    "charts/shaping_weight": shaping,
-                }
-                if finished.numel():
-                    metrics["charts/episode_deliveries"] = float(finished.mean())
-                for key in stats[0]:
-                    if name := metric_name(key):
-                        metrics[name] = float(torch.stack([s[key] for s in stats]).mean())
-                variance = explained_variance(batch.get(VALUE), batch.get(VALUE_TARGET))
-                if variance is not None:
-                    metrics["losses/explained_variance"] = variance
-                for logger in loggers:
-                    logger.log_metrics(metrics, step=env_steps)
+                asked = False
+                for index, team in enumerate(teams):
+                    team_batch = batch if num_teams == 1 else batch[team_rows(index, lead.num_envs)]
+                    learning = time.perf_counter()
+                    with team.stream.active():
+                        metrics = ppo_update(team, team_batch)
+                    now = time.perf_counter()
+                    metrics["charts/collect_seconds"] = collected - started
+                    metrics["charts/update_seconds"] = now - learning
+                    metrics["charts/steps_per_second"] = batch.numel() / (now - started)
+                    for logger in team.loggers:
+                        logger.log_metrics(metrics, step=team.env_steps)
+                    asked |= bool(on_update(team.update, metrics)) if on_update is not None else False
+                recent_deliveries.extend(finished_episode_deliveries(batch).tolist())
                 bar.update(batch.numel())
                 recent = sum(recent_deliveries) / max(1, len(recent_deliveries))
                 bar.set_postfix(deliveries=f"{recent:.2f}", sps=f"{metrics['charts/steps_per_second']:,.0f}")
 
                 # --- checkpoint, and stop if asked
-                asked = bool(on_update(update, metrics)) if on_update is not None else False
-                last = update == config.num_updates or asked or stop.signum is not None
-                if last or update % config.checkpoint_every == 0:
-                    checkpoint()
+                update = teams[0].update
+                last = update == lead.num_updates or asked or stop.signum is not None
+                if last or update % lead.checkpoint_every == 0:
+                    for team in teams:
+                        team.checkpoint()
                 if stop.signum is not None:
+                    steps = sum(team.env_steps for team in teams)
                     raise RunStopped(stop.signum, f"stopped by {signal.Signals(stop.signum).name} at update {update} "
-                                                  f"({env_steps:,} of {config.planned_steps:,} env steps), "
-                                                  "checkpoint written")
+                                                  f"({steps:,} of {bar.total:,} env steps), checkpoint written")
                 if last:
                     break
                 started = time.perf_counter()
     finally:
         collector.shutdown()
         bar.close()
-        for logger in loggers:
-            logger.close()
-    return run
+        for team in teams:
+            for logger in team.loggers:
+                logger.close()
+    return runs
 
 
 # -------------------------------------------------------------------------------------------- command line
@@ -457,7 +597,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("config", nargs="?", help="a YAML config (configs/...); omit it with --resume")
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
-    parser.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its latest checkpoint")
+    parser.add_argument("--resume", metavar="RUN_DIR", nargs="+",
+                        help="continue the run in RUN_DIR from its latest checkpoint; several run directories (the "
+                             "teams of a condition, e.g. runs/NAME/seed*) continue together in one batch; key=value "
+                             "overrides may follow")
     parser.add_argument("--allow-unsolvable", action="store_true",
                         help="train on level files the solvability checker calls unsolvable (with a warning)")
     parser.add_argument("--eval-on-stop", action="store_true",
@@ -465,38 +608,47 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def config_of(args: argparse.Namespace) -> TrainConfig:
-    """The config a command line asks for: a YAML file and overrides, or a saved run's config and overrides."""
+def config_of(args: argparse.Namespace) -> tuple[list[TrainConfig], list[Path] | None]:
+    """The teams a command line asks for: their configs (a YAML file and overrides, one per team, or saved runs'
+    configs and overrides) and their run directories (None: the configs' own)."""
     if args.resume:
-        # With --resume, the positional arguments are all overrides (e.g. total_steps=...).
-        overrides = ([args.config] if args.config else []) + args.overrides
-        saved = Path(args.resume) / "config.yaml"
-        if not saved.is_file():
-            raise ConfigError(f"{args.resume} is not a run directory (no config.yaml in it)")
-        return load_config(saved, overrides)
+        # With --resume, key=value arguments are overrides (e.g. total_steps=...), the others run directories.
+        arguments = [*args.resume, *([args.config] if args.config else []), *args.overrides]
+        runs = [Path(item) for item in arguments if "=" not in item]
+        overrides = [item for item in arguments if "=" in item]
+        if any(item.startswith("teams=") for item in overrides):
+            raise ConfigError("teams= starts new teams; resume several runs together by naming their directories")
+        configs = []
+        for run in runs:
+            saved = run / "config.yaml"
+            if not saved.is_file():
+                raise ConfigError(f"{run} is not a run directory (no config.yaml in it)")
+            configs.append(load_config(saved, overrides))
+        return configs, runs
     if args.config is None:
         raise ConfigError("give a config file (e.g. configs/ippo/mlp_ik.yaml) or --resume RUN_DIR")
     if "=" in args.config:
         raise ConfigError(f"the first argument must be a config file, got the override {args.config!r}")
-    return load_config(args.config, args.overrides)
+    return team_configs(load_config(args.config, args.overrides)), None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    config, stopped = None, None
+    stopped = None
     try:
-        config = config_of(args)
-        run = Path(args.resume) if args.resume else None
+        configs, runs = config_of(args)
+        runs = runs or [config.run_path for config in configs]
         try:
-            run = train(config, resume=bool(args.resume), run=run, allow_unsolvable=args.allow_unsolvable)
+            train_teams(configs, runs, resume=bool(args.resume), allow_unsolvable=args.allow_unsolvable)
         except RunStopped as error:
             stopped = error
-            print(f"kitchen-train: {error}; continue with `kitchen-train --resume {run or config.run_path}`",
+            print(f"kitchen-train: {error}; continue with `kitchen-train --resume {' '.join(map(str, runs))}`",
                   file=sys.stderr)
-        if config.eval_episodes > 0 and (stopped is None or args.eval_on_stop):
+        if configs[0].eval_episodes > 0 and (stopped is None or args.eval_on_stop):
             from trainers.evaluate import report_trained_team
 
-            report_trained_team(run or config.run_path)
+            for run in runs:
+                report_trained_team(run)
     except (ConfigError, CheckpointError, ValueError) as error:
         print(f"kitchen-train: error: {error}", file=sys.stderr)
         return 2

@@ -15,13 +15,11 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
 
-def make_collector(env: EnvBase, policy, frames_per_batch: int, total_frames: int = -1,
-                   compile_policy: bool = False) -> Collector:
+def make_collector(env: EnvBase, policy, frames_per_batch: int, total_frames: int = -1) -> Collector:
     """A synchronous collector that samples actions from `policy` (ExplorationType.RANDOM).
 
     `return_same_td=True`: every batch is written into the same buffers instead of a fresh copy, which keeps
-    large batches cheap; consume a batch before asking for the next one. `compile_policy`: the collector runs
-    `torch.compile(policy)` (compiled at the first steps).
+    large batches cheap; consume a batch before asking for the next one.
     """
     return Collector(
         env,
@@ -31,7 +29,6 @@ def make_collector(env: EnvBase, policy, frames_per_batch: int, total_frames: in
         return_same_td=True,
         exploration_type=ExplorationType.RANDOM,
         auto_register_policy_transforms=False,  # the env already carries what the model needs
-        compile_policy=True if compile_policy else None,
     )
 
 

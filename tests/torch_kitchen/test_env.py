@@ -185,7 +185,7 @@ def test_the_env_state_is_tensors_named_by_the_state_fields():
 
 def test_the_jax_key_round_trips_bit_for_bit(tmp_path):
     # Values with the top bit set, which a signed 32-bit store would mangle.
-    key = jnp.asarray([0xFFFFFFFF, 0x80000001], dtype=jnp.uint32)
+    key = jnp.asarray([[0xFFFFFFFF, 0x80000001]], dtype=jnp.uint32)  # [teams, 2]
     env = KitchenEnv(num_envs=2, levels="infinite", max_steps=8)
     env.reset()
     env._key = key

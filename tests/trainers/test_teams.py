@@ -1,0 +1,104 @@
+"""Several teams in one process: each team gets exactly what a run of its own with its seed gets."""
+
+import pytest
+import torch
+from test_ippo import MAIN_CONFIG, read_metrics, tiny_config
+from tiny import TINY
+
+from torch_kitchen.env import KitchenEnv
+from torch_kitchen.teams import RandomStream
+from trainers.checkpoint import load_checkpoint
+from trainers.config import ConfigError
+from trainers.ippo import main, team_configs, train, train_teams
+
+
+def assert_same_run(team_run, single_run):
+    """Weights, optimizer, kitchens, counters, torch's random stream and every logged metric but the timings, bit
+    for bit. (Python's and NumPy's global generators, which training does not draw from, are the process's.)"""
+    team, single = load_checkpoint(team_run), load_checkpoint(single_run)
+    for part in ("actor", "critic", "optimizer", "env", "algorithm"):
+        torch.testing.assert_close(team[part], single[part], rtol=0, atol=0, msg=lambda m: f"{part}: {m}")
+    assert torch.equal(team["rng"]["torch"], single["rng"]["torch"])
+    assert (team["update"], team["env_steps"]) == (single["update"], single["env_steps"])
+    assert {**team["config"], "run_dir": None} == {**single["config"], "run_dir": None}
+    assert read_metrics(team_run) == read_metrics(single_run)
+
+
+@pytest.mark.parametrize("overrides", [
+    ["levels=infinite"],  # levels drawn per episode from each team's key
+    ["architecture=mlp_lstm", "share_params=false"],  # recurrent state and stacked per-agent networks
+    ["algorithm=e3t", "architecture=e3t_mlp", "partner_policy=copy"],  # partner seats drawn per team
+], ids=["ippo-infinite", "lstm", "e3t"])
+def test_each_team_of_a_multi_team_run_is_the_run_of_its_seed_alone(tmp_path, overrides):
+    runs = train_teams(team_configs(tiny_config(tmp_path / "teams", "teams=3", "seed=5", *overrides)))
+    assert [run.name for run in runs] == ["seed5", "seed6", "seed7"]
+    for run, seed in zip(runs, (5, 6, 7)):
+        assert_same_run(run, train(tiny_config(tmp_path / "single", f"seed={seed}", *overrides)))
+
+
+def test_a_team_of_a_multi_team_run_resumes_alone_and_teams_resume_together(tmp_path):
+    assert main([*tiny_args(tmp_path / "teams"), "teams=2", "total_steps=64"]) == 0
+    team0, team1 = tmp_path / "teams" / "main" / "seed0", tmp_path / "teams" / "main" / "seed1"
+    assert main(["--resume", str(team1), "total_steps=128"]) == 0  # alone, as a run of its own
+    assert main(["--resume", str(team0), str(team1), "total_steps=128"]) == 2  # now at different updates
+    assert main(["--resume", str(team0), "total_steps=128"]) == 0
+    assert main(["--resume", str(team0), str(team1), "total_steps=192"]) == 0  # together again
+    for seed, run in enumerate((team0, team1)):  # the same budgets one after the other (they set lr's annealing)
+        single = tmp_path / "single" / "main" / f"seed{seed}"
+        assert main([*tiny_args(tmp_path / "single"), f"seed={seed}", "total_steps=64"]) == 0
+        for budget in (128, 192):
+            assert main(["--resume", str(single), f"total_steps={budget}"]) == 0
+        assert_same_run(run, single)
+
+
+def tiny_args(run_dir):
+    return [MAIN_CONFIG, *TINY, f"run_dir={run_dir}"]
+
+
+def test_teams_trained_together_share_every_setting_but_the_seed(tmp_path):
+    first, second = team_configs(tiny_config(tmp_path, "teams=2"))
+    second.lr = 1e-3
+    with pytest.raises(ConfigError, match="seed 1 differs from seed 0 in lr"):
+        train_teams([first, second])
+    with pytest.raises(ConfigError, match="train_teams"):
+        train(tiny_config(tmp_path, "teams=2"))
+    with pytest.raises(ConfigError, match="teams must be at least 1"):
+        tiny_config(tmp_path, "teams=0")
+    with pytest.raises(ConfigError, match="go past the largest seed"):
+        tiny_config(tmp_path, "teams=2", f"seed={2**32 - 1}")
+
+
+def observations(env: KitchenEnv, actions: torch.Tensor) -> torch.Tensor:
+    """uint8 [T, B, 2, H, W, C]: the observations after each step of `actions` [T, B, 2], resets included."""
+    tensordict, seen = env.reset(), []
+    for step_actions in actions:
+        _, tensordict = env.step_and_maybe_reset(tensordict.set(("agents", "action"), step_actions))
+        seen.append(tensordict["agents", "observation"].clone())
+    return torch.stack(seen)
+
+
+def test_the_env_teams_see_the_levels_of_one_team_envs_with_their_seeds():
+    teams = KitchenEnv(num_envs=6, levels="infinite", max_steps=3, seed=[3, 9])
+    actions = torch.randint(6, (8, 6, 2), generator=torch.Generator().manual_seed(0))
+    together = observations(teams, actions)  # two resets after the first episode: new levels per team
+    for team, seed in enumerate((3, 9)):
+        alone, rows = KitchenEnv(num_envs=3, levels="infinite", max_steps=3, seed=seed), slice(3 * team, 3 * team + 3)
+        assert torch.equal(together[:, rows], observations(alone, actions[:, rows]))
+        torch.testing.assert_close(teams.team_state(team), alone.team_state(0), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="cannot split 5 kitchens"):
+        KitchenEnv(num_envs=5, levels="infinite", seed=[0, 1])
+
+
+def test_a_random_stream_is_its_own_and_leaves_the_global_one_alone():
+    torch.manual_seed(1)
+    expected_global = torch.rand(3)
+    stream = RandomStream(7)
+    torch.manual_seed(1)
+    with stream.active():
+        first = torch.rand(2)
+    outside = torch.rand(3)
+    with stream.active():
+        second = torch.rand(2)
+    torch.manual_seed(7)
+    assert torch.equal(torch.cat([first, second]), torch.rand(4))
+    assert torch.equal(outside, expected_global)
