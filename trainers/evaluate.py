@@ -37,7 +37,7 @@ from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.pairing import make_seated_actor
 from trainers.checkpoint import CheckpointError, load_checkpoint
 from trainers.config import ConfigError, EvalConfig, TrainConfig, config_help, load_config, save_config
-from trainers.figures import draw_figures, draw_heatmap
+from trainers.figures import draw_figures, draw_heatmap, draw_learning_curve
 from trainers.rollout import play_episodes
 
 SP, XP, CROSS = "SP", "XP", "cross"
@@ -462,7 +462,8 @@ def evaluate(config: EvalConfig) -> Path:
 
 
 def report_trained_team(run: str | Path, episodes: int | None = None, num_heldout: int | None = None) -> Path:
-    """The self-play evaluation of a finished run, into the run directory: eval.md, pairs.csv, a team.gif."""
+    """The self-play evaluation of a finished run, into the run directory: eval.md, pairs.csv, learning_curve.png, a
+    team.gif."""
     run = Path(run)
     team = load_team(run)
     config = team.config
@@ -481,6 +482,8 @@ def report_trained_team(run: str | Path, episodes: int | None = None, num_heldou
         note = f"Partly trained: {team.env_steps:,} of {config.planned_steps:,} env steps (the run stopped early).\n\n"
         (out / "eval.md").write_text(note + (out / "eval.md").read_text())
         print(note.strip())
+    if curve := draw_learning_curve(run):
+        print(f"learning curve: {curve}")
     if config.gif:
         print(f"gif: {record_gif(team, team, layouts[0], run / 'team.gif', config.max_steps, config.seed)}")
     return out / "eval.md"

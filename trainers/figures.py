@@ -5,6 +5,7 @@
     fig7_heldout.png        SP and XP per family on the held-out generated levels
     fig8_per_layout.png     SP and XP per family, one panel per classic layout
     heatmap_<grid>.png      where the agents stand on a grid: one row per condition, SP and XP columns (Fig. 4)
+    learning_curve.png      a run's deliveries per episode and shaped return against env steps (from its CSV logs)
 
 A family's value on a layout comes from its conditions at home there (an SK condition on the layout it was
 trained on); several conditions of one family pool their means, their standard errors add in quadrature.
@@ -148,5 +149,34 @@ def draw_heatmap(layout, panels: list[tuple[str, str, np.ndarray]], path: Path) 
     figure.colorbar(image, ax=axes.ravel().tolist(), shrink=0.8, label="share of agent steps")
     figure.suptitle(f"Cells visited on {layout.name} (Fig. 4)")
     figure.savefig(path, dpi=120)
+    plt.close(figure)
+    return path
+
+
+def read_scalar(run: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(env steps, values) of one scalar a run logged to CSV (`loggers` holds csv), e.g. "charts/shaped_return";
+    empty arrays where it was not logged."""
+    path = Path(run) / "csv" / "scalars" / f"{name}.csv"
+    rows = np.loadtxt(path, delimiter=",", ndmin=2) if path.is_file() and path.stat().st_size else np.zeros((0, 2))
+    return rows[:, 0], rows[:, 1]
+
+
+def draw_learning_curve(run: Path, path: Path | None = None) -> Path | None:
+    """learning_curve.png in the run directory: deliveries per episode (left) and the shaped return (right)
+    against env steps; None where the run logged no CSV."""
+    run = Path(run)
+    curves = {name: read_scalar(run, f"charts/{name}") for name in ("episode_deliveries", "shaped_return")}
+    if not any(len(steps) for steps, _ in curves.values()):
+        return None
+    figure, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    for axis, (name, (steps, values)) in zip(axes, curves.items()):
+        axis.plot(steps, values, color="tab:blue", linewidth=1)
+        axis.set_xlabel("env steps")
+        axis.set_ylabel(name.replace("_", " ") + (" per episode" if name == "shaped_return" else ""))
+        axis.grid(alpha=0.3)
+    figure.suptitle(run.as_posix())
+    figure.tight_layout()
+    path = Path(path) if path is not None else run / "learning_curve.png"
+    figure.savefig(path, dpi=110)
     plt.close(figure)
     return path

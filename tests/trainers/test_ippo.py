@@ -21,6 +21,7 @@ from trainers.algorithms.e3t import EGO, normalize_ego_advantage
 from trainers.checkpoint import load_checkpoint
 from trainers.config import TrainConfig, load_config
 from trainers.evaluate import load_team
+from trainers.figures import read_scalar
 from trainers.ippo import compute_advantages, main, make_algorithm, make_env, make_loss, train, with_model_transforms
 from trainers.rollout import make_collector
 
@@ -72,7 +73,12 @@ def test_the_entry_point_trains_checkpoints_logs_and_evaluates(tmp_path, capsys)
     ]
     with Image.open(run / "team.gif") as gif:
         assert gif.n_frames > 1
-    assert "gif:" in capsys.readouterr().out
+    with Image.open(run / "learning_curve.png") as curve:
+        assert curve.width > curve.height > 100
+    steps, shaped = read_scalar(run, "charts/shaped_return")
+    assert steps.tolist() == [64, 128] and shaped.tolist() == [v for _, v in read_metrics(run)["charts/shaped_return"]]
+    printed = capsys.readouterr().out
+    assert "gif:" in printed and "learning curve:" in printed
 
 
 @pytest.mark.parametrize("architecture, share_params, algorithm", [
