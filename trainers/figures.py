@@ -163,18 +163,23 @@ def read_scalar(run: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
 
 def draw_learning_curve(run: Path, path: Path | None = None) -> Path | None:
     """learning_curve.png in the run directory: deliveries per episode (left) and the shaped return (right)
-    against env steps; None where the run logged no CSV."""
+    against env steps, as logged and as a moving average; None where the run logged no CSV."""
     run = Path(run)
     curves = {name: read_scalar(run, f"charts/{name}") for name in ("episode_deliveries", "shaped_return")}
     if not any(len(steps) for steps, _ in curves.values()):
         return None
     figure, axes = plt.subplots(1, 2, figsize=(9, 3.4))
     for axis, (name, (steps, values)) in zip(axes, curves.items()):
-        axis.plot(steps, values, color="tab:blue", linewidth=1)
+        axis.plot(steps, values, color="tab:blue", linewidth=0.6, alpha=0.35)
+        # A moving average over about 2% of the run: consecutive batches can hold different parts of an episode.
+        window = max(1, len(values) // 50)
+        if window > 1:
+            smooth = np.convolve(values, np.ones(window) / window, mode="valid")
+            axis.plot(steps[window - 1:], smooth, color="tab:blue", linewidth=1.5)
         axis.set_xlabel("env steps")
         axis.set_ylabel(name.replace("_", " ") + (" per episode" if name == "shaped_return" else ""))
         axis.grid(alpha=0.3)
-    figure.suptitle(run.as_posix())
+    figure.suptitle(f"{run.parent.name}/{run.name}")  # the condition and seed
     figure.tight_layout()
     path = Path(path) if path is not None else run / "learning_curve.png"
     figure.savefig(path, dpi=110)
