@@ -23,7 +23,7 @@ $(STAMP): setup.cfg pyproject.toml
 	$(BIN)/pip install -q -e ".[test]"
 	if [ "$(DEVICE)" = cuda ]; then \
 		$(BIN)/pip install -q "jax[$(JAX_CUDA)]==$$($(BIN)/python -c 'import jax; print(jax.__version__)')"; \
-		$(BIN)/python -c 'import torch, jax; assert torch.cuda.is_available(), "this torch has no CUDA"; print("torch", torch.__version__, torch.cuda.get_device_name(0), "| jax", jax.devices())'; \
+		$(BIN)/python -c 'import torch, jax; assert torch.cuda.is_available(), "this torch has no CUDA (a CPU build from an earlier set-up? remove .venv and run make again)"; print("torch", torch.__version__, torch.cuda.get_device_name(0), "| jax", jax.devices())'; \
 	fi
 	touch $@
 
