@@ -250,7 +250,7 @@ class KitchenEnv(EnvBase):
         return self._to_tensordict(out, with_reward=True)
 
     def _set_seed(self, seed: int | Sequence[int] | None) -> None:
-        seeds = [0 if seed is None else seed] if seed is None or isinstance(seed, int) else list(seed)
+        seeds = list(seed) if isinstance(seed, Sequence) else [seed or 0]
         if len(seeds) != self.teams:
             raise ValueError(f"this env has {self.teams} teams and needs as many seeds, got {seed}")
         keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
@@ -291,8 +291,11 @@ class KitchenEnv(EnvBase):
                 f"this env state holds a JAX key of shape {tuple(state['key'].shape)}, this JAX makes keys of shape "
                 f"{self._key.shape[1:]}: load it with the JAX PRNG implementation it was saved with"
             )
-        if self._states is None:  # a frame for the teams' rows, every one of them overwritten by its team's state
-            self._states, self._deliveries, _ = self._reset_all(self._key)
+        if self._states is None:  # an empty frame for the teams' rows, each filled by its team's state
+            self._states, self._deliveries = jax.tree_util.tree_map(
+                lambda shape: jnp.zeros(shape.shape, shape.dtype, device=self._jax_device),
+                (expected_states, expected_deliveries),
+            )
         rows = self._team_rows(team)
         self._key = self._key.at[team].set(self._to_jax(state["key"], self._key.dtype))
         self._states = State(**{

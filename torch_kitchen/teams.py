@@ -76,7 +76,7 @@ class TeamPolicy(TensorDictModuleBase):
         self.out_keys = list(policies[0].out_keys)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        if len(self.policies) == 1:
+        if len(self.policies) == 1:  # every step: spare one team the split and the copy back
             with self.streams[0].active():
                 return self.policies[0](tensordict)
         acted = []
@@ -96,19 +96,20 @@ class TeamTransform(Transform):
         self.transforms = torch.nn.ModuleList(transforms)
         self.team_size = team_size
 
-    def _by_team(self, call, tensordict: TensorDictBase | None, out: TensorDictBase) -> TensorDictBase:
+    def _by_team(self, method: str, tensordict: TensorDictBase | None, out: TensorDictBase) -> TensorDictBase:
+        """Calls every team's `transform.<method>(tensordict rows, out rows)` and writes their outputs into `out`."""
         parts = []
         for team, transform in enumerate(self.transforms):
             rows = team_rows(team, self.team_size)
-            part = call(transform, None if tensordict is None else tensordict[rows], out[rows])
+            part = getattr(transform, method)(None if tensordict is None else tensordict[rows], out[rows])
             parts.append(part.select(*self.out_keys))
         return out.update(torch.cat(parts))
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        return self._by_team(lambda transform, td, reset: transform._reset(td, reset), tensordict, tensordict_reset)
+        return self._by_team("_reset", tensordict, tensordict_reset)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        return self._by_team(lambda transform, td, nxt: transform._step(td, nxt), tensordict, next_tensordict)
+        return self._by_team("_step", tensordict, next_tensordict)
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         return self.transforms[0].transform_observation_spec(observation_spec)

@@ -270,10 +270,6 @@ class EvalConfig:
         8192, "kitchens stepped together (pairs x rollouts x grids are cut into batches of this)", group="execution"
     )
     seed: int = option(0, "the same seed gives the same numbers")
-    teams: int = option(
-        1, "train seeds seed .. seed+teams-1 at once, one batch of teams x num_envs kitchens; each team writes "
-           "its own run directory, as a run of its own would"
-    )
     device: str = option("cpu", '"cpu" or "cuda[:i]"')
     threads: int = option(1, "torch CPU threads")
     progress: bool = option(True, "a progress bar")

@@ -424,10 +424,9 @@ def check_teams(configs: Sequence[TrainConfig]) -> None:
         config.check_run_location()
         if config.teams != 1:
             raise ConfigError(f"teams={config.teams}: a team's own config has teams=1 (see `team_configs`)")
-    lead = dataclasses.replace(configs[0], seed=0)
     for config in configs[1:]:
-        differ = [key for key, value in dataclasses.asdict(lead).items()
-                  if key != "seed" and getattr(config, key) != value]
+        differ = [field.name for field in dataclasses.fields(TrainConfig)
+                  if field.name != "seed" and getattr(config, field.name) != getattr(configs[0], field.name)]
         if differ:
             raise ConfigError(
                 f"teams trained together share every setting but the seed; seed {config.seed} differs from seed "
@@ -548,7 +547,7 @@ def train_teams(
                 collected = time.perf_counter()
                 asked = False
                 for index, team in enumerate(teams):
-                    team_batch = batch if num_teams == 1 else batch[team_rows(index, lead.num_envs)]
+                    team_batch = batch[team_rows(index, lead.num_envs)]
                     learning = time.perf_counter()
                     with team.stream.active():
                         metrics = ppo_update(team, team_batch)
