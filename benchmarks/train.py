@@ -13,6 +13,7 @@ the ratio of their steps/s.
     python benchmarks/train.py learning [--target 5] [--budget 2e7] [--threads 2] [key=value ...]
     python benchmarks/train.py reference [--setting jaxmarl|ik|protocol|protocol_gnn] [--updates 3] [--compile]
     python benchmarks/train.py parity [--setting jaxmarl] [--budget 3e6] [--rows 10] [--seed 0]
+    python benchmarks/train.py profile [--setting jaxmarl|ik] [--updates 12] [--rows 40]
 """
 
 from __future__ import annotations
@@ -136,6 +137,33 @@ def reference(setting: str, updates: int, device: str, threads: int, compile_pol
     print(f"{ours:13,.0f} {jax_rate:12,.0f} {ours / jax_rate:11.3f}", flush=True)
 
 
+def profile(setting: str, updates: int, threads: int, rows: int, device: str = "cpu") -> None:
+    """Where our trainer's time goes on one setting: collection and update seconds per batch (updates 2..N), then
+    cProfile's functions by cumulative time over the whole run (the first update compiles the env)."""
+    import cProfile
+    import pstats
+
+    from jax_ppo import SETTINGS, setting_overrides
+
+    frames = SETTINGS[setting]["num_envs"] * SETTINGS[setting]["rollout_steps"]
+    seconds = {}
+    with tempfile.TemporaryDirectory() as run_dir:
+        overrides = [f"total_steps={updates * frames}", f"threads={threads}", f"device={device}", f"run_dir={run_dir}",
+                     "progress=false", "eval_episodes=0", "checkpoint_every=1000"]
+        config = load_config(None, [*setting_overrides(setting), *overrides])
+        profiler = cProfile.Profile()
+        profiler.enable()
+        train(config, on_update=lambda update, metrics: seconds.update(
+            {update: (metrics["charts/collect_seconds"], metrics["charts/update_seconds"])}))
+        profiler.disable()
+    timed = [value for update, value in seconds.items() if update > 1]
+    collect, update = (sum(column) / len(timed) for column in zip(*timed))
+    print(f"setting {setting}, {config.frames_per_batch:,} steps per batch, under the profiler: collection "
+          f"{collect:.3f} s ({collect / config.rollout_steps * 1e3:.2f} ms per step), update {update:.3f} s "
+          f"({update / (config.epochs * config.minibatches) * 1e3:.1f} ms per minibatch)")
+    pstats.Stats(profiler).sort_stats("cumulative").print_stats(rows)
+
+
 def parity(setting: str, budget: int, rows: int, threads: int, seed: int) -> None:
     """Learning per sample of ours and of the JAX reference on one setting of `benchmarks/jax_ppo.py`, in one run:
     the mean deliveries per episode of the episodes that ended in each `budget / rows` window of env steps."""
@@ -197,6 +225,12 @@ def main(argv=None):
     ref.add_argument("--device", default="cpu")
     ref.add_argument("--threads", type=int, default=2)
     ref.add_argument("--compile", action="store_true", help="ours with compile_policy=true")
+    prof = sub.add_parser("profile")
+    prof.add_argument("--setting", choices=["jaxmarl", "ik"], default="jaxmarl")
+    prof.add_argument("--updates", type=int, default=12)
+    prof.add_argument("--threads", type=int, default=1)
+    prof.add_argument("--rows", type=int, default=40, help="functions listed")
+    prof.add_argument("--device", default="cpu")
     par = sub.add_parser("parity")
     par.add_argument("--setting", choices=["jaxmarl", "ik"], default="jaxmarl")
     par.add_argument("--budget", type=float, default=3e6)
@@ -211,6 +245,9 @@ def main(argv=None):
         parity(args.setting, int(args.budget), args.rows, args.threads, args.seed)
         return
 
+    if args.mode == "profile":
+        profile(args.setting, args.updates, args.threads, args.rows, args.device)
+        return
     if args.mode == "reference":
         reference(args.setting, args.updates, args.device, args.threads, args.compile)
         return

@@ -32,6 +32,10 @@ Keys (*B = the tensordict's batch dims: [B] while collecting, [B, T] in training
                                                                     (`torch_kitchen.partner.PartnerContext`)
          out ("agents", "partner_logits" | "partner_prediction") float32 [*B, 2, 6]
 
+Collection: feed-forward models also carry an `ActingPass` (`ActorCritic.acting`), actor and critic in one pass
+over plain tensors that writes what the actor then the critic write, bit for bit; `acting_policy()` uses it
+where there is one.
+
 Recurrent models run one step at a time by default (collection); wrap training calls on [B, T] batches in
 `torchrl.modules.set_recurrent_mode(True)` for backpropagation through time, T the last batch dim. Either way
 the LSTM state is zeroed where "is_init" is True, also in the middle of a sequence.
@@ -46,7 +50,13 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import InteractionType, TensorDictModule, TensorDictModuleBase, TensorDictSequential
+from tensordict.nn import (
+    InteractionType,
+    TensorDictModule,
+    TensorDictModuleBase,
+    TensorDictSequential,
+)
+from tensordict.nn.probabilistic import interaction_type
 from torch import nn
 from torch_geometric.nn import GATConv
 from torchrl.data import Composite, Unbounded
@@ -59,6 +69,8 @@ from torch_kitchen.partner import CONTEXT_ACTION, CONTEXT_OBSERVATION, NO_ACTION
 from torch_kitchen.torchrl_internals import MultiAgentNet
 
 N_AGENTS = 2
+OBSERVATION, LOGITS, ACTION = ("agents", "observation"), ("agents", "logits"), ("agents", "action")
+LOG_PROB, VALUE = ("agents", "action_log_prob"), ("agents", "state_value")
 GAT_HEADS, GAT_FEATURES = 4, 8  # per head; concatenated -> 32 features per node
 
 ARCHITECTURES = ("mlp", "mlp_lstm", "gnn", "gnn_lstm")
@@ -298,6 +310,46 @@ def sampling_actor(policy: TensorDictModuleBase) -> ProbabilisticActor:
     )
 
 
+class ActingPass(TensorDictModuleBase):
+    """A feed-forward actor and critic in one pass over plain tensors: what `TensorDictSequential(actor, critic)`
+    writes (logits, sampled action, its log-prob, value), bit for bit, without the TensorDict plumbing around
+    each of their modules. Collection runs the policy at every step, where that plumbing costs several times
+    the arithmetic of small networks. Holds the actor's and critic's own networks: their weights, not copies.
+
+    policy_net / value_net: uint8 observations [*B, 2, H, W, C] -> logits [*B, 2, 6] / values [*B, 2, 1].
+    """
+
+    def __init__(self, policy_net: nn.Module, value_net: nn.Module):
+        super().__init__()
+        self.policy_net, self.value_net = policy_net, value_net
+        self.in_keys = [OBSERVATION]
+        self.out_keys = [LOGITS, ACTION, LOG_PROB, VALUE]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        observation = tensordict.get(OBSERVATION)
+        logits = self.policy_net(observation)
+        # As torch's Categorical(logits=logits) computes them: normalised logits, then their softmax.
+        log_probs = logits - logits.logsumexp(-1, keepdim=True)
+        probs = torch.softmax(log_probs, -1)
+        mode = interaction_type() or InteractionType.RANDOM  # the actor's default: sample
+        if mode is InteractionType.RANDOM:
+            action = torch.multinomial(probs.reshape(-1, NUM_ACTIONS), 1, True).reshape(logits.shape[:-1])
+        elif mode in (InteractionType.DETERMINISTIC, InteractionType.MODE):
+            action = probs.argmax(-1)
+        else:
+            raise ValueError(f"a categorical policy has no {mode.name.lower()} action; sample or take its mode")
+        tensordict.set(LOGITS, logits)
+        tensordict.set(ACTION, action)
+        tensordict.set(LOG_PROB, log_probs.gather(-1, action.unsqueeze(-1)).squeeze(-1))
+        tensordict.set(VALUE, self.value_net(observation))
+        return tensordict
+
+
+def plain_network(network: TensorDictSequential) -> nn.Sequential:
+    """The modules of a chain of TensorDict modules (each reading what the one before wrote) as plain torch."""
+    return nn.Sequential(*(module.module for module in network.module))
+
+
 # ------------------------------------------------------------------------------------- E3T partner model
 E3T_CONTEXT = 5  # (observation, partner action) pairs the partner predictor reads
 PARTNER_LOGITS, PARTNER_PREDICTION = ("agents", "partner_logits"), ("agents", "partner_prediction")
@@ -401,11 +453,21 @@ class ActorCritic:
         ("agents", "action_log_prob") [*B, 2]; samples by default (interaction type RANDOM).
     critic: writes ("agents", "state_value") float32 [*B, 2, 1].
     recurrent: whether both carry an LSTM state (then see `env_transforms` and `set_recurrent_mode`).
+    acting: optional, both in one pass for collection (e.g. an `ActingPass`), writing what `actor` then `critic`
+        write, from the same weights; `acting_policy` falls back to running `actor` then `critic`.
     """
 
     actor: ProbabilisticActor
     critic: TensorDictModuleBase
     recurrent: bool
+    acting: TensorDictModuleBase | None = None
+
+    def acting_policy(self, *after_actor: TensorDictModuleBase) -> TensorDictSequential:
+        """The collection policy: the actor, `after_actor` (an algorithm's acting modules, which may change the
+        actions), the critic. The critic reads only observations, so with a fused `acting` pass it runs first."""
+        if self.acting is not None:
+            return TensorDictSequential(self.acting, *after_actor)
+        return TensorDictSequential(self.actor, *after_actor, self.critic)
 
     def env_transforms(self) -> list[Transform]:
         """Transforms to append to the KitchenEnv: none for a feed-forward model; for recurrent ones InitTracker()
@@ -429,8 +491,8 @@ def build_builtin(architecture: str, obs_shape: tuple[int, int, int], hidden: in
               "share_params": share_params}
     policy = make_network("actor", out_key=("agents", "logits"), out_features=NUM_ACTIONS, out_gain=0.01, **common)
     critic = make_network("critic", out_key=("agents", "state_value"), out_features=1, out_gain=1.0, **common)
-    actor = sampling_actor(policy)
-    return ActorCritic(actor=actor, critic=critic, recurrent=recurrent)
+    acting = None if recurrent else ActingPass(plain_network(policy), plain_network(critic))
+    return ActorCritic(actor=sampling_actor(policy), critic=critic, recurrent=recurrent, acting=acting)
 
 
 def build_e3t(encoder: str, obs_shape: tuple[int, int, int], hidden: int, share_params: bool) -> ActorCritic:

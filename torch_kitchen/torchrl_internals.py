@@ -5,7 +5,8 @@ there, with the hook named, rather than somewhere deep in training.
 
 - `MultiAgentNetBase` builds each agent's network through `_build_single_net()`, checks inputs in
   `_pre_forward_check()` and keeps a parameter-less template of the network in `_empty_net`. `MultiAgentNet`
-  turns these into a plain `build` callable and a public `check_input()`.
+  turns these into a plain `build` callable and a public `check_input()`. With shared parameters it runs the
+  network built once by `get_stateful_net` instead of MultiAgentNetBase's per-call `to_module` into `_empty_net`.
 - `TensorboardLogger` opens its `SummaryWriter` in `_create_experiment()`. `PurgingTensorboardLogger` opens it
   with `purge_step`, so that a resumed run drops the events a killed run wrote after its last checkpoint.
 """
@@ -22,6 +23,7 @@ from torchrl.modules.models.multiagent import MultiAgentNetBase
 from torchrl.record.loggers import TensorboardLogger
 
 TEMPLATE = "_empty_net"  # MultiAgentNetBase's parameter-less copy of one agent's network
+TIED = "_shared_net"  # the shared network holding the parameters, kept out of the module tree
 
 
 def _drop_template_entries(module: nn.Module, state_dict: dict, prefix: str, local_metadata) -> None:
@@ -61,6 +63,32 @@ class MultiAgentNet(MultiAgentNetBase):
 
     def _pre_forward_check(self, inputs: torch.Tensor) -> torch.Tensor:
         return self.check_input(inputs)
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        if not self.share_params:
+            return super().forward(*inputs)
+        # One network for all agents: the agent dim is one more batch dim.
+        inputs = torch.cat(inputs, -1) if len(inputs) > 1 else inputs[0]
+        return self.shared_net()(self.check_input(inputs))
+
+    def shared_net(self) -> nn.Module:
+        """The shared network as a plain module holding this net's own parameters (TorchRL's
+        `get_stateful_net`), built once: MultiAgentNetBase would move them into its template on every call.
+        Weights changed in place (optimizers, `load_state_dict`) are its weights; a copy, a pickle or a move
+        to another device builds it anew."""
+        net = self.__dict__.get(TIED)
+        if net is None:
+            net = self.__dict__[TIED] = self.get_stateful_net(copy=True)
+        return net
+
+    def _apply(self, fn, *args, **kwargs):
+        self.__dict__.pop(TIED, None)  # `.to()` may replace the parameters
+        return super()._apply(fn, *args, **kwargs)
+
+    def __getstate__(self) -> dict:
+        state = dict(super().__getstate__())
+        state.pop(TIED, None)  # a copy builds its own, on its own parameters
+        return state
 
 
 class PurgingTensorboardLogger(TensorboardLogger):

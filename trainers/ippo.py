@@ -124,6 +124,7 @@ def make_loss(config: TrainConfig, actor_critic: ActorCritic, algorithm: Algorit
         normalize_advantage=True,
         normalize_advantage_exclude_dims=(-1,),  # only the trailing singleton: says "pooled" without a warning
         clip_value=True,
+        functional=False,  # PPO keeps no target networks: the modules run as they are
     )
     loss.set_keys(action=ACTION, sample_log_prob=LOG_PROB, value=VALUE, advantage=ADVANTAGE, value_target=VALUE_TARGET)
     algorithm.configure_loss(loss)
@@ -342,7 +343,7 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
         actor, critic = actor_critic.actor.to(config.device), actor_critic.critic.to(config.device)
         algorithm = make_algorithm(config, actor_critic)
         # The critic runs while acting: its values feed GAE.
-        policy = TensorDictSequential(actor, *algorithm.acting_modules(), critic)
+        policy = actor_critic.acting_policy(*algorithm.acting_modules())
         loss_module = make_loss(config, actor_critic, algorithm)
         parameters = [*loss_module.parameters(), *algorithm.parameters()]
         optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps)

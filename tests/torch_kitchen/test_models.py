@@ -1,7 +1,7 @@
 import pytest
 import torch
 from tensordict import TensorDict
-from tensordict.nn import TensorDictSequential
+from tensordict.nn import InteractionType, TensorDictSequential, set_interaction_type
 from torchrl.collectors import Collector
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import check_env_specs
@@ -61,6 +61,39 @@ def test_forward_shapes_dtypes_and_log_probs(envs, architecture, share_params, n
         prediction = td["agents", "partner_prediction"]
         assert prediction.shape == (num_envs, 2, 6) and not prediction.requires_grad
         torch.testing.assert_close(prediction.sum(-1), torch.ones(num_envs, 2))
+
+
+@pytest.mark.parametrize("share_params", [True, False])
+@pytest.mark.parametrize("architecture", ["mlp", "gnn"])
+def test_the_acting_pass_writes_what_actor_then_critic_write(envs, architecture, share_params):
+    """Bit for bit, sampled or deterministic, and after the weights change (it holds the same networks)."""
+    ac = make_actor_critic(architecture, hidden=HIDDEN, share_params=share_params)
+    networks = {id(p) for p in (*ac.actor.parameters(), *ac.critic.parameters())}
+    assert ac.acting is not None and {id(p) for p in ac.acting.parameters()} == networks
+    td = _env(envs[3], ac).reset()
+    with torch.no_grad():
+        for _ in range(2):
+            for mode in (InteractionType.RANDOM, InteractionType.DETERMINISTIC):
+                with set_interaction_type(mode):
+                    torch.manual_seed(1)
+                    fused = ac.acting_policy()(td.clone())
+                    torch.manual_seed(1)
+                    reference = ac.critic(ac.actor(td.clone()))
+                assert set(fused.keys(True, True)) == set(reference.keys(True, True))
+                for key in reference.keys(True, True):
+                    assert torch.equal(fused[key], reference[key]), key
+            for parameter in ac.actor.parameters():  # an optimizer's in-place step
+                parameter.add_(torch.randn_like(parameter))
+    with set_interaction_type(InteractionType.MEAN), pytest.raises(ValueError, match="no mean action"):
+        ac.acting(td.clone())
+
+
+@pytest.mark.parametrize("architecture", [*RECURRENT, *E3T_ARCHITECTURES])
+def test_actor_then_critic_act_where_there_is_no_acting_pass(envs, architecture):
+    ac = make_actor_critic(architecture, hidden=HIDDEN)
+    assert ac.acting is None
+    modules = list(ac.acting_policy().module)
+    assert modules == [ac.actor, ac.critic]
 
 
 @pytest.mark.parametrize("architecture", ARCHITECTURES + E3T_ARCHITECTURES)

@@ -1,5 +1,6 @@
 """One test per TorchRL hook of `torch_kitchen.torchrl_internals`: a TorchRL release that changes one fails here."""
 
+import copy
 import functools
 
 import pytest
@@ -38,6 +39,28 @@ def test_multi_agent_net_checks_its_inputs_through_pre_forward_check():
     doubled = Doubling(lambda: nn.Identity(), (3,))
     inputs = torch.randn(4, 2, 3)
     torch.testing.assert_close(doubled(inputs), 2 * inputs)
+
+
+def test_a_shared_net_runs_get_stateful_nets_network_on_its_own_parameters():
+    torch.manual_seed(0)
+    net = MultiAgentNet(lambda: nn.Sequential(nn.Linear(3, 4), nn.ReLU(), nn.Linear(4, 2)), (3,))
+    inputs = torch.randn(5, 2, 3)
+    with net.params.to_module(net._empty_net, preserve_module_state=False):  # MultiAgentNetBase's own way
+        expected = net._empty_net(inputs)
+    assert torch.equal(net(inputs), expected)
+    assert {id(p) for p in net.shared_net().parameters()} == {id(p) for p in net.parameters()}  # not copies
+    assert list(net.state_dict()) == [f"params.{key}" for key in ("0.weight", "0.bias", "2.weight", "2.bias")]
+
+    copied = copy.deepcopy(net)
+    with torch.no_grad():
+        net.params["0", "bias"].add_(1.0)  # in place, as an optimizer steps
+    changed = net(inputs)
+    assert not torch.equal(changed, expected)
+    assert torch.equal(copied(inputs), expected)  # a copy runs on its own parameters
+    copied.load_state_dict(net.state_dict())
+    assert torch.equal(copied(inputs), changed)
+    moved = net.to(torch.float64)  # a move may replace the parameters: the network follows
+    assert moved(inputs.double()).dtype == torch.float64
 
 
 @pytest.mark.parametrize("share_params", [True, False])
