@@ -256,6 +256,7 @@ class EvalConfig:
         {}, "condition name -> its teams' run dirs or globs", group="who plays"
     )
     cross: list[list[str]] = option([], "[[cond_a, cond_b], ...] to cross-play")
+    partner: bool = option(True, "every team also plays with the scripted cook, a partner outside every population")
 
     # --- where and how long
     layouts: list[str] = option(

@@ -6,7 +6,9 @@
 A *population* is a set of conditions (e.g. "ippo_mlp_ik"), each a list of trained teams (its seeds). Every
 ordered pair (agent 0 of team i, agent 1 of team j) within a condition plays: self-play (SP) when i == j,
 cross-play (XP) otherwise; so does every pair across the conditions named in `cross`. Each pair plays
-`rollouts` episodes on every test grid: the 5 expanded classic layouts and the held-out generated levels.
+`rollouts` episodes on every test grid: the 5 expanded classic layouts and the held-out generated levels. With
+`partner` on, every team also plays with the scripted cook (`torch_kitchen.scripted`), a partner outside every
+training population, in both seats; the cook's own self-play is the reference row.
 
 All pairs x grids x rollouts run as batches of up to `max_envs` kitchens through the rollout routine that
 training uses (`trainers.rollout`): kitchen b of a batch is pinned to grid b % G, and a `SeatedPolicy` gives
@@ -35,12 +37,14 @@ from jax_env.render import write_gif
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.pairing import make_seated_actor
+from torch_kitchen.scripted import SCRIPTED_COOK, scripted_actor_critic
 from trainers.checkpoint import CheckpointError, load_checkpoint
 from trainers.config import ConfigError, EvalConfig, TrainConfig, config_help, load_config, save_config
 from trainers.figures import draw_figures, draw_heatmap, draw_learning_curve
 from trainers.rollout import play_episodes
 
-SP, XP, CROSS = "SP", "XP", "cross"
+SP, XP, CROSS, PARTNER = "SP", "XP", "cross", "partner"
+SCRIPTED_CONDITION = "scripted cook"
 
 
 # ------------------------------------------------------------------------------------------------ teams
@@ -79,6 +83,8 @@ class Team:
     @property
     def label(self) -> str:
         """The team's family in the paper's figures, e.g. "IPPO MLP IK", "E3T GNN SK"."""
+        if self.config.architecture == SCRIPTED_COOK:
+            return SCRIPTED_CONDITION
         algorithm = self.config.algorithm
         architecture = self.config.architecture.removeprefix(f"{algorithm}_")  # e3t_gnn -> GNN
         return f"{algorithm.upper()} {architecture.upper().replace('_', '+')} {self.regime}"
@@ -117,6 +123,12 @@ def load_team(checkpoint: str | Path, device: str = "cpu", condition: str = "") 
                 state.get("env_steps"))
 
 
+def scripted_cook_team(obs_shape: tuple[int, int, int], device: str = "cpu") -> Team:
+    """The scripted cook as a team (both seats), for kitchens of `obs_shape`; at home on every grid."""
+    config = TrainConfig(name="scripted_cook", architecture=SCRIPTED_COOK, device=device)
+    return Team("scripted cook", SCRIPTED_CONDITION, config, scripted_actor_critic(), tuple(obs_shape), "(scripted)")
+
+
 def load_population(conditions: dict[str, str | list[str]], device: str = "cpu") -> dict[str, list[Team]]:
     """Condition name -> its teams, from run directories, checkpoint files or glob patterns of them."""
     population = {}
@@ -151,8 +163,9 @@ class Matchup:
     kind: str
 
 
-def make_matchups(population: dict[str, list[Team]], cross: Sequence[Sequence[str]] = ()):
-    """(teams, matchups): every ordered pair within each condition, and both orders across each `cross` pair."""
+def make_matchups(population: dict[str, list[Team]], cross: Sequence[Sequence[str]] = (), partner: Team | None = None):
+    """(teams, matchups): every ordered pair within each condition, both orders across each `cross` pair, and with
+    a `partner`: every team with it in both seats (kind "partner") and the partner's own self-play."""
     teams = [team for members in population.values() for team in members]
     index = {id(team): i for i, team in enumerate(teams)}
     matchups = []
@@ -164,6 +177,12 @@ def make_matchups(population: dict[str, list[Team]], cross: Sequence[Sequence[st
         for a in population[first]:
             for b in population[second]:
                 matchups += [Matchup(index[id(a)], index[id(b)], CROSS), Matchup(index[id(b)], index[id(a)], CROSS)]
+    if partner is not None:
+        seat = len(teams)
+        teams.append(partner)
+        for team in range(seat):
+            matchups += [Matchup(team, seat, PARTNER), Matchup(seat, team, PARTNER)]
+        matchups.append(Matchup(seat, seat, SP))
     return teams, matchups
 
 
@@ -317,11 +336,16 @@ def summary_rows(outcomes: Outcomes) -> list[dict]:
                     outcomes, lambda m, a, b, kind=kind: m.kind == kind and a.condition == condition, names
                 )
                 stats[kind] = (*mean_and_stderr(scores), len(scores))
+            scores = pair_scores(
+                outcomes, lambda m, a, b: m.kind == PARTNER and condition in (a.condition, b.condition), names
+            )
+            stats[PARTNER] = (*mean_and_stderr(scores), len(scores))
             rows.append({
                 "condition": condition, "label": team.label, "grids": group,
                 "sp": stats[SP][0], "sp_stderr": stats[SP][1], "sp_pairs": stats[SP][2],
                 "xp": stats[XP][0], "xp_stderr": stats[XP][1], "xp_pairs": stats[XP][2],
                 "gap": stats[SP][0] - stats[XP][0],
+                "partner": stats[PARTNER][0], "partner_stderr": stats[PARTNER][1], "partner_pairs": stats[PARTNER][2],
             })  # fmt: skip
     crossed = list(dict.fromkeys(
         tuple(sorted((outcomes.teams[m.seat0].condition, outcomes.teams[m.seat1].condition)))
@@ -338,27 +362,29 @@ def summary_rows(outcomes: Outcomes) -> list[dict]:
             mean, stderr = mean_and_stderr(scores)
             rows.append({"condition": " x ".join(pair), "label": "cross", "grids": group, "sp": float("nan"),
                          "sp_stderr": float("nan"), "sp_pairs": 0, "xp": mean, "xp_stderr": stderr,
-                         "xp_pairs": len(scores), "gap": float("nan")})
+                         "xp_pairs": len(scores), "gap": float("nan"), "partner": float("nan"),
+                         "partner_stderr": float("nan"), "partner_pairs": 0})
     return rows
 
 
 def markdown_summary(rows: list[dict], rollouts: int) -> str:
-    def cell(mean, stderr, pairs):
+    def cell(row, kind):
+        mean, stderr, pairs = row[kind], row[f"{kind}_stderr"], row[f"{kind}_pairs"]
         return "" if not pairs else f"{mean:.2f} ± {stderr:.2f} ({pairs})"
 
+    with_partner = any(row["partner_pairs"] for row in rows)
     lines = [
         f"Mean deliveries per episode ({rollouts} rollouts per pair and grid, actions sampled); ± one standard "
-        "error over pairs, (number of pairs). Held-out: the mean over the held-out levels.",
+        "error over pairs, (number of pairs). Held-out: the mean over the held-out levels."
+        + (" With the scripted cook: the team in either seat, the scripted cook in the other." if with_partner else ""),
         "",
-        "| condition | grids | SP | XP | SP - XP |",
-        "|---|---|---:|---:|---:|",
+        "| condition | grids | SP | XP | SP - XP |" + (" with the scripted cook |" if with_partner else ""),
+        "|---|---|---:|---:|---:|" + ("---:|" if with_partner else ""),
     ]
     for row in rows:
         gap = "" if math.isnan(row["gap"]) or not row["xp_pairs"] else f"{row['gap']:.2f}"
-        lines.append(
-            f"| {row['condition']} | {row['grids']} | {cell(row['sp'], row['sp_stderr'], row['sp_pairs'])} | "
-            f"{cell(row['xp'], row['xp_stderr'], row['xp_pairs'])} | {gap} |"
-        )
+        line = f"| {row['condition']} | {row['grids']} | {cell(row, 'sp')} | {cell(row, 'xp')} | {gap} |"
+        lines.append(line + (f" {cell(row, 'partner')} |" if with_partner else ""))
     return "\n".join(lines) + "\n"
 
 
@@ -427,8 +453,9 @@ def evaluate(config: EvalConfig) -> Path:
     if not config.conditions:
         raise ConfigError("no conditions to evaluate: give conditions: {name: run_dir_or_glob, ...}")
     population = load_population(config.conditions, config.device)
-    teams, matchups = make_matchups(population, config.cross)
     grids = evaluation_grids(config.layouts, config.heldout)
+    partner = scripted_cook_team((*grids[0].shape, 26), config.device) if config.partner else None
+    teams, matchups = make_matchups(population, config.cross, partner)
     by_name = {grid.name: grid for grid in grids}
     for heatmap in config.heatmaps:
         if heatmap not in by_name:

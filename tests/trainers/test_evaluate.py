@@ -15,7 +15,18 @@ from torch_kitchen.env import KitchenEnv
 from torch_kitchen.models import make_actor_critic
 from trainers.checkpoint import CheckpointError, model_identity, save_checkpoint
 from trainers.config import ConfigError, EvalConfig, TrainConfig, load_config
-from trainers.evaluate import CROSS, SP, XP, evaluate, load_population, main, make_matchups, play
+from trainers.evaluate import (
+    CROSS,
+    PARTNER,
+    SCRIPTED_CONDITION,
+    SP,
+    XP,
+    evaluate,
+    load_population,
+    main,
+    make_matchups,
+    play,
+)
 from trainers.ippo import train
 
 # Agent 1's booth is complete; agent 0's has no plate pile, so agent 0 can never deliver here.
@@ -48,7 +59,7 @@ def test_the_evaluator_reports_exactly_the_known_counts(tmp_path, booth_files):
                     "halves": [runs["scripted_cook_seat0"], runs["scripted_cook_seat1"]]},
         cross=[["cooks", "halves"]], layouts=booth_files, heldout=0, rollouts=3,
         max_envs=10,  # 5 kitchens per grid per batch: several batches, the last one padded
-        out_dir=str(tmp_path / "out"), progress=False,
+        out_dir=str(tmp_path / "out"), progress=False, partner=False,
     ).check()  # fmt: skip
     out = evaluate(config)
 
@@ -71,6 +82,30 @@ def test_the_evaluator_reports_exactly_the_known_counts(tmp_path, booth_files):
     assert [float(halves[k]) for k in ("sp", "xp")] == [3.5, 3.5]
     assert int(summary["cooks x halves", "two_booths"]["xp_pairs"]) == 8
     assert "| cooks | two_booths | 7.00 ± 7.00 (2) | 7.00 ± 0.00 (2) | 0.00 |" in (out / "eval.md").read_text()
+
+
+def test_every_team_also_plays_with_the_scripted_cook_in_both_seats(tmp_path, booth_files):
+    runs = {name: save_scripted_team(tmp_path / f"{name}.pt", name, seed=k) for k, name in enumerate(WORKING)}
+    config = EvalConfig(
+        conditions={"cooks": [runs["scripted_cooks"], runs["scripted_idle"]]}, layouts=booth_files[:1], heldout=0,
+        rollouts=2, out_dir=str(tmp_path / "out"), progress=False,
+    ).check()  # fmt: skip
+    out = evaluate(config)
+    with open(out / "pairs.csv") as handle:
+        pairs = {(row["agent0"], row["agent1"]): row for row in csv.DictReader(handle)}
+    teams = ["cooks/seed0", "cooks/seed3"]
+    partner = {key: row for key, row in pairs.items() if row["kind"] == PARTNER}
+    assert set(partner) == {(team, SCRIPTED_CONDITION) for team in teams} | {(SCRIPTED_CONDITION, t) for t in teams}
+    assert pairs[SCRIPTED_CONDITION, SCRIPTED_CONDITION]["kind"] == SP
+    # Beside an idle team the scripted cook cooks alone in its booth; beside booth cooks both deliver.
+    alone = float(pairs["cooks/seed3", SCRIPTED_CONDITION]["mean_deliveries"])
+    assert 0 < alone < float(pairs["cooks/seed0", SCRIPTED_CONDITION]["mean_deliveries"])
+    with open(out / "summary.csv") as handle:
+        summary = {row["condition"]: row for row in csv.DictReader(handle)}
+    assert int(summary["cooks"]["partner_pairs"]) == 4 and int(summary[SCRIPTED_CONDITION]["sp_pairs"]) == 1
+    expected = sum(float(row["mean_deliveries"]) for row in partner.values()) / 4
+    assert float(summary["cooks"]["partner"]) == pytest.approx(expected)
+    assert "| SP - XP | with the scripted cook |" in (out / "eval.md").read_text()
 
 
 def _architecture(runs, team_name):

@@ -1,0 +1,172 @@
+"""A scripted cook: a partner no team trained with, reading the same observation a trained agent reads.
+
+It plans on the kitchen it sees, on any layout: it picks the first goal it can reach from a short list (what it
+holds and what the pots need decide the list), walks the shortest path to a cell beside the goal's tile (a
+breadth-first distance field), faces the tile and interacts. Where the partner stands in its way it takes a way
+around the partner or waits, at random, and where both could step into one cell it steps or waits at random:
+this breaks the symmetry of two cooks meeting in a corridor.
+
+    holding a soup    the serving counter; else a counter the partner can reach (a hand-over)
+    holding an onion  a pot that takes onions; else a hand-over
+    holding a plate   a ready pot; else wait beside a cooking pot; else a hand-over
+    empty hands       a soup on a counter; a plate if a pot cooks and the partner holds no plate; an onion if a
+                      pot takes onions; then a plate, then an onion (from a pile or a counter)
+
+Where nothing on its list is reachable it picks an action at random. Two of it deliver on every expanded classic
+layout (forced_coord_7x7 through hand-overs) and about 6 soups per 256 steps on the held-out levels
+(`tests/torch_kitchen/test_scripted.py`). Registered as the architecture "scripted_cook", so it is seated, saved
+and loaded like a trained team (it has no weights); `kitchen-eval` seats it beside every team (`partner`).
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+from jax_env import INTERACT, NUM_ACTIONS, STAY
+from jax_env.state import DIR_VECTORS
+from torch_kitchen.models import ActorCritic, register_architecture, sampling_actor
+
+# Observation channels (jax_env.observation).
+ME, PARTNER, FACING = 0, 1, slice(2, 6)
+POT, EMPTY_COUNTER, ONION_PILE, PLATE_PILE, GOAL = 10, 11, 12, 14, 15
+ONIONS_IN_POT, COOKING_OR_DONE, SOUP, PLATE, ONION = 16, 18, 21, 22, 23
+
+UNREACHABLE = 1e4  # a distance longer than any path in a kitchen
+
+
+def _neighbour(grid: torch.Tensor, direction: int, fill: float) -> torch.Tensor:
+    """[N, H, W] -> [N, H, W]: each cell's neighbour in `direction` (DIR_VECTORS order), `fill` outside the grid."""
+    dx, dy = DIR_VECTORS[direction]
+    padded = nn.functional.pad(grid, (1, 1, 1, 1), value=fill)
+    height, width = grid.shape[-2:]
+    return padded[..., 1 + dy: 1 + dy + height, 1 + dx: 1 + dx + width]
+
+
+def _neighbours(grid: torch.Tensor, fill: float) -> torch.Tensor:
+    """[N, H, W] -> [N, 4, H, W]: the four neighbours of every cell, in the order of the move actions."""
+    return torch.stack([_neighbour(grid, direction, fill) for direction in range(4)], dim=1)
+
+
+def distance_to(targets: torch.Tensor, walkable: torch.Tensor) -> torch.Tensor:
+    """float [N, H, W]: steps from each walkable cell to the nearest walkable cell beside a target tile
+    (`UNREACHABLE` where none can be reached); targets, walkable: bool [N, H, W]."""
+    beside = walkable & _neighbours(targets.float(), 0.0).amax(1).bool()
+    distance = torch.where(beside, 0.0, UNREACHABLE)
+    for _ in range(walkable.shape[-1] * walkable.shape[-2]):
+        closer = _neighbours(distance, UNREACHABLE).amin(1) + 1
+        updated = torch.where(walkable, torch.minimum(distance, closer), UNREACHABLE)
+        if torch.equal(updated, distance):
+            break
+        distance = updated
+    return distance
+
+
+class ScriptedCook(nn.Module):
+    """uint8 observations [..., 2, H, W, 26] -> logits [..., 2, 6]: each seat's planned action with certainty, or
+    uniform logits where it is stuck."""
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        batch_shape = observation.shape[:-3]
+        obs = observation.reshape(-1, *observation.shape[-3:]).float()  # [N, H, W, C]: one seat's view each
+        me, partner = obs[..., ME] > 0, obs[..., PARTNER] > 0
+        channel = {c: obs[..., c] > 0 for c in (POT, EMPTY_COUNTER, ONION_PILE, PLATE_PILE, GOAL, SOUP, PLATE,
+                                                ONION, COOKING_OR_DONE)}
+        loose = ~(me | partner)  # items on cells where no cook stands lie on counters
+        pot = channel[POT]
+        ready_pot = pot & channel[SOUP]
+        cooking_pot = pot & channel[COOKING_OR_DONE]
+        open_pot = pot & ~channel[COOKING_OR_DONE] & (obs[..., ONIONS_IN_POT] < 3)
+        soup_on_counter = channel[SOUP] & ~pot & loose
+        plates = channel[PLATE_PILE] | (channel[PLATE] & loose)
+        onions = channel[ONION_PILE] | (channel[ONION] & loose)
+        counter = channel[EMPTY_COUNTER]
+        blocked = pot | counter | channel[ONION_PILE] | channel[PLATE_PILE] | channel[GOAL] | (
+            (channel[SOUP] | channel[PLATE] | channel[ONION]) & loose)
+        walkable = ~blocked  # the partner moves: it counts only where it is in the way
+        # Hand-overs go on counters the partner can reach.
+        partner_side = partner | (distance_to(partner, walkable) < UNREACHABLE)
+        handover = counter & _neighbours(partner_side.float(), 0.0).amax(1).bool()
+
+        def held(item):
+            return (channel[item] & me).flatten(1).any(1)
+
+        partner_has_plate = ((channel[PLATE] | channel[SOUP]) & partner).flatten(1).any(1)
+        plate_wanted = cooking_pot.flatten(1).any(1) & ~partner_has_plate
+        onion_wanted = open_pot.flatten(1).any(1)
+        nothing = torch.zeros_like(pot)
+
+        def when(condition, targets):
+            return torch.where(condition[:, None, None], targets, nothing)
+
+        # Goals in order of preference, by what the cook holds; the first reachable one is chosen.
+        holding_soup, holding_onion, holding_plate = held(SOUP), held(ONION), held(PLATE)
+        empty = ~(holding_soup | holding_onion | holding_plate)
+        goals = [
+            (when(holding_soup, channel[GOAL]), INTERACT),
+            (when(holding_onion, open_pot), INTERACT),
+            (when(holding_plate, ready_pot), INTERACT),
+            (when(holding_plate, cooking_pot & ~ready_pot), STAY),  # wait beside it until it is done
+            (when(~empty, handover), INTERACT),  # put it down where the partner can take it
+            (when(empty, soup_on_counter), INTERACT),
+            (when(empty & plate_wanted, plates), INTERACT),
+            (when(empty & onion_wanted, onions), INTERACT),
+            (when(empty, plates), INTERACT),
+            (when(empty, onions), INTERACT),
+        ]
+        targets = torch.stack([targets for targets, _ in goals], dim=1)  # [N, K, H, W]
+        n, k = targets.shape[:2]
+        distance = distance_to(targets.flatten(0, 1), walkable.repeat_interleave(k, 0)).view(n, k, *pot.shape[1:])
+        my_distance = (distance * me[:, None]).sum((-2, -1))  # [N, K]
+        reachable = my_distance < UNREACHABLE
+        choice = reachable.float().argmax(1)  # the first reachable goal
+        pick = choice[:, None, None, None].expand(n, 1, *pot.shape[1:])
+        goal, goal_distance = targets.gather(1, pick)[:, 0], distance.gather(1, pick)[:, 0]
+        on_arrival = torch.tensor([action for _, action in goals], device=observation.device)[choice]
+
+        def around_me(grid, fill):  # [N, 4]: the four cells around each cook, in the order of the moves
+            return (_neighbours(grid, fill) * me[:, None]).sum((-2, -1))
+
+        def next_step(distance):  # the move towards a lower distance, and whether there is one
+            here = (distance * me).sum((-2, -1), keepdim=True)[:, :, 0]
+            downhill = around_me(distance, UNREACHABLE) == here - 1
+            return downhill.float().argmax(1), (here[:, 0] < UNREACHABLE) & downhill.any(1)
+
+        tile = around_me(goal.float(), 0.0).argmax(1)  # where the goal's tile lies, once beside it
+        facing = (obs[..., FACING] * me[..., None]).sum((1, 2)).argmax(1)
+        arrived = reachable.any(1) & (my_distance.gather(1, choice[:, None])[:, 0] == 0)
+        step, _ = next_step(goal_distance)
+        action = torch.where(arrived, torch.where(facing == tile, on_arrival, tile), step)
+        # The partner in the way: half the time a way around it (if any), half the time wait for it to move; where
+        # both may step into one cell (the step fails for both), half the time step, half the time wait.
+        ahead = around_me(partner.float(), 0.0).gather(1, step[:, None])[:, 0] > 0
+        near_partner = partner | _neighbours(partner.float(), 0.0).amax(1).bool()
+        contested = ~arrived & ~ahead & (around_me(near_partner.float(), 0.0).gather(1, step[:, None])[:, 0] > 0)
+        blocked = ~arrived & ahead
+        detour, has_detour = next_step(distance_to(goal, walkable & ~partner))
+        detour = torch.where(blocked, detour, action)
+
+        def one_hot(actions):
+            return nn.functional.one_hot(actions, NUM_ACTIONS).bool()
+
+        allowed = one_hot(action)
+        yielding = contested | (blocked & has_detour)
+        allowed = torch.where(yielding[:, None], one_hot(detour) | one_hot(torch.full_like(action, STAY)), allowed)
+        allowed |= (~reachable.any(1) | (blocked & ~has_detour))[:, None]  # stuck: any action
+        logits = torch.where(allowed, 0.0, -1e9)
+        return logits.view(*batch_shape, NUM_ACTIONS)
+
+
+def scripted_actor_critic() -> ActorCritic:
+    """Both seats the scripted cook; its "critic" says 0 everywhere (it learns nothing)."""
+    policy = TensorDictModule(ScriptedCook(), in_keys=[("agents", "observation")], out_keys=[("agents", "logits")])
+    critic = TensorDictModule(
+        lambda observation: torch.zeros(*observation.shape[:-3], 1, device=observation.device),
+        in_keys=[("agents", "observation")], out_keys=[("agents", "state_value")],
+    )  # fmt: skip
+    return ActorCritic(actor=sampling_actor(policy), critic=critic, recurrent=False)
+
+
+SCRIPTED_COOK = "scripted_cook"
+register_architecture(SCRIPTED_COOK, lambda obs_shape, hidden, share_params: scripted_actor_critic())
