@@ -1,0 +1,1 @@
+"""`kitchen-play`: a person cooks with a trained team in the browser; games are recorded and replayable."""

@@ -1,0 +1,239 @@
+"""One game of a person with a partner: the kitchen, the partner's policy, the record, and the replay.
+
+A `Game` holds a one-kitchen `KitchenEnv` and a partner (a trained team, the scripted cook or a random agent)
+acting on the seat the person does not play, through the same actor that evaluation seats. Each `step(action)`
+is one tick: the partner samples its action from its own observation (its LSTM state and E3T context carried by
+the env's transforms), the person's action fills the other seat, the kitchen steps, and one line is appended to
+the game's JSON Lines record and flushed, so a killed server loses at most the step in flight.
+
+Record (one file per game): a header line {"type": "header", "version", "layout": text grid, "layout_name",
+"seed", "max_steps", "seat", "partner", "checkpoint", "checkpoint_sha256", "tick_ms", "mode", "started"}; then
+per step {"type": "step", "t", "actions": [a0, a1], "reward", "deliveries", "score", "positions": [[x, y], [x,
+y]], "ms"}; then {"type": "end", "reason", "score", "steps"}. `replay(path)` rebuilds the game through the JAX
+env from the header and the recorded actions and checks every step's positions and score; `load_dataset`
+turns records into observations and actions per seat for behaviour cloning.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+import jax
+import numpy as np
+import torch
+from tensordict.nn import TensorDictModule
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+
+from jax_env import EAST, INTERACT, NORTH, NUM_ACTIONS, SOUTH, STAY, WEST, Layout, parse_layout
+from torch_kitchen.env import KitchenEnv, with_transforms
+from torch_kitchen.models import ActorCritic, sampling_actor
+from torch_kitchen.scripted import scripted_actor_critic
+from trainers.evaluate import load_team
+
+ACTIONS = {"up": NORTH, "down": SOUTH, "right": EAST, "left": WEST, "stay": STAY, "interact": INTERACT}
+SCRIPTED, RANDOM = "scripted cook", "random agent"
+RECORD_FORMAT = 1
+
+
+def software_version() -> str:
+    try:
+        return version("infinite-kitchen")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+@dataclasses.dataclass
+class Partner:
+    """Who plays the other seat: a name, its actor-critic, its kitchen size (None: any) and where it came from."""
+
+    name: str
+    actor_critic: ActorCritic
+    obs_shape: tuple[int, int, int] | None = None
+    checkpoint: str | None = None
+    sha256: str | None = None
+
+
+def random_actor_critic() -> ActorCritic:
+    """Uniform over the six actions for both seats."""
+    logits = TensorDictModule(lambda obs: torch.zeros(*obs.shape[:-3], NUM_ACTIONS, device=obs.device),
+                              in_keys=[("agents", "observation")], out_keys=[("agents", "logits")])
+    return ActorCritic(actor=sampling_actor(logits), critic=logits, recurrent=False)
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def load_partner(name: str, device: str = "cpu") -> Partner:
+    """The scripted cook, the random agent, or the trained team of a run directory or checkpoint (CheckpointError
+    says why one cannot play)."""
+    if name == SCRIPTED:
+        return Partner(SCRIPTED, scripted_actor_critic())
+    if name == RANDOM:
+        return Partner(RANDOM, random_actor_critic())
+    team = load_team(name, device)
+    return Partner(team.name, team.actor_critic, team.obs_shape, team.checkpoint, file_sha256(Path(team.checkpoint)))
+
+
+def check_fits(partner: Partner, layout: Layout) -> None:
+    """ValueError unless the partner's networks were built for the kitchen's size."""
+    if partner.obs_shape is not None and tuple(partner.obs_shape[:2]) != layout.shape:
+        raise ValueError(f"{partner.name} was trained on {partner.obs_shape[0]}x{partner.obs_shape[1]} kitchens and "
+                         f"cannot play a {layout.height}x{layout.width} one; pick a kitchen of its size")
+
+
+class Recorder:
+    """A game's JSON Lines record, each line flushed as it is written."""
+
+    def __init__(self, path: Path, header: dict):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.path = path
+        self._file = open(path, "w", encoding="utf-8")
+        self.write({"type": "header", **header})
+
+    def write(self, line: dict) -> None:
+        self._file.write(json.dumps(line) + "\n")
+        self._file.flush()
+
+    def close(self) -> None:
+        self._file.close()
+
+
+class Game:
+    """A person in seat `seat` with `partner` in the other, on `layout`, recorded to `record_path`."""
+
+    def __init__(self, layout: Layout, partner: Partner, seat: int, record_path: Path, seed: int = 0,
+                 max_steps: int = 400, tick_ms: int = 150, mode: str = "realtime", device: str = "cpu"):
+        if seat not in (0, 1):
+            raise ValueError(f"seat must be 0 or 1, got {seat}")
+        check_fits(partner, layout)
+        self.layout, self.partner, self.seat, self.max_steps = layout, partner, seat, max_steps
+        self.kitchen = KitchenEnv(1, levels=layout, max_steps=max_steps, device=device, seed=seed)
+        self.env = with_transforms(self.kitchen, partner.actor_critic.env_transforms())
+        torch.manual_seed(seed)
+        self.tensordict = self.env.reset()
+        self.t, self.score, self.over = 0, 0, False
+        self.started = time.monotonic()
+        self.recorder = Recorder(record_path, {
+            "version": software_version(), "format": RECORD_FORMAT, "layout": layout.to_text(),
+            "layout_name": layout.name, "seed": seed, "max_steps": max_steps, "seat": seat,
+            "partner": partner.name, "checkpoint": partner.checkpoint, "checkpoint_sha256": partner.sha256,
+            "tick_ms": tick_ms, "mode": mode, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        })  # fmt: skip
+
+    def step(self, action: int) -> dict:
+        """One tick with the person's `action` (an index into the six actions); returns the new `view()`."""
+        if self.over:
+            raise RuntimeError("the game is over")
+        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+            acted = self.partner.actor_critic.actor(self.tensordict)
+            actions = acted.get(("agents", "action")).clone()
+            actions[0, self.seat] = action
+            acted.set(("agents", "action"), actions)
+            stepped = self.env.step(acted)
+        reward = float(stepped["next", "agents", "reward"][0, 0, 0])
+        delivered = int(stepped["next", "deliveries"][0, 0])
+        self.tensordict = step_mdp(stepped)
+        self.t += 1
+        self.score += delivered
+        self.over = bool(stepped["next", "done"][0, 0])
+        self.recorder.write({
+            "type": "step", "t": self.t, "actions": actions[0].tolist(), "reward": reward, "deliveries": delivered,
+            "score": self.score, "positions": self.positions(),
+            "ms": round((time.monotonic() - self.started) * 1000),
+        })  # fmt: skip
+        if self.over:
+            self.end("finished")
+        return self.view()
+
+    def positions(self) -> list[list[int]]:
+        position = np.asarray(self.kitchen.states.agent_pos[0])
+        return [[int(p % self.layout.width), int(p // self.layout.width)] for p in position]
+
+    def view(self) -> dict:
+        """What the page draws: the cells, their contents, the cooks, the score and the time left."""
+        state = jax.tree_util.tree_map(lambda leaf: np.asarray(leaf[0]), self.kitchen.states)
+        return {
+            "type": "state", "width": self.layout.width, "height": self.layout.height,
+            "kinds": state.grid.astype(int).tolist(), "contents": state.contents.astype(int).tolist(),
+            "positions": self.positions(), "directions": state.agent_dir.astype(int).tolist(),
+            "holding": state.agent_inv.astype(int).tolist(), "seat": self.seat, "score": self.score,
+            "t": self.t, "time_left": self.max_steps - self.t, "over": self.over,
+        }  # fmt: skip
+
+    def end(self, reason: str) -> None:
+        """Closes the record with its last line (at most once)."""
+        if self.recorder is None:
+            return
+        self.over = True
+        self.recorder.write({"type": "end", "reason": reason, "score": self.score, "steps": self.t})
+        self.recorder.close()
+        self.recorder = None
+
+
+# --------------------------------------------------------------------------------------------- records
+def read_record(path: str | Path) -> tuple[dict, list[dict], dict | None]:
+    """(header, step lines, end line or None) of a game record; ValueError for a file that is not one."""
+    lines = [json.loads(line) for line in Path(path).read_text(encoding="utf-8").splitlines() if line.strip()]
+    if not lines or lines[0].get("type") != "header":
+        raise ValueError(f"{path} is not a game record (no header line)")
+    steps = [line for line in lines if line.get("type") == "step"]
+    ends = [line for line in lines if line.get("type") == "end"]
+    return lines[0], steps, (ends[0] if ends else None)
+
+
+def replay(path: str | Path, gif: str | Path | None = None) -> dict:
+    """Replays a record through the JAX env: every step's positions and score must match. Returns a summary;
+    raises ValueError at the first step that differs. `gif`: also write the game as an animated GIF."""
+    header, steps, end = read_record(path)
+    layout = parse_layout(header["layout"], name=header["layout_name"])
+    kitchen = KitchenEnv(1, levels=layout, max_steps=header["max_steps"], seed=header["seed"])
+    td = kitchen.reset()
+    frames = [jax.tree_util.tree_map(lambda leaf: leaf[0], kitchen.states)]
+    score = 0
+    for line in steps:
+        td.set(("agents", "action"), torch.tensor([line["actions"]]))
+        td = step_mdp(kitchen.step(td))
+        score += int(td["deliveries"][0, 0])
+        positions = np.asarray(kitchen.states.agent_pos[0])
+        replayed = [[int(p % layout.width), int(p // layout.width)] for p in positions]
+        if replayed != line["positions"] or score != line["score"]:
+            raise ValueError(f"{path}: step {line['t']} differs: recorded positions {line['positions']} score "
+                             f"{line['score']}, replayed {replayed} score {score}")
+        frames.append(jax.tree_util.tree_map(lambda leaf: leaf[0], kitchen.states))
+    if gif is not None:
+        from jax_env.render import write_gif
+
+        write_gif(frames, str(gif))
+    return {"steps": len(steps), "score": score, "ended": end["reason"] if end else None}
+
+
+def load_dataset(paths) -> dict[str, list[torch.Tensor]]:
+    """Records -> {"observation": [uint8 [T, 2, H, W, 26] per game], "action": [int64 [T, 2] per game],
+    "human_seat": [int per game]}: each step's observation of both seats and the actions taken from it."""
+    data = {"observation": [], "action": [], "human_seat": []}
+    for path in paths:
+        header, steps, _ = read_record(path)
+        layout = parse_layout(header["layout"], name=header["layout_name"])
+        kitchen = KitchenEnv(1, levels=layout, max_steps=header["max_steps"], seed=header["seed"])
+        td = kitchen.reset()
+        observations, actions = [], []
+        for line in steps:
+            observations.append(td["agents", "observation"][0])
+            actions.append(torch.tensor(line["actions"]))
+            td.set(("agents", "action"), torch.tensor([line["actions"]]))
+            td = step_mdp(kitchen.step(td))
+        data["observation"].append(torch.stack(observations) if observations else torch.empty(0))
+        data["action"].append(torch.stack(actions) if actions else torch.empty(0, 2, dtype=torch.int64))
+        data["human_seat"].append(header["seat"])
+    return data
+

@@ -1,0 +1,243 @@
+"""`kitchen-play`: a local web server where a person cooks with a trained team, in a browser tab.
+
+    kitchen-play                                   # partners: runs/*/seed*, the scripted cook, a random agent
+    kitchen-play runs/main/seed0 --port 8000       # this run too; prints the URL
+    kitchen-play replay games/<game>.jsonl --gif game.gif
+
+The lobby (`/`) lists the partners and the kitchens; `POST /api/games` checks a choice (an unknown kitchen, a
+partner that cannot be loaded or cannot play that kitchen's size are refused with the reason) and makes the game;
+the page then plays it over the WebSocket `/ws/games/<id>`. In real time the server ticks every `tick_ms` and the
+person's latest key applies to the next tick (STAY if none); in turns mode the kitchen steps when the person acts.
+Each game has its own kitchen, partner and record (`play.game`); a malformed message is answered with an error
+and logged, and a closed tab ends its game with the record complete. Needs the `play` extra:
+`pip install .[play]`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import glob
+import itertools
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import jax
+
+from jax_env import (
+    CLASSIC_LAYOUTS,
+    EXPANDED_LAYOUTS,
+    STAY,
+    GeneratorConfig,
+    Layout,
+    heldout_grids,
+    layout_from_state,
+    load_layout,
+)
+from jax_env.generator import sample_training_level
+from play.game import ACTIONS, RANDOM, SCRIPTED, Game, load_partner, replay
+from trainers.checkpoint import CheckpointError
+from trainers.evaluate import evaluation_grids
+
+try:
+    from fastapi import FastAPI, HTTPException, WebSocket, WebSocketDisconnect
+    from fastapi.responses import HTMLResponse
+    from pydantic import BaseModel
+
+    class Choice(BaseModel):
+        """A lobby choice: who partners the person, where, in which seat, at which pace (and the kitchen's seed)."""
+
+        partner: str
+        kitchen: str
+        seat: int = 0
+        mode: str = "realtime"
+        seed: int | None = None
+except ImportError:  # the optional extra
+    FastAPI = None
+
+STATIC = Path(__file__).parent / "static"
+GENERATED = "a freshly generated Infinite Kitchen level"
+MODES = ("realtime", "turns")
+log = logging.getLogger("kitchen-play")
+
+
+def find_runs(root: str = "runs") -> list[str]:
+    """Run directories with a checkpoint under `root`."""
+    return sorted(str(Path(path).parents[1]) for path in glob.glob(f"{root}/*/seed*/checkpoints/latest.pt"))
+
+
+def kitchen_names(level_files: list[str]) -> list[str]:
+    return [*level_files, *EXPANDED_LAYOUTS, *CLASSIC_LAYOUTS, GENERATED, *(f"heldout_{i:03d}" for i in range(100))]
+
+
+def make_kitchen(name: str, level_files: list[str], seed: int) -> Layout:
+    """The layout of a lobby choice; ValueError naming the choices otherwise."""
+    if name == GENERATED:
+        level = sample_training_level(jax.random.PRNGKey(seed), GeneratorConfig(), heldout_grids())
+        return layout_from_state(level, name=f"generated_{seed}")
+    if name.startswith("heldout_"):
+        grids = {grid.name: grid for grid in evaluation_grids([], 100)}
+        if name in grids:
+            return grids[name]
+    elif name in kitchen_names(level_files):
+        return load_layout(name)
+    raise ValueError(f"unknown kitchen {name!r}: choose a layout name ({', '.join(EXPANDED_LAYOUTS)}, ...), "
+                     f"heldout_000..heldout_099, {GENERATED!r} or a level file given on the command line")
+
+
+def parse_action(text: str) -> int:
+    """The action index of a client message {"type": "action", "action": "left"}; ValueError says what is wrong."""
+    try:
+        message = json.loads(text)
+    except json.JSONDecodeError:
+        raise ValueError("not JSON") from None
+    if not isinstance(message, dict) or message.get("type") != "action":
+        raise ValueError('expected {"type": "action", "action": ...}')
+    if message.get("action") not in ACTIONS:
+        raise ValueError(f"unknown action {message.get('action')!r}; one of {', '.join(ACTIONS)}")
+    return ACTIONS[message["action"]]
+
+
+def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int = 150, device: str = "cpu",
+               level_files: list[str] = (), max_steps: int = 400, runs_root: str = "runs") -> FastAPI:
+    """The web app: lobby, game creation and the games' WebSockets."""
+    if FastAPI is None:
+        raise ImportError("kitchen-play needs the play extra: pip install .[play]")
+    app = FastAPI(title="kitchen-play")
+    games: dict[str, tuple[Game, str]] = {}
+    counter = itertools.count()
+    records = Path(records)
+    level_files = list(level_files)
+
+    def partners() -> list[str]:
+        return [*dict.fromkeys([*runs, *find_runs(runs_root)]), SCRIPTED, RANDOM]
+
+    @app.get("/", response_class=HTMLResponse)
+    def lobby() -> str:
+        return (STATIC / "index.html").read_text(encoding="utf-8")
+
+    @app.get("/api/options")
+    def options() -> dict:
+        return {"partners": partners(), "kitchens": kitchen_names(level_files), "modes": list(MODES),
+                "tick_ms": tick_ms}
+
+    @app.post("/api/games")
+    def new_game(choice: Choice) -> dict:
+        if choice.mode not in MODES:
+            raise HTTPException(400, f"unknown mode {choice.mode!r}; one of {', '.join(MODES)}")
+        if choice.seat not in (0, 1):
+            raise HTTPException(400, f"seat must be 0 or 1, got {choice.seat}")
+        if choice.partner not in partners():
+            raise HTTPException(400, f"unknown partner {choice.partner!r}; one of {', '.join(partners())}")
+        number = next(counter)
+        seed = choice.seed if choice.seed is not None else int(time.time()) % 100_000 + number
+        try:
+            layout = make_kitchen(choice.kitchen, level_files, seed)
+            partner = load_partner(choice.partner, device)
+            game_id = f"{time.strftime('%Y%m%d-%H%M%S')}-{number}"
+            game = Game(layout, partner, choice.seat, records / f"{game_id}.jsonl", seed=seed, max_steps=max_steps,
+                        tick_ms=tick_ms, mode=choice.mode, device=device)
+        except (ValueError, CheckpointError) as error:
+            raise HTTPException(400, str(error)) from None
+        games[game_id] = (game, choice.mode)
+        log.info("game %s: %s with %s on %s, seat %d", game_id, choice.mode, partner.name, layout.name, choice.seat)
+        return {"id": game_id, "record": str(game.recorder.path)}
+
+    @app.websocket("/ws/games/{game_id}")
+    async def play(websocket: WebSocket, game_id: str) -> None:
+        await websocket.accept()
+        if game_id not in games:
+            await websocket.send_json({"type": "error", "reason": f"no game {game_id!r}"})
+            await websocket.close()
+            return
+        game, mode = games.pop(game_id)  # one connection per game
+        pending: asyncio.Queue[int | None] = asyncio.Queue()
+        latest = [STAY]
+
+        async def receive() -> None:
+            try:
+                while True:
+                    text = await websocket.receive_text()
+                    try:
+                        action = parse_action(text)
+                    except ValueError as error:
+                        log.warning("game %s: refused message %r: %s", game_id, text[:200], error)
+                        await websocket.send_json({"type": "error", "reason": str(error)})
+                        continue
+                    latest[0] = action
+                    await pending.put(action)
+            except WebSocketDisconnect:
+                await pending.put(None)
+
+        receiver = asyncio.create_task(receive())
+        try:
+            await websocket.send_json(game.view())
+            while not game.over:
+                if mode == "turns":
+                    action = await pending.get()
+                    if action is None:
+                        break
+                else:
+                    await asyncio.sleep(tick_ms / 1000)
+                    if receiver.done():
+                        break
+                    action, latest[0] = latest[0], STAY
+                await websocket.send_json(game.step(action))
+        except (WebSocketDisconnect, RuntimeError):
+            pass
+        finally:
+            receiver.cancel()
+            reason = "finished" if game.t >= game.max_steps else "disconnected"
+            game.end(reason)
+            log.info("game %s ended (%s) after %d steps, score %d", game_id, reason, game.t, game.score)
+        if reason == "finished":
+            await websocket.close()
+
+    return app
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["replay"]:
+        parser = argparse.ArgumentParser(prog="kitchen-play replay",
+                                         description="Replay a recorded game through the JAX env and check it.")
+        parser.add_argument("record")
+        parser.add_argument("--gif", help="also write the game as an animated GIF")
+        args = parser.parse_args(argv[1:])
+        try:
+            result = replay(args.record, args.gif)
+        except (ValueError, OSError) as error:
+            print(f"kitchen-play: error: {error}", file=sys.stderr)
+            return 1
+        print(f"{args.record}: {result['steps']} steps replayed exactly, score {result['score']}"
+              + (f", gif {args.gif}" if args.gif else ""))
+        return 0
+    parser = argparse.ArgumentParser(prog="kitchen-play", description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("runs", nargs="*", help="run directories or checkpoints to offer as partners")
+    parser.add_argument("--host", default="127.0.0.1")
+    parser.add_argument("--port", type=int, default=8000)
+    parser.add_argument("--records", default="games", help="folder of the games' JSON Lines records")
+    parser.add_argument("--tick-ms", type=int, default=150, help="milliseconds per step in real time")
+    parser.add_argument("--max-steps", type=int, default=400, help="steps per game")
+    parser.add_argument("--levels", nargs="*", default=[], help="level files to offer as kitchens")
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args(argv)
+    try:
+        app = create_app(args.runs, args.records, args.tick_ms, args.device, args.levels, args.max_steps)
+    except ImportError as error:
+        print(f"kitchen-play: error: {error}", file=sys.stderr)
+        return 2
+    import uvicorn
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    print(f"kitchen-play: open http://{args.host}:{args.port}/ (records in {args.records}/)", flush=True)
+    uvicorn.run(app, host=args.host, port=args.port, log_level="warning")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

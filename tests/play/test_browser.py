@@ -1,0 +1,73 @@
+"""End to end in a real headless browser: Debian's Chromium driven by Playwright's Python API."""
+
+import shutil
+import socket
+import threading
+import time
+
+import pytest
+
+pytest.importorskip("fastapi", reason="kitchen-play needs the play extra: pip install .[play]")
+playwright = pytest.importorskip("playwright.sync_api", reason="the browser test needs playwright: pip install .[test]")
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+if CHROMIUM is None:
+    pytest.skip("no Chromium on this machine (Debian: apt-get install chromium)", allow_module_level=True)
+
+import uvicorn  # noqa: E402
+
+from play.game import SCRIPTED, read_record, replay  # noqa: E402
+from play.server import create_app  # noqa: E402
+
+# Headless, and no calls home: this machine's network is closed (see the README).
+FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+         "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+
+
+@pytest.fixture()
+def server(tmp_path):
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    app = create_app(records=tmp_path / "games", tick_ms=60, max_steps=400, runs_root=str(tmp_path / "runs"))
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    while not server.started:
+        time.sleep(0.05)
+    yield f"http://127.0.0.1:{port}", tmp_path / "games"
+    server.should_exit = True
+    thread.join(timeout=10)
+
+
+def test_a_person_plays_with_the_scripted_cook_and_the_record_replays(server, tmp_path):
+    url, records = server
+    with playwright.sync_playwright() as driver:
+        browser = driver.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
+        page = browser.new_page()
+        page.goto(url)
+        page.select_option("#partner", SCRIPTED)
+        page.select_option("#kitchen", "cramped_room_7x7")
+        page.screenshot(path=str(tmp_path / "lobby.png"))
+        page.click("#start")
+        page.wait_for_function("/time left \\d+/.test(document.getElementById('time').textContent)", timeout=60_000)
+        first = page.evaluate("document.getElementById('canvas').toDataURL()")
+        for key in ["ArrowLeft", "ArrowUp", "Space", "KeyD", "KeyS", "KeyE"] * 3:
+            page.keyboard.press(key)
+            time.sleep(0.08)
+        page.wait_for_function("Number(document.getElementById('time').textContent.split(' ').pop()) < 380")
+        assert page.evaluate("document.getElementById('canvas').toDataURL()") != first
+        assert page.text_content("#score").startswith("score ")
+        assert "you hold" in page.text_content("#holding")
+        page.screenshot(path=str(tmp_path / "game.png"))
+        browser.close()  # the tab closes mid-game: the server ends the game and completes its record
+    (record,) = records.glob("*.jsonl")
+    for _ in range(100):
+        header, steps, end = read_record(record)
+        if end is not None:
+            break
+        time.sleep(0.05)
+    assert end is not None and end["reason"] == "disconnected" and len(steps) >= 20
+    assert header["partner"] == SCRIPTED and header["layout_name"] == "cramped_room_7x7"
+    pressed = [step["actions"][0] for step in steps]
+    assert {0, 1, 3, 5} & set(pressed)  # the person's keys reached the kitchen (up, down, left, interact)
+    assert replay(record)["steps"] == len(steps)

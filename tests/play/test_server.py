@@ -1,0 +1,139 @@
+"""The kitchen-play server without a browser: lobby checks, games over WebSockets, records and their replay."""
+
+import json
+
+import pytest
+import torch
+
+pytest.importorskip("fastapi", reason="kitchen-play needs the play extra: pip install .[play]")
+from fastapi import WebSocketDisconnect  # noqa: E402
+from fastapi.testclient import TestClient  # noqa: E402
+
+from play.game import RANDOM, SCRIPTED, load_dataset, read_record, replay  # noqa: E402
+from play.server import create_app, main  # noqa: E402
+from torch_kitchen.models import make_actor_critic  # noqa: E402
+from trainers.checkpoint import model_identity, save_checkpoint  # noqa: E402
+from trainers.config import TrainConfig  # noqa: E402
+
+
+@pytest.fixture()
+def client(tmp_path):
+    app = create_app(records=tmp_path / "games", tick_ms=5, max_steps=30, runs_root=str(tmp_path / "runs"))
+    with TestClient(app) as client:
+        yield client
+
+
+def new_game(client, partner=SCRIPTED, kitchen="cramped_room_7x7", mode="turns", seed=1, seat=0):
+    response = client.post("/api/games", json={"partner": partner, "kitchen": kitchen, "seat": seat, "mode": mode,
+                                               "seed": seed})
+    assert response.status_code == 200, response.json()
+    return response.json()
+
+
+def test_the_lobby_offers_partners_and_kitchens_and_refuses_bad_choices_with_the_reason(client, tmp_path):
+    assert "<canvas" in client.get("/").text
+    options = client.get("/api/options").json()
+    assert {SCRIPTED, RANDOM} <= set(options["partners"])
+    assert {"cramped_room_7x7", "cramped_room", "heldout_042"} <= set(options["kitchens"])
+
+    def refused(**choice):
+        response = client.post("/api/games", json={"partner": SCRIPTED, "kitchen": "cramped_room_7x7", **choice})
+        assert response.status_code == 400
+        return response.json()["detail"]
+
+    assert "unknown kitchen 'nowhere'" in refused(kitchen="nowhere")
+    assert "unknown partner" in refused(partner="runs/none/seed0")
+    assert "seat must be 0 or 1" in refused(seat=2)
+    # A trained team offered from runs/ whose networks were built for 4x5 kitchens cannot play a 7x7 one.
+    run = tmp_path / "runs" / "small" / "seed0"
+    actor_critic = make_actor_critic("mlp", (4, 5, 26), 8, True)
+    save_checkpoint(run / "checkpoints" / "latest.pt", {
+        "config": TrainConfig(levels="cramped_room").to_dict(), "model": model_identity("mlp", (4, 5, 26), 8, True),
+        "actor": actor_critic.actor.state_dict(), "critic": actor_critic.critic.state_dict(),
+    })  # fmt: skip
+    assert str(run) in client.get("/api/options").json()["partners"]
+    assert "cannot play a 7x7 one" in refused(partner=str(run))
+    assert new_game(client, partner=str(run), kitchen="cramped_room")["id"]  # its own size plays
+
+
+def play_turns(client, game, actions):
+    views = []
+    with client.websocket_connect(f"/ws/games/{game['id']}") as socket:
+        views.append(socket.receive_json())
+        for action in actions:
+            socket.send_text(json.dumps({"type": "action", "action": action}))
+            views.append(socket.receive_json())
+        with pytest.raises(WebSocketDisconnect):  # the server closes a finished game
+            socket.receive_json()
+    return views
+
+
+def test_two_games_at_once_stay_isolated_and_each_replays_exactly(client):
+    first = new_game(client, SCRIPTED, "cramped_room_7x7", seed=1)
+    second = new_game(client, RANDOM, "coord_ring_7x7", seed=2, seat=1)
+    with client.websocket_connect(f"/ws/games/{first['id']}") as a, client.websocket_connect(
+            f"/ws/games/{second['id']}") as b:
+        a.receive_json(), b.receive_json()
+        for step in range(6):  # interleaved: each game advances only on its own messages
+            a.send_text(json.dumps({"type": "action", "action": "left"}))
+            assert a.receive_json()["t"] == step + 1
+            if step % 2 == 0:
+                b.send_text(json.dumps({"type": "action", "action": "interact"}))
+                assert b.receive_json()["t"] == step // 2 + 1
+    header_a, steps_a, end_a = read_record(first["record"])
+    header_b, steps_b, end_b = read_record(second["record"])
+    assert (header_a["partner"], header_a["layout_name"], header_a["seat"]) == (SCRIPTED, "cramped_room_7x7", 0)
+    assert (header_b["partner"], header_b["layout_name"], header_b["seat"]) == (RANDOM, "coord_ring_7x7", 1)
+    assert [s["actions"][0] for s in steps_a] == [3] * 6 and [s["actions"][1] for s in steps_b] == [5] * 3
+    assert end_a["reason"] == end_b["reason"] == "disconnected"
+    assert replay(first["record"])["steps"] == 6 and replay(second["record"])["steps"] == 3
+
+
+def test_malformed_messages_are_refused_and_the_game_goes_on(client):
+    game = new_game(client)
+    with client.websocket_connect(f"/ws/games/{game['id']}") as socket:
+        assert socket.receive_json()["t"] == 0
+        for bad in ["not json", json.dumps({"type": "action", "action": "fly"}), json.dumps({"foo": 1})]:
+            socket.send_text(bad)
+            reply = socket.receive_json()
+            assert reply["type"] == "error" and reply["reason"]
+        socket.send_text(json.dumps({"type": "action", "action": "up"}))
+        assert socket.receive_json()["t"] == 1
+    assert [s["t"] for s in read_record(game["record"])[1]] == [1]
+
+
+def test_a_closed_tab_ends_a_real_time_game_with_its_record_complete(client):
+    game = new_game(client, mode="realtime")
+    with client.websocket_connect(f"/ws/games/{game['id']}") as socket:
+        for _ in range(4):
+            view = socket.receive_json()
+        assert view["t"] == 3  # the kitchen ticks without the person: STAY stands in for no key
+    header, steps, end = read_record(game["record"])
+    assert header["mode"] == "realtime" and end is not None and end["steps"] == len(steps) >= 3
+    assert [s["t"] for s in steps] == list(range(1, len(steps) + 1))
+    assert all(s["actions"][0] == 4 for s in steps)  # STAY
+    assert replay(game["record"])["steps"] == len(steps)
+
+
+def test_a_finished_game_replays_through_the_command_and_loads_as_a_dataset(client, tmp_path, capsys):
+    game = new_game(client, seed=5)
+    views = play_turns(client, game, ["up", "interact", "left", "down", "right", "stay"] * 5)
+    assert views[-1]["over"] and views[-1]["time_left"] == 0
+    header, steps, end = read_record(game["record"])
+    assert end["reason"] == "finished" and len(steps) == 30 and header["checkpoint_sha256"] is None
+
+    gif = tmp_path / "game.gif"
+    assert main(["replay", game["record"], "--gif", str(gif)]) == 0 and gif.stat().st_size > 0
+    assert "30 steps replayed exactly" in capsys.readouterr().out
+    lines = (tmp_path / "games" / f"{game['id']}.jsonl").read_text().splitlines()
+    step = json.loads(lines[5])
+    step["positions"][0][0] += 1  # a record that does not match the kitchen
+    lines[5] = json.dumps(step)
+    tampered = tmp_path / "tampered.jsonl"
+    tampered.write_text("\n".join(lines))
+    assert main(["replay", str(tampered)]) == 1
+    assert "step 5 differs" in capsys.readouterr().err
+
+    data = load_dataset([game["record"]])
+    assert data["observation"][0].shape == (30, 2, 7, 7, 26) and data["human_seat"] == [0]
+    assert torch.equal(data["action"][0], torch.tensor([s["actions"] for s in steps]))
