@@ -121,6 +121,7 @@ class Game:
         self.env = with_transforms(self.kitchen, partner.actor_critic.env_transforms())
         torch.manual_seed(seed)
         self.tensordict = self.env.reset()
+        self.kitchen.compile_step()  # here, not in the first tick
         self.t, self.score, self.over = 0, 0, False
         self.started = time.monotonic()
         self.recorder = Recorder(record_path, {

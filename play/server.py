@@ -173,15 +173,18 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
                 await pending.put(None)
 
         receiver = asyncio.create_task(receive())
+        loop = asyncio.get_running_loop()
         try:
             await websocket.send_json(game.view())
+            next_tick = loop.time()
             while not game.over:
                 if mode == "turns":
                     action = await pending.get()
                     if action is None:
                         break
-                else:
-                    await asyncio.sleep(tick_ms / 1000)
+                else:  # ticks on a fixed schedule: the time a step takes does not delay the next one
+                    next_tick += tick_ms / 1000
+                    await asyncio.sleep(max(0.0, next_tick - loop.time()))
                     if receiver.done():
                         break
                     action, latest[0] = latest[0], STAY

@@ -249,6 +249,15 @@ class KitchenEnv(EnvBase):
         self._states, self._deliveries, out = self._step_jax(self._states, self._deliveries, actions)
         return self._to_tensordict(out, with_reward=True)
 
+    def compile_step(self) -> None:
+        """Compiles the step for these kitchens without stepping them (the result is discarded), so that the first
+        real step costs what every step costs: a server ticking several games cannot afford a compilation inside
+        one game's tick. Resets first if the kitchens were never reset."""
+        if self._states is None:
+            self.reset()
+        actions = jax.device_put(jnp.zeros((self.num_envs, 2), jnp.int32), self._jax_device)
+        jax.block_until_ready(self._step_jax(self._states, self._deliveries, actions))
+
     def _set_seed(self, seed: int | Sequence[int] | None) -> None:
         seeds = list(seed) if isinstance(seed, Sequence) else [seed or 0]
         if len(seeds) != self.teams:

@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import torch
+from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.envs.utils import RandomPolicy, check_env_specs
 
@@ -196,3 +197,18 @@ def test_the_jax_key_round_trips_bit_for_bit(tmp_path):
     twin.reset()  # hands out the restored kitchens; from here on the key decides
     observation = ("agents", "observation")
     np.testing.assert_array_equal(twin.reset()[observation].numpy(), env.reset()[observation].numpy())
+
+
+def test_compile_step_compiles_without_stepping_the_kitchens():
+    env = KitchenEnv(2, levels="cramped_room_7x7", seed=1)
+    env.compile_step()  # resets first
+    before = jax.tree_util.tree_map(np.asarray, env.states)
+    env.compile_step()
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(before),
+                                                     jax.tree_util.tree_leaves(env.states)))
+    fresh = KitchenEnv(2, levels="cramped_room_7x7", seed=1)
+    fresh.reset()
+    actions = torch.tensor([[0, 5], [3, 4]])
+    stepped = [e.step(TensorDict({"agents": {"action": actions}}, batch_size=[2]))["next", "agents", "observation"]
+               for e in (env, fresh)]
+    assert torch.equal(stepped[0], stepped[1])
