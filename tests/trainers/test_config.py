@@ -1,12 +1,15 @@
 from pathlib import Path
 
 import pytest
+import yaml
 
 from trainers.config import ConfigError, EvalConfig, TrainConfig, load_config
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
-CONFIGS = sorted(path for path in CONFIG_DIR.rglob("*.yaml") if path.parent.name != "eval")
+PROTOCOL_DIRS = ("reduced", "paper")  # protocols of scripts/reproduce.py: conditions, not one trainer config
+CONFIGS = sorted(path for path in CONFIG_DIR.rglob("*.yaml") if path.parent.name not in ("eval", *PROTOCOL_DIRS))
 EVAL_CONFIGS = sorted((CONFIG_DIR / "eval").glob("*.yaml"))
+PROTOCOLS = sorted(path for name in PROTOCOL_DIRS for path in (CONFIG_DIR / name).glob("*.yaml"))
 
 
 def test_every_shipped_config_loads():
@@ -22,6 +25,20 @@ def test_every_shipped_config_loads():
         names = {load_config(train).name for train in CONFIGS}
         for condition, runs in config.conditions.items():
             assert condition in names and runs == f"runs/{condition}/seed*", (path, condition)
+
+
+def test_every_protocol_names_configs_that_load_with_its_overrides():
+    assert len(PROTOCOLS) == 2
+    for path in PROTOCOLS:
+        protocol = yaml.safe_load(path.read_text())
+        assert protocol["teams"] >= 3, path
+        overrides = [o for o in protocol["overrides"] if not o.startswith("device=")]  # checked where it runs
+        for name, train in protocol["conditions"].items():
+            config = load_config(CONFIG_DIR.parent / train, [*overrides, f"teams={protocol['teams']}"])
+            assert config.name == name, (path, name)
+        for family in protocol["families"].values():
+            members = [family["ik"], *family["sk"]]
+            assert set(members) <= set(protocol["conditions"]) and len(family["sk"]) == 5, path
 
 
 def test_eval_config_values_are_checked():

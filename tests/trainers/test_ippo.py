@@ -67,11 +67,15 @@ def test_the_entry_point_trains_checkpoints_logs_and_evaluates(tmp_path, capsys)
     layouts = ["cramped_room_7x7"]  # the team's home, beside the held-out levels it never trained on
     for group in [*layouts, "held-out (1)"]:
         assert f"| main | {group} |" in table
+    assert "with the scripted cook |" in table  # a partner outside its training, in either seat
     with open(run / "pairs.csv") as handle:
         pairs = list(csv.DictReader(handle))
-    assert [(row["kind"], row["grid"], row["episodes"]) for row in pairs] == [
+    own = [row for row in pairs if row["agent0"] == row["agent1"] == "main/seed0"]
+    assert [(row["kind"], row["grid"], row["episodes"]) for row in own] == [
         ("SP", grid, "2") for grid in [*layouts, "heldout_000"]
     ]
+    assert {(row["agent0"], row["agent1"]) for row in pairs if row["kind"] == "partner"} == {
+        ("main/seed0", "scripted cook"), ("scripted cook", "main/seed0")}
     with Image.open(run / "team.gif") as gif:
         assert gif.n_frames > 1
     with Image.open(run / "learning_curve.png") as curve:
