@@ -29,7 +29,7 @@ from jax_env.layouts import (
     parse_layout,
     save_layout,
 )
-from jax_env.observation import get_obs
+from jax_env.observation import Channel, get_obs
 from jax_env.solvability import classify_layout, classify_levels, is_solvable
 from jax_env.state import (
     DISH,

@@ -15,17 +15,32 @@ from jax_env.layouts import COUNTER, FLOOR, GOAL, NUM_CELL_KINDS, ONION_PILE, PL
 from jax_env.state import DISH, EMPTY, ONION, PLATE, POT_EMPTY, POT_FULL, POT_READY, State
 
 NUM_CHANNELS = 26
+
+
+class Channel:
+    """The observation's channels by name (JaxMARL Overcooked v1); agent i's view has its own layers first."""
+
+    SELF, PARTNER = 0, 1  # where the observing agent and its partner stand
+    SELF_FACING, PARTNER_FACING = 2, 6  # + direction (NORTH, SOUTH, EAST, WEST): the way each faces
+    POT, EMPTY_COUNTER, ONION_PILE, PLATE_PILE, GOAL = 10, 11, 12, 14, 15
+    ONIONS_IN_POT = 16  # 0-3 while a pot fills
+    COOKING_OR_SOUP = 18  # 3 on a cooking or ready pot, and under a soup anywhere
+    COOK_TIME = 20  # a cooking pot's steps left
+    SOUP = 21  # a ready pot, or a soup lying or carried
+    PLATE, ONION = 22, 23  # an item lying on a counter or held by the agent standing there
+    URGENCY = 25  # fewer than URGENCY_STEPS steps left
+
 URGENCY_STEPS = 40  # the urgency layer switches on when fewer steps than this remain
 _NUM_VALUES = POT_EMPTY + 1  # a cell's value: an item (0..3) or a pot status (0..23)
 
 
 def _item_channels(features: np.ndarray, item: int) -> None:
     if item == ONION:
-        features[23] = 1
+        features[Channel.ONION] = 1
     elif item == PLATE:
-        features[22] = 1
+        features[Channel.PLATE] = 1
     elif item == DISH:
-        features[18], features[21] = 3, 1
+        features[Channel.COOKING_OR_SOUP], features[Channel.SOUP] = 3, 1
 
 
 def _cell_table() -> np.ndarray:
@@ -35,16 +50,16 @@ def _cell_table() -> np.ndarray:
         if value <= DISH:
             _item_channels(table[FLOOR, value], value)  # an agent holding it stands here
             _item_channels(table[COUNTER, value], value)
-        table[COUNTER, value, 11] = value == EMPTY  # only empty counters
-        table[ONION_PILE, value, 12] = 1
-        table[PLATE_PILE, value, 14] = 1
-        table[GOAL, value, 15] = 1
+        table[COUNTER, value, Channel.EMPTY_COUNTER] = value == EMPTY  # only empty counters
+        table[ONION_PILE, value, Channel.ONION_PILE] = 1
+        table[PLATE_PILE, value, Channel.PLATE_PILE] = 1
+        table[GOAL, value, Channel.GOAL] = 1
         pot = table[POT, value]
-        pot[10] = 1
+        pot[Channel.POT] = 1
         if value >= POT_FULL:  # filling, not cooking yet
-            pot[16] = min(POT_EMPTY - value, 3)
+            pot[Channel.ONIONS_IN_POT] = min(POT_EMPTY - value, 3)
         else:  # cooking or ready
-            pot[18], pot[20], pot[21] = 3, value, value == POT_READY
+            pot[Channel.COOKING_OR_SOUP], pot[Channel.COOK_TIME], pot[Channel.SOUP] = 3, value, value == POT_READY
     return table.reshape(NUM_CELL_KINDS * _NUM_VALUES, NUM_CHANNELS)
 
 
@@ -52,8 +67,8 @@ def _agent_table() -> np.ndarray:
     """uint8 (9, 26): channels 0-9 of a cell; 0 no agent, 1 + d self facing d, 5 + d other facing d."""
     table = np.zeros((9, NUM_CHANNELS), dtype=np.uint8)
     for d in range(4):
-        table[1 + d, 0] = table[1 + d, 2 + d] = 1
-        table[5 + d, 1] = table[5 + d, 6 + d] = 1
+        table[1 + d, Channel.SELF] = table[1 + d, Channel.SELF_FACING + d] = 1
+        table[5 + d, Channel.PARTNER] = table[5 + d, Channel.PARTNER_FACING + d] = 1
     return table
 
 
@@ -79,6 +94,6 @@ def get_obs(state: State, max_steps: int) -> jax.Array:
     agents = jnp.asarray(AGENT_TABLE)[self_code + other_code]  # (2, HW, 26)
 
     urgent = (max_steps - state.step) < URGENCY_STEPS
-    urgency = jnp.zeros(NUM_CHANNELS, jnp.uint8).at[25].set(urgent.astype(jnp.uint8))
+    urgency = jnp.zeros(NUM_CHANNELS, jnp.uint8).at[Channel.URGENCY].set(urgent.astype(jnp.uint8))
     obs = agents + shared[None] + urgency
     return obs.reshape(2, height, width, NUM_CHANNELS)

@@ -26,6 +26,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import torch
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
@@ -157,8 +158,7 @@ class Game:
         return self.view()
 
     def positions(self) -> list[list[int]]:
-        position = np.asarray(self.kitchen.states.agent_pos[0])
-        return [[int(p % self.layout.width), int(p // self.layout.width)] for p in position]
+        return agent_cells(self.kitchen)
 
     def view(self) -> dict:
         """What the page draws: the cells, their contents, the cooks, the score and the time left."""
@@ -192,24 +192,38 @@ def read_record(path: str | Path) -> tuple[dict, list[dict], dict | None]:
     return lines[0], steps, (ends[0] if ends else None)
 
 
+def agent_cells(kitchen: KitchenEnv) -> list[list[int]]:
+    """[[x, y] of agent 0, [x, y] of agent 1] in the first kitchen of `kitchen`."""
+    width = kitchen.kitchen.width
+    return [[int(p % width), int(p // width)] for p in np.asarray(kitchen.states.agent_pos[0])]
+
+
+def recorded_kitchen(header: dict) -> tuple[KitchenEnv, TensorDictBase]:
+    """The kitchen a record's game was played in, reset as the game started (its layout, seed and length)."""
+    layout = parse_layout(header["layout"], name=header["layout_name"])
+    kitchen = KitchenEnv(1, levels=layout, max_steps=header["max_steps"], seed=header["seed"])
+    return kitchen, kitchen.reset()
+
+
+def take_actions(kitchen: KitchenEnv, tensordict: TensorDictBase, actions: list[int]) -> TensorDictBase:
+    """One recorded step: both agents' `actions` from `tensordict`; returns the tensordict of the next step."""
+    tensordict.set(("agents", "action"), torch.tensor([actions]))
+    return step_mdp(kitchen.step(tensordict))
+
+
 def replay(path: str | Path, gif: str | Path | None = None) -> dict:
     """Replays a record through the JAX env: every step's positions and score must match. Returns a summary;
     raises ValueError at the first step that differs. `gif`: also write the game as an animated GIF."""
     header, steps, end = read_record(path)
-    layout = parse_layout(header["layout"], name=header["layout_name"])
-    kitchen = KitchenEnv(1, levels=layout, max_steps=header["max_steps"], seed=header["seed"])
-    td = kitchen.reset()
+    kitchen, td = recorded_kitchen(header)
     frames = [jax.tree_util.tree_map(lambda leaf: leaf[0], kitchen.states)]
     score = 0
     for line in steps:
-        td.set(("agents", "action"), torch.tensor([line["actions"]]))
-        td = step_mdp(kitchen.step(td))
+        td = take_actions(kitchen, td, line["actions"])
         score += int(td["deliveries"][0, 0])
-        positions = np.asarray(kitchen.states.agent_pos[0])
-        replayed = [[int(p % layout.width), int(p // layout.width)] for p in positions]
-        if replayed != line["positions"] or score != line["score"]:
+        if agent_cells(kitchen) != line["positions"] or score != line["score"]:
             raise ValueError(f"{path}: step {line['t']} differs: recorded positions {line['positions']} score "
-                             f"{line['score']}, replayed {replayed} score {score}")
+                             f"{line['score']}, replayed {agent_cells(kitchen)} score {score}")
         frames.append(jax.tree_util.tree_map(lambda leaf: leaf[0], kitchen.states))
     if gif is not None:
         from jax_env.render import write_gif
@@ -218,23 +232,20 @@ def replay(path: str | Path, gif: str | Path | None = None) -> dict:
     return {"steps": len(steps), "score": score, "ended": end["reason"] if end else None}
 
 
-def load_dataset(paths) -> dict[str, list[torch.Tensor]]:
+def load_dataset(paths) -> dict[str, list]:
     """Records -> {"observation": [uint8 [T, 2, H, W, 26] per game], "action": [int64 [T, 2] per game],
     "human_seat": [int per game]}: each step's observation of both seats and the actions taken from it."""
     data = {"observation": [], "action": [], "human_seat": []}
     for path in paths:
         header, steps, _ = read_record(path)
-        layout = parse_layout(header["layout"], name=header["layout_name"])
-        kitchen = KitchenEnv(1, levels=layout, max_steps=header["max_steps"], seed=header["seed"])
-        td = kitchen.reset()
-        observations, actions = [], []
+        kitchen, td = recorded_kitchen(header)
+        observations = []
         for line in steps:
             observations.append(td["agents", "observation"][0])
-            actions.append(torch.tensor(line["actions"]))
-            td.set(("agents", "action"), torch.tensor([line["actions"]]))
-            td = step_mdp(kitchen.step(td))
-        data["observation"].append(torch.stack(observations) if observations else torch.empty(0))
-        data["action"].append(torch.stack(actions) if actions else torch.empty(0, 2, dtype=torch.int64))
+            td = take_actions(kitchen, td, line["actions"])
+        height, width = kitchen.kitchen.obs_shape[:2]
+        empty = torch.empty(0, 2, height, width, kitchen.kitchen.obs_shape[2], dtype=torch.uint8)
+        data["observation"].append(torch.stack(observations) if observations else empty)
+        data["action"].append(torch.tensor([line["actions"] for line in steps], dtype=torch.int64).reshape(-1, 2))
         data["human_seat"].append(header["seat"])
     return data
-

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import functools
 import glob
 import itertools
 import json
@@ -73,15 +74,20 @@ def kitchen_names(level_files: list[str]) -> list[str]:
     return [*level_files, *EXPANDED_LAYOUTS, *CLASSIC_LAYOUTS, GENERATED, *(f"heldout_{i:03d}" for i in range(100))]
 
 
+@functools.cache
+def heldout_layouts() -> dict[str, Layout]:
+    """The 100 held-out levels as layouts by name, built once (not at every game)."""
+    return {grid.name: grid for grid in evaluation_grids([], 100)}
+
+
 def make_kitchen(name: str, level_files: list[str], seed: int) -> Layout:
     """The layout of a lobby choice; ValueError naming the choices otherwise."""
     if name == GENERATED:
         level = sample_training_level(jax.random.PRNGKey(seed), GeneratorConfig(), heldout_grids())
         return layout_from_state(level, name=f"generated_{seed}")
     if name.startswith("heldout_"):
-        grids = {grid.name: grid for grid in evaluation_grids([], 100)}
-        if name in grids:
-            return grids[name]
+        if name in heldout_layouts():
+            return heldout_layouts()[name]
     elif name in kitchen_names(level_files):
         return load_layout(name)
     raise ValueError(f"unknown kitchen {name!r}: choose a layout name ({', '.join(EXPANDED_LAYOUTS)}, ...), "

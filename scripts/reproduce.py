@@ -1,9 +1,9 @@
 """The paper's experiment as one command: train every condition of a protocol, evaluate the whole grid, write
 RESULTS.md with the numbers beside the paper's claims.
 
-    python scripts/reproduce.py configs/reduced/protocol.yaml               # about an hour on a 2-core CPU
-    python scripts/reproduce.py configs/paper/full.yaml device=cuda         # the paper's budget
-    python scripts/reproduce.py configs/reduced/protocol.yaml --out results/reduced --results RESULTS.md
+    python scripts/reproduce.py configs/protocols/reduced.yaml      # 80+ min of training on a 2-core CPU
+    python scripts/reproduce.py configs/protocols/paper.yaml        # the paper's budget, on a GPU
+    python scripts/reproduce.py configs/protocols/reduced.yaml --out results/reduced --results RESULTS.md
 
 A protocol file names the conditions (a trainer config each), the overrides they share, the seeds trained
 together per condition (`teams`), the families compared (an IK condition and the SK conditions of the same
@@ -91,7 +91,7 @@ def claims(summary: dict, family: str, ik: str, sk: dict[str, str]) -> list[str]
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("protocol", help="a protocol file (configs/reduced/protocol.yaml, configs/paper/full.yaml)")
+    parser.add_argument("protocol", help="a protocol file (configs/protocols/reduced.yaml or paper.yaml)")
     parser.add_argument("overrides", nargs="*", help="key=value overrides for every condition")
     parser.add_argument("--out", default="results/reduced", help="runs and evaluation go here")
     parser.add_argument("--results", default="RESULTS.md", help="the report to write")
@@ -111,7 +111,8 @@ def main(argv=None) -> int:
         print(f"== {name}: {teams} teams, {path} {' '.join(overrides)}", flush=True)
         seconds[name] = train_condition(name, path, overrides, teams, out / "runs")
     evaluation = protocol.get("evaluation", {})
-    device = load_config(next(iter(conditions.values())), overrides).device
+    shared = load_config(next(iter(conditions.values())), overrides)  # what every condition shares: budget, device
+    device = shared.device
     eval_config = EvalConfig(
         conditions={name: str(out / "runs" / name / "seed*") for name in conditions},
         cross=[[ik, name] for ik, sk in families.values() for name in sk.values()],
@@ -126,7 +127,6 @@ def main(argv=None) -> int:
     total = time.perf_counter() - started
 
     summary = read_summary(out / "eval" / "summary.csv")
-    budget = load_config(next(iter(conditions.values())), overrides)
     figures = Path(args.results).parent / "docs" / "results"
     figures.mkdir(parents=True, exist_ok=True)
     pictures = []
@@ -142,9 +142,9 @@ def main(argv=None) -> int:
         "",
         f"Written by `{command}` (protocol `{args.protocol}`). Every number below was measured by that run.",
         "",
-        f"- **Budget:** {budget.total_steps:,} env steps per team ({budget.num_updates} updates of "
-        f"{budget.num_envs} kitchens x {budget.rollout_steps} steps), {teams} teams (seeds "
-        f"{budget.seed}..{budget.seed + teams - 1}) per condition; the paper trains 2e9 steps per team, 6 seeds.",
+        f"- **Budget:** {shared.total_steps:,} env steps per team ({shared.num_updates} updates of "
+        f"{shared.num_envs} kitchens x {shared.rollout_steps} steps), {teams} teams (seeds "
+        f"{shared.seed}..{shared.seed + teams - 1}) per condition; the paper trains 2e9 steps per team, 6 seeds.",
         f"- **Shared overrides:** `{' '.join(overrides)}`.",
         f"- **Machine:** {machine}. **Wall time:** {total / 60:.0f} min in all; "
         + ", ".join(f"{name} {s / 60:.1f} min" for name, s in seconds.items()) + ".",

@@ -12,15 +12,13 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from jax_env import INTERACT, STAY, parse_layout
+from jax_env import INTERACT, STAY, Channel, parse_layout
 from jax_env.state import DIR_VECTORS
 from torch_kitchen.models import ActorCritic, register_architecture, sampling_actor
 from trainers.checkpoint import model_identity, save_checkpoint
 from trainers.config import TrainConfig
 
 TWO_BOOTHS = parse_layout("WPWPW\nO0B1O\nWXWXW", name="two_booths")
-POT, GOAL, ONION_PILE, PLATE_PILE = 10, 15, 12, 14  # observation channels
-ONIONS_IN_POT, COOKING_OR_READY, READY_SOUP, PLATE, ONION = 16, 18, 21, 22, 23
 
 
 class ScriptedCook(nn.Module):
@@ -32,7 +30,7 @@ class ScriptedCook(nn.Module):
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         obs = observation.float()
-        me = obs[..., 0]  # [..., 2, H, W]: where each seat's agent stands
+        me = obs[..., Channel.SELF]  # [..., 2, H, W]: where each seat's agent stands
 
         def here(channel):
             return (obs[..., channel] * me).sum((-2, -1))
@@ -43,15 +41,17 @@ class ScriptedCook(nn.Module):
         def beside(channel):
             return (obs[..., channel].unsqueeze(-3) * around).sum((-2, -1))  # [..., 2, 4]
 
-        facing = (obs[..., 2:6] * me.unsqueeze(-1)).sum((-3, -2)).argmax(-1)
-        pot_onions = (beside(ONIONS_IN_POT) * beside(POT)).sum(-1)
-        pot_busy = (beside(COOKING_OR_READY) * beside(POT)).sum(-1) > 0
-        pot_ready = (beside(READY_SOUP) * beside(POT)).sum(-1) > 0
-        holding_soup, holding_plate, holding_onion = here(READY_SOUP) > 0, here(PLATE) > 0, here(ONION) > 0
+        facing = (obs[..., Channel.SELF_FACING:Channel.SELF_FACING + 4] * me.unsqueeze(-1)).sum((-3, -2)).argmax(-1)
+        pot_onions = (beside(Channel.ONIONS_IN_POT) * beside(Channel.POT)).sum(-1)
+        pot_busy = (beside(Channel.COOKING_OR_SOUP) * beside(Channel.POT)).sum(-1) > 0
+        pot_ready = (beside(Channel.SOUP) * beside(Channel.POT)).sum(-1) > 0
+        holding_soup, holding_plate = here(Channel.SOUP) > 0, here(Channel.PLATE) > 0
+        holding_onion = here(Channel.ONION) > 0
 
         needs_onion = (pot_onions < 3) & ~pot_busy
         # Which of the tiles (goal, pot, onion pile, plate pile) to face next, and where it lies.
-        tiles = torch.stack([beside(c) for c in (GOAL, POT, ONION_PILE, PLATE_PILE)], dim=-1)  # [..., 2, 4 dirs, 4]
+        tiles = torch.stack([beside(c) for c in (Channel.GOAL, Channel.POT, Channel.ONION_PILE, Channel.PLATE_PILE)],
+                            dim=-1)  # [..., 2, 4 dirs, 4]
         wanted = torch.where(
             holding_soup, 0, torch.where(holding_onion | holding_plate, 1, torch.where(needs_onion, 2, 3))
         )

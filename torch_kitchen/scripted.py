@@ -24,14 +24,9 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from jax_env import INTERACT, NUM_ACTIONS, STAY
+from jax_env import INTERACT, NUM_ACTIONS, STAY, Channel
 from jax_env.state import DIR_VECTORS
 from torch_kitchen.models import ActorCritic, register_architecture, sampling_actor
-
-# Observation channels (jax_env.observation).
-ME, PARTNER, FACING = 0, 1, slice(2, 6)
-POT, EMPTY_COUNTER, ONION_PILE, PLATE_PILE, GOAL = 10, 11, 12, 14, 15
-ONIONS_IN_POT, COOKING_OR_DONE, SOUP, PLATE, ONION = 16, 18, 21, 22, 23
 
 UNREACHABLE = 1e4  # a distance longer than any path in a kitchen
 
@@ -70,29 +65,32 @@ class ScriptedCook(nn.Module):
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         batch_shape = observation.shape[:-3]
         obs = observation.reshape(-1, *observation.shape[-3:]).float()  # [N, H, W, C]: one seat's view each
-        me, partner = obs[..., ME] > 0, obs[..., PARTNER] > 0
-        channel = {c: obs[..., c] > 0 for c in (POT, EMPTY_COUNTER, ONION_PILE, PLATE_PILE, GOAL, SOUP, PLATE,
-                                                ONION, COOKING_OR_DONE)}
+        present = obs > 0  # [N, H, W, C]
+
+        def channel(c):
+            return present[..., c]
+
+        me, partner = channel(Channel.SELF), channel(Channel.PARTNER)
         loose = ~(me | partner)  # items on cells where no cook stands lie on counters
-        pot = channel[POT]
-        ready_pot = pot & channel[SOUP]
-        cooking_pot = pot & channel[COOKING_OR_DONE]
-        open_pot = pot & ~channel[COOKING_OR_DONE] & (obs[..., ONIONS_IN_POT] < 3)
-        soup_on_counter = channel[SOUP] & ~pot & loose
-        plates = channel[PLATE_PILE] | (channel[PLATE] & loose)
-        onions = channel[ONION_PILE] | (channel[ONION] & loose)
-        counter = channel[EMPTY_COUNTER]
-        blocked = pot | counter | channel[ONION_PILE] | channel[PLATE_PILE] | channel[GOAL] | (
-            (channel[SOUP] | channel[PLATE] | channel[ONION]) & loose)
+        pot = channel(Channel.POT)
+        ready_pot = pot & channel(Channel.SOUP)
+        cooking_pot = pot & channel(Channel.COOKING_OR_SOUP)
+        open_pot = pot & ~channel(Channel.COOKING_OR_SOUP) & (obs[..., Channel.ONIONS_IN_POT] < 3)
+        soup_on_counter = channel(Channel.SOUP) & ~pot & loose
+        plates = channel(Channel.PLATE_PILE) | (channel(Channel.PLATE) & loose)
+        onions = channel(Channel.ONION_PILE) | (channel(Channel.ONION) & loose)
+        counter = channel(Channel.EMPTY_COUNTER)
+        blocked = pot | counter | channel(Channel.ONION_PILE) | channel(Channel.PLATE_PILE) | channel(Channel.GOAL) | (
+            (channel(Channel.SOUP) | channel(Channel.PLATE) | channel(Channel.ONION)) & loose)
         walkable = ~blocked  # the partner moves: it counts only where it is in the way
         # Hand-overs go on counters the partner can reach.
         partner_side = partner | (distance_to(partner, walkable) < UNREACHABLE)
         handover = counter & _neighbours(partner_side.float(), 0.0).amax(1).bool()
 
         def held(item):
-            return (channel[item] & me).flatten(1).any(1)
+            return (channel(item) & me).flatten(1).any(1)
 
-        partner_has_plate = ((channel[PLATE] | channel[SOUP]) & partner).flatten(1).any(1)
+        partner_has_plate = ((channel(Channel.PLATE) | channel(Channel.SOUP)) & partner).flatten(1).any(1)
         plate_wanted = cooking_pot.flatten(1).any(1) & ~partner_has_plate
         onion_wanted = open_pot.flatten(1).any(1)
         nothing = torch.zeros_like(pot)
@@ -101,10 +99,10 @@ class ScriptedCook(nn.Module):
             return torch.where(condition[:, None, None], targets, nothing)
 
         # Goals in order of preference, by what the cook holds; the first reachable one is chosen.
-        holding_soup, holding_onion, holding_plate = held(SOUP), held(ONION), held(PLATE)
+        holding_soup, holding_onion, holding_plate = held(Channel.SOUP), held(Channel.ONION), held(Channel.PLATE)
         empty = ~(holding_soup | holding_onion | holding_plate)
         goals = [
-            (when(holding_soup, channel[GOAL]), INTERACT),
+            (when(holding_soup, channel(Channel.GOAL)), INTERACT),
             (when(holding_onion, open_pot), INTERACT),
             (when(holding_plate, ready_pot), INTERACT),
             (when(holding_plate, cooking_pot & ~ready_pot), STAY),  # wait beside it until it is done
@@ -134,7 +132,7 @@ class ScriptedCook(nn.Module):
             return downhill.float().argmax(1), (here[:, 0] < UNREACHABLE) & downhill.any(1)
 
         tile = around_me(goal.float(), 0.0).argmax(1)  # where the goal's tile lies, once beside it
-        facing = (obs[..., FACING] * me[..., None]).sum((1, 2)).argmax(1)
+        facing = (obs[..., Channel.SELF_FACING:Channel.SELF_FACING + 4] * me[..., None]).sum((1, 2)).argmax(1)
         arrived = reachable.any(1) & (my_distance.gather(1, choice[:, None])[:, 0] == 0)
         step, _ = next_step(goal_distance)
         action = torch.where(arrived, torch.where(facing == tile, on_arrival, tile), step)

@@ -14,6 +14,8 @@ from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
+from jax_env import Channel
+
 
 def make_collector(env: EnvBase, policy, frames_per_batch: int, total_frames: int = -1) -> Collector:
     """A synchronous collector that samples actions from `policy` (ExplorationType.RANDOM).
@@ -59,7 +61,7 @@ def play_episodes(env: EnvBase, policy, max_steps: int, max_frames: int = 1 << 1
     deliveries, visits = None, None
     try:
         for batch in collector:
-            position = batch["agents", "observation"][..., 0].sum(1, dtype=torch.float32)  # channel 0: own cell
+            position = batch["agents", "observation"][..., Channel.SELF].sum(1, dtype=torch.float32)
             visits = position if visits is None else visits + position
             done = batch["next", "done"].squeeze(-1)
             if deliveries is None:

@@ -6,10 +6,10 @@ import yaml
 from trainers.config import ConfigError, EvalConfig, TrainConfig, load_config
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
-PROTOCOL_DIRS = ("reduced", "paper")  # protocols of scripts/reproduce.py: conditions, not one trainer config
-CONFIGS = sorted(path for path in CONFIG_DIR.rglob("*.yaml") if path.parent.name not in ("eval", *PROTOCOL_DIRS))
+# configs/eval: kitchen-eval's configs; configs/protocols: scripts/reproduce.py's (conditions, not one trainer config)
+CONFIGS = sorted(path for path in CONFIG_DIR.rglob("*.yaml") if path.parent.name not in ("eval", "protocols"))
 EVAL_CONFIGS = sorted((CONFIG_DIR / "eval").glob("*.yaml"))
-PROTOCOLS = sorted(path for name in PROTOCOL_DIRS for path in (CONFIG_DIR / name).glob("*.yaml"))
+PROTOCOLS = sorted((CONFIG_DIR / "protocols").glob("*.yaml"))
 
 
 def test_every_shipped_config_loads():
