@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
 import platform
 import socket
 import statistics
@@ -92,7 +93,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     tick = args.tick_ms / 1000
-    print(f"{platform.processor() or platform.machine()}, torch threads 1, tick {args.tick_ms} ms, kitchen {KITCHEN}")
+    print(f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads 1, tick {args.tick_ms} ms, kitchen {KITCHEN}")
     with tempfile.TemporaryDirectory() as scratch:
         scratch = Path(scratch)
         runs = {architecture: save_team(scratch / "runs" / architecture / "seed0", architecture)
@@ -104,7 +105,8 @@ def main(argv=None) -> None:
         import uvicorn
 
         server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-        threading.Thread(target=server.run, daemon=True).start()
+        serving = threading.Thread(target=server.run)
+        serving.start()
         while not server.started:
             time.sleep(0.05)
         print(f"{'partner':>8s} {'tick p50 ms':>12s} {'tick p95 ms':>12s} {'games/core':>11s} {'games':>6s} "
@@ -118,7 +120,8 @@ def main(argv=None) -> None:
                 mean, late = statistics.mean(intervals), intervals[int(0.95 * len(intervals))]
                 print(f"{architecture:>8s} {p50 * 1e3:12.2f} {p95 * 1e3:12.2f} {capacity:11d} {games:6d} "
                       f"{mean * 1e3:17.1f} {late * 1e3:16.1f}", flush=True)
-        server.should_exit = True
+        server.should_exit = True  # and wait for it: a thread still serving at exit aborts the interpreter
+        serving.join()
 
 
 if __name__ == "__main__":
