@@ -1,0 +1,43 @@
+"""A game's partner keeps its memory between ticks: an LSTM team's state and an E3T team's partner context."""
+
+import torch
+
+from jax_env import load_layout
+from play.game import Game, Partner, read_record, replay
+from torch_kitchen.models import make_actor_critic, recurrent_states
+from torch_kitchen.partner import CONTEXT_ACTION
+
+PERSON = [1, 2, 3, 4, 5, 0, 1, 2, 4, 4]  # the person's keys, seat 0
+
+
+def play(tmp_path, architecture: str) -> tuple[Game, torch.nn.Module]:
+    actor_critic = make_actor_critic(architecture, (7, 7, 26), 16, True)
+    partner = Partner(architecture, actor_critic, (7, 7, 26))
+    game = Game(load_layout("cramped_room_7x7"), partner, 0, tmp_path / "game.jsonl", seed=3, max_steps=30)
+    for action in PERSON:
+        game.step(action)
+    return game, actor_critic
+
+
+def test_an_lstm_partner_acts_from_the_state_carried_through_the_game(tmp_path):
+    game, actor_critic = play(tmp_path, "mlp_lstm")
+    carried = game.tensordict
+    states = recurrent_states(actor_critic.actor)
+    assert states and all(carried["agents", name][0, 1].abs().sum() > 0 for name in states)
+    fresh = carried.clone()
+    for name in states:
+        fresh["agents", name].zero_()
+    with torch.no_grad():
+        assert not torch.allclose(actor_critic.actor(carried.clone())["agents", "logits"][0, 1],
+                                  actor_critic.actor(fresh)["agents", "logits"][0, 1])
+    assert replay(tmp_path / "game.jsonl")["steps"] == len(PERSON)
+
+
+def test_an_e3t_partner_reads_the_persons_last_actions_as_its_context(tmp_path):
+    game, _ = play(tmp_path, "e3t_mlp")
+    _, steps, _ = read_record(tmp_path / "game.jsonl")
+    context = game.tensordict[CONTEXT_ACTION][0]  # [2, k]: agent i's context holds agent 1 - i's actions
+    length = context.shape[-1]
+    assert context[1].tolist() == PERSON[-length:]
+    assert context[0].tolist() == [line["actions"][1] for line in steps][-length:]
+    assert replay(tmp_path / "game.jsonl")["steps"] == len(PERSON)
