@@ -44,18 +44,33 @@ def _neighbours(grid: torch.Tensor, fill: float) -> torch.Tensor:
     return torch.stack([_neighbour(grid, direction, fill) for direction in range(4)], dim=1)
 
 
-def distance_to(targets: torch.Tensor, walkable: torch.Tensor) -> torch.Tensor:
-    """float [N, H, W]: steps from each walkable cell to the nearest walkable cell beside a target tile
-    (`UNREACHABLE` where none can be reached); targets, walkable: bool [N, H, W]."""
-    beside = walkable & _neighbours(targets.float(), 0.0).amax(1).bool()
-    distance = torch.where(beside, 0.0, UNREACHABLE)
+def _beside(targets: torch.Tensor) -> torch.Tensor:
+    """bool [..., H, W]: the cells with a target among their four neighbours."""
+    height, width = targets.shape[-2:]
+    padded = nn.functional.pad(targets, (1, 1, 1, 1))
+    return (padded[..., :-2, 1:-1] | padded[..., 2:, 1:-1]) | (padded[..., 1:-1, :-2] | padded[..., 1:-1, 2:])
+
+
+def distance_from(sources: torch.Tensor, walkable: torch.Tensor) -> torch.Tensor:
+    """float [N, H, W]: steps over walkable cells from the nearest walkable source cell (`UNREACHABLE` where
+    none can be reached); sources, walkable: bool [N, H, W]. A breadth-first wave, one step per iteration."""
+    distance = torch.where(sources & walkable, 0.0, UNREACHABLE)
+    blocked = ~walkable
     for _ in range(walkable.shape[-1] * walkable.shape[-2]):
-        closer = _neighbours(distance, UNREACHABLE).amin(1) + 1
-        updated = torch.where(walkable, torch.minimum(distance, closer), UNREACHABLE)
+        padded = nn.functional.pad(distance, (1, 1, 1, 1), value=UNREACHABLE)
+        closer = torch.minimum(torch.minimum(padded[:, :-2, 1:-1], padded[:, 2:, 1:-1]),
+                               torch.minimum(padded[:, 1:-1, :-2], padded[:, 1:-1, 2:])) + 1
+        updated = torch.minimum(distance, closer).masked_fill_(blocked, UNREACHABLE)
         if torch.equal(updated, distance):
             break
         distance = updated
     return distance
+
+
+def distance_to(targets: torch.Tensor, walkable: torch.Tensor) -> torch.Tensor:
+    """float [N, H, W]: steps from each walkable cell to the nearest walkable cell beside a target tile
+    (`UNREACHABLE` where none can be reached); targets, walkable: bool [N, H, W]."""
+    return distance_from(walkable & _beside(targets), walkable)
 
 
 class ScriptedCook(nn.Module):
@@ -85,7 +100,7 @@ class ScriptedCook(nn.Module):
         walkable = ~blocked  # the partner moves: it counts only where it is in the way
         # Hand-overs go on counters the partner can reach.
         partner_side = partner | (distance_to(partner, walkable) < UNREACHABLE)
-        handover = counter & _neighbours(partner_side.float(), 0.0).amax(1).bool()
+        handover = counter & _beside(partner_side)
 
         def held(item):
             return (channel(item) & me).flatten(1).any(1)
@@ -114,13 +129,15 @@ class ScriptedCook(nn.Module):
             (when(empty, onions), INTERACT),
         ]
         targets = torch.stack([targets for targets, _ in goals], dim=1)  # [N, K, H, W]
-        n, k = targets.shape[:2]
-        distance = distance_to(targets.flatten(0, 1), walkable.repeat_interleave(k, 0)).view(n, k, *pot.shape[1:])
-        my_distance = (distance * me[:, None]).sum((-2, -1))  # [N, K]
-        reachable = my_distance < UNREACHABLE
+        n = targets.shape[0]
+        # A goal is reachable where a walkable cell beside its tiles is: one wave from the cook serves all goals.
+        ends = walkable[:, None] & _beside(targets)  # [N, K, H, W]
+        reached = distance_from(me, walkable) < UNREACHABLE
+        reachable = (ends & reached[:, None]).flatten(2).any(2)  # [N, K]
         choice = reachable.float().argmax(1)  # the first reachable goal
         pick = choice[:, None, None, None].expand(n, 1, *pot.shape[1:])
-        goal, goal_distance = targets.gather(1, pick)[:, 0], distance.gather(1, pick)[:, 0]
+        goal = targets.gather(1, pick)[:, 0]
+        goal_distance = distance_from(ends.gather(1, pick)[:, 0], walkable)
         on_arrival = torch.tensor([action for _, action in goals], device=observation.device)[choice]
 
         def around_me(grid, fill):  # [N, 4]: the four cells around each cook, in the order of the moves
@@ -133,13 +150,13 @@ class ScriptedCook(nn.Module):
 
         tile = around_me(goal.float(), 0.0).argmax(1)  # where the goal's tile lies, once beside it
         facing = (obs[..., Channel.SELF_FACING:Channel.SELF_FACING + 4] * me[..., None]).sum((1, 2)).argmax(1)
-        arrived = reachable.any(1) & (my_distance.gather(1, choice[:, None])[:, 0] == 0)
+        arrived = reachable.any(1) & (goal_distance * me).sum((-2, -1)).eq(0)
         step, _ = next_step(goal_distance)
         action = torch.where(arrived, torch.where(facing == tile, on_arrival, tile), step)
         # The partner in the way: half the time a way around it (if any), half the time wait for it to move; where
         # both may step into one cell (the step fails for both), half the time step, half the time wait.
         ahead = around_me(partner.float(), 0.0).gather(1, step[:, None])[:, 0] > 0
-        near_partner = partner | _neighbours(partner.float(), 0.0).amax(1).bool()
+        near_partner = partner | _beside(partner)
         contested = ~arrived & ~ahead & (around_me(near_partner.float(), 0.0).gather(1, step[:, None])[:, 0] > 0)
         blocked = ~arrived & ahead
         detour, has_detour = next_step(distance_to(goal, walkable & ~partner))
