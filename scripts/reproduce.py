@@ -37,11 +37,10 @@ from trainers.ippo import team_configs, train_teams
 HELDOUT = "held-out"
 
 
-def train_condition(name: str, path: str, overrides: list[str], teams: int, runs: Path) -> float:
-    """Trains (or resumes, or skips) one condition's teams together; returns the wall seconds it took here."""
+def train_condition(name: str, path: str, overrides: list[str], teams: int, runs: Path) -> None:
+    """Trains (or resumes, or skips) one condition's teams together."""
     config = load_config(path, [*overrides, f"name={name}", f"teams={teams}", f"run_dir={runs}"])
     configs = team_configs(config)
-    started = time.perf_counter()
     partly = [(c.run_path / "checkpoints" / "latest.pt").exists() for c in configs]
     if all(partly):
         train_teams(configs, resume=True)  # says so and returns at once if they are already trained
@@ -49,7 +48,18 @@ def train_condition(name: str, path: str, overrides: list[str], teams: int, runs
         for c in configs:
             shutil.rmtree(c.run_path, ignore_errors=True)  # a part-trained subset cannot resume together
         train_teams(configs)
-    return time.perf_counter() - started
+
+
+def logged_training_seconds(condition: Path) -> float:
+    """Seconds a condition's teams spent training, from their own logs (so a resumed or skipped condition counts
+    too): the collection they shared, once, plus every team's updates."""
+
+    def total(path: Path) -> float:
+        return sum(float(line.split(",")[1]) for line in path.read_text().splitlines() if line.strip())
+
+    seeds = sorted(condition.glob("seed*"))
+    charts = [seed / "csv" / "scalars" / "charts" for seed in seeds]
+    return total(charts[0] / "collect_seconds.csv") + sum(total(c / "update_seconds.csv") for c in charts)
 
 
 def read_summary(path: Path) -> dict[tuple[str, str], dict]:
@@ -105,11 +115,11 @@ def main(argv=None) -> int:
         for family, members in protocol["families"].items()
     }
 
-    started = time.perf_counter()
     seconds = {}
     for name, path in conditions.items():
         print(f"== {name}: {teams} teams, {path} {' '.join(overrides)}", flush=True)
-        seconds[name] = train_condition(name, path, overrides, teams, out / "runs")
+        train_condition(name, path, overrides, teams, out / "runs")
+        seconds[name] = logged_training_seconds(out / "runs" / name)
     evaluation = protocol.get("evaluation", {})
     shared = load_config(next(iter(conditions.values())), overrides)  # what every condition shares: budget, device
     device = shared.device
@@ -124,7 +134,6 @@ def main(argv=None) -> int:
     evaluated = time.perf_counter()
     evaluate(eval_config)
     seconds["evaluation"] = time.perf_counter() - evaluated
-    total = time.perf_counter() - started
 
     summary = read_summary(out / "eval" / "summary.csv")
     figures = Path(args.results).parent / "docs" / "results"
@@ -146,8 +155,9 @@ def main(argv=None) -> int:
         f"{shared.num_envs} kitchens x {shared.rollout_steps} steps), {teams} teams (seeds "
         f"{shared.seed}..{shared.seed + teams - 1}) per condition; the paper trains 2e9 steps per team, 6 seeds.",
         f"- **Shared overrides:** `{' '.join(overrides)}`.",
-        f"- **Machine:** {machine}. **Wall time:** {total / 60:.0f} min in all; "
-        + ", ".join(f"{name} {s / 60:.1f} min" for name, s in seconds.items()) + ".",
+        f"- **Machine:** {machine}. **Time:** {sum(seconds.values()) / 60:.0f} min in all; "
+        + ", ".join(f"{name} {s / 60:.1f} min" for name, s in seconds.items())
+        + " (training from the runs' logs: collection and updates; evaluation: its wall time).",
         f"- **Evaluation:** the 5 expanded layouts and {evaluation['heldout']} held-out levels, "
         f"{evaluation['rollouts']} rollouts per pair and grid; the scripted cook "
         f"(`torch_kitchen/scripted.py`) beside every team; \"{SCRIPTED_CONDITION}\" is its own self-play.",
