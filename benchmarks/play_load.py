@@ -93,7 +93,8 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     tick = args.tick_ms / 1000
-    print(f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads 1, tick {args.tick_ms} ms, kitchen {KITCHEN}")
+    print(f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads 1, "
+          f"tick {args.tick_ms} ms, kitchen {KITCHEN}")
     with tempfile.TemporaryDirectory() as scratch:
         scratch = Path(scratch)
         runs = {architecture: save_team(scratch / "runs" / architecture / "seed0", architecture)

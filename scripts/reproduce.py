@@ -32,7 +32,7 @@ import yaml
 from jax_env import EXPANDED_LAYOUTS
 from trainers.config import EvalConfig, load_config
 from trainers.evaluate import SCRIPTED_CONDITION, evaluate
-from trainers.ippo import team_configs, train_teams
+from trainers.ippo import team_configs, train_or_resume
 
 HELDOUT = "held-out"
 
@@ -40,14 +40,7 @@ HELDOUT = "held-out"
 def train_condition(name: str, path: str, overrides: list[str], teams: int, runs: Path) -> None:
     """Trains (or resumes, or skips) one condition's teams together."""
     config = load_config(path, [*overrides, f"name={name}", f"teams={teams}", f"run_dir={runs}"])
-    configs = team_configs(config)
-    partly = [(c.run_path / "checkpoints" / "latest.pt").exists() for c in configs]
-    if all(partly):
-        train_teams(configs, resume=True)  # says so and returns at once if they are already trained
-    else:
-        for c in configs:
-            shutil.rmtree(c.run_path, ignore_errors=True)  # a part-trained subset cannot resume together
-        train_teams(configs)
+    train_or_resume(team_configs(config))
 
 
 def logged_training_seconds(condition: Path) -> float:

@@ -427,7 +427,7 @@ def _type_name(expected) -> str:
     return str(expected).replace("typing.", "")
 
 
-def _unknown_key(schema: type, key: str, source: str) -> ConfigError:
+def unknown_key(schema: type, key: str, source: str) -> ConfigError:
     hint = difflib.get_close_matches(key, _fields(schema), n=1)
     did_you_mean = f" (did you mean {hint[0]!r}?)" if hint else ""
     return ConfigError(f"unknown config key {key!r} in {source}{did_you_mean}; valid keys: {_key_list(schema)}")
@@ -463,7 +463,7 @@ def _read_yaml(schema: type, path: Path, seen: tuple[Path, ...] = ()) -> dict:
         merged = _read_yaml(schema, path.parent / base, (*seen, path))
     for key, value in values.items():
         if key not in _fields(schema):
-            raise _unknown_key(schema, key, str(path))
+            raise unknown_key(schema, key, str(path))
         merged[key] = (value, str(path))
     return merged
 
@@ -477,7 +477,7 @@ def parse_overrides(overrides: list[str], schema: type = TrainConfig) -> dict:
             raise ConfigError(f"override {item!r} must look like key=value (e.g. seed=3)")
         key = key.strip()
         if key not in _fields(schema):
-            raise _unknown_key(schema, key, "the command line")
+            raise unknown_key(schema, key, "the command line")
         try:
             parsed[key] = (yaml.safe_load(text), "the command line")
         except yaml.YAMLError:
@@ -498,7 +498,7 @@ def load_config(
     values = {key: (value, "the saved run config") for key, value in (base or {}).items()}
     for key in values:
         if key not in _fields(schema):
-            raise _unknown_key(schema, key, "the saved run config")
+            raise unknown_key(schema, key, "the saved run config")
     if path is not None:
         values.update(_read_yaml(schema, Path(path)))
     values.update(parse_overrides(list(overrides), schema))
@@ -520,4 +520,5 @@ __all__ = [
     "option",
     "parse_overrides",
     "save_config",
+    "unknown_key",
 ]

@@ -587,6 +587,18 @@ def train_teams(
 
 
 # -------------------------------------------------------------------------------------------- command line
+def train_or_resume(configs: Sequence[TrainConfig]) -> list[Path]:
+    """Trains the teams of `configs` together, or resumes them where every one has a checkpoint (teams already
+    trained return at once), so running the same command again continues it. Teams of which only some have a
+    checkpoint start over together: teams trained in one batch resume from one update."""
+    checkpointed = [(config.run_path / "checkpoints" / LATEST).exists() for config in configs]
+    if all(checkpointed):
+        return train_teams(configs, resume=True)
+    for config in configs:
+        shutil.rmtree(config.run_path, ignore_errors=True)
+    return train_teams(configs)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="kitchen-train",

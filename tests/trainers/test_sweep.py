@@ -1,0 +1,93 @@
+"""kitchen-sweep: a grid through Hydra's local launcher, and a submitit job preempted mid-run that resumes."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+pytest.importorskip("hydra", reason="sweeps need the sweep extra: pip install .[sweep]")
+from trainers.sweep import main  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+TINY = ["num_envs=2", "rollout_steps=8", "max_steps=8", "hidden=8", "minibatches=1", "eval_episodes=0", "gif=false",
+        "progress=false", "checkpoint_every=1"]
+
+
+def kitchen_sweep(cwd: Path, *arguments: str) -> subprocess.Popen:
+    environment = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen([sys.executable, "-m", "trainers.sweep", str(ROOT / "configs" / "main.yaml"), *arguments],
+                            cwd=cwd, env=environment, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def csv_rows(run: Path) -> list[str]:
+    path = run / "csv" / "scalars" / "charts" / "collect_seconds.csv"
+    return path.read_text().splitlines() if path.exists() else []
+
+
+def test_a_two_by_two_grid_writes_four_runs_named_by_the_keys_that_vary(tmp_path):
+    sweep = kitchen_sweep(tmp_path, "seed=0,1", "lr=0.001,0.002", "total_steps=32", *TINY)
+    output, _ = sweep.communicate(timeout=600)
+    assert sweep.returncode == 0, output
+    runs = sorted(tmp_path.glob("runs/main/*/seed*"))
+    assert [str(run.relative_to(tmp_path / "runs" / "main")) for run in runs] == [
+        "lr=0.001/seed0", "lr=0.001/seed1", "lr=0.002/seed0", "lr=0.002/seed1"]
+    for run in runs:
+        state = torch.load(run / "checkpoints" / "latest.pt", weights_only=False)
+        assert state["env_steps"] == 32 and state["config"]["seed"] == int(run.name.removeprefix("seed"))
+        assert state["config"]["lr"] == float(run.parent.name.removeprefix("lr="))
+        assert [int(row.split(",")[0]) for row in csv_rows(run)] == [16, 32]
+    assert list(tmp_path.glob("runs/main/.sweeps/*/multirun.yaml"))  # Hydra's record of the sweep, beside the runs
+
+
+def test_keys_and_values_are_checked_before_any_job_starts(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main([str(ROOT / "configs" / "main.yaml"), "lrr=0.1,0.2"]) == 2
+    refused = capsys.readouterr().err
+    assert "unknown config key 'lrr' in the command line (did you mean 'lr'?); valid keys: name, " in refused
+    assert main([str(ROOT / "configs" / "main.yaml"), "seed=0,x"]) == 2
+    assert "seed in the command line must be int, got 'x'" in capsys.readouterr().err
+    assert main([str(ROOT / "configs" / "main.yaml"), "num_envs=2,3", "minibatches=2"]) == 2
+    assert "minibatches (2) must divide num_envs (3)" in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists()
+
+
+def submitit_task(folder: Path) -> int | None:
+    """The process id of the submitit task running under `folder`, if one is running."""
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            command = cmdline.read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"submitit.core._submit" in command and any(str(folder).encode() in part for part in command):
+            return int(cmdline.parent.name)
+    return None
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="finds the submitit task through /proc")
+def test_a_preempted_submitit_job_is_requeued_and_resumes_from_its_checkpoint(tmp_path):
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason="needs hydra-submitit-launcher (sweep extra)")
+    sweep = kitchen_sweep(tmp_path, "seed=0", "total_steps=4800", "hydra/launcher=submitit_local", *TINY)
+    run = tmp_path / "runs" / "main" / "seed0"
+    deadline = time.monotonic() + 300
+    checkpoint = run / "checkpoints" / "latest.pt"
+    while time.monotonic() < deadline and not (len(csv_rows(run)) >= 20 and checkpoint.exists()):
+        assert sweep.poll() is None, sweep.communicate()[0]
+        time.sleep(0.2)
+    task = submitit_task(tmp_path / "runs")
+    assert task is not None
+    logged = csv_rows(run)
+    os.kill(task, signal.SIGUSR2)  # what SLURM sends before preempting or timing out a job
+    output, _ = sweep.communicate(timeout=600)
+    assert sweep.returncode == 0, output
+    submitit_log = "".join(path.read_text() for path in tmp_path.glob("runs/main/.sweeps/*/.submitit/*/*.out"))
+    assert "Requeued job" in submitit_log and submitit_log.count("Loading pickle") == 2
+    final = csv_rows(run)
+    assert [int(row.split(",")[0]) for row in final] == list(range(16, 4801, 16))  # every update once
+    # The rows before the preemption are the very ones logged then (timings): resumed, not trained again.
+    assert final[: len(logged) - 1] == logged[:-1]
+    assert torch.load(checkpoint, weights_only=False)["env_steps"] == 4800
