@@ -35,6 +35,7 @@ from trainers.evaluate import SCRIPTED_CONDITION, evaluate
 from trainers.ippo import team_configs, train_or_resume
 
 HELDOUT = "held-out"
+PAPER_STEPS = 2e9  # env steps per team in the paper
 
 
 def train_condition(name: str, path: str, overrides: list[str], teams: int, runs: Path) -> None:
@@ -65,9 +66,9 @@ def value(summary: dict, condition: str, grids: str, key: str) -> float:
     return float(row[key]) if row is not None and row[key] != "" else math.nan
 
 
-def claims(summary: dict, family: str, ik: str, sk: dict[str, str]) -> list[str]:
+def claims(summary: dict, family: str, ik: str, sk: dict[str, str], budget: int) -> list[str]:
     """Markdown rows: each of the paper's claims for one family (an IK condition, layout -> its SK condition), what
-    came out here, and whether it holds at this budget."""
+    came out here, and whether it holds at this budget (env steps per team)."""
     heldout = next((grids for _, grids in summary if grids.startswith(HELDOUT)), None)
     rows = []
     ik_xp = {layout: value(summary, ik, layout, "xp") for layout in sk}
@@ -81,8 +82,10 @@ def claims(summary: dict, family: str, ik: str, sk: dict[str, str]) -> list[str]
                      f"SK self-play on {heldout}: {min(sk_sp):.2f} to {max(sk_sp):.2f}",
                      "holds" if max(sk_sp) < 0.5 else "does not hold"))
         ik_heldout = value(summary, ik, heldout, "xp")
+        at_paper_budget = ("holds" if ik_heldout >= 8 else "does not hold") if budget >= PAPER_STEPS else (
+            f"{budget:.1e} steps, not 2e9: not comparable")
         rows.append(("IK reaches about 9 deliveries in cross-play on held-out levels at 2e9 steps (Fig. 7)",
-                     f"IK cross-play on {heldout}: {ik_heldout:.2f}", "budget far below 2e9: not comparable"))
+                     f"IK cross-play on {heldout}: {ik_heldout:.2f}", at_paper_budget))
     ik_gap = [value(summary, ik, layout, "gap") for layout in sk]
     sk_gap = [value(summary, condition, layout, "gap") for layout, condition in sk.items()]
     smaller = sum(a < b for a, b in zip(ik_gap, sk_gap))
@@ -92,17 +95,31 @@ def claims(summary: dict, family: str, ik: str, sk: dict[str, str]) -> list[str]
     return [f"| {family} | {claim} | {ours} | {verdict} |" for claim, ours, verdict in rows]
 
 
+def processor_name() -> str:
+    """The CPU's model name where Linux tells it (platform.processor() says only "x86_64" there)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.partition(":")[2].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("protocol", help="a protocol file (configs/protocols/reduced.yaml or paper.yaml)")
     parser.add_argument("overrides", nargs="*", help="key=value overrides for every condition")
     parser.add_argument("--out", default="results/reduced", help="runs and evaluation go here")
     parser.add_argument("--results", default="RESULTS.md", help="the report to write")
+    parser.add_argument("--teams", type=int, help="seeds per condition (default: the protocol's)")
+    parser.add_argument("--rollouts", type=int, help="evaluation episodes per pair and grid (default: the protocol's)")
+    parser.add_argument("--heldout", type=int, help="held-out levels in the evaluation (default: the protocol's)")
     args = parser.parse_args(argv)
     protocol = yaml.safe_load(Path(args.protocol).read_text())
     out = Path(args.out)
     overrides = [*protocol.get("overrides", []), *args.overrides]
-    teams, conditions = protocol["teams"], protocol["conditions"]
+    teams, conditions = args.teams or protocol["teams"], protocol["conditions"]
     families = {  # family -> (its IK condition, layout -> its SK condition)
         family: (members["ik"], {load_config(conditions[name]).levels: name for name in members["sk"]})
         for family, members in protocol["families"].items()
@@ -113,7 +130,8 @@ def main(argv=None) -> int:
         print(f"== {name}: {teams} teams, {path} {' '.join(overrides)}", flush=True)
         train_condition(name, path, overrides, teams, out / "runs")
         seconds[name] = logged_training_seconds(out / "runs" / name)
-    evaluation = protocol.get("evaluation", {})
+    evaluation = {**protocol.get("evaluation", {}),
+                  **{key: getattr(args, key) for key in ("rollouts", "heldout") if getattr(args, key) is not None}}
     shared = load_config(next(iter(conditions.values())), overrides)  # what every condition shares: budget, device
     device = shared.device
     eval_config = EvalConfig(
@@ -135,7 +153,7 @@ def main(argv=None) -> int:
     for picture in sorted((out / "eval").glob("*.png")):
         shutil.copy(picture, figures / picture.name)
         pictures.append(f"![{picture.stem}](docs/results/{picture.name})")
-    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, device {device}"
+    machine = f"{processor_name()}, {os.cpu_count()} cores, device {device}"
     if device.startswith("cuda") and torch.cuda.is_available():
         machine += f" ({torch.cuda.get_device_name()})"
     command = " ".join(["python scripts/reproduce.py", *(argv if argv is not None else sys.argv[1:])])
@@ -146,7 +164,10 @@ def main(argv=None) -> int:
         "",
         f"- **Budget:** {shared.total_steps:,} env steps per team ({shared.num_updates} updates of "
         f"{shared.num_envs} kitchens x {shared.rollout_steps} steps), {teams} teams (seeds "
-        f"{shared.seed}..{shared.seed + teams - 1}) per condition; the paper trains 2e9 steps per team, 6 seeds.",
+        f"{shared.seed}..{shared.seed + teams - 1}) per condition; the paper trains {PAPER_STEPS:.0e} steps per team "
+        f"(this is 1/{PAPER_STEPS / shared.total_steps:,.0f} of it), 6 seeds. Where a claim does not hold here, the "
+        "budget comes first: read the training curves of the runs (`tensorboard --logdir "
+        f"{out / 'runs'}`) before the claim.",
         f"- **Shared overrides:** `{' '.join(overrides)}`.",
         f"- **Machine:** {machine}. **Time:** {sum(seconds.values()) / 60:.0f} min in all; "
         + ", ".join(f"{name} {s / 60:.1f} min" for name, s in seconds.items())
@@ -159,7 +180,7 @@ def main(argv=None) -> int:
         "",
         "| family | claim | here | at this budget |",
         "|---|---|---|---|",
-        *(row for family, (ik, sk) in families.items() for row in claims(summary, family, ik, sk)),
+        *(row for family, (ik, sk) in families.items() for row in claims(summary, family, ik, sk, shared.total_steps)),
         "",
         "## Self-play, cross-play and the scripted partner",
         "",
