@@ -2,7 +2,9 @@
 
 Two schemas: `TrainConfig` (a training run) and `EvalConfig` (an evaluation of trained teams). A YAML file may
 name a `base:` file (relative to itself) whose values it overrides, so the configs of one family share their
-common part. Unknown keys and ill-typed values are refused with the list of valid keys; `check()` refuses values
+common part. The layers (defaults, a saved run's values, the file's `base:` chain, the overrides) are merged and
+converted by OmegaConf over structured configs built from the dataclasses (`kitchen-sweep` hands the same values
+to Hydra). Unknown keys and ill-typed values are refused with the list of valid keys; `check()` refuses values
 no run can use before any work starts, with one line (a `ConfigError`) that says what to change. Every field
 carries a one-line meaning, which `config_help` lists for `--help`.
 """
@@ -12,6 +14,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import difflib
+import functools
 import math
 import types
 import typing
@@ -21,6 +24,8 @@ from pathlib import Path
 import jax
 import torch
 import yaml
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from jax_env import EXPANDED_LAYOUTS, classify_layout, load_layout
 from jax_env.generator import NUM_HELDOUT_GENERATED
@@ -351,7 +356,7 @@ def _yaml_scalar(value) -> str:
 
 
 def _check_types(config: TrainConfig | EvalConfig) -> None:
-    """Refuses a field whose value does not fit its type (a config built in Python skips `_coerce`)."""
+    """Refuses a field whose value does not fit its type (a config built in Python skips `_merge`)."""
     hints = typing.get_type_hints(type(config))
     for field in dataclasses.fields(config):
         value, expected = getattr(config, field.name), hints[field.name]
@@ -406,21 +411,6 @@ def _matches(value, expected) -> bool:
     return isinstance(value, expected)
 
 
-def _coerce(schema: type, key: str, value, source: str):
-    """`value` as the type of field `key`, or a ConfigError naming the field, the type and where it came from."""
-    expected = typing.get_type_hints(schema)[key]
-    if expected in (int, float) and isinstance(value, str):
-        try:  # YAML reads 1e-3 (no dot) as a string
-            value = float(value)
-        except ValueError:
-            pass
-    if expected is int and isinstance(value, float) and value.is_integer():  # 2e6 in YAML is a float
-        value = int(value)
-    if _matches(value, expected):
-        return float(value) if expected is float else value
-    raise ConfigError(f"{key} in {source} must be {_type_name(expected)}, got {value!r}")
-
-
 def _type_name(expected) -> str:
     if typing.get_origin(expected) is None:
         return expected.__name__
@@ -437,8 +427,63 @@ def _key_list(schema: type) -> str:
     return ", ".join(_fields(schema))
 
 
-def _read_yaml(schema: type, path: Path, seen: tuple[Path, ...] = ()) -> dict:
-    """The values of a YAML config and of its `base:` chain, the file's own values last."""
+# ------------------------------------------------------------------------------- merging, on OmegaConf
+def _is_union(expected) -> bool:
+    return typing.get_origin(expected) in (typing.Union, types.UnionType)
+
+
+def _omegaconf_type(expected):
+    """A field type as OmegaConf can hold it: it types no unions (`levels: str | list[str]`), so those are Any
+    there and `_merge` checks them."""
+    origin, args = typing.get_origin(expected), typing.get_args(expected)
+    if _is_union(expected):
+        return typing.Any
+    if origin is list:
+        return list[_omegaconf_type(args[0])]
+    if origin is dict:
+        return dict[args[0], _omegaconf_type(args[1])]
+    return expected
+
+
+@functools.cache
+def _structured(schema: type) -> type:
+    """`schema` as a dataclass OmegaConf can type: the same fields and defaults, unions as Any."""
+    hints = typing.get_type_hints(schema)
+    fields = [(field.name, _omegaconf_type(hints[field.name]),
+               dataclasses.field(default=field.default, default_factory=field.default_factory))
+              for field in dataclasses.fields(schema)]  # fmt: skip
+    return dataclasses.make_dataclass(schema.__name__, fields)
+
+
+def _merge(schema: type, merged: DictConfig, values: dict, source: str) -> DictConfig:
+    """`values` (from `source`: a file, the command line, a saved run) merged over `merged` by OmegaConf, which
+    converts what it can (e.g. "1e-3" to a float); a ConfigError names the key, its type and the source."""
+    hints = typing.get_type_hints(schema)
+    layer = {}
+    for key, value in values.items():
+        if key not in hints:
+            raise unknown_key(schema, key, source)
+        expected = hints[key]
+        if expected is int and isinstance(value, str | float) and not isinstance(value, bool):
+            try:  # 2e6 is a float to YAML and a string to PyYAML; OmegaConf takes neither as an int
+                value = int(float(value)) if float(value).is_integer() else value
+            except ValueError:
+                pass
+        strict = _is_union(expected) or expected is bool or isinstance(value, bool)  # OmegaConf reads 3 as True
+        if strict and not _matches(value, expected):
+            raise ConfigError(f"{key} in {source} must be {_type_name(expected)}, got {value!r}")
+        layer[key] = value
+    try:
+        return OmegaConf.merge(merged, layer)
+    except OmegaConfBaseException as error:
+        key = str(getattr(error, "full_key", "") or "").split(".")[0] or next(iter(layer))
+        raise ConfigError(
+            f"{key} in {source} must be {_type_name(hints.get(key, object))}, got {layer.get(key)!r}"
+        ) from None
+
+
+def _read_yaml(schema: type, path: Path, seen: tuple[Path, ...] = ()) -> list[tuple[dict, str]]:
+    """The layers of a YAML config, (values, path) for each file of its `base:` chain, the file's own last."""
     path = path.resolve()
     if path in seen:
         raise ConfigError(f"config {path} names itself as a base (through {' -> '.join(map(str, seen))})")
@@ -455,33 +500,28 @@ def _read_yaml(schema: type, path: Path, seen: tuple[Path, ...] = ()) -> dict:
             raise ConfigError(
                 f"the key {key!r} in {path} is not a config key (keys are names): valid keys: {_key_list(schema)}"
             )
-    merged = {}
+    layers = []
     if "base" in values:
         base = values.pop("base")
         if not isinstance(base, str) or not base.strip():
             raise ConfigError(f"base in {path} must be the path of a config file (relative to this one), got {base!r}")
-        merged = _read_yaml(schema, path.parent / base, (*seen, path))
-    for key, value in values.items():
-        if key not in _fields(schema):
-            raise unknown_key(schema, key, str(path))
-        merged[key] = (value, str(path))
-    return merged
+        layers = _read_yaml(schema, path.parent / base, (*seen, path))
+    return [*layers, (values, str(path))]
 
 
 def parse_overrides(overrides: list[str], schema: type = TrainConfig) -> dict:
-    """`["lr=1e-3", "levels=[a, b]"]` -> {key: (value, source)}; values are read as YAML scalars or lists."""
+    """`["lr=1e-3", "levels=[a, b]"]` -> {key: value}, each value read by OmegaConf's dotlist grammar (YAML)."""
     parsed = {}
     for item in overrides:
-        key, sep, text = item.partition("=")
-        if not sep or not key:
+        key, sep, _ = item.partition("=")
+        if not sep or not key.strip():
             raise ConfigError(f"override {item!r} must look like key=value (e.g. seed=3)")
-        key = key.strip()
-        if key not in _fields(schema):
-            raise unknown_key(schema, key, "the command line")
+        if key.strip() not in _fields(schema):
+            raise unknown_key(schema, key.strip(), "the command line")
         try:
-            parsed[key] = (yaml.safe_load(text), "the command line")
-        except yaml.YAMLError:
-            parsed[key] = (text, "the command line")
+            parsed.update(OmegaConf.to_container(OmegaConf.from_dotlist([item.strip()])))
+        except OmegaConfBaseException:
+            parsed[key.strip()] = item.partition("=")[2]
     return parsed
 
 
@@ -494,16 +534,16 @@ def load_config(
     base: dict | None = None,
     schema: type[Config] = TrainConfig,
 ) -> Config:
-    """A checked `schema` config from defaults, then `base` (e.g. a saved run's values), the YAML file, overrides."""
-    values = {key: (value, "the saved run config") for key, value in (base or {}).items()}
-    for key in values:
-        if key not in _fields(schema):
-            raise unknown_key(schema, key, "the saved run config")
+    """A checked `schema` config: its defaults, then `base` (e.g. a saved run's values), the YAML file (its `base:`
+    chain first), the `key=value` overrides, merged in that order by OmegaConf."""
+    layers = [(base or {}, "the saved run config")]
     if path is not None:
-        values.update(_read_yaml(schema, Path(path)))
-    values.update(parse_overrides(list(overrides), schema))
-    kwargs = {key: _coerce(schema, key, value, source) for key, (value, source) in values.items()}
-    return schema(**kwargs).check()
+        layers += _read_yaml(schema, Path(path))
+    layers.append((parse_overrides(list(overrides), schema), "the command line"))
+    merged = OmegaConf.structured(_structured(schema))
+    for values, source in layers:
+        merged = _merge(schema, merged, values, source)
+    return schema(**OmegaConf.to_container(merged)).check()
 
 
 def save_config(config: TrainConfig | EvalConfig, path: str | Path) -> None:

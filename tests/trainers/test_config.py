@@ -1,3 +1,5 @@
+import dataclasses
+import json
 from pathlib import Path
 
 import pytest
@@ -25,6 +27,16 @@ def test_every_shipped_config_loads():
         names = {load_config(train).name for train in CONFIGS}
         for condition, runs in config.conditions.items():
             assert condition in names and runs == f"runs/{condition}/seed*", (path, condition)
+
+
+def test_every_shipped_config_resolves_to_the_values_recorded_before_configs_moved_to_omegaconf():
+    # data/config_values.json: every config's values as the loader before OmegaConf resolved them (same keys).
+    recorded = json.loads((Path(__file__).parent / "data" / "config_values.json").read_text())
+    root = CONFIG_DIR.parent
+    assert set(recorded) == {str(path.relative_to(root)) for path in [*CONFIGS, *EVAL_CONFIGS]}
+    for name, values in recorded.items():
+        schema = EvalConfig if name.startswith("configs/eval/") else TrainConfig
+        assert dataclasses.asdict(load_config(root / name, schema=schema)) == values, name
 
 
 def test_every_protocol_names_configs_that_load_with_its_overrides():
