@@ -9,6 +9,15 @@ several values, and each point of it is the run `kitchen-train CONFIG key=value 
 too, so `kitchen-eval`'s `runs/<name>/seed*` globs keep working. `teams=K` makes every job train seeds seed ..
 seed+K-1 together in one process, the paper's six teams of a condition in one job.
 
+The group `regime` sets the paper's regimes: `ik` (levels=infinite hidden=256 share_params=true) and
+`sk_<layout>` (one expanded layout, hidden=128, share_params=false), as the shipped configs do. So the paper's
+grid is one sweep, its runs named as the shipped configs name them:
+
+    kitchen-sweep configs/ippo/mlp_ik.yaml regime=ik,sk_cramped_room,sk_coord_ring architecture=mlp,gnn \
+        'name=ippo_${architecture}_${hydra:runtime.choices.regime}' seed=0 teams=6
+
+A name that interpolates what varies names the runs by itself; otherwise the varying keys become a folder.
+
 Launchers (`hydra/launcher=`, the sweep extra installs them): `basic` (default: the runs one after another in this
 process), `joblib` (processes on this machine), `submitit_slurm` (one SLURM job per run, as an array; partition,
 time, GPUs, array parallelism as `hydra.launcher.*`), `submitit_local` (the same code path without a scheduler).
@@ -29,10 +38,22 @@ import sys
 from collections.abc import Sequence
 from contextlib import contextmanager
 
+from jax_env import EXPANDED_LAYOUTS
 from trainers.config import ConfigError, TrainConfig, config_help, load_config, unknown_key
 from trainers.ippo import team_configs, train_or_resume
 
 PRIMARY = "kitchen_sweep"  # the name of the sweep's base config in Hydra's ConfigStore
+REGIME = "regime"  # the config group of the paper's regimes
+
+
+def regimes() -> dict[str, dict]:
+    """The paper's training regimes as the choices of the `regime` group: "ik" (Infinite Kitchen: a generated
+    level every episode, one network shared by both agents, hidden 256) and "sk_<layout>" (Single Kitchen on one
+    expanded layout, one network per agent, hidden 128), as configs/ippo/*_ik.yaml and *_sk_*.yaml set them."""
+    choices = {"ik": {"levels": "infinite", "hidden": 256, "share_params": True}}
+    for layout in EXPANDED_LAYOUTS:
+        choices[f"sk_{layout.removesuffix('_7x7')}"] = {"levels": layout, "hidden": 128, "share_params": False}
+    return choices
 
 
 def run_point(cfg) -> list[str]:
@@ -43,9 +64,16 @@ def run_point(cfg) -> list[str]:
     logging.getLogger("jax").setLevel(logging.WARNING)  # Hydra logs at INFO; JAX's backend search is noise there
     config = load_config(base=OmegaConf.to_container(cfg, resolve=True))
     varied = HydraConfig.get().job.override_dirname  # the keys that vary in this sweep, but the seed
-    if varied:
+    if varied and not names_itself(cfg):
         config = load_config(base={**config.to_dict(), "name": f"{config.name}/{varied}"})
     return [str(run) for run in train_or_resume(team_configs(config))]
+
+
+def names_itself(cfg) -> bool:
+    """Whether the run name interpolates what varies: name=ippo_${architecture}_${hydra:runtime.choices.regime}."""
+    from omegaconf import OmegaConf
+
+    return "${" in str(OmegaConf.to_container(cfg, resolve=False)["name"])
 
 
 def split_overrides(overrides: Sequence[str]) -> tuple[list[str], list[str]]:
@@ -69,17 +97,28 @@ def grid_values(config_path: str, overrides: Sequence[str]) -> dict[str, list[st
         except OverrideParseException as error:
             raise ConfigError(f"cannot read the override {item!r}: {error}") from None
         key = override.key_or_group
-        if key not in TrainConfig.__dataclass_fields__:
+        if key not in TrainConfig.__dataclass_fields__ and key != REGIME:
             raise unknown_key(TrainConfig, key, "the command line")
         if override.is_sweep_override():
             values[key] = list(override.sweep_string_iterator())
         else:
-            values[key] = [override.get_value_element_as_str()]
-    first = {key: f"{key}={options[0]}" for key, options in values.items()}
+            values[key] = [item.partition("=")[2]]  # as written: Hydra's string form escapes interpolations
+    for choice in values.get(REGIME, []):
+        if choice not in regimes():
+            raise ConfigError(f"unknown regime {choice!r}; the regimes: {', '.join(regimes())}")
+    first = {key: [f"{key}={options[0]}"] for key, options in values.items()}
     for key, options in values.items():  # each value beside the first value of every other key
         for value in options:
-            load_config(config_path, [*(item for other, item in first.items() if other != key), f"{key}={value}"])
+            beside = [item for other, items in first.items() if other != key for item in as_overrides(other, items)]
+            load_config(config_path, [*beside, *as_overrides(key, [f"{key}={value}"])])
     return values
+
+
+def as_overrides(key: str, items: list[str]) -> list[str]:
+    """`regime=<choice>` as the key=value overrides it stands for; other overrides as they are."""
+    if key != REGIME:
+        return items
+    return [f"{k}={v}" for item in items for k, v in regimes()[item.partition("=")[2]].items()]
 
 
 @contextmanager
@@ -102,10 +141,15 @@ def sweep(config_path: str, overrides: Sequence[str]) -> None:
     base = load_config(config_path)
     grid = grid_values(config_path, ours)
     fixed = {key: values[0] for key, values in grid.items() if len(values) == 1}
-    single = load_config(config_path, [f"{key}={value}" for key, value in fixed.items()])
-    named = single.name if len(grid.get("name", [])) < 2 else "."  # a swept name: beside the runs
+    single = load_config(config_path, [item for key, value in fixed.items()
+                                       for item in as_overrides(key, [f"{key}={value}"])])
+    swept_name = len(grid.get("name", [])) > 1 or "${" in single.name
+    named = "." if swept_name else single.name  # Hydra's files beside the runs when the name varies
     not_named = sorted({"seed", *fixed})  # run directories name the keys that vary, but the seed
-    ConfigStore.instance().store(name=PRIMARY, node=base.to_dict())
+    store = ConfigStore.instance()
+    for choice, values in regimes().items():
+        store.store(group=REGIME, name=choice, node=values, package="_global_")  # its keys at the top
+    store.store(name=PRIMARY, node={"defaults": ["_self_", {REGIME: None}], **base.to_dict()})
     settings = [
         f"hydra.sweep.dir={single.run_dir}/{named}/.sweeps/${{now:%Y-%m-%d_%H-%M-%S}}",
         f"hydra.job.config.override_dirname.exclude_keys=[{','.join(not_named)}]",

@@ -11,16 +11,17 @@ import pytest
 import torch
 
 pytest.importorskip("hydra", reason="sweeps need the sweep extra: pip install .[sweep]")
-from trainers.sweep import main  # noqa: E402
+from trainers.config import load_config  # noqa: E402
+from trainers.sweep import main, regimes  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ["num_envs=2", "rollout_steps=8", "max_steps=8", "hidden=8", "minibatches=1", "eval_episodes=0", "gif=false",
         "progress=false", "checkpoint_every=1"]
 
 
-def kitchen_sweep(cwd: Path, *arguments: str) -> subprocess.Popen:
+def kitchen_sweep(cwd: Path, *arguments: str, config: str = "main.yaml") -> subprocess.Popen:
     environment = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.Popen([sys.executable, "-m", "trainers.sweep", str(ROOT / "configs" / "main.yaml"), *arguments],
+    return subprocess.Popen([sys.executable, "-m", "trainers.sweep", str(ROOT / "configs" / config), *arguments],
                             cwd=cwd, env=environment, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
@@ -44,6 +45,27 @@ def test_a_two_by_two_grid_writes_four_runs_named_by_the_keys_that_vary(tmp_path
     assert list(tmp_path.glob("runs/main/.sweeps/*/multirun.yaml"))  # Hydra's record of the sweep, beside the runs
 
 
+@pytest.mark.parametrize("algorithm, architecture", [("ippo", "mlp"), ("ippo", "gnn_lstm"), ("e3t", "e3t_gnn")])
+def test_the_regimes_are_those_of_the_shipped_configs(algorithm, architecture):
+    for regime, values in regimes().items():
+        shipped = load_config(ROOT / "configs" / algorithm / f"{architecture.removeprefix('e3t_')}_{regime}.yaml")
+        assert {key: getattr(shipped, key) for key in values} == values, regime
+
+
+def test_a_grid_of_regimes_trains_the_shipped_configs_under_their_own_names(tmp_path):
+    # The paper's grid in one sweep: each run is the shipped config of its regime and architecture, as its name says.
+    sweep = kitchen_sweep(tmp_path, "regime=ik,sk_coord_ring", "architecture=gnn", "seed=0", "total_steps=16",
+                          "name=ippo_${architecture}_${hydra:runtime.choices.regime}", *TINY,
+                          config="ippo/mlp_ik.yaml")
+    output, _ = sweep.communicate(timeout=600)
+    assert sweep.returncode == 0, output
+    for condition in ("gnn_ik", "gnn_sk_coord_ring"):
+        run = tmp_path / "runs" / f"ippo_{condition}" / "seed0"
+        trained = load_config(run / "config.yaml")
+        shipped = load_config(ROOT / "configs" / "ippo" / f"{condition}.yaml", ["total_steps=16", *TINY])
+        assert trained == shipped, condition
+
+
 def test_keys_and_values_are_checked_before_any_job_starts(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     assert main([str(ROOT / "configs" / "main.yaml"), "lrr=0.1,0.2"]) == 2
@@ -53,6 +75,8 @@ def test_keys_and_values_are_checked_before_any_job_starts(tmp_path, capsys, mon
     assert "seed in the command line must be int, got 'x'" in capsys.readouterr().err
     assert main([str(ROOT / "configs" / "main.yaml"), "num_envs=2,3", "minibatches=2"]) == 2
     assert "minibatches (2) must divide num_envs (3)" in capsys.readouterr().err
+    assert main([str(ROOT / "configs" / "main.yaml"), "regime=ik,sk_nowhere"]) == 2
+    assert "unknown regime 'sk_nowhere'; the regimes: ik, sk_cramped_room" in capsys.readouterr().err
     assert not (tmp_path / "runs").exists()
 
 
