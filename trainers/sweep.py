@@ -106,19 +106,18 @@ def grid_values(config_path: str, overrides: Sequence[str]) -> dict[str, list[st
     for choice in values.get(REGIME, []):
         if choice not in regimes():
             raise ConfigError(f"unknown regime {choice!r}; the regimes: {', '.join(regimes())}")
-    first = {key: [f"{key}={options[0]}"] for key, options in values.items()}
+    first = {key: options[0] for key, options in values.items()}
     for key, options in values.items():  # each value beside the first value of every other key
         for value in options:
-            beside = [item for other, items in first.items() if other != key for item in as_overrides(other, items)]
-            load_config(config_path, [*beside, *as_overrides(key, [f"{key}={value}"])])
+            load_config(config_path, point_overrides({**first, key: value}))
     return values
 
 
-def as_overrides(key: str, items: list[str]) -> list[str]:
-    """`regime=<choice>` as the key=value overrides it stands for; other overrides as they are."""
-    if key != REGIME:
-        return items
-    return [f"{k}={v}" for item in items for k, v in regimes()[item.partition("=")[2]].items()]
+def point_overrides(point: dict[str, str]) -> list[str]:
+    """The key=value overrides of one point of the grid, in Hydra's order: the regime's values, then the keys."""
+    regime = regimes()[point[REGIME]] if REGIME in point else {}
+    return [*(f"{key}={value}" for key, value in regime.items()),
+            *(f"{key}={value}" for key, value in point.items() if key != REGIME)]
 
 
 @contextmanager
@@ -141,8 +140,7 @@ def sweep(config_path: str, overrides: Sequence[str]) -> None:
     base = load_config(config_path)
     grid = grid_values(config_path, ours)
     fixed = {key: values[0] for key, values in grid.items() if len(values) == 1}
-    single = load_config(config_path, [item for key, value in fixed.items()
-                                       for item in as_overrides(key, [f"{key}={value}"])])
+    single = load_config(config_path, point_overrides(fixed))
     swept_name = len(grid.get("name", [])) > 1 or "${" in single.name
     named = "." if swept_name else single.name  # Hydra's files beside the runs when the name varies
     not_named = sorted({"seed", *fixed})  # run directories name the keys that vary, but the seed
