@@ -474,6 +474,10 @@ def _merge(schema: type, merged: DictConfig, values: dict, source: str) -> DictC
             raise ConfigError(f"{key} in {source} must be {_type_name(expected)}, got {value!r}")
         layer[key] = value
     try:
+        merged = merged.copy()
+        for key, value in layer.items():
+            if isinstance(value, dict):
+                merged[key] = {}  # a later layer replaces a mapping, as it replaces any value, instead of merging
         return OmegaConf.merge(merged, layer)
     except OmegaConfBaseException as error:
         key = str(getattr(error, "full_key", "") or "").split(".")[0] or next(iter(layer))

@@ -53,6 +53,14 @@ def test_every_protocol_names_configs_that_load_with_its_overrides():
             assert set(members) <= set(protocol["conditions"]) and len(family["sk"]) == 5, path
 
 
+def test_a_later_layer_replaces_a_mapping_rather_than_merging_into_it():
+    paper = load_config(CONFIG_DIR / "eval" / "paper.yaml", schema=EvalConfig)
+    assert len(paper.conditions) > 1
+    mine = load_config(CONFIG_DIR / "eval" / "paper.yaml", ["conditions={mine: runs/mine/seed*}", "cross=[]"],
+                       schema=EvalConfig)
+    assert mine.conditions == {"mine": "runs/mine/seed*"}
+
+
 def test_eval_config_values_are_checked():
     with pytest.raises(ConfigError, match=r"conditions in the command line must be dict\[str, str \| list\[str\]\]"):
         load_config(None, ["conditions=[a, b]"], schema=EvalConfig)
