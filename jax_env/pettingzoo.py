@@ -146,7 +146,7 @@ class KitchenParallelEnv(ParallelEnv):
         observations, self._state, reward, done, shaped = self._step_jax(
             self._state, jnp.asarray(chosen, dtype=jnp.int32)
         )
-        reward, done, shaped = jax.device_get((reward, done, shaped))
+        observations, reward, done, shaped = jax.device_get((observations, reward, done, shaped))  # one transfer
         self._observations = np.array(observations)
         done = bool(done)
 

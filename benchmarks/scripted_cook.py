@@ -1,0 +1,51 @@
+"""Milliseconds per call of the scripted cook (`torch_kitchen.scripted.ScriptedCook`) on a batch of kitchens, the
+5 expanded layouts and held-out levels as evaluation seats it, beside a trained team's actor (MLP, hidden 64) on
+the same observations in the same run: the scripted partner's share of an evaluation step.
+
+    python benchmarks/scripted_cook.py [--envs 1024] [--calls 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+
+import torch
+
+from jax_env import EXPANDED_LAYOUTS
+from torch_kitchen.env import KitchenEnv
+from torch_kitchen.models import make_actor_critic
+from torch_kitchen.scripted import ScriptedCook
+from trainers.evaluate import evaluation_grids
+
+
+def milliseconds(call, calls: int) -> float:
+    call()  # warm-up
+    started = time.perf_counter()
+    for _ in range(calls):
+        call()
+    return (time.perf_counter() - started) / calls * 1e3
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--envs", type=int, default=1024)
+    parser.add_argument("--calls", type=int, default=10)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    kitchen = KitchenEnv(args.envs, levels=evaluation_grids(list(EXPANDED_LAYOUTS), 20), pin_levels=True, seed=1)
+    tensordict = kitchen.reset()
+    observation = tensordict["agents", "observation"]
+    cook, team = ScriptedCook(), make_actor_critic("mlp", kitchen.kitchen.obs_shape, 64, True)
+    with torch.no_grad():
+        scripted = milliseconds(lambda: cook(observation), args.calls)
+        mlp = milliseconds(lambda: team.actor(tensordict.clone()), args.calls)
+    machine = platform.processor() or platform.machine()
+    print(f"{machine}, {os.cpu_count()} cores, torch threads 1, {args.envs} kitchens")
+    print(f"scripted cook {scripted:.1f} ms, MLP actor {mlp:.1f} ms, ratio {scripted / mlp:.1f}")
+
+
+if __name__ == "__main__":
+    main()
