@@ -10,7 +10,6 @@ per environment.
 from __future__ import annotations
 
 import argparse
-import platform
 import time
 import warnings
 
@@ -19,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jax_env import COUNTER, FLOOR, GOAL, ONION_PILE, PLATE_PILE, POT, Overcooked, get_layout, state_nbytes
+from trainers.machine import machine_name
 
 
 def jaxmarl_env(layout, max_steps):
@@ -81,7 +81,7 @@ def main(argv=None):
     parser.add_argument("--min-seconds", type=float, default=2.0, help="timing window per measurement")
     args = parser.parse_args(argv)
 
-    machine = platform.processor() or platform.machine()
+    machine = machine_name()
     print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}), {machine}")
     print(f"{'layout':22s} {'envs':>6s} {'ours steps/s':>14s} {'JaxMARL steps/s':>16s} {'ratio':>7s}")
     for name in args.layouts:

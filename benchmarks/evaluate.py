@@ -12,7 +12,6 @@ one jitted scan, no networks (the env alone, the floor of any JaxMARL evaluation
 from __future__ import annotations
 
 import argparse
-import platform
 import time
 
 import torch
@@ -24,6 +23,7 @@ from torch_kitchen.models import make_actor_critic
 from torch_kitchen.pairing import make_seated_actor
 from trainers.config import TrainConfig
 from trainers.evaluate import Team, evaluation_grids, make_matchups
+from trainers.machine import machine_name
 from trainers.rollout import play_episodes
 
 SEEDS, STEPS = 6, 256
@@ -67,7 +67,7 @@ def main(argv=None):
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    print(f"device: {args.device}, {platform.processor() or platform.machine()}, torch threads: {args.threads}, "
+    print(f"device: {args.device}, {machine_name()}, torch threads: {args.threads}, "
           f"hidden {args.hidden}, 6 teams (36 pairs), {STEPS}-step episodes")
     layout = get_layout("cramped_room_7x7")
     reference = jaxmarl_env(layout, STEPS)

@@ -15,8 +15,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import os
-import platform
 import socket
 import statistics
 import tempfile
@@ -32,6 +30,7 @@ from play.server import create_app
 from torch_kitchen.models import make_actor_critic
 from trainers.checkpoint import model_identity, save_checkpoint
 from trainers.config import TrainConfig
+from trainers.machine import machine_name
 
 KITCHEN = "cramped_room_7x7"
 
@@ -93,7 +92,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     tick = args.tick_ms / 1000
-    print(f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads 1, "
+    print(f"{machine_name()}, torch threads 1, "
           f"tick {args.tick_ms} ms, kitchen {KITCHEN}")
     with tempfile.TemporaryDirectory() as scratch:
         scratch = Path(scratch)

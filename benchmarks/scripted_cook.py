@@ -8,8 +8,6 @@ the same observations in the same run: the scripted partner's share of an evalua
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import time
 
 import torch
@@ -19,6 +17,7 @@ from torch_kitchen.env import KitchenEnv
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.scripted import ScriptedCook
 from trainers.evaluate import evaluation_grids
+from trainers.machine import machine_name
 
 
 def milliseconds(call, calls: int) -> float:
@@ -42,8 +41,8 @@ def main(argv=None) -> None:
     with torch.no_grad():
         scripted = milliseconds(lambda: cook(observation), args.calls)
         mlp = milliseconds(lambda: team.actor(tensordict.clone()), args.calls)
-    machine = platform.processor() or platform.machine()
-    print(f"{machine}, {os.cpu_count()} cores, torch threads 1, {args.envs} kitchens")
+    machine = machine_name()
+    print(f"{machine}, torch threads 1, {args.envs} kitchens")
     print(f"scripted cook {scripted:.1f} ms, MLP actor {mlp:.1f} ms, ratio {scripted / mlp:.1f}")
 
 

@@ -2,40 +2,45 @@
 
 On a small shared CPU, torch's worker threads wait for each other at every operation; when another process holds
 a core, a thread that was descheduled holds up all the others, and small networks can lose an order of
-magnitude. This measures `trainers.ippo.train` (updates after the first) for each thread count, first alone,
-then beside a busy-loop process (the OS decides where it runs), and prints the
-steps/s and the loaded / quiet ratio.
+magnitude. Several teams trained in one process (`teams=K`) can instead learn at once, one team per thread
+(`parallel_teams`), with no waiting between threads. This measures `trainers.ippo.train_teams` (updates after
+the first) for each thread count and number of teams learning at once, first alone, then beside a busy-loop
+process (the OS decides where it runs), and prints the steps/s and the loaded / quiet ratio.
 
     python benchmarks/threads.py [--threads 1 2] [--architecture mlp] [--envs 32] [--updates 3]
+    python benchmarks/threads.py --teams 2 --threads 1 --parallel-teams 1 2
 """
 
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import subprocess
 import sys
 import tempfile
 
 from trainers.config import load_config
-from trainers.ippo import train
+from trainers.ippo import team_configs, train_teams
+from trainers.machine import machine_name
 
 # A pure-Python busy loop: one core's worth of load, no threads of its own.
 BUSY_LOOP = "while True:\n    sum(range(10000))\n"
 
 
-def steps_per_second(threads: int, architecture: str, num_envs: int, rollout_steps: int, updates: int) -> float:
-    """Mean env steps per second of updates 2..`updates` with `threads` torch threads."""
-    rates = []
+def steps_per_second(threads: int, parallel_teams: int, args: argparse.Namespace) -> float:
+    """Mean env steps per second (all teams') of updates 2..`args.updates` with `threads` torch threads and
+    `parallel_teams` teams learning at once."""
+    rates = {}  # update -> steps/s, as every team logs it
     with tempfile.TemporaryDirectory() as run_dir:
         config = load_config(None, [
-            f"architecture={architecture}", f"num_envs={num_envs}", f"rollout_steps={rollout_steps}",
-            f"total_steps={updates * num_envs * rollout_steps}", f"threads={threads}", f"run_dir={run_dir}",
+            f"architecture={args.architecture}", f"num_envs={args.envs}", f"rollout_steps={args.rollout_steps}",
+            f"total_steps={args.updates * args.envs * args.rollout_steps}", f"threads={threads}",
+            f"teams={args.teams}", f"parallel_teams={parallel_teams}", f"run_dir={run_dir}",
             "progress=false", "eval_episodes=0", "checkpoint_every=1000", "loggers=[csv]",
         ])  # fmt: skip
-        train(config, on_update=lambda update, metrics: rates.append(metrics["charts/steps_per_second"]) and False)
-    return sum(rates[1:]) / max(1, len(rates) - 1)
+        train_teams(team_configs(config),
+                    on_update=lambda update, metrics: rates.update({update: metrics["charts/steps_per_second"]}))
+    timed = [rate for update, rate in rates.items() if update > 1]
+    return sum(timed) / max(1, len(timed))
 
 
 def main(argv=None) -> None:
@@ -45,22 +50,24 @@ def main(argv=None) -> None:
     parser.add_argument("--envs", type=int, default=32)
     parser.add_argument("--rollout-steps", type=int, default=256)
     parser.add_argument("--updates", type=int, default=3, help="updates per measurement (the first is not timed)")
+    parser.add_argument("--teams", type=int, default=1, help="teams trained in one process, each of --envs kitchens")
+    parser.add_argument("--parallel-teams", nargs="+", type=int, default=[1], help="teams learning at once")
     args = parser.parse_args(argv)
-    print(f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores; {args.architecture}, "
-          f"{args.envs} kitchens x {args.rollout_steps} steps, Infinite Kitchen, hidden 256")
-    quiet = {n: steps_per_second(n, args.architecture, args.envs, args.rollout_steps, args.updates)
-             for n in args.threads}
+    print(f"{machine_name()}; {args.architecture}, {args.teams} team(s) x {args.envs} kitchens x "
+          f"{args.rollout_steps} steps, Infinite Kitchen, hidden 256")
+    settings = [(threads, parallel) for threads in args.threads for parallel in args.parallel_teams]
+    quiet = {setting: steps_per_second(*setting, args) for setting in settings}
     busy = subprocess.Popen([sys.executable, "-c", BUSY_LOOP])
     try:
-        loaded = {n: steps_per_second(n, args.architecture, args.envs, args.rollout_steps, args.updates)
-                  for n in args.threads}
+        loaded = {setting: steps_per_second(*setting, args) for setting in settings}
     finally:
         busy.kill()
         busy.wait()
-    print("| torch threads | quiet steps/s | one core busy steps/s | busy / quiet |")
-    print("|---:|---:|---:|---:|")
-    for n in args.threads:
-        print(f"| {n} | {quiet[n]:,.0f} | {loaded[n]:,.0f} | {loaded[n] / quiet[n]:.2f} |")
+    print("| torch threads | teams learning at once | quiet steps/s | one core busy steps/s | busy / quiet |")
+    print("|---:|---:|---:|---:|---:|")
+    for setting in settings:
+        print(f"| {setting[0]} | {setting[1]} | {quiet[setting]:,.0f} | {loaded[setting]:,.0f} | "
+              f"{loaded[setting] / quiet[setting]:.2f} |")
 
 
 if __name__ == "__main__":

@@ -18,7 +18,6 @@ In brackets: the share of the raw throughput kept.
 from __future__ import annotations
 
 import argparse
-import platform
 import time
 
 import jax
@@ -28,6 +27,7 @@ from torchrl.collectors import Collector
 from torchrl.envs.utils import RandomPolicy
 
 from torch_kitchen.env import KitchenEnv
+from trainers.machine import machine_name
 
 
 def _random_actions(env: KitchenEnv, key: jax.Array) -> jax.Array:
@@ -133,7 +133,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
-    print(f"device: {args.device} (jax: {jax.devices()[0].device_kind}, {platform.processor() or platform.machine()})")
+    print(f"device: {args.device} (jax: {jax.devices()[0].device_kind}, {machine_name()})")
     print(f"levels: {args.levels}; steps/s, and in brackets the share of the raw figure to its left")
     header = ["raw step", "env.step", "raw trajectory", "rollout", "Collector"]
     print(f"{'envs':>6s} " + " ".join(f"{name:>18s}" for name in header))

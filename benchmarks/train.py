@@ -19,7 +19,6 @@ the ratio of their steps/s.
 from __future__ import annotations
 
 import argparse
-import platform
 import tempfile
 import time
 from collections import deque
@@ -29,6 +28,7 @@ import torch
 
 from trainers.config import load_config
 from trainers.ippo import team_configs, train, train_teams
+from trainers.machine import machine_name
 
 
 def throughput(architecture: str, num_envs: int, rollout_steps: int, updates: int, device: str, threads: int,
@@ -239,7 +239,7 @@ def main(argv=None):
     par.add_argument("--device", default="cpu")
     par.add_argument("--threads", type=int, default=1)
     args = parser.parse_args(argv)
-    print(f"device: {args.device}, {platform.processor() or platform.machine()}, torch threads: {args.threads}")
+    print(f"device: {args.device}, {machine_name()}, torch threads: {args.threads}")
 
     if args.mode == "parity":
         parity(args.setting, int(args.budget), args.rows, args.threads, args.seed)

@@ -12,12 +12,13 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import statistics
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+from trainers.machine import machine_name
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -69,7 +70,7 @@ def main(argv=None) -> None:
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(earlier)], cwd=ROOT, check=False)
 
-    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {args.threads}"
+    machine = f"{machine_name()}, torch threads {args.threads}"
     lines = [
         f"Training steps/s, {args.envs} kitchens x 256 steps, hidden 256, Infinite Kitchen; median of {args.repeats} "
         f"alternating runs per side; {machine}.",

@@ -19,8 +19,6 @@ from __future__ import annotations
 import argparse
 import csv
 import math
-import os
-import platform
 import shutil
 import sys
 import time
@@ -33,6 +31,7 @@ from jax_env import EXPANDED_LAYOUTS
 from trainers.config import EvalConfig, load_config
 from trainers.evaluate import SCRIPTED_CONDITION, evaluate
 from trainers.ippo import team_configs, train_or_resume
+from trainers.machine import machine_name
 
 HELDOUT = "held-out"
 PAPER_STEPS = 2e9  # env steps per team in the paper
@@ -95,17 +94,6 @@ def claims(summary: dict, family: str, ik: str, sk: dict[str, str], budget: int)
     return [f"| {family} | {claim} | {ours} | {verdict} |" for claim, ours, verdict in rows]
 
 
-def processor_name() -> str:
-    """The CPU's model name where Linux tells it (platform.processor() says only "x86_64" there)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.partition(":")[2].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("protocol", help="a protocol file (configs/protocols/reduced.yaml or paper.yaml)")
@@ -153,7 +141,7 @@ def main(argv=None) -> int:
     for picture in sorted((out / "eval").glob("*.png")):
         shutil.copy(picture, figures / picture.name)
         pictures.append(f"![{picture.stem}](docs/results/{picture.name})")
-    machine = f"{processor_name()}, {os.cpu_count()} cores, device {device}"
+    machine = f"{machine_name()}, device {device}"
     if device.startswith("cuda") and torch.cuda.is_available():
         machine += f" ({torch.cuda.get_device_name()})"
     command = " ".join(["python scripts/reproduce.py", *(argv if argv is not None else sys.argv[1:])])

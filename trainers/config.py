@@ -65,6 +65,10 @@ class TrainConfig:
     )
     device: str = option("cpu", '"cpu" or "cuda[:i]"; the env and the networks share it')
     threads: int = option(1, "torch CPU threads (1 is fastest for small networks on a shared CPU)")
+    parallel_teams: int = option(
+        0, "with teams > 1: teams whose PPO updates run at once, each on a thread of its own with `threads` torch "
+           "threads (0: as many as the CPU cores allow); the results are those of one team at a time"
+    )
     compile_policy: bool = option(
         False, "torch.compile the acting policy: the same actions, faster collection after a one-off compilation"
     )
@@ -168,7 +172,7 @@ class TrainConfig:
         if self.seed + self.teams - 1 > MAX_SEED:
             raise ConfigError(f"teams={self.teams} from seed={self.seed} go past the largest seed, {MAX_SEED}")
         weights = ["entropy_coef", "value_coef", "predictor_coef", "shaping_weight"]
-        _at_least(self, ["eval_episodes", "shaping_anneal_steps", *weights], 0)
+        _at_least(self, ["eval_episodes", "shaping_anneal_steps", "parallel_teams", *weights], 0)
         for name in ("lr", "adam_eps", "clip_epsilon", "max_grad_norm"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be greater than 0, got {getattr(self, name)}")

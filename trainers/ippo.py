@@ -13,19 +13,24 @@ the loop only through its named hooks; this file knows none of them by name.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import functools
+import os
 import shutil
 import signal
 import sys
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
 from torchrl.envs import Transform
+from torchrl.envs.utils import set_exploration_type
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value.functional import generalized_advantage_estimate
@@ -363,40 +368,41 @@ def algorithm_transforms(teams: list[Team]) -> list[Transform]:
     return [TeamTransform(transforms, teams[0].config.num_envs) for transforms in zip(*per_team)]
 
 
-def ppo_update(team: Team, batch: TensorDictBase) -> dict[str, float]:
-    """One PPO update of `team` on its batch [num_envs, rollout_steps] (run in the team's random stream): the
-    training reward, GAE, then `epochs` passes of minibatches of whole kitchen sequences; returns its metrics."""
-    config, optimizer = team.config, team.optimizer
+def start_update(team: Team, batch: TensorDictBase) -> list[tuple[torch.Tensor, ...]]:
+    """The first part of an update of `team` on its batch [num_envs, rollout_steps], run in the team's random
+    stream, one team after another: the counters, the learning rate, the training reward and GAE, the
+    algorithm's batch hook, and the minibatch orders of every epoch (the update's only random draws)."""
+    config = team.config
     team.update += 1
     team.env_steps += batch.numel()
-
-    # --- learning rate and reward shaping for this update
-    lr = learning_rate_at(config, team.update)
-    for group in optimizer.param_groups:
-        group["lr"] = lr
-    shaping = shaping_weight_at(config, team.env_steps)
-
-    # --- advantages (GAE) over the whole batch
-    compute_advantages(batch, team.actor_critic.critic, config, shaping)
+    for group in team.optimizer.param_groups:
+        group["lr"] = learning_rate_at(config, team.update)
+    compute_advantages(batch, team.actor_critic.critic, config, shaping_weight_at(config, team.env_steps))
     team.algorithm.process_batch(batch)
+    return [torch.randperm(config.num_envs).chunk(config.minibatches) for _ in range(config.epochs)]
 
-    # --- PPO epochs over minibatches of whole kitchen sequences
+
+def learn(team: Team, batch: TensorDictBase, orders: list[tuple[torch.Tensor, ...]]) -> dict[str, float]:
+    """The PPO epochs of an update over minibatches of whole kitchen sequences, in `orders` (`start_update`);
+    returns the update's metrics. Draws nothing at random and sets no global mode, so that several teams learn
+    at once on threads (`learn_teams`). Raises TrainingDiverged when a loss is NaN or infinite, before that
+    minibatch changes the weights."""
+    config, optimizer = team.config, team.optimizer
+    lr, shaping = learning_rate_at(config, team.update), shaping_weight_at(config, team.env_steps)
     stats = []
-    with set_recurrent_mode(team.actor_critic.recurrent):
-        for _ in range(config.epochs):
-            for kitchens in torch.randperm(config.num_envs).chunk(config.minibatches):
-                minibatch = batch[kitchens.to(batch.device)]
-                team.algorithm.process_minibatch(minibatch)
-                losses = {**team.loss_module(minibatch), **team.algorithm.auxiliary_losses(minibatch)}
-                total = total_loss(losses)
-                if not torch.isfinite(total):  # keep the last good weights, then stop
-                    team.checkpoint()
-                    raise diverged(losses, team.update, team.env_steps)
-                optimizer.zero_grad()
-                total.backward()
-                losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(team.parameters, config.max_grad_norm)
-                optimizer.step()
-                stats.append({key: value.detach().float() for key, value in losses.items()})
+    for order in orders:
+        for kitchens in order:
+            minibatch = batch[kitchens.to(batch.device)]
+            team.algorithm.process_minibatch(minibatch)
+            losses = {**team.loss_module(minibatch), **team.algorithm.auxiliary_losses(minibatch)}
+            total = total_loss(losses)
+            if not torch.isfinite(total):
+                raise diverged(losses, team.update, team.env_steps)
+            optimizer.zero_grad()
+            total.backward()
+            losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(team.parameters, config.max_grad_norm)
+            optimizer.step()
+            stats.append({key: value.detach().float() for key, value in losses.items()})
     team.algorithm.after_update()
 
     # --- metrics
@@ -416,6 +422,44 @@ def ppo_update(team: Team, batch: TensorDictBase) -> dict[str, float]:
     if variance is not None:
         metrics["losses/explained_variance"] = variance
     return metrics
+
+
+def learn_teams(teams: Sequence[Team], batches: Sequence[TensorDictBase], orders: Sequence[list],
+                pool: ThreadPoolExecutor | None) -> list[tuple[dict[str, float], float]]:
+    """Every team's `learn` on its batch, on `pool`'s threads at once (None: one after the other); returns each
+    team's metrics and seconds. A team whose loss diverged is checkpointed with its last good weights once the
+    teams before it are done, and its error raised.
+
+    The modes that TorchRL's losses set while they run (recurrent mode, deterministic sampling) are process-wide;
+    set here around all the teams, the losses' own settings and restorings, interleaved on threads, agree.
+    """
+    def timed_learn(team, batch, team_orders):
+        started = time.perf_counter()
+        metrics = learn(team, batch, team_orders)
+        return metrics, time.perf_counter() - started
+
+    with set_recurrent_mode(True), set_exploration_type(teams[0].loss_module.deterministic_sampling_mode):
+        arguments = list(zip(teams, batches, orders))
+        if pool is None:  # each team learns when its result is asked for
+            pending = [functools.partial(timed_learn, *team_arguments) for team_arguments in arguments]
+        else:
+            pending = [pool.submit(timed_learn, *team_arguments).result for team_arguments in arguments]
+        results = []
+        for team, result in zip(teams, pending):
+            try:
+                results.append(result())
+            except TrainingDiverged:
+                team.checkpoint()
+                raise
+    return results
+
+
+def learning_pool(config: TrainConfig, num_teams: int) -> ThreadPoolExecutor | None:
+    """The threads on which the teams learn at once (`parallel_teams`; 0: as many as the CPU cores allow with
+    `threads` torch threads each), or None for one team at a time."""
+    workers = config.parallel_teams or max(1, len(os.sched_getaffinity(0)) // config.threads)
+    workers = min(workers, num_teams)
+    return ThreadPoolExecutor(workers, thread_name_prefix="team") if workers > 1 else None
 
 
 def check_teams(configs: Sequence[TrainConfig]) -> None:
@@ -542,19 +586,23 @@ def train_teams(
 
     # ---------------------------------------------------------------- training loop
     try:
-        with StopRequest() as stop:
+        with StopRequest() as stop, learning_pool(lead, num_teams) or contextlib.nullcontext() as pool:
             started = time.perf_counter()
             for batch in collector:
                 collected = time.perf_counter()
-                asked = False
-                for index, team in enumerate(teams):
-                    team_batch = batch[team_rows(index, lead.num_envs)]
-                    learning = time.perf_counter()
+                batches = [batch[team_rows(index, lead.num_envs)] for index in range(num_teams)]
+                orders, prepare_seconds = [], []
+                for team, team_batch in zip(teams, batches):
+                    preparing = time.perf_counter()
                     with team.stream.active():
-                        metrics = ppo_update(team, team_batch)
-                    now = time.perf_counter()
+                        orders.append(start_update(team, team_batch))
+                    prepare_seconds.append(time.perf_counter() - preparing)
+                learned = learn_teams(teams, batches, orders, pool)
+                now = time.perf_counter()
+                asked = False
+                for team, (metrics, seconds), prepared in zip(teams, learned, prepare_seconds):
                     metrics["charts/collect_seconds"] = collected - started
-                    metrics["charts/update_seconds"] = now - learning
+                    metrics["charts/update_seconds"] = prepared + seconds
                     metrics["charts/steps_per_second"] = batch.numel() / (now - started)
                     for logger in team.loggers:
                         logger.log_metrics(metrics, step=team.env_steps)

@@ -20,7 +20,8 @@ def assert_same_run(team_run, single_run):
         torch.testing.assert_close(team[part], single[part], rtol=0, atol=0, msg=lambda m: f"{part}: {m}")
     assert torch.equal(team["rng"]["torch"], single["rng"]["torch"])
     assert (team["update"], team["env_steps"]) == (single["update"], single["env_steps"])
-    assert {**team["config"], "run_dir": None} == {**single["config"], "run_dir": None}
+    scheduling = {"run_dir": None, "parallel_teams": None}  # where the run was written, and how teams took turns
+    assert {**team["config"], **scheduling} == {**single["config"], **scheduling}
     assert read_metrics(team_run) == read_metrics(single_run)
 
 
@@ -30,7 +31,9 @@ def assert_same_run(team_run, single_run):
     ["algorithm=e3t", "architecture=e3t_mlp", "partner_policy=copy"],  # partner seats drawn per team
 ], ids=["ippo-infinite", "lstm", "e3t"])
 def test_each_team_of_a_multi_team_run_is_the_run_of_its_seed_alone(tmp_path, overrides):
-    runs = train_teams(team_configs(tiny_config(tmp_path / "teams", "teams=3", "seed=5", *overrides)))
+    # Two teams learn at once on threads, the third after them: each as it would alone.
+    config = tiny_config(tmp_path / "teams", "teams=3", "seed=5", "parallel_teams=2", *overrides)
+    runs = train_teams(team_configs(config))
     assert [run.name for run in runs] == ["seed5", "seed6", "seed7"]
     for run, seed in zip(runs, (5, 6, 7)):
         assert_same_run(run, train(tiny_config(tmp_path / "single", f"seed={seed}", *overrides)))

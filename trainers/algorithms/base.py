@@ -18,6 +18,10 @@ this order:
 
 `auxiliary_losses` entries are logged as "losses/<name without loss_>" or "charts/<name>", averaged over the
 update's minibatches.
+
+`process_batch` runs in the team's random stream, one team after another. With several teams in one process,
+`process_minibatch`, `auxiliary_losses` and `after_update` of different teams run at once on threads
+(`parallel_teams`): they must not draw from torch's global random generator or change a process-wide mode.
 """
 
 from __future__ import annotations

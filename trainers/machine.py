@@ -1,0 +1,23 @@
+"""The machine a measurement ran on, as benchmark and result tables name it."""
+
+from __future__ import annotations
+
+import os
+import platform
+from pathlib import Path
+
+
+def processor_name() -> str:
+    """The CPU's model name where Linux tells it (platform.processor() says only "x86_64" there)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.partition(":")[2].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def machine_name() -> str:
+    """The CPU's model name and the cores this process may use, e.g. "AMD EPYC, 2 cores"."""
+    return f"{processor_name()}, {len(os.sched_getaffinity(0))} cores"
