@@ -1,8 +1,10 @@
 """Experiment configs: one dataclass, YAML files that mirror it, and `key=value` overrides on top.
 
 Two schemas: `TrainConfig` (a training run) and `EvalConfig` (an evaluation of trained teams). A YAML file may
-name a `base:` file (relative to itself) whose values it overrides, so the configs of one family share their
-common part. The layers (defaults, a saved run's values, the file's `base:` chain, the overrides) are merged and
+list `defaults:` whose values it overrides, as in Hydra: files relative to itself (the common part of a family)
+and config group choices (`regime: ik`, configs/regime/ik.yaml), which the command line may replace
+(`regime=sk_coord_ring`). The layers (defaults, a saved run's values, the file's defaults, the file, the command
+line's group choices, its overrides) are merged and
 converted by OmegaConf over structured configs built from the dataclasses (`kitchen-sweep` hands the same values
 to Hydra). Unknown keys and ill-typed values are refused with the list of valid keys; `check()` refuses values
 no run can use before any work starts, with one line (a `ConfigError`) that says what to change. Every field
@@ -351,6 +353,10 @@ def config_help(schema: type) -> str:
         default = field.default_factory() if field.default is dataclasses.MISSING else field.default
         lines.append(f"    {field.name}: {_type_name(hints[field.name])} = {_yaml_scalar(default)}")
         lines.append(f"        {field.metadata['help']}")
+    if schema is TrainConfig:
+        lines += ["", "config groups (in a file's `defaults:` list, or as group=choice, which replaces the file's):"]
+        for group, meaning in GROUPS.items():
+            lines += [f"    {group}: {' | '.join(group_choices(group))}", f"        {meaning}"]
     return "\n".join(lines)
 
 
@@ -490,8 +496,45 @@ def _merge(schema: type, merged: DictConfig, values: dict, source: str) -> DictC
         ) from None
 
 
-def _read_yaml(schema: type, path: Path, seen: tuple[Path, ...] = ()) -> list[tuple[dict, str]]:
-    """The layers of a YAML config, (values, path) for each file of its `base:` chain, the file's own last."""
+CONFIG_ROOT = Path(__file__).resolve().parent.parent / "configs"  # the shipped configs, and the config groups
+# Config groups, as in Hydra: configs/<group>/<choice>.yaml, chosen in a file's `defaults:` list (`- regime: ik`)
+# or on the command line (`regime=sk_coord_ring`, which replaces the file's choice and comes after the file).
+GROUPS = {"regime": "the paper's training regime: ik (Infinite Kitchen) or sk_<layout> (Single Kitchen)"}
+
+
+@dataclass
+class Layer:
+    """Values to merge, where they come from, and the config group they were chosen from (None: not a group's)."""
+
+    values: dict
+    source: str
+    group: str | None = None
+
+
+def group_choices(group: str) -> list[str]:
+    """The choices of a config group: the names of configs/<group>/*.yaml."""
+    return sorted(path.stem for path in (CONFIG_ROOT / group).glob("*.yaml"))
+
+
+def group_values(group: str, choice: str) -> dict:
+    """The values that `choice` of a config group sets (its file, its own defaults first)."""
+    values = {}
+    for layer in _group_layers(TrainConfig, group, choice, "the config group"):
+        values.update(layer.values)
+    return values
+
+
+def _group_layers(schema: type, group: str, choice, source: str) -> list[Layer]:
+    """The layers of `choice` in `group`, or a ConfigError naming the choices."""
+    if not isinstance(choice, str) or choice not in group_choices(group):
+        raise ConfigError(f"{group} in {source} must be one of {', '.join(group_choices(group))}, got {choice!r}")
+    return [dataclasses.replace(layer, group=group)
+            for layer in _read_yaml(schema, CONFIG_ROOT / group / f"{choice}.yaml")]
+
+
+def _read_yaml(schema: type, path: Path, seen: tuple[Path, ...] = ()) -> list[Layer]:
+    """The layers of a YAML config: those of its `defaults:` list in order (files relative to it, and config group
+    choices such as `regime: ik`), then the file's own. `base: FILE` is the same as `defaults: [FILE]`."""
     path = path.resolve()
     if path in seen:
         raise ConfigError(f"config {path} names itself as a base (through {' -> '.join(map(str, seen))})")
@@ -508,13 +551,25 @@ def _read_yaml(schema: type, path: Path, seen: tuple[Path, ...] = ()) -> list[tu
             raise ConfigError(
                 f"the key {key!r} in {path} is not a config key (keys are names): valid keys: {_key_list(schema)}"
             )
-    layers = []
+    defaults = values.pop("defaults", [])
     if "base" in values:
         base = values.pop("base")
         if not isinstance(base, str) or not base.strip():
             raise ConfigError(f"base in {path} must be the path of a config file (relative to this one), got {base!r}")
-        layers = _read_yaml(schema, path.parent / base, (*seen, path))
-    return [*layers, (values, str(path))]
+        defaults = [base, *defaults] if isinstance(defaults, list) else defaults
+    if not isinstance(defaults, list):
+        raise ConfigError(f"defaults in {path} must be a list of files and choices (e.g. [base.yaml, regime: ik])")
+    layers = []
+    for item in defaults:
+        if isinstance(item, str) and item.strip():
+            layers += _read_yaml(schema, path.parent / item, (*seen, path))
+        elif isinstance(item, dict) and len(item) == 1 and next(iter(item)) in GROUPS:
+            (group, choice), = item.items()
+            layers += _group_layers(schema, group, choice, str(path))
+        else:
+            raise ConfigError(f"defaults in {path}: {item!r} is neither a config file (relative to this one) nor a "
+                              f"group choice ({', '.join(f'{group}: <choice>' for group in GROUPS)})")
+    return [*layers, Layer(values, str(path))]
 
 
 def parse_overrides(overrides: list[str], schema: type = TrainConfig) -> dict:
@@ -542,15 +597,21 @@ def load_config(
     base: dict | None = None,
     schema: type[Config] = TrainConfig,
 ) -> Config:
-    """A checked `schema` config: its defaults, then `base` (e.g. a saved run's values), the YAML file (its `base:`
-    chain first), the `key=value` overrides, merged in that order by OmegaConf."""
-    layers = [(base or {}, "the saved run config")]
+    """A checked `schema` config: its defaults, then `base` (e.g. a saved run's values), the YAML file (its
+    `defaults:` first), the command line's group choices (`regime=ik`, replacing the file's), then its `key=value`
+    overrides, merged in that order by OmegaConf."""
+    choices = {item.partition("=")[0].strip(): item.partition("=")[2].strip() for item in overrides
+               if schema is TrainConfig and item.partition("=")[0].strip() in GROUPS}
+    layers = [Layer(base or {}, "the saved run config")]
     if path is not None:
-        layers += _read_yaml(schema, Path(path))
-    layers.append((parse_overrides(list(overrides), schema), "the command line"))
+        layers += [layer for layer in _read_yaml(schema, Path(path)) if layer.group not in choices]
+    for group, choice in choices.items():
+        layers += _group_layers(schema, group, choice, "the command line")
+    keys = [item for item in overrides if item.partition("=")[0].strip() not in choices]
+    layers.append(Layer(parse_overrides(keys, schema), "the command line"))
     merged = OmegaConf.structured(_structured(schema))
-    for values, source in layers:
-        merged = _merge(schema, merged, values, source)
+    for layer in layers:
+        merged = _merge(schema, merged, layer.values, layer.source)
     return schema(**OmegaConf.to_container(merged)).check()
 
 
@@ -564,6 +625,8 @@ __all__ = [
     "TrainConfig",
     "check_device",
     "config_help",
+    "group_choices",
+    "group_values",
     "load_config",
     "option",
     "parse_overrides",

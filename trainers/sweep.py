@@ -9,9 +9,10 @@ several values, and each point of it is the run `kitchen-train CONFIG key=value 
 too, so `kitchen-eval`'s `runs/<name>/seed*` globs keep working. `teams=K` makes every job train seeds seed ..
 seed+K-1 together in one process, the paper's six teams of a condition in one job.
 
-The group `regime` sets the paper's regimes: `ik` (levels=infinite hidden=256 share_params=true) and
-`sk_<layout>` (one expanded layout, hidden=128, share_params=false), as the shipped configs do. So the paper's
-grid is one sweep, its runs named as the shipped configs name them:
+The config group `regime` (configs/regime/, as in `kitchen-train CONFIG regime=...` and the shipped configs'
+`defaults:`) sets the paper's regimes: `ik` (levels=infinite hidden=256 share_params=true) and `sk_<layout>` (one
+expanded layout, hidden=128, share_params=false). So the paper's grid is one sweep, its runs named as the shipped
+configs name them:
 
     kitchen-sweep configs/ippo/mlp_ik.yaml regime=ik,sk_cramped_room,sk_coord_ring architecture=mlp,gnn \
         'name=ippo_${architecture}_${hydra:runtime.choices.regime}' seed=0 teams=6
@@ -38,8 +39,7 @@ import sys
 from collections.abc import Sequence
 from contextlib import contextmanager
 
-from jax_env import EXPANDED_LAYOUTS
-from trainers.config import ConfigError, TrainConfig, config_help, load_config, unknown_key
+from trainers.config import ConfigError, TrainConfig, config_help, group_choices, group_values, load_config, unknown_key
 from trainers.ippo import team_configs, train_or_resume
 
 PRIMARY = "kitchen_sweep"  # the name of the sweep's base config in Hydra's ConfigStore
@@ -47,13 +47,10 @@ REGIME = "regime"  # the config group of the paper's regimes
 
 
 def regimes() -> dict[str, dict]:
-    """The paper's training regimes as the choices of the `regime` group: "ik" (Infinite Kitchen: a generated
-    level every episode, one network shared by both agents, hidden 256) and "sk_<layout>" (Single Kitchen on one
-    expanded layout, one network per agent, hidden 128), as configs/ippo/*_ik.yaml and *_sk_*.yaml set them."""
-    choices = {"ik": {"levels": "infinite", "hidden": 256, "share_params": True}}
-    for layout in EXPANDED_LAYOUTS:
-        choices[f"sk_{layout.removesuffix('_7x7')}"] = {"levels": layout, "hidden": 128, "share_params": False}
-    return choices
+    """The paper's training regimes, the choices of the `regime` config group (configs/regime/): "ik" (Infinite
+    Kitchen: a generated level every episode, one network shared by both agents, hidden 256) and "sk_<layout>"
+    (Single Kitchen on one expanded layout, one network per agent, hidden 128), each with the values it sets."""
+    return {choice: group_values(REGIME, choice) for choice in group_choices(REGIME)}
 
 
 def run_point(cfg) -> list[str]:

@@ -39,6 +39,28 @@ def test_every_shipped_config_resolves_to_the_values_recorded_before_configs_mov
         assert dataclasses.asdict(load_config(root / name, schema=schema)) == values, name
 
 
+@pytest.mark.parametrize("regime", ["ik", "sk_cramped_room", "sk_counter_circuit"])
+def test_a_regime_chosen_on_the_command_line_replaces_the_files(regime):
+    for algorithm, architecture in (("ippo", "gnn_lstm"), ("e3t", "mlp")):
+        shipped = load_config(CONFIG_DIR / algorithm / f"{architecture}_{regime}.yaml", ["name=x"])
+        for other in ("ik", "sk_coord_ring"):  # another condition of the family, its regime replaced
+            chosen = load_config(CONFIG_DIR / algorithm / f"{architecture}_{other}.yaml",
+                                 [f"regime={regime}", "name=x"])
+            assert chosen == shipped, (algorithm, other)
+
+
+def test_a_regime_on_the_command_line_comes_after_the_file_and_before_the_keys():
+    main = load_config(CONFIG_DIR / "main.yaml")
+    assert (main.levels, main.hidden, main.share_params) == ("cramped_room_7x7", 64, True)  # the file's own width
+    ik = load_config(CONFIG_DIR / "main.yaml", ["regime=ik"])
+    assert (ik.levels, ik.hidden, ik.share_params, ik.lr) == ("infinite", 256, True, main.lr)
+    assert load_config(CONFIG_DIR / "main.yaml", ["hidden=64", "regime=ik"]).hidden == 64
+    with pytest.raises(ConfigError, match=r"^regime in the command line must be one of ik, sk_asymm_advantages, "
+                                          r"sk_coord_ring, sk_counter_circuit, sk_cramped_room, sk_forced_coord, "
+                                          r"got 'sk_nowhere'$"):
+        load_config(CONFIG_DIR / "main.yaml", ["regime=sk_nowhere"])
+
+
 def test_every_protocol_names_configs_that_load_with_its_overrides():
     assert len(PROTOCOLS) == 2
     for path in PROTOCOLS:

@@ -182,6 +182,12 @@ def test_cuda_is_refused_where_this_machine_has_no_such_gpu(monkeypatch):
         ("gamma: 5\n", r"^gamma must lie in \[0, 1\], got 5.0$"),
         ("device: tpu\n", r"^device=tpu is not a device"),
         ("num_env: 8\n", r"^unknown config key 'num_env' in .*bad\.yaml \(did you mean 'num_envs'\?\)"),
+        ("defaults: base.yaml\n", r"^defaults in .*bad\.yaml must be a list of files and choices"),
+        ("defaults: [layout: ik]\n", r"^defaults in .*bad\.yaml: \{'layout': 'ik'\} is neither a config file .*nor a "
+                                     r"group choice \(regime: <choice>\)$"),
+        ("defaults: [regime: sk_nowhere]\n", r"^regime in .*bad\.yaml must be one of ik, sk_asymm_advantages, .*, "
+                                             r"got 'sk_nowhere'$"),
+        ("defaults: [missing.yaml]\n", r"^config file .*missing\.yaml does not exist$"),
     ],
 )
 def test_broken_yaml_files_name_the_file(tmp_path, text, message):
@@ -195,6 +201,14 @@ def test_a_base_chain_still_merges(tmp_path):
     (tmp_path / "run.yaml").write_text("base: base.yaml\nseed: 2\n")
     config = load_config(tmp_path / "run.yaml")
     assert (config.seed, config.lr) == (2, 1e-3)
+
+
+def test_a_defaults_list_merges_files_then_group_choices_then_the_file(tmp_path):
+    (tmp_path / "base.yaml").write_text("seed: 1\nlr: 1e-3\nhidden: 32\n")
+    (tmp_path / "run.yaml").write_text("defaults: [base.yaml, regime: sk_coord_ring]\nseed: 2\n")
+    config = load_config(tmp_path / "run.yaml")
+    # base.yaml's hidden gives way to the regime's, which gives way to the file's own values.
+    assert (config.seed, config.lr, config.hidden, config.levels) == (2, 1e-3, 128, "coord_ring_7x7")
 
 
 def test_a_saved_config_loads_back_equal(tmp_path):

@@ -76,7 +76,7 @@ def test_keys_and_values_are_checked_before_any_job_starts(tmp_path, capsys, mon
     assert main([str(ROOT / "configs" / "main.yaml"), "num_envs=2,3", "minibatches=2"]) == 2
     assert "minibatches (2) must divide num_envs (3)" in capsys.readouterr().err
     assert main([str(ROOT / "configs" / "main.yaml"), "regime=ik,sk_nowhere"]) == 2
-    assert "unknown regime 'sk_nowhere'; the regimes: ik, sk_cramped_room" in capsys.readouterr().err
+    assert "unknown regime 'sk_nowhere'; the regimes: ik, sk_asymm_advantages, sk_coord_ring" in capsys.readouterr().err
     assert not (tmp_path / "runs").exists()
 
 
