@@ -45,6 +45,18 @@ def test_a_two_by_two_grid_writes_four_runs_named_by_the_keys_that_vary(tmp_path
     assert list(tmp_path.glob("runs/main/.sweeps/*/multirun.yaml"))  # Hydra's record of the sweep, beside the runs
 
 
+def test_the_ray_launcher_runs_a_grid_on_a_local_ray_cluster(tmp_path):
+    # The launcher of a multi-GPU box without SLURM; it comes with the ray extra (`pip install -e .[ray]`).
+    pytest.importorskip("hydra_plugins.hydra_ray_launcher", reason="the Ray launcher is in the ray extra")
+    sweep = kitchen_sweep(tmp_path, "seed=0,1", "total_steps=32", *TINY, "hydra/launcher=ray",
+                          "+hydra.launcher.ray.init.num_cpus=2", "+hydra.launcher.ray.init.include_dashboard=false")
+    output, _ = sweep.communicate(timeout=600)
+    assert sweep.returncode == 0, output
+    for seed in (0, 1):
+        state = torch.load(tmp_path / "runs" / "main" / f"seed{seed}" / "checkpoints" / "latest.pt", weights_only=False)
+        assert (state["env_steps"], state["config"]["seed"]) == (32, seed)
+
+
 @pytest.mark.parametrize("algorithm, architecture", [("ippo", "mlp"), ("ippo", "gnn_lstm"), ("e3t", "e3t_gnn")])
 def test_the_regimes_are_those_of_the_shipped_configs(algorithm, architecture):
     for regime, values in regimes().items():
