@@ -16,7 +16,6 @@ import argparse
 import contextlib
 import dataclasses
 import functools
-import os
 import shutil
 import signal
 import sys
@@ -53,6 +52,7 @@ from trainers.checkpoint import (
     save_checkpoint,
 )
 from trainers.config import ConfigError, TrainConfig, config_help, load_config, save_config
+from trainers.machine import usable_cores
 from trainers.rollout import finished_episode_deliveries, make_collector
 
 ACTION, LOG_PROB, VALUE = ("agents", "action"), ("agents", "action_log_prob"), ("agents", "state_value")
@@ -457,7 +457,7 @@ def learn_teams(teams: Sequence[Team], batches: Sequence[TensorDictBase], orders
 def learning_pool(config: TrainConfig, num_teams: int) -> ThreadPoolExecutor | None:
     """The threads on which the teams learn at once (`parallel_teams`; 0: as many as the CPU cores allow with
     `threads` torch threads each), or None for one team at a time."""
-    workers = config.parallel_teams or max(1, len(os.sched_getaffinity(0)) // config.threads)
+    workers = config.parallel_teams or max(1, usable_cores() // config.threads)
     workers = min(workers, num_teams)
     return ThreadPoolExecutor(workers, thread_name_prefix="team") if workers > 1 else None
 

@@ -9,7 +9,7 @@ from torch_kitchen.env import KitchenEnv
 from torch_kitchen.teams import RandomStream
 from trainers.checkpoint import load_checkpoint
 from trainers.config import ConfigError
-from trainers.ippo import main, team_configs, train, train_teams
+from trainers.ippo import learning_pool, main, team_configs, train, train_teams
 
 
 def assert_same_run(team_run, single_run):
@@ -105,3 +105,16 @@ def test_a_random_stream_is_its_own_and_leaves_the_global_one_alone():
     torch.manual_seed(7)
     assert torch.equal(torch.cat([first, second]), torch.rand(4))
     assert torch.equal(outside, expected_global)
+
+
+def test_teams_learn_at_once_on_as_many_threads_as_the_cores_allow(tmp_path, monkeypatch):
+    monkeypatch.setattr("trainers.ippo.usable_cores", lambda: 4)
+
+    def workers(*overrides, teams=6):
+        pool = learning_pool(tiny_config(tmp_path, *overrides), teams)
+        return 1 if pool is None else pool._max_workers
+
+    assert workers() == 4  # threads=1: one team per core
+    assert workers("threads=2") == 2 and workers("threads=4") == 1  # each team's torch threads take cores too
+    assert workers(teams=3) == 3 and workers(teams=1) == 1
+    assert workers("parallel_teams=1") == 1 and workers("parallel_teams=6") == 6  # asked for: as asked
