@@ -45,14 +45,17 @@ def train_condition(name: str, path: str, overrides: list[str], teams: int, runs
 
 def logged_training_seconds(condition: Path) -> float:
     """Seconds a condition's teams spent training, from their own logs (so a resumed or skipped condition counts
-    too): the collection they shared, once, plus every team's updates."""
-
-    def total(path: Path) -> float:
-        return sum(float(line.split(",")[1]) for line in path.read_text().splitlines() if line.strip())
-
-    seeds = sorted(condition.glob("seed*"))
-    charts = [seed / "csv" / "scalars" / "charts" for seed in seeds]
-    return total(charts[0] / "collect_seconds.csv") + sum(total(c / "update_seconds.csv") for c in charts)
+    too): each batch's steps, all teams', over the steps per second logged for it, which time the whole batch
+    (collection and every team's update) in the log of the condition's last team."""
+    seeds = sorted(condition.glob("seed*"), key=lambda seed: int(seed.name.removeprefix("seed")))
+    rates = seeds[-1] / "csv" / "scalars" / "charts" / "steps_per_second.csv"
+    seconds, previous = 0.0, 0.0
+    for line in rates.read_text().splitlines():
+        if line.strip():
+            steps, rate = map(float, line.split(",")[:2])
+            seconds += len(seeds) * (steps - previous) / rate
+            previous = steps
+    return seconds
 
 
 def read_summary(path: Path) -> dict[tuple[str, str], dict]:
