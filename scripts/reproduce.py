@@ -1,7 +1,7 @@
 """The paper's experiment as one command: train every condition of a protocol, evaluate the whole grid, write
 RESULTS.md with the numbers beside the paper's claims.
 
-    python scripts/reproduce.py configs/protocols/reduced.yaml      # 80+ min of training on a 2-core CPU
+    python scripts/reproduce.py configs/protocols/reduced.yaml      # about 2 hours of training on a 2-core CPU
     python scripts/reproduce.py configs/protocols/paper.yaml        # the paper's budget, on a GPU
     python scripts/reproduce.py configs/protocols/reduced.yaml --out results/reduced --results RESULTS.md
 
