@@ -1,11 +1,13 @@
 """Training throughput of the working tree against an earlier revision, in one run, as a ratio.
 
-Checks out `REVISION` into a temporary git worktree and runs `benchmarks/train.py` (modes `throughput` and `e3t`)
-from each checkout in turn, alternating (earlier, current, earlier, current, ...) so that both see the same
-machine state; every measurement is a separate process. Prints, and writes to `--out`, a Markdown table of the
-median steps/s of each side and current / earlier.
+Checks out `REVISION` into a temporary git worktree and runs `benchmarks/train.py` (modes `throughput`, `e3t` and
+`reference`) from each checkout in turn, alternating (earlier, current, earlier, current, ...) so that both see the
+same machine state; every measurement is a separate process. Prints, and writes to `--out`, a Markdown table of
+the median steps/s of each side and current / earlier. With `--reference`, each side also runs the pure-JAX
+yardstick of `benchmarks/jax_ppo.py` beside it, and the rows give ours / yardstick of each side.
 
     python benchmarks/train_revisions.py 93900fa --archs mlp gnn --e3t mlp --repeats 2 --out results.md
+    python benchmarks/train_revisions.py 901da01 --archs --e3t --reference jaxmarl ik protocol --threads 1
 """
 
 from __future__ import annotations
@@ -23,13 +25,38 @@ from trainers.machine import machine_name
 ROOT = Path(__file__).resolve().parents[1]
 
 
+# Updates per `reference` measurement (ours times all but the first): enough for a few seconds of timed work.
+REFERENCE_UPDATES = {"jaxmarl": 20, "ik": 4, "protocol": 3, "protocol_gnn": 2}
+
+
+def _run(checkout: Path, arguments: list[str]) -> str:
+    """The output of `benchmarks/train.py ARGUMENTS` run from `checkout`, on that checkout's code."""
+    environment = {**os.environ, "PYTHONPATH": str(checkout)}
+    return subprocess.run([sys.executable, "benchmarks/train.py", *arguments], cwd=checkout, env=environment,
+                          capture_output=True, text=True, check=True).stdout
+
+
+def measure_reference(checkout: Path, settings: list[str], threads: int) -> dict[str, float]:
+    """Ours and the yardstick's steps/s, and their ratio, per setting of `train.py reference`, from `checkout`."""
+    rates = {}
+    for setting in settings:
+        output = _run(checkout, ["reference", "--setting", setting, "--updates", str(REFERENCE_UPDATES[setting]),
+                                 "--threads", str(threads)])
+        fields = output.strip().splitlines()[-1].split()  # ours, yardstick, ratio; or ours alone (no yardstick)
+        rates[f"{setting}: ours"] = float(fields[0].replace(",", ""))
+        if len(fields) == 3:
+            rates[f"{setting}: yardstick"] = float(fields[1].replace(",", ""))
+            rates[f"{setting}: ours / yardstick"] = float(fields[2])
+    return rates
+
+
 def measure(checkout: Path, mode: str, names: list[str], envs: int, updates: int, threads: int) -> dict[str, float]:
     """Steps/s per measured configuration of one `benchmarks/train.py` run from `checkout`."""
+    if mode == "reference":
+        return measure_reference(checkout, names, threads)
     option = "--archs" if mode == "throughput" else "--encoders"
-    command = [sys.executable, "benchmarks/train.py", mode, option, *names, "--envs", str(envs), "--updates",
-               str(updates), "--threads", str(threads)]
-    environment = {**os.environ, "PYTHONPATH": str(checkout)}
-    output = subprocess.run(command, cwd=checkout, env=environment, capture_output=True, text=True, check=True).stdout
+    output = _run(checkout, [mode, option, *names, "--envs", str(envs), "--updates", str(updates), "--threads",
+                             str(threads)])
     rates = {}
     for line in output.splitlines():
         fields = line.split()
@@ -46,6 +73,8 @@ def main(argv=None) -> None:
     parser.add_argument("revision", help="the earlier git revision to compare against")
     parser.add_argument("--archs", nargs="*", default=["mlp", "gnn"], help="IPPO architectures")
     parser.add_argument("--e3t", nargs="*", default=["mlp"], help="E3T encoders (each also runs IPPO beside it)")
+    parser.add_argument("--reference", nargs="*", default=[], choices=list(REFERENCE_UPDATES),
+                        help="settings of `train.py reference`: ours beside the pure-JAX yardstick")
     parser.add_argument("--envs", type=int, default=32)
     parser.add_argument("--updates", type=int, default=3, help="updates per measurement (the first is not timed)")
     parser.add_argument("--threads", type=int, default=2)
@@ -61,7 +90,7 @@ def main(argv=None) -> None:
         try:
             for repeat in range(args.repeats):
                 for side, checkout in (("earlier", earlier), ("current", ROOT)):
-                    for mode, names in (("throughput", args.archs), ("e3t", args.e3t)):
+                    for mode, names in (("throughput", args.archs), ("e3t", args.e3t), ("reference", args.reference)):
                         if names:
                             rates = measure(checkout, mode, names, args.envs, args.updates, args.threads)
                             for name, rate in rates.items():
@@ -71,9 +100,10 @@ def main(argv=None) -> None:
             subprocess.run(["git", "worktree", "remove", "--force", str(earlier)], cwd=ROOT, check=False)
 
     machine = f"{machine_name()}, torch threads {args.threads}"
+    shape = f"{args.envs} kitchens x 256 steps, hidden 256, Infinite Kitchen" if args.archs or args.e3t else ""
+    shape += f"{'; ' if shape else ''}reference settings {', '.join(args.reference)}" if args.reference else ""
     lines = [
-        f"Training steps/s, {args.envs} kitchens x 256 steps, hidden 256, Infinite Kitchen; median of {args.repeats} "
-        f"alternating runs per side; {machine}.",
+        f"Training steps/s ({shape}); median of {args.repeats} alternating runs per side; {machine}.",
         f"Earlier: `{args.revision}`. Command: `python benchmarks/train_revisions.py {' '.join(argv or sys.argv[1:])}`",
         "",
         "| configuration | earlier steps/s | current steps/s | current / earlier |",
@@ -81,7 +111,8 @@ def main(argv=None) -> None:
     ]
     for name in runs["earlier"]:
         before, after = statistics.median(runs["earlier"][name]), statistics.median(runs["current"][name])
-        lines.append(f"| {name} | {before:,.0f} | {after:,.0f} | {after / before:.2f} |")
+        digits = 3 if name.endswith("/ yardstick") else 0  # a ratio, not steps/s
+        lines.append(f"| {name} | {before:,.{digits}f} | {after:,.{digits}f} | {after / before:.2f} |")
     table = "\n".join(lines) + "\n"
     print(table)
     if args.out:

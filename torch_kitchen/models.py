@@ -3,7 +3,8 @@
 `make_actor_critic(architecture, ...)` builds an `ActorCritic` whose actor and critic are TensorDict modules
 with separate torsos (no layer is shared between actor and critic). Each torso, with h = `hidden`:
 
-    encoder   "mlp": flatten H*W*26 -> Linear(h) + ReLU
+    encoder   "mlp": flatten H*W*26 -> Linear(h) + ReLU (on CPU from the non-zero inputs alone:
+                     `torch_kitchen.sparse_linear`)
               "gnn": kitchen graph (`torch_kitchen.graph`) -> GATConv(26, 8, heads=4, concat) -> ReLU
                      -> flatten the H*W+2 node embeddings -> Linear(h) + ReLU (the scene embedding)
     memory    recurrent variants only: TorchRL LSTMModule(h) -> LayerNorm(h)
@@ -19,7 +20,7 @@ With `share_params` one network serves both agents; otherwise agent i has its ow
 
 Keys (*B = the tensordict's batch dims: [B] while collecting, [B, T] in training batches; h = hidden):
 
-    in   ("agents", "observation")        uint8   [*B, 2, H, W, 26]  (cast to float32 inside)
+    in   ("agents", "observation")        uint8   [*B, 2, H, W, 26]  (read as float32 inside)
          "is_init"                        bool    [*B, 1]           recurrent only (`InitTracker`)
          ("agents", "<net>_h" | "<net>_c") float32 [*B, 2, 1, h]     recurrent only, <net> = actor | critic
     out  ("agents", "logits")             float32 [*B, 2, 6]
@@ -66,6 +67,7 @@ from torchrl.modules import LSTMModule, ProbabilisticActor
 from jax_env import NUM_ACTIONS
 from torch_kitchen.graph import build_graph, num_nodes
 from torch_kitchen.partner import CONTEXT_ACTION, CONTEXT_OBSERVATION, NO_ACTION, PartnerContext
+from torch_kitchen.sparse_linear import SparseInputLinear
 from torch_kitchen.torchrl_internals import MultiAgentNet
 
 N_AGENTS = 2
@@ -84,12 +86,12 @@ def _orthogonal_(layer: nn.Linear, gain: float) -> nn.Linear:
     return layer
 
 
-def _hidden_linear(in_features: int, out_features: int) -> nn.Linear:
-    return _orthogonal_(nn.Linear(in_features, out_features), math.sqrt(2))
+def _hidden_linear(in_features: int, out_features: int, layer: type[nn.Linear] = nn.Linear) -> nn.Linear:
+    return _orthogonal_(layer(in_features, out_features), math.sqrt(2))
 
 
 class GraphEncoder(nn.Module):
-    """Kitchen graph -> one GAT layer -> scene embedding: float [..., H, W, C] -> float [..., hidden]."""
+    """Kitchen graph -> one GAT layer -> scene embedding: [..., H, W, C] (uint8 or float) -> float [..., hidden]."""
 
     def __init__(self, obs_shape: tuple[int, int, int], hidden: int):
         super().__init__()
@@ -101,7 +103,7 @@ class GraphEncoder(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         batch = obs.shape[:-3]
-        graphs = obs.reshape(-1, *self.obs_shape)
+        graphs = obs.reshape(-1, *self.obs_shape).to(torch.float32)
         x, edge_index = build_graph(graphs)
         nodes = torch.relu(self.gat(x, edge_index))  # [N * (H*W + 2), 32]
         scene = torch.relu(self.scene(nodes.reshape(graphs.shape[0], -1)))
@@ -109,9 +111,10 @@ class GraphEncoder(nn.Module):
 
 
 def make_encoder(kind: str, obs_shape: tuple[int, int, int], hidden: int) -> nn.Module:
-    """One agent's encoder: float [..., H, W, C] -> float [..., hidden]; kind "mlp" or "gnn"."""
+    """One agent's encoder: [..., H, W, C] (uint8 observations or float) -> float [..., hidden]; kind "mlp" or
+    "gnn". The MLP's first layer reads the observation's non-zero entries alone (`SparseInputLinear`)."""
     if kind == "mlp":
-        return nn.Sequential(nn.Flatten(-3), _hidden_linear(math.prod(obs_shape), hidden), nn.ReLU())
+        return nn.Sequential(nn.Flatten(-3), _hidden_linear(math.prod(obs_shape), hidden, SparseInputLinear), nn.ReLU())
     if kind == "gnn":
         return GraphEncoder(obs_shape, hidden)
     raise ValueError(f"unknown encoder {kind!r}, expected 'mlp' or 'gnn'")
@@ -132,7 +135,8 @@ def make_head(hidden: int, out_features: int, out_gain: float, layer_norm: bool,
 
 # -------------------------------------------------------------------------------------- one net per agent
 class ObservationEncoder(MultiAgentNet):
-    """Both agents' observations, uint8 [..., 2, H, W, C], to embeddings float32 [..., 2, hidden]."""
+    """Both agents' observations, uint8 [..., 2, H, W, C], to embeddings float32 [..., 2, hidden]. The encoders
+    read the uint8 values themselves (the MLP's sparse first layer finds the non-zero bytes without a cast)."""
 
     def __init__(self, kind: str, obs_shape: tuple[int, int, int], hidden: int, share_params: bool = True):
         super().__init__(functools.partial(make_encoder, kind, obs_shape, hidden), obs_shape,
@@ -147,7 +151,7 @@ class ObservationEncoder(MultiAgentNet):
                 f"kitchens needs {height}x{width} levels (7x7: the Infinite Kitchen and the expanded classic "
                 f"layouts), or build it with make_actor_critic(..., obs_shape={tuple(inputs.shape[-3:])})"
             )
-        return inputs.to(torch.float32)
+        return inputs
 
 
 # ------------------------------------------------------------------------------------------- recurrence

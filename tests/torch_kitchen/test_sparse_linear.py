@@ -1,0 +1,106 @@
+import jax
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from torch import nn
+
+from jax_env import Overcooked
+from torch_kitchen import sparse_linear
+from torch_kitchen.models import make_actor_critic, make_encoder
+from torch_kitchen.sparse_linear import SparseInputLinear
+
+HIDDEN = 32
+
+
+@pytest.fixture(scope="module")
+def observations() -> torch.Tensor:
+    """Real Infinite Kitchen observations, uint8 [64, 2, 7, 7, 26], a few steps into their episodes."""
+    env = Overcooked("infinite", max_steps=256)
+    key = jax.random.PRNGKey(0)
+    obs, states = env.reset_batch(key, 64)
+    for step in range(3):
+        key, act = jax.random.split(key)
+        obs, states, *_ = env.step_batch(key, states, jax.random.randint(act, (64, 2), 0, 6))
+    return torch.from_numpy(np.array(obs))
+
+
+def _pair(in_features: int, out_features: int = HIDDEN) -> tuple[nn.Linear, SparseInputLinear]:
+    torch.manual_seed(0)
+    dense = nn.Linear(in_features, out_features)
+    sparse = SparseInputLinear(in_features, out_features)
+    sparse.load_state_dict(dense.state_dict())
+    return dense, sparse
+
+
+def test_observations_are_mostly_zero(observations):
+    # What the layer is for; if the observation became dense, the layer would be the wrong tool.
+    assert 0 < (observations != 0).float().mean() < 0.05
+
+
+def test_forward_and_gradients_equal_a_dense_linear_to_rounding(observations):
+    x = observations.reshape(128, -1)
+    dense, sparse = _pair(x.shape[1])
+    grad_out = torch.randn(128, HIDDEN)
+    dense(x.float()).backward(grad_out)
+    out = sparse(x)  # uint8 read as it is
+    out.backward(grad_out)
+    torch.testing.assert_close(out, dense(x.float()))
+    torch.testing.assert_close(sparse.weight.grad, dense.weight.grad)
+    torch.testing.assert_close(sparse.bias.grad, dense.bias.grad)
+    # The weights of inputs that are zero everywhere in the batch get no gradient at all.
+    unused = (x != 0).sum(0) == 0
+    assert unused.any() and (sparse.weight.grad[:, unused] == 0).all()
+
+
+def test_an_input_that_needs_its_gradient_gets_it():
+    dense, sparse = _pair(10, 4)
+    x = torch.zeros(6, 10)
+    x[::2, 3], x[1, 7], x[5, 0] = 1.0, -2.5, 0.5
+    x_dense, x_sparse = x.clone().requires_grad_(), x.clone().requires_grad_()
+    (dense(x_dense) ** 2).sum().backward()
+    (sparse(x_sparse) ** 2).sum().backward()
+    torch.testing.assert_close(x_sparse.grad, x_dense.grad)
+    torch.testing.assert_close(sparse.weight.grad, dense.weight.grad)
+
+
+def test_all_zero_rows_and_leading_dims(observations):
+    x = observations[:4].clone()
+    x[1] = 0  # an all-zero observation (E3T's context padding) gives the bias alone
+    dense, sparse = _pair(7 * 7 * 26)
+    out = sparse(x.flatten(-3))
+    assert out.shape == (4, 2, HIDDEN)
+    torch.testing.assert_close(out, dense(x.flatten(-3).float()))
+    torch.testing.assert_close(out[1], dense.bias.detach().expand(2, HIDDEN))
+
+
+def test_it_is_a_linear_layer_to_checkpoints():
+    dense, sparse = _pair(12)
+    assert isinstance(sparse, nn.Linear)
+    assert sparse.state_dict().keys() == dense.state_dict().keys()
+
+
+def test_compiled_graphs_use_the_dense_product(observations):
+    _, sparse = _pair(7 * 7 * 26)
+    x = observations.flatten(-3)
+    compiled = torch.compile(sparse, fullgraph=True)  # nonzero inside would break the graph
+    torch.testing.assert_close(compiled(x), sparse(x))
+
+
+@pytest.mark.parametrize("share_params", [True, False])
+def test_mlp_models_read_uint8_observations_through_it(observations, share_params, monkeypatch):
+    assert isinstance(make_encoder("mlp", (7, 7, 26), HIDDEN)[1], SparseInputLinear)
+    ac = make_actor_critic("mlp", hidden=HIDDEN, share_params=share_params)
+    td = TensorDict({("agents", "observation"): observations[:8]}, batch_size=[8])
+    values = ac.critic(td.clone())["agents", "state_value"]
+    values.sum().backward()
+    grads = [p.grad.clone() for p in ac.critic.parameters()]
+    # The reference: every first layer as the dense product (separate networks per agent take it anyway, under
+    # TorchRL's vmap, where `nonzero` has no batched form).
+    monkeypatch.setattr(sparse_linear, "_under_vmap", lambda x: True)
+    ac.critic.zero_grad()
+    expected = ac.critic(td.clone())["agents", "state_value"]
+    expected.sum().backward()
+    torch.testing.assert_close(values, expected)
+    for grad, parameter in zip(grads, ac.critic.parameters()):
+        torch.testing.assert_close(grad, parameter.grad)
