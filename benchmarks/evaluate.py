@@ -23,7 +23,7 @@ from torch_kitchen.models import make_actor_critic
 from torch_kitchen.pairing import make_seated_actor
 from trainers.config import TrainConfig
 from trainers.evaluate import Team, evaluation_grids, make_matchups
-from trainers.machine import machine_name
+from trainers.machine import THREADS_HELP, machine_name
 from trainers.rollout import play_episodes
 
 SEEDS, STEPS = 6, 256
@@ -63,7 +63,7 @@ def main(argv=None):
     parser.add_argument("--archs", nargs="+", default=["mlp", "gnn"])
     parser.add_argument("--envs", nargs="+", type=int, default=[1024, 4096])
     parser.add_argument("--hidden", type=int, default=256)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=1, help=THREADS_HELP)
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)

@@ -28,7 +28,7 @@ import torch
 
 from trainers.config import load_config
 from trainers.ippo import team_configs, train, train_teams
-from trainers.machine import machine_name
+from trainers.machine import THREADS_HELP, machine_name
 
 
 def throughput(architecture: str, num_envs: int, rollout_steps: int, updates: int, device: str, threads: int,
@@ -205,17 +205,17 @@ def main(argv=None):
     speed.add_argument("--updates", type=int, default=3, help="updates per measurement (the first is not timed)")
     speed.add_argument("--frames", type=int, default=65_536, help="env steps per update at large batches")
     speed.add_argument("--device", default="cpu")
-    speed.add_argument("--threads", type=int, default=2)
+    speed.add_argument("--threads", type=int, default=1, help=THREADS_HELP)
     e3t = sub.add_parser("e3t")
     e3t.add_argument("--encoders", nargs="+", default=["mlp", "gnn"])
     e3t.add_argument("--envs", nargs="+", type=int, default=[32])
     e3t.add_argument("--updates", type=int, default=3, help="updates per measurement (the first is not timed)")
     e3t.add_argument("--device", default="cpu")
-    e3t.add_argument("--threads", type=int, default=2)
+    e3t.add_argument("--threads", type=int, default=1, help=THREADS_HELP)
     learn = sub.add_parser("learning")
     learn.add_argument("--target", type=float, default=5.0)
     learn.add_argument("--budget", type=float, default=2e7)
-    learn.add_argument("--threads", type=int, default=2)
+    learn.add_argument("--threads", type=int, default=1, help=THREADS_HELP)
     learn.add_argument("--device", default="cpu")
     learn.add_argument("--seed", type=int, default=0)
     learn.add_argument("overrides", nargs="*", help="config overrides, key=value")
@@ -223,7 +223,7 @@ def main(argv=None):
     ref.add_argument("--setting", choices=["jaxmarl", "ik", "protocol", "protocol_gnn"], default="jaxmarl")
     ref.add_argument("--updates", type=int, default=3, help="updates per measurement (ours: the first is not timed)")
     ref.add_argument("--device", default="cpu")
-    ref.add_argument("--threads", type=int, default=2)
+    ref.add_argument("--threads", type=int, default=1, help=THREADS_HELP)
     ref.add_argument("--compile", action="store_true", help="ours with compile_policy=true")
     prof = sub.add_parser("profile")
     prof.add_argument("--setting", choices=["jaxmarl", "ik"], default="jaxmarl")

@@ -20,7 +20,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from trainers.machine import machine_name
+from trainers.machine import THREADS_HELP, machine_name
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -77,7 +77,7 @@ def main(argv=None) -> None:
                         help="settings of `train.py reference`: ours beside the pure-JAX yardstick")
     parser.add_argument("--envs", type=int, default=32)
     parser.add_argument("--updates", type=int, default=3, help="updates per measurement (the first is not timed)")
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=1, help=THREADS_HELP)
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--out", help="also write the Markdown table here")
     args = parser.parse_args(argv)

@@ -28,3 +28,8 @@ def usable_cores() -> int:
 def machine_name() -> str:
     """The CPU's model name and the cores this process may use, e.g. "AMD EPYC, 2 cores"."""
     return f"{processor_name()}, {usable_cores()} cores"
+
+
+# The benchmarks' --threads help: why their default is one torch thread, as the trainer's is.
+THREADS_HELP = ("torch threads (default 1, which holds its speed beside other work; 2 collapse to a quarter of "
+                "their speed when another process takes a core: BENCHMARKS.md)")
