@@ -51,9 +51,7 @@ def measure_reference(checkout: Path, settings: list[str], threads: int) -> dict
 
 
 def measure(checkout: Path, mode: str, names: list[str], envs: int, updates: int, threads: int) -> dict[str, float]:
-    """Steps/s per measured configuration of one `benchmarks/train.py` run from `checkout`."""
-    if mode == "reference":
-        return measure_reference(checkout, names, threads)
+    """Steps/s per measured configuration of one `benchmarks/train.py` run (`throughput` or `e3t`) from `checkout`."""
     option = "--archs" if mode == "throughput" else "--encoders"
     output = _run(checkout, [mode, option, *names, "--envs", str(envs), "--updates", str(updates), "--threads",
                              str(threads)])
@@ -92,7 +90,8 @@ def main(argv=None) -> None:
                 for side, checkout in (("earlier", earlier), ("current", ROOT)):
                     for mode, names in (("throughput", args.archs), ("e3t", args.e3t), ("reference", args.reference)):
                         if names:
-                            rates = measure(checkout, mode, names, args.envs, args.updates, args.threads)
+                            rates = (measure_reference(checkout, names, args.threads) if mode == "reference" else
+                                     measure(checkout, mode, names, args.envs, args.updates, args.threads))
                             for name, rate in rates.items():
                                 runs[side].setdefault(name, []).append(rate)
                             print(f"repeat {repeat + 1} {side:8s} {mode:10s} {rates}", flush=True)

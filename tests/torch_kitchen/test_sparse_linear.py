@@ -87,20 +87,33 @@ def test_compiled_graphs_use_the_dense_product(observations):
     torch.testing.assert_close(compiled(x), sparse(x))
 
 
-@pytest.mark.parametrize("share_params", [True, False])
-def test_mlp_models_read_uint8_observations_through_it(observations, share_params, monkeypatch):
+def _critic_values(critic, observations: torch.Tensor) -> torch.Tensor:
+    td = TensorDict({("agents", "observation"): observations}, batch_size=observations.shape[:1])
+    return critic(td)["agents", "state_value"]
+
+
+def test_a_shared_mlp_reads_uint8_observations_through_it(observations, monkeypatch):
     assert isinstance(make_encoder("mlp", (7, 7, 26), HIDDEN)[1], SparseInputLinear)
-    ac = make_actor_critic("mlp", hidden=HIDDEN, share_params=share_params)
-    td = TensorDict({("agents", "observation"): observations[:8]}, batch_size=[8])
-    values = ac.critic(td.clone())["agents", "state_value"]
+    critic = make_actor_critic("mlp", hidden=HIDDEN, share_params=True).critic
+    values = _critic_values(critic, observations[:8])
     values.sum().backward()
-    grads = [p.grad.clone() for p in ac.critic.parameters()]
-    # The reference: every first layer as the dense product (separate networks per agent take it anyway, under
-    # TorchRL's vmap, where `nonzero` has no batched form).
+    grads = [p.grad.clone() for p in critic.parameters()]
+    # The reference: the first layer as the dense product.
     monkeypatch.setattr(sparse_linear, "_under_vmap", lambda x: True)
-    ac.critic.zero_grad()
-    expected = ac.critic(td.clone())["agents", "state_value"]
+    critic.zero_grad()
+    expected = _critic_values(critic, observations[:8])
     expected.sum().backward()
     torch.testing.assert_close(values, expected)
-    for grad, parameter in zip(grads, ac.critic.parameters()):
+    for grad, parameter in zip(grads, critic.parameters()):
         torch.testing.assert_close(grad, parameter.grad)
+
+
+def test_per_agent_networks_take_the_dense_product_and_agree_with_the_sparse_one(observations):
+    # Separate networks per agent run under TorchRL's vmap, where `nonzero` has no batched form; agent i's values
+    # equal those of a shared network holding agent i's weights, which takes the sparse product.
+    separate = make_actor_critic("mlp", hidden=HIDDEN, share_params=False).critic
+    values = _critic_values(separate, observations[:8])
+    for agent in range(2):
+        shared = make_actor_critic("mlp", hidden=HIDDEN, share_params=True).critic
+        shared.load_state_dict({key: value[agent] for key, value in separate.state_dict().items()})
+        torch.testing.assert_close(_critic_values(shared, observations[:8])[:, agent], values[:, agent])
