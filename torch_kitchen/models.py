@@ -10,6 +10,8 @@ with separate torsos (no layer is shared between actor and critic). Each torso, 
     memory    recurrent variants only: TorchRL LSTMModule(h) -> LayerNorm(h)
     head      Linear(h) + ReLU -> Linear(h) + ReLU -> Linear(6 logits | 1 value)
 
+Every other Linear layer computes its CPU products in oneDNN (`torch_kitchen.onednn_linear`).
+
 E3T's models ("e3t_mlp", "e3t_gnn") put a partner predictor (`PartnerPredictor`) before the actor's torso; its
 predicted distribution of the partner's action, detached, is concatenated to the torso's output before the head.
 
@@ -66,6 +68,7 @@ from torchrl.modules import LSTMModule, ProbabilisticActor
 
 from jax_env import NUM_ACTIONS
 from torch_kitchen.graph import build_graph, num_nodes
+from torch_kitchen.onednn_linear import OneDNNLinear
 from torch_kitchen.partner import CONTEXT_ACTION, CONTEXT_OBSERVATION, NO_ACTION, PartnerContext
 from torch_kitchen.sparse_linear import SparseInputLinear
 from torch_kitchen.torchrl_internals import MultiAgentNet
@@ -86,7 +89,7 @@ def _orthogonal_(layer: nn.Linear, gain: float) -> nn.Linear:
     return layer
 
 
-def _hidden_linear(in_features: int, out_features: int, layer: type[nn.Linear] = nn.Linear) -> nn.Linear:
+def _hidden_linear(in_features: int, out_features: int, layer: type[nn.Linear] = OneDNNLinear) -> nn.Linear:
     return _orthogonal_(layer(in_features, out_features), math.sqrt(2))
 
 
@@ -129,7 +132,7 @@ def make_head(hidden: int, out_features: int, out_gain: float, layer_norm: bool,
     in_features = in_features or hidden
     layers = [nn.LayerNorm(in_features)] if layer_norm else []
     layers += [_hidden_linear(in_features, hidden), nn.ReLU(), _hidden_linear(hidden, hidden), nn.ReLU()]
-    layers.append(_orthogonal_(nn.Linear(hidden, out_features), out_gain))
+    layers.append(_orthogonal_(OneDNNLinear(hidden, out_features), out_gain))
     return nn.Sequential(*layers)
 
 
@@ -365,7 +368,7 @@ def make_predictor_head(hidden: int, length: int) -> nn.Sequential:
     return nn.Sequential(
         nn.Flatten(-2),
         _hidden_linear(length * (hidden + NO_ACTION + 1), hidden), nn.ReLU(),
-        _orthogonal_(nn.Linear(hidden, NUM_ACTIONS), 0.01),
+        _orthogonal_(OneDNNLinear(hidden, NUM_ACTIONS), 0.01),
     )
 
 

@@ -383,6 +383,14 @@ def start_update(team: Team, batch: TensorDictBase) -> list[tuple[torch.Tensor, 
     return [torch.randperm(config.num_envs).chunk(config.minibatches) for _ in range(config.epochs)]
 
 
+def select_kitchens(batch: TensorDictBase, kitchens: torch.Tensor) -> TensorDictBase:
+    """batch[kitchens], the rows of those kitchens, gathered by `index_select`: indexing with a tensor gathers the
+    uint8 observations element by element, 9x slower."""
+    kitchens = kitchens.to(batch.device)
+    return batch.apply(lambda value: value.index_select(0, kitchens),
+                       batch_size=torch.Size([len(kitchens), *batch.batch_size[1:]]))
+
+
 def learn(team: Team, batch: TensorDictBase, orders: list[tuple[torch.Tensor, ...]]) -> dict[str, float]:
     """The PPO epochs of an update over minibatches of whole kitchen sequences, in `orders` (`start_update`);
     returns the update's metrics. Draws nothing at random and sets no global mode, so that several teams learn
@@ -393,7 +401,7 @@ def learn(team: Team, batch: TensorDictBase, orders: list[tuple[torch.Tensor, ..
     stats = []
     for order in orders:
         for kitchens in order:
-            minibatch = batch[kitchens.to(batch.device)]
+            minibatch = select_kitchens(batch, kitchens)
             team.algorithm.process_minibatch(minibatch)
             losses = {**team.loss_module(minibatch), **team.algorithm.auxiliary_losses(minibatch)}
             total = total_loss(losses)

@@ -99,7 +99,7 @@ def test_a_shared_mlp_reads_uint8_observations_through_it(observations, monkeypa
     values.sum().backward()
     grads = [p.grad.clone() for p in critic.parameters()]
     # The reference: the first layer as the dense product.
-    monkeypatch.setattr(sparse_linear, "_under_vmap", lambda x: True)
+    monkeypatch.setattr(sparse_linear, "plain_linear_here", lambda x, weight: True)
     critic.zero_grad()
     expected = _critic_values(critic, observations[:8])
     expected.sum().backward()
@@ -117,3 +117,53 @@ def test_per_agent_networks_take_the_dense_product_and_agree_with_the_sparse_one
         shared = make_actor_critic("mlp", hidden=HIDDEN, share_params=True).critic
         shared.load_state_dict({key: value[agent] for key, value in separate.state_dict().items()})
         torch.testing.assert_close(_critic_values(shared, observations[:8])[:, agent], values[:, agent])
+
+
+def test_the_actor_and_the_critic_find_the_entries_of_one_minibatch_once(observations):
+    x = observations.reshape(128, -1)
+    first = sparse_linear.nonzero_entries(x, torch.float32)
+    # Another view of the same data (each network flattens its input anew) finds them cached ...
+    assert sparse_linear.nonzero_entries(x.view(128, -1), torch.float32) is first
+    # ... a copy, another dtype, or the same tensor changed in place do not.
+    assert sparse_linear.nonzero_entries(x.clone(), torch.float32) is not first
+    assert sparse_linear.nonzero_entries(x, torch.float64) is not first
+    changed = x.clone()
+    before = sparse_linear.nonzero_entries(changed, torch.float32)
+    changed[0].zero_()
+    after = sparse_linear.nonzero_entries(changed, torch.float32)
+    assert after is not before and (after.rows != 0).all()
+
+
+def test_a_layer_after_its_input_changed_in_place_computes_the_new_product(observations):
+    dense, sparse = _pair(7 * 7 * 26)
+    x = observations.reshape(128, -1).clone()
+    sparse(x)
+    x[:10] = 0
+    x[10:20, :5] = 3
+    torch.testing.assert_close(sparse(x), dense(x.float()))
+
+
+def test_teams_learning_on_threads_keep_their_own_entries(observations):
+    import threading
+
+    x = observations.reshape(128, -1)
+    _, sparse = _pair(7 * 7 * 26)
+    expected = sparse(x).detach()
+    results, errors = {}, []
+
+    def run(name, data):
+        try:
+            for _ in range(20):
+                results[name] = sparse(data).detach()
+        except Exception as error:  # pragma: no cover - reported below
+            errors.append(error)
+
+    flipped = x.flip(0).contiguous()
+    threads = [threading.Thread(target=run, args=("a", x)), threading.Thread(target=run, args=("b", flipped))]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert not errors
+    torch.testing.assert_close(results["a"], expected)
+    torch.testing.assert_close(results["b"], expected.flip(0))

@@ -9,6 +9,7 @@ import pytest
 import torch
 from PIL import Image
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+from tensordict import TensorDict
 from tensordict.nn import TensorDictSequential
 from tiny import TINY
 from torchrl.modules import set_recurrent_mode
@@ -410,3 +411,15 @@ def test_a_compiled_acting_policy_takes_the_same_actions_and_learns_the_same(tmp
     for name in metrics["false"]:
         torch.testing.assert_close(torch.tensor(metrics["true"][name]), torch.tensor(metrics["false"][name]),
                                    rtol=1e-4, atol=1e-5, msg=name)
+
+
+def test_minibatches_are_the_rows_of_their_kitchens():
+    batch = TensorDict({
+        ("agents", "observation"): torch.randint(0, 3, (6, 4, 2, 7, 7, 26), dtype=torch.uint8),
+        ("next", "agents", "reward"): torch.randn(6, 4, 2, 1),
+        "done": torch.rand(6, 4, 1) < 0.5,
+    }, batch_size=[6, 4])
+    kitchens = torch.tensor([4, 0, 5])
+    minibatch = trainers.ippo.select_kitchens(batch, kitchens)
+    assert minibatch.batch_size == (3, 4)
+    assert (minibatch == batch[kitchens]).all()

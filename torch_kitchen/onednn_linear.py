@@ -1,0 +1,75 @@
+"""A linear layer whose CPU products run in oneDNN: the models' dense layers.
+
+Torch's float32 CPU matrix products go to MKL, which takes its AVX-512 kernels on Intel processors alone: on an
+AMD processor with AVX-512 (Zen 4 and later) it runs the AVX2 ones, at half the speed the chip allows. oneDNN,
+which torch also carries, chooses its kernels by the instructions the processor has. `OneDNNLinear` is `nn.Linear`
+in every respect (parameters, state_dict keys, init) but computes its forward product and both gradient products
+with oneDNN on CPU: on a Zen 5 core, 2.2x MKL's speed for a 4,096 x 256 x 256 product. The sums run in another
+order, so results agree with `nn.Linear` to float32 rounding, not bit for bit.
+
+It is a plain `nn.Linear` where torch has no oneDNN, on other devices, under vmap (per-agent networks) and inside
+`torch.compile`'s graphs (which choose their own kernels).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+
+def _onednn_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+    """x [N, in] @ weight[out, in].T + bias, in oneDNN (strided operands are read as they are)."""
+    return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "none", [], "")
+
+
+class OneDNNProduct(torch.autograd.Function):
+    """x @ weight.T + bias with its gradients, all three products in oneDNN: x float [N, in], weight [out, in],
+    bias [out] or None -> [N, out]."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+        ctx.save_for_backward(x, weight)
+        ctx.has_bias = bias is not None
+        return _onednn_linear(x, weight, bias)
+
+    @staticmethod
+    def backward(ctx, grad_out: torch.Tensor):
+        x, weight = ctx.saved_tensors
+        grad_x = grad_weight = grad_bias = None
+        if ctx.needs_input_grad[0]:
+            grad_x = _onednn_linear(grad_out, weight.t(), None)  # grad_out @ weight
+        if ctx.needs_input_grad[1]:
+            grad_weight = _onednn_linear(grad_out.t(), x.t(), None)  # grad_out.T @ x
+        if ctx.has_bias and ctx.needs_input_grad[2]:
+            grad_bias = grad_out.sum(0)
+        return grad_x, grad_weight, grad_bias
+
+
+def onednn_available() -> bool:
+    """Whether this torch carries oneDNN's linear kernel."""
+    return torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
+
+
+_ONEDNN = onednn_available()
+
+
+def _under_vmap(x: torch.Tensor) -> bool:
+    """Whether `x` is a slice of a vmapped batch (separate networks per agent run under TorchRL's vmap)."""
+    return torch._C._functorch.is_batchedtensor(x)
+
+
+def plain_linear_here(x: torch.Tensor, weight: torch.Tensor) -> bool:
+    """Whether a layer should take torch's own product for `x`: off the CPU, under vmap, inside compiled graphs."""
+    return x.device.type != "cpu" or torch.compiler.is_compiling() or _under_vmap(x) or _under_vmap(weight)
+
+
+class OneDNNLinear(nn.Linear):
+    """`nn.Linear` computed by oneDNN on CPU (see the module docstring): float [..., in_features] -> float
+    [..., out_features]."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not _ONEDNN or x.dtype != torch.float32 or plain_linear_here(x, self.weight):
+            return F.linear(x, self.weight, self.bias)
+        out = OneDNNProduct.apply(x.reshape(-1, self.in_features), self.weight, self.bias)
+        return out.reshape(*x.shape[:-1], self.out_features)
