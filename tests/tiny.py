@@ -1,5 +1,5 @@
-"""The tiny training run the tests share: a few seconds per run (4 kitchens x 16 steps per update, 16-step
-episodes, narrow networks, no progress bar, no final evaluation)."""
+"""What the tests share: the tiny training run, a few seconds per run (4 kitchens x 16 steps per update, 16-step
+episodes, narrow networks, no progress bar, no final evaluation), and real observations for the models."""
 
 TINY = [
     "num_envs=4",
@@ -13,3 +13,21 @@ TINY = [
     "eval_episodes=0",
     "levels=cramped_room_7x7",
 ]
+
+
+def infinite_observations(count: int, seed: int, steps: int = 3):
+    """Real Infinite Kitchen observations, uint8 torch [count, 2, 7, 7, 26], `steps` random steps into their
+    episodes."""
+    import jax
+    import numpy as np
+    import torch
+
+    from jax_env import Overcooked
+
+    env = Overcooked("infinite", max_steps=256)
+    key = jax.random.PRNGKey(seed)
+    obs, states = env.reset_batch(key, count)
+    for _ in range(steps):
+        key, act = jax.random.split(key)
+        obs, states, *_ = env.step_batch(key, states, jax.random.randint(act, (count, 2), 0, 6))
+    return torch.from_numpy(np.array(obs))

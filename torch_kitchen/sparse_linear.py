@@ -15,6 +15,7 @@ Where finding the non-zeros would cost more than it saves, the layer is a plain 
 
 from __future__ import annotations
 
+import copy
 import threading
 import warnings
 
@@ -53,6 +54,13 @@ class NonZeroEntries:
         self.values = flat_x.take(flat).to(dtype)
         self.row_offsets = _row_offsets(self.rows, self.shape[0])
         self._transposed = None
+
+    def moved(self, cols: torch.Tensor, in_features: int) -> NonZeroEntries:
+        """The same entries in other columns `cols` of a wider input [N, in_features] (e.g. a window around
+        each row's agent)."""
+        entries = copy.copy(self)
+        entries.cols, entries.shape, entries._transposed = cols, (self.shape[0], in_features), None
+        return entries
 
     def transposed(self) -> torch.Tensor:
         """x.T as a CSR matrix [in, N]: the entries by column."""
@@ -94,8 +102,9 @@ class SparseProduct(torch.autograd.Function):
     they are), weight float [out, in], bias [out] -> float [N, out]."""
 
     @staticmethod
-    def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-        entries = nonzero_entries(x, weight.dtype)
+    def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, entries: NonZeroEntries
+                ) -> torch.Tensor:
+        """entries: x's `nonzero_entries`, or them moved to the columns of `weight` (then x takes no gradient)."""
         ctx.save_for_backward(weight)
         ctx.entries = entries
         # Each row sums its entries' weight columns: an embedding bag over the rows of weight.T (copied contiguous:
@@ -114,7 +123,7 @@ class SparseProduct(torch.autograd.Function):
             grad_weight = torch.sparse.mm(ctx.entries.transposed(), grad_out).t()
         if ctx.needs_input_grad[2]:
             grad_bias = grad_out.sum(0)
-        return grad_x, grad_weight, grad_bias
+        return grad_x, grad_weight, grad_bias, None
 
 
 class SparseInputLinear(nn.Linear):
@@ -132,5 +141,5 @@ class SparseInputLinear(nn.Linear):
         if plain_linear_here(x, self.weight):
             return F.linear(x.to(self.weight.dtype), self.weight, self.bias)
         flat = x.reshape(-1, self.in_features)
-        out = SparseProduct.apply(flat, self.weight, self.bias)
+        out = SparseProduct.apply(flat, self.weight, self.bias, nonzero_entries(flat, self.weight.dtype))
         return out.reshape(*x.shape[:-1], self.out_features)

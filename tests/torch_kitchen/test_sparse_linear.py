@@ -1,11 +1,9 @@
-import jax
-import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
+from tiny import infinite_observations
 from torch import nn
 
-from jax_env import Overcooked
 from torch_kitchen import sparse_linear
 from torch_kitchen.models import make_actor_critic, make_encoder
 from torch_kitchen.sparse_linear import SparseInputLinear
@@ -16,13 +14,7 @@ HIDDEN = 32
 @pytest.fixture(scope="module")
 def observations() -> torch.Tensor:
     """Real Infinite Kitchen observations, uint8 [64, 2, 7, 7, 26], a few steps into their episodes."""
-    env = Overcooked("infinite", max_steps=256)
-    key = jax.random.PRNGKey(0)
-    obs, states = env.reset_batch(key, 64)
-    for step in range(3):
-        key, act = jax.random.split(key)
-        obs, states, *_ = env.step_batch(key, states, jax.random.randint(act, (64, 2), 0, 6))
-    return torch.from_numpy(np.array(obs))
+    return infinite_observations(64, seed=0)
 
 
 def _pair(in_features: int, out_features: int = HIDDEN) -> tuple[nn.Linear, SparseInputLinear]:

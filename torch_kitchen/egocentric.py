@@ -1,0 +1,74 @@
+"""The kitchen as the observing agent sees it: an agent-centred first layer for the MLP ("ego_mlp").
+
+The observation shows the whole kitchen at fixed positions, so an MLP over it must learn what "the pot to my
+left" means separately for every cell the agent may stand on, and again in every new layout. `EgocentricLinear`
+moves the observation [H, W, C] into a window of (2H - 1) x (2W - 1) cells centred on the agent (channel 0 marks
+where it stands; cells beyond the kitchen are zero), then applies a linear layer to the window: what lies one step
+north of the agent always meets the same weights. The env's observation stays exactly JaxMARL's; the move is
+part of the model.
+
+On CPU the move costs almost nothing: the layer finds the observation's non-zero entries (as
+`SparseInputLinear` does) and only renumbers their columns. Elsewhere (a GPU, vmap, compiled graphs) it builds
+the window densely by a scatter; both give the same products (tested).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+from torch.nn import functional as F
+
+from jax_env.observation import Channel
+from torch_kitchen.onednn_linear import plain_linear_here
+from torch_kitchen.sparse_linear import SparseInputLinear, SparseProduct, nonzero_entries
+
+
+def window_shape(obs_shape: tuple[int, int, int]) -> tuple[int, int, int]:
+    """(2H - 1, 2W - 1, C): every cell of an H x W kitchen stays inside the window wherever the agent stands."""
+    height, width, channels = obs_shape
+    return 2 * height - 1, 2 * width - 1, channels
+
+
+@functools.cache
+def window_columns(obs_shape: tuple[int, int, int], device: torch.device) -> torch.Tensor:
+    """int64 [H * W, H * W * C] on `device`: for the agent on cell s (row-major), where the observation's flat
+    column j (cell, channel) lands in the flat window."""
+    height, width, channels = obs_shape
+    _, window_width, _ = window_shape(obs_shape)
+    agent_cell = torch.arange(height * width, device=device)
+    agent_row, agent_col = agent_cell // width, agent_cell % width
+    column = torch.arange(height * width * channels, device=device)
+    cell, channel = column // channels, column % channels
+    row = cell // width - agent_row[:, None] + height - 1
+    col = cell % width - agent_col[:, None] + width - 1
+    return (row * window_width + col) * channels + channel
+
+
+class EgocentricLinear(SparseInputLinear):
+    """A linear layer over the agent-centred window of an observation (see the module docstring).
+
+    uint8 (or float) observations [..., H, W, C] -> float [..., out_features]; the weight is [out, (2H - 1) *
+    (2W - 1) * C]. The observation takes no gradient (none is asked of observations).
+    """
+
+    def __init__(self, obs_shape: tuple[int, int, int], out_features: int, device=None, dtype=None):
+        super().__init__(torch.Size(window_shape(obs_shape)).numel(), out_features, device=device, dtype=dtype)
+        self.obs_shape = tuple(obs_shape)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        if obs.requires_grad:
+            raise ValueError("EgocentricLinear takes no gradient for its input: pass observations, not features")
+        height, width, channels = self.obs_shape
+        flat = obs.reshape(-1, height * width * channels)
+        agent_cell = obs[..., Channel.SELF].reshape(-1, height * width).argmax(-1)  # an all-zero row: cell 0
+        columns = window_columns(self.obs_shape, flat.device)
+        if plain_linear_here(flat, self.weight):
+            window = torch.zeros(flat.shape[0], self.in_features, dtype=self.weight.dtype, device=flat.device)
+            window = window.scatter(1, columns[agent_cell], flat.to(self.weight.dtype))
+            out = F.linear(window, self.weight, self.bias)
+        else:
+            entries = nonzero_entries(flat, self.weight.dtype)
+            moved = columns.reshape(-1).take(agent_cell[entries.rows] * flat.shape[1] + entries.cols)
+            out = SparseProduct.apply(flat, self.weight, self.bias, entries.moved(moved, self.in_features))
+        return out.reshape(*obs.shape[:-3], self.out_features)
