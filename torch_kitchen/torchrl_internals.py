@@ -6,13 +6,16 @@ there, with the hook named, rather than somewhere deep in training.
 - `MultiAgentNetBase` builds each agent's network through `_build_single_net()`, checks inputs in
   `_pre_forward_check()` and keeps a parameter-less template of the network in `_empty_net`. `MultiAgentNet`
   turns these into a plain `build` callable and a public `check_input()`. With shared parameters it runs the
-  network built once by `get_stateful_net` instead of MultiAgentNetBase's per-call `to_module` into `_empty_net`.
+  network built once by `get_stateful_net` instead of MultiAgentNetBase's per-call `to_module` into `_empty_net`;
+  with one network per agent, it vmaps `vmap_func_module` over a copy of `_empty_net` of the calling thread's own.
 - `TensorboardLogger` opens its `SummaryWriter` in `_create_experiment()`. `PurgingTensorboardLogger` opens it
   with `purge_step`, so that a resumed run drops the events a killed run wrote after its last checkpoint.
 """
 
 from __future__ import annotations
 
+import copy
+import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -24,6 +27,7 @@ from torchrl.record.loggers import TensorboardLogger
 
 TEMPLATE = "_empty_net"  # MultiAgentNetBase's parameter-less copy of one agent's network
 TIED = "_shared_net"  # the shared network holding the parameters, kept out of the module tree
+THREAD_TEMPLATES = "_thread_templates"  # threading.local: each thread's copy of the template
 
 
 def _drop_template_entries(module: nn.Module, state_dict: dict, prefix: str, local_metadata) -> None:
@@ -65,11 +69,22 @@ class MultiAgentNet(MultiAgentNetBase):
         return self.check_input(inputs)
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
-        if not self.share_params:
-            return super().forward(*inputs)
-        # One network for all agents: the agent dim is one more batch dim.
-        inputs = torch.cat(inputs, -1) if len(inputs) > 1 else inputs[0]
-        return self.shared_net()(self.check_input(inputs))
+        inputs = self.check_input(torch.cat(inputs, -1) if len(inputs) > 1 else inputs[0])
+        if self.share_params:  # one network for all agents: the agent dim is one more batch dim
+            return self.shared_net()(inputs)
+        agent_dim = inputs.ndim + self.agent_dim
+        per_agent = self.vmap_func_module(self.thread_template(), in_dims=(0, agent_dim), out_dims=(agent_dim,),
+                                          randomness=self.vmap_randomness)
+        return per_agent(self.params, inputs)
+
+    def thread_template(self) -> nn.Module:
+        """The calling thread's copy of the parameter-less template into which each agent's parameters are moved
+        while it runs: threads that run the network at once (a minibatch's shards) would otherwise move theirs
+        into one module."""
+        templates = self.__dict__.setdefault(THREAD_TEMPLATES, threading.local())
+        if not hasattr(templates, "module"):
+            templates.module = copy.deepcopy(getattr(self, TEMPLATE))
+        return templates.module
 
     def shared_net(self) -> nn.Module:
         """The shared network as a plain module holding this net's own parameters (TorchRL's
@@ -83,11 +98,13 @@ class MultiAgentNet(MultiAgentNetBase):
 
     def _apply(self, fn, *args, **kwargs):
         self.__dict__.pop(TIED, None)  # `.to()` may replace the parameters
+        self.__dict__.pop(THREAD_TEMPLATES, None)
         return super()._apply(fn, *args, **kwargs)
 
     def __getstate__(self) -> dict:
         state = dict(super().__getstate__())
         state.pop(TIED, None)  # a copy builds its own, on its own parameters
+        state.pop(THREAD_TEMPLATES, None)
         return state
 
 

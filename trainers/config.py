@@ -68,8 +68,13 @@ class TrainConfig:
     device: str = option("cpu", '"cpu" or "cuda[:i]"; the env and the networks share it')
     threads: int = option(1, "torch CPU threads (1 is fastest for small networks on a shared CPU)")
     parallel_teams: int = option(
-        0, "with teams > 1: teams whose PPO updates run at once, each on a thread of its own with `threads` torch "
-           "threads (0: as many as the CPU cores allow); the results are those of one team at a time"
+        0, "teams whose PPO updates run at once (or a team's minibatch shards), each on a thread of its own with "
+           "`threads` torch threads (0: as many as the CPU cores allow); the results are those of one at a time"
+    )
+    minibatch_shards: int = option(
+        0, "split every PPO minibatch into this many equal parts by kitchen and average their gradients, computed "
+           "at once on threads when one team learns (IPPO; equal to the minibatch's gradient up to float rounding); "
+           "0: 2 on a CPU at hidden >= 128 where the kitchens split evenly, else 1"
     )
     compile_policy: bool = option(
         False, "torch.compile the acting policy: the same actions, faster collection after a one-off compilation"
@@ -147,6 +152,24 @@ class TrainConfig:
         return max(1, -(-self.total_steps // self.frames_per_batch))
 
     @property
+    def kitchens_per_minibatch(self) -> int:
+        return self.num_envs // self.minibatches
+
+    @property
+    def shards_per_minibatch(self) -> int:
+        """`minibatch_shards`, or where it is 0 the number that pays: two threads' worth of arithmetic in a
+        minibatch costs more than a second pass of the loss's Python on a CPU from hidden 128 up (1.2-1.4x the
+        steps/s at 32 x 256; 0.8x at hidden 64, 16 x 128: BENCHMARKS.md). It depends on the config alone, so a team
+        gets the same numbers alone and beside other teams."""
+        if self.minibatch_shards:
+            return self.minibatch_shards
+        from trainers.algorithms import ALGORITHMS  # the registry imports this module
+
+        pays = (torch.device(self.device).type == "cpu" and self.hidden >= 128 and self.kitchens_per_minibatch % 2 == 0
+                and ALGORITHMS[self.algorithm].shardable)
+        return 2 if pays else 1
+
+    @property
     def planned_steps(self) -> int:
         """The env steps the run trains for: `num_updates` whole updates (at least total_steps)."""
         return self.num_updates * self.frames_per_batch
@@ -175,7 +198,7 @@ class TrainConfig:
         if self.seed + self.teams - 1 > MAX_SEED:
             raise ConfigError(f"teams={self.teams} from seed={self.seed} go past the largest seed, {MAX_SEED}")
         weights = ["entropy_coef", "value_coef", "predictor_coef", "shaping_weight"]
-        _at_least(self, ["eval_episodes", "shaping_anneal_steps", "parallel_teams", *weights], 0)
+        _at_least(self, ["eval_episodes", "shaping_anneal_steps", "parallel_teams", "minibatch_shards", *weights], 0)
         for name in ("lr", "adam_eps", "clip_epsilon", "max_grad_norm"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be greater than 0, got {getattr(self, name)}")
@@ -211,6 +234,17 @@ class TrainConfig:
                 f"minibatches ({self.minibatches}) must divide num_envs ({self.num_envs}): minibatches are whole "
                 "kitchens' sequences"
             )
+        if self.minibatch_shards > 1:
+            if self.kitchens_per_minibatch % self.minibatch_shards:
+                raise ConfigError(
+                    f"minibatch_shards ({self.minibatch_shards}) must divide the {self.kitchens_per_minibatch} "
+                    "kitchens of a minibatch (num_envs / minibatches): shards are equal parts"
+                )
+            if not ALGORITHMS[self.algorithm].shardable:
+                raise ConfigError(
+                    f"algorithm={self.algorithm} averages its losses over some of a minibatch's transitions, "
+                    f"which shards split unevenly: set minibatch_shards=1 (got {self.minibatch_shards})"
+                )
         check_device(self.device)
         return self
 

@@ -118,7 +118,8 @@ def make_algorithm(config: TrainConfig, actor_critic: ActorCritic) -> Algorithm:
 
 def make_loss(config: TrainConfig, actor_critic: ActorCritic, algorithm: Algorithm) -> ClipPPOLoss:
     """TorchRL's clipped PPO loss on the ("agents", ...) keys with the protocol's coefficients, as the algorithm
-    configures it. Advantages are standardised per minibatch, pooled over kitchens, steps and agents."""
+    configures it. The algorithm's `process_minibatch` standardises the advantages (by default pooled over the
+    whole minibatch) before the minibatch is split into shards, so the loss leaves them as they are."""
     loss = ClipPPOLoss(
         algorithm.loss_actor(),
         actor_critic.critic,
@@ -126,8 +127,7 @@ def make_loss(config: TrainConfig, actor_critic: ActorCritic, algorithm: Algorit
         entropy_coeff=config.entropy_coef,
         critic_coeff=config.value_coef,
         loss_critic_type="l2",
-        normalize_advantage=True,
-        normalize_advantage_exclude_dims=(-1,),  # only the trailing singleton: says "pooled" without a warning
+        normalize_advantage=False,
         clip_value=True,
         functional=False,  # PPO keeps no target networks: the modules run as they are
     )
@@ -391,26 +391,59 @@ def select_kitchens(batch: TensorDictBase, kitchens: torch.Tensor) -> TensorDict
                        batch_size=torch.Size([len(kitchens), *batch.batch_size[1:]]))
 
 
-def learn(team: Team, batch: TensorDictBase, orders: list[tuple[torch.Tensor, ...]]) -> dict[str, float]:
-    """The PPO epochs of an update over minibatches of whole kitchen sequences, in `orders` (`start_update`);
-    returns the update's metrics. Draws nothing at random and sets no global mode, so that several teams learn
-    at once on threads (`learn_teams`). Raises TrainingDiverged when a loss is NaN or infinite, before that
-    minibatch changes the weights."""
-    config, optimizer = team.config, team.optimizer
+def shard_gradients(team: Team, shard: TensorDictBase) -> tuple[dict[str, torch.Tensor], list]:
+    """The losses of one shard of a minibatch and the gradient of their total for each of the team's parameters
+    (None where a parameter does not take part)."""
+    losses = {**team.loss_module(shard), **team.algorithm.auxiliary_losses(shard)}
+    gradients = torch.autograd.grad(total_loss(losses), team.parameters, allow_unused=True)
+    return losses, list(gradients)
+
+
+def mean_over_shards(values: list[torch.Tensor]) -> torch.Tensor:
+    return values[0] if len(values) == 1 else torch.stack(values).mean(0)
+
+
+def gradient_for(parameter: torch.nn.Parameter, gradients: list[torch.Tensor | None]) -> torch.Tensor | None:
+    """The mean of the shards' gradients of `parameter`, laid out in memory as the parameter is: fused Adam reads
+    a parameter and its gradient element by element in memory order (backward() would lay it out so too)."""
+    if gradients[0] is None:
+        return None
+    gradient = mean_over_shards(gradients)
+    return gradient if gradient.stride() == parameter.stride() else torch.empty_like(parameter).copy_(gradient)
+
+
+def minibatch_step(team: Team, minibatch: TensorDictBase, pool: ThreadPoolExecutor | None) -> dict[str, torch.Tensor]:
+    """One PPO step on a minibatch: the mean of its shards' losses and gradients (`minibatch_shards` equal parts
+    by kitchen, on `pool`'s threads at once where given; one after the other gives the same numbers), clipped
+    and applied; returns the losses. Raises TrainingDiverged when a loss is NaN or infinite, before the weights
+    change."""
+    shards = minibatch.chunk(team.config.shards_per_minibatch, dim=0)
+    run = pool.map if pool is not None and len(shards) > 1 else map
+    shard_losses, gradients_by_shard = zip(*run(functools.partial(shard_gradients, team), shards))
+    losses = {key: mean_over_shards([losses[key] for losses in shard_losses]) for key in shard_losses[0]}
+    if not torch.isfinite(total_loss(losses)):
+        raise diverged(losses, team.update, team.env_steps)
+    for parameter, gradients in zip(team.parameters, zip(*gradients_by_shard)):
+        parameter.grad = gradient_for(parameter, list(gradients))
+    losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(team.parameters, team.config.max_grad_norm)
+    team.optimizer.step()
+    return losses
+
+
+def learn(team: Team, batch: TensorDictBase, orders: list[tuple[torch.Tensor, ...]],
+          pool: ThreadPoolExecutor | None = None) -> dict[str, float]:
+    """The PPO epochs of an update over minibatches of whole kitchen sequences, in `orders` (`start_update`),
+    each minibatch's shards on `pool`'s threads where given; returns the update's metrics. Draws nothing at random
+    and sets no global mode, so that several teams learn at once on threads (`learn_teams`). Raises
+    TrainingDiverged when a loss is NaN or infinite, before that minibatch changes the weights."""
+    config = team.config
     lr, shaping = learning_rate_at(config, team.update), shaping_weight_at(config, team.env_steps)
     stats = []
     for order in orders:
         for kitchens in order:
             minibatch = select_kitchens(batch, kitchens)
             team.algorithm.process_minibatch(minibatch)
-            losses = {**team.loss_module(minibatch), **team.algorithm.auxiliary_losses(minibatch)}
-            total = total_loss(losses)
-            if not torch.isfinite(total):
-                raise diverged(losses, team.update, team.env_steps)
-            optimizer.zero_grad()
-            total.backward()
-            losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(team.parameters, config.max_grad_norm)
-            optimizer.step()
+            losses = minibatch_step(team, minibatch, pool)
             stats.append({key: value.detach().float() for key, value in losses.items()})
     team.algorithm.after_update()
 
@@ -435,21 +468,23 @@ def learn(team: Team, batch: TensorDictBase, orders: list[tuple[torch.Tensor, ..
 
 def learn_teams(teams: Sequence[Team], batches: Sequence[TensorDictBase], orders: Sequence[list],
                 pool: ThreadPoolExecutor | None) -> list[tuple[dict[str, float], float]]:
-    """Every team's `learn` on its batch, on `pool`'s threads at once (None: one after the other); returns each
-    team's metrics and seconds. A team whose loss diverged is checkpointed with its last good weights once the
-    teams before it are done, and its error raised.
+    """Every team's `learn` on its batch, on `pool`'s threads at once (None: one after the other; a single team
+    runs its minibatches' shards there); returns each team's metrics and seconds. A team whose loss diverged is
+    checkpointed with its last good weights once the teams before it are done, and its error raised.
 
     The modes that TorchRL's losses set while they run (recurrent mode, deterministic sampling) are process-wide;
     set here around all the teams, the losses' own settings and restorings, interleaved on threads, agree.
     """
-    def timed_learn(team, batch, team_orders):
+    def timed_learn(team, batch, team_orders, shard_pool=None):
         started = time.perf_counter()
-        metrics = learn(team, batch, team_orders)
+        metrics = learn(team, batch, team_orders, shard_pool)
         return metrics, time.perf_counter() - started
 
     with set_recurrent_mode(True), set_exploration_type(teams[0].loss_module.deterministic_sampling_mode):
         arguments = list(zip(teams, batches, orders))
-        if pool is None:  # each team learns when its result is asked for
+        if len(teams) == 1:
+            pending = [functools.partial(timed_learn, *arguments[0], pool)]
+        elif pool is None:  # each team learns when its result is asked for
             pending = [functools.partial(timed_learn, *team_arguments) for team_arguments in arguments]
         else:
             pending = [pool.submit(timed_learn, *team_arguments).result for team_arguments in arguments]
@@ -465,10 +500,11 @@ def learn_teams(teams: Sequence[Team], batches: Sequence[TensorDictBase], orders
 
 def learning_pool(config: TrainConfig, num_teams: int) -> ThreadPoolExecutor | None:
     """The threads on which the teams learn at once (`parallel_teams`; 0: as many as the CPU cores allow with
-    `threads` torch threads each), or None for one team at a time."""
+    `threads` torch threads each), or on which a single team's minibatch shards run (`minibatch_shards`); None
+    for one after the other."""
     workers = config.parallel_teams or max(1, usable_cores() // config.threads)
-    workers = min(workers, num_teams)
-    return ThreadPoolExecutor(workers, thread_name_prefix="team") if workers > 1 else None
+    workers = min(workers, num_teams if num_teams > 1 else config.shards_per_minibatch)
+    return ThreadPoolExecutor(workers, thread_name_prefix="learner") if workers > 1 else None
 
 
 def check_teams(configs: Sequence[TrainConfig]) -> None:

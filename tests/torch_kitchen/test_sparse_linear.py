@@ -1,3 +1,6 @@
+import copy
+import io
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -70,6 +73,22 @@ def test_it_is_a_linear_layer_to_checkpoints():
     dense, sparse = _pair(12)
     assert isinstance(sparse, nn.Linear)
     assert sparse.state_dict().keys() == dense.state_dict().keys()
+    torch.testing.assert_close(sparse.state_dict(), dense.state_dict(), rtol=0, atol=0)
+    buffer = io.BytesIO()
+    torch.save(sparse.state_dict(), buffer)
+    buffer.seek(0)
+    plain = nn.Linear(12, HIDDEN)
+    plain.load_state_dict(torch.load(buffer))
+    torch.testing.assert_close(plain.state_dict(), dense.state_dict(), rtol=0, atol=0)
+
+
+def test_its_weight_is_stored_column_by_column_through_loads_copies_and_moves(observations):
+    # The forward reads weight.T's rows; stored so, they need no copy, and the weight's gradient fits it as it is.
+    dense, sparse = _pair(7 * 7 * 26)  # loaded from a plain layer's state_dict
+    for layer in (sparse, copy.deepcopy(sparse), sparse.to(torch.float32)):
+        assert layer.weight.shape == (HIDDEN, 7 * 7 * 26) and layer.weight.t().is_contiguous()
+    sparse(observations.flatten(-3)).sum().backward()
+    assert sparse.weight.grad.stride() == sparse.weight.stride()
 
 
 def test_compiled_graphs_use_the_dense_product(observations):

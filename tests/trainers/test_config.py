@@ -154,3 +154,18 @@ def test_broken_files_say_what_is_wrong(tmp_path):
     (tmp_path / "loop.yaml").write_text("base: loop.yaml\n")
     with pytest.raises(ConfigError, match="names itself as a base"):
         load_config(tmp_path / "loop.yaml")
+
+
+def test_minibatch_shards_default_to_two_where_they_pay_and_never_for_e3t():
+    def shards(*overrides):
+        return load_config(None, list(overrides)).shards_per_minibatch
+
+    assert shards() == 2  # the paper's IK setting: hidden 256 on a CPU
+    assert shards("hidden=128") == 2 and shards("hidden=64") == 1  # small networks: the loss's Python dominates
+    assert shards("num_envs=4", "minibatches=4") == 1  # one kitchen per minibatch cannot be split
+    assert shards("algorithm=e3t", "architecture=e3t_mlp") == 1  # its losses are means over the ego's transitions
+    assert shards("hidden=64", "minibatch_shards=4") == 4  # asked for: as asked
+    assert dataclasses.replace(load_config(None), device="cuda").shards_per_minibatch == 1  # no second pass on a GPU
+    uneven = r"^algorithm=e3t averages its losses over some of a minibatch's transitions, which shards split unevenly"
+    with pytest.raises(ConfigError, match=uneven + r": set minibatch_shards=1 \(got 2\)$"):
+        load_config(None, ["algorithm=e3t", "architecture=e3t_mlp", "minibatch_shards=2"])

@@ -25,7 +25,8 @@ WALLED_POT = "WWWWW\nOA  W\nB  AW\nWWXWW\nWPWWW\n"
 OPEN_POT = "WWPWW\nOA  W\nB  AW\nWWXWW\nWWWWW\n"
 ALLOWED_DEVICES = r"use device=cpu, device=cuda or device=cuda:<index>"
 COUNTS = "max_steps num_envs rollout_steps total_steps hidden epochs minibatches checkpoint_every threads".split()
-NON_NEGATIVE = "eval_episodes shaping_anneal_steps entropy_coef value_coef predictor_coef shaping_weight".split()
+NON_NEGATIVE = ("eval_episodes shaping_anneal_steps entropy_coef value_coef predictor_coef shaping_weight "
+                "minibatch_shards").split()
 
 
 @pytest.mark.parametrize(
@@ -61,6 +62,7 @@ NON_NEGATIVE = "eval_episodes shaping_anneal_steps entropy_coef value_coef predi
         ("levels=[]", r"^levels is empty"),
         ("algorithm=ppo", r"^algorithm must be one of ippo, e3t, got 'ppo'$"),
         ("partner_policy=slow", r"^partner_policy must be one of ego, copy, got 'slow'$"),
+        ("minibatch_shards=3", r"^minibatch_shards \(3\) must divide the 8 kitchens of a minibatch"),
     ],
 )
 def test_bad_overrides_are_refused_before_any_work(override, message):

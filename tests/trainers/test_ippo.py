@@ -1,8 +1,11 @@
+import copy
 import csv
+import dataclasses
 import signal
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -23,7 +26,17 @@ from trainers.checkpoint import load_checkpoint
 from trainers.config import TrainConfig, load_config
 from trainers.evaluate import load_team
 from trainers.figures import read_scalar
-from trainers.ippo import compute_advantages, main, make_algorithm, make_env, make_loss, train, with_model_transforms
+from trainers.ippo import (
+    build_team,
+    compute_advantages,
+    main,
+    make_algorithm,
+    make_env,
+    make_loss,
+    minibatch_step,
+    train,
+    with_model_transforms,
+)
 from trainers.rollout import make_collector
 
 MAIN_CONFIG = str(Path(__file__).resolve().parents[2] / "configs" / "main.yaml")
@@ -423,3 +436,63 @@ def test_minibatches_are_the_rows_of_their_kitchens():
     minibatch = trainers.ippo.select_kitchens(batch, kitchens)
     assert minibatch.batch_size == (3, 4)
     assert (minibatch == batch[kitchens]).all()
+
+
+def team_and_minibatch(config, tmp_path):
+    """A team built as the trainer builds it, and one batch it collected as one minibatch, advantages standardised."""
+    kitchen = make_env(config)
+    team = build_team(config, tmp_path / "run", kitchen, 0)
+    frames = config.num_envs * config.max_steps
+    collector = make_collector(with_model_transforms(kitchen, team.actor_critic), team.policy, frames, frames)
+    minibatch = next(iter(collector)).clone()
+    collector.shutdown()
+    compute_advantages(minibatch, team.actor_critic.critic, config, shaping_weight=1.0)
+    team.algorithm.process_minibatch(minibatch)
+    return team, minibatch
+
+
+@pytest.mark.parametrize("architecture", ["mlp", "gnn"])
+def test_a_minibatch_step_moves_the_weights_as_backward_clipping_and_plain_adam_do(tmp_path, architecture):
+    config = tiny_config(tmp_path, f"architecture={architecture}", "shaping_weight=1", "lr=1e-3")
+    team, minibatch = team_and_minibatch(config, tmp_path)
+    reference = copy.deepcopy(team.loss_module)
+    parameters = list(reference.parameters())
+    assert [p.shape for p in parameters] == [p.shape for p in team.parameters]
+    optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps, foreach=False)
+    with set_recurrent_mode(True):
+        trainers.ippo.total_loss(reference(minibatch)).backward()
+        minibatch_step(team, minibatch, pool=None)
+    torch.nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
+    optimizer.step()
+    for ours, theirs in zip(team.parameters, parameters):
+        torch.testing.assert_close(ours.detach(), theirs.detach(), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("overrides", [
+    ["architecture=mlp"],  # the sparse first layer and the oneDNN layers
+    ["architecture=mlp_lstm", "share_params=false"],  # recurrent sequences, one network per agent (vmapped)
+    ["architecture=gnn"],
+], ids=["mlp", "lstm-per-agent", "gnn"])
+def test_a_minibatch_in_shards_has_the_losses_and_gradient_of_the_whole_on_threads_or_not(tmp_path, overrides):
+    config = tiny_config(tmp_path, *overrides, "shaping_weight=1", "max_grad_norm=1e6")
+    team, minibatch = team_and_minibatch(config, tmp_path)
+    team.optimizer.step = lambda: None  # the gradient is what is compared
+
+    def step(shards, pool=None):
+        team.config = dataclasses.replace(config, minibatch_shards=shards)
+        with set_recurrent_mode(True):
+            losses = minibatch_step(team, minibatch, pool)
+        return losses, [parameter.grad.clone() for parameter in team.parameters]
+
+    whole_losses, whole = step(1)
+    sequential_losses, sequential = step(4)
+    with ThreadPoolExecutor(4) as pool:
+        threaded_losses, threaded = step(4, pool)
+    for name, value in whole_losses.items():
+        if name.startswith("loss_") or name in ("entropy", "grad_norm"):
+            torch.testing.assert_close(sequential_losses[name], value, rtol=1e-5, atol=1e-6, msg=name)
+    for shards, gradient in zip(sequential, whole):
+        torch.testing.assert_close(shards, gradient, rtol=1e-4, atol=1e-6)
+    for name in sequential_losses:  # on threads at once: the same numbers, bit for bit
+        assert torch.equal(threaded_losses[name], sequential_losses[name]), name
+    assert all(torch.equal(a, b) for a, b in zip(threaded, sequential))

@@ -29,9 +29,12 @@ def assert_same_run(team_run, single_run):
     ["levels=infinite"],  # levels drawn per episode from each team's key
     ["architecture=mlp_lstm", "share_params=false"],  # recurrent state and stacked per-agent networks
     ["algorithm=e3t", "architecture=e3t_mlp", "partner_policy=copy"],  # partner seats drawn per team
-], ids=["ippo-infinite", "lstm", "e3t"])
+    # Alone, a team's minibatch shards run on threads at once; beside other teams, one after the other.
+    ["architecture=mlp_lstm", "share_params=false", "minibatch_shards=2"],
+], ids=["ippo-infinite", "lstm", "e3t", "shards"])
 def test_each_team_of_a_multi_team_run_is_the_run_of_its_seed_alone(tmp_path, overrides):
-    # Two teams learn at once on threads, the third after them: each as it would alone.
+    # Two teams learn at once on threads, the third after them: each as it would alone (whose shards, if any,
+    # run on two threads at once).
     config = tiny_config(tmp_path / "teams", "teams=3", "seed=5", "parallel_teams=2", *overrides)
     runs = train_teams(team_configs(config))
     assert [run.name for run in runs] == ["seed5", "seed6", "seed7"]

@@ -2,16 +2,17 @@
 
 The core collects batches, computes GAE, runs the minibatch epochs of TorchRL's `ClipPPOLoss`, logs and
 checkpoints; it knows no algorithm by name. An algorithm changes the loop only through these hooks, called in
-this order:
+this order (all but `process_minibatch`, which standardises the advantages, do nothing by default):
 
     set-up        check()                 refuse a model the algorithm cannot train (ConfigError)
                   env_transforms()        transforms appended to the env after the model's own
                   acting_modules()        policy modules run after the actor while collecting
                   loss_actor()            the actor that ClipPPOLoss differentiates
-                  configure_loss(loss)    e.g. a loss mask or another advantage normalisation
+                  configure_loss(loss)    e.g. a loss mask
                   parameters()            trained by the optimizer beside the loss module's
     every update  process_batch(batch)            after GAE, before the epochs
-                  process_minibatch(minibatch)    before the PPO loss of each minibatch
+                  process_minibatch(minibatch)    before the PPO loss of each minibatch (and before it is split
+                                                  into shards, `minibatch_shards`)
                   auxiliary_losses(minibatch)     extra terms: "loss_*" entries join the total, others are logged
                   after_update()                  after the last optimizer step
     checkpoints   state_dict() / load_state_dict(state)   tensors and plain values only
@@ -21,7 +22,9 @@ update's minibatches.
 
 `process_batch` runs in the team's random stream, one team after another. With several teams in one process,
 `process_minibatch`, `auxiliary_losses` and `after_update` of different teams run at once on threads
-(`parallel_teams`): they must not draw from torch's global random generator or change a process-wide mode.
+(`parallel_teams`), and a team alone runs `auxiliary_losses` of its minibatch's shards at once
+(`minibatch_shards`, where the class says `shardable`): they must not draw from torch's global random generator
+or change a process-wide mode.
 """
 
 from __future__ import annotations
@@ -35,9 +38,23 @@ from torchrl.objectives import ClipPPOLoss
 from torch_kitchen.models import ActorCritic
 from trainers.config import TrainConfig
 
+ADVANTAGE = ("agents", "advantage")
+
+
+def standardize_advantage(minibatch: TensorDictBase) -> None:
+    """Standardises the advantages over the whole minibatch, pooled over kitchens, steps and agents, as
+    ClipPPOLoss's `normalize_advantage` does; done here, the loss's shards share the minibatch's statistics."""
+    advantage = minibatch.get(ADVANTAGE)
+    scale = advantage.std().clamp_min(torch.finfo(torch.float).resolution)
+    minibatch.set(ADVANTAGE, (advantage - advantage.mean()) / scale)
+
 
 class Algorithm:
-    """Plain independent PPO: every hook does nothing (see the module docstring for the order of calls)."""
+    """Plain independent PPO (see the module docstring for the hooks and their order)."""
+
+    # The PPO loss and every auxiliary loss are plain means over the minibatch's transitions, so the mean of
+    # equal shards' gradients is the minibatch's gradient (`minibatch_shards`).
+    shardable = True
 
     def __init__(self, config: TrainConfig, actor_critic: ActorCritic):
         self.config = config
@@ -67,7 +84,7 @@ class Algorithm:
         pass
 
     def process_minibatch(self, minibatch: TensorDictBase) -> None:
-        pass
+        standardize_advantage(minibatch)
 
     def auxiliary_losses(self, minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
         return {}

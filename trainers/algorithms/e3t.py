@@ -49,6 +49,9 @@ def partner_prediction_loss(predictor, minibatch: TensorDictBase) -> tuple[torch
 
 
 class E3T(Algorithm):
+    # Its PPO terms average over the ego's transitions only, which equal shards of a minibatch split unevenly.
+    shardable = False
+
     def __init__(self, config: TrainConfig, actor_critic: ActorCritic):
         super().__init__(config, actor_critic)
         try:
@@ -75,7 +78,6 @@ class E3T(Algorithm):
 
     def configure_loss(self, loss: ClipPPOLoss) -> None:
         loss.loss_mask_key = EGO
-        loss.normalize_advantage = False  # `normalize_ego_advantage` does it over the ego's transitions
 
     def parameters(self) -> list[torch.nn.Parameter]:
         return list(self.predictor.parameters())
