@@ -498,13 +498,44 @@ def learn_teams(teams: Sequence[Team], batches: Sequence[TensorDictBase], orders
     return results
 
 
+class ShardPool(ThreadPoolExecutor):
+    """The threads of a team's minibatch shards, whose `map` runs them at once or one after the other, whichever
+    took less time over the last minibatches: the numbers are the same either way, but beside another busy
+    process, a thread descheduled mid-minibatch holds up the step. Every `explore_every` maps it times the other
+    way again, so it comes back when the machine is quiet."""
+
+    def __init__(self, workers: int, explore_every: int = 32):
+        super().__init__(workers, thread_name_prefix="shard")
+        self.explore_every, self.maps = explore_every, 0
+        self.seconds = {True: None, False: None}  # at once?: a moving average of a map's seconds
+
+    def at_once(self) -> bool:
+        """Whether the next map runs its shards at once: each way first, then the faster, the other now and then."""
+        untimed = [way for way, seconds in self.seconds.items() if seconds is None]
+        if untimed:
+            return untimed[0]
+        faster = self.seconds[True] <= self.seconds[False]
+        return not faster if self.maps % self.explore_every == 0 else faster
+
+    def map(self, fn, *iterables, **kwargs):
+        self.maps += 1
+        at_once = self.at_once()
+        started = time.perf_counter()
+        results = list(super().map(fn, *iterables, **kwargs) if at_once else map(fn, *iterables))
+        seconds, average = time.perf_counter() - started, self.seconds[at_once]
+        self.seconds[at_once] = seconds if average is None else 0.75 * average + 0.25 * seconds
+        return iter(results)
+
+
 def learning_pool(config: TrainConfig, num_teams: int) -> ThreadPoolExecutor | None:
     """The threads on which the teams learn at once (`parallel_teams`; 0: as many as the CPU cores allow with
-    `threads` torch threads each), or on which a single team's minibatch shards run (`minibatch_shards`); None
-    for one after the other."""
+    `threads` torch threads each), or on which a single team's minibatch shards run (`minibatch_shards`, a
+    `ShardPool`); None for one after the other."""
     workers = config.parallel_teams or max(1, usable_cores() // config.threads)
     workers = min(workers, num_teams if num_teams > 1 else config.shards_per_minibatch)
-    return ThreadPoolExecutor(workers, thread_name_prefix="learner") if workers > 1 else None
+    if workers < 2:
+        return None
+    return ThreadPoolExecutor(workers, thread_name_prefix="team") if num_teams > 1 else ShardPool(workers)
 
 
 def check_teams(configs: Sequence[TrainConfig]) -> None:

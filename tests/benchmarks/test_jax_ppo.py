@@ -154,8 +154,11 @@ def test_loss_gradients_and_adam_steps_equal_our_trainers(share_params):
                                   array("action_log_prob"), array("state_value"), array("advantage"),
                                   array("value_target"))
 
-    # Losses and gradients on the same weights and data.
-    loss_module = make_loss(config, actor_critic, make_algorithm(config, actor_critic))
+    # Losses and gradients on the same weights and data; ours standardises the advantages as the trainer does,
+    # before the loss (the reference inside its loss).
+    algorithm = make_algorithm(config, actor_critic)
+    loss_module = make_loss(config, actor_critic, algorithm)
+    algorithm.process_minibatch(batch)
     losses = loss_module(batch)
     total_loss(losses).backward()
     (total, stats), grads = jax.value_and_grad(jax_ppo.ppo_loss, has_aux=True)(params, networks, minibatch, config)

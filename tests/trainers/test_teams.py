@@ -1,5 +1,8 @@
 """Several teams in one process: each team gets exactly what a run of its own with its seed gets."""
 
+import threading
+import time
+
 import pytest
 import torch
 from test_ippo import MAIN_CONFIG, read_metrics, tiny_config
@@ -9,7 +12,7 @@ from torch_kitchen.env import KitchenEnv
 from torch_kitchen.teams import RandomStream
 from trainers.checkpoint import load_checkpoint
 from trainers.config import ConfigError
-from trainers.ippo import learning_pool, main, team_configs, train, train_teams
+from trainers.ippo import ShardPool, learning_pool, main, team_configs, train, train_teams
 
 
 def assert_same_run(team_run, single_run):
@@ -121,3 +124,32 @@ def test_teams_learn_at_once_on_as_many_threads_as_the_cores_allow(tmp_path, mon
     assert workers("threads=2") == 2 and workers("threads=4") == 1  # each team's torch threads take cores too
     assert workers(teams=3) == 3 and workers(teams=1) == 1
     assert workers("parallel_teams=1") == 1 and workers("parallel_teams=6") == 6  # asked for: as asked
+
+
+def test_a_team_alone_runs_its_shards_on_a_shard_pool(tmp_path, monkeypatch):
+    monkeypatch.setattr("trainers.ippo.usable_cores", lambda: 4)
+    pool = learning_pool(tiny_config(tmp_path, "minibatch_shards=2"), 1)
+    assert isinstance(pool, ShardPool) and pool._max_workers == 2
+    assert learning_pool(tiny_config(tmp_path), 1) is None  # one shard: nothing to run at once
+    assert not isinstance(learning_pool(tiny_config(tmp_path, "minibatch_shards=2"), 3), ShardPool)
+
+
+def test_a_shard_pool_runs_the_shards_the_faster_way_and_times_the_other_now_and_then():
+    caller = threading.current_thread()
+    on_threads = []  # per shard run: whether it ran on the pool's threads
+
+    def shard(x):  # slow on the pool's threads, as when another process holds a core
+        on_threads.append(threading.current_thread() is not caller)
+        if on_threads[-1]:
+            time.sleep(0.05)
+        return 2 * x
+
+    ways = []  # per map: whether its shards ran at once
+    with ShardPool(2, explore_every=8) as pool:
+        for _ in range(17):
+            on_threads.clear()
+            assert list(pool.map(shard, [1, 2, 3])) == [2, 4, 6]  # the same results either way
+            assert len(set(on_threads)) == 1
+            ways.append(on_threads[0])
+    assert ways[0] and not ways[1]  # each way timed once
+    assert [i for i, at_once in enumerate(ways) if at_once] == [0, 7, 15]  # then one after the other, but every 8th
