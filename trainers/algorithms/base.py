@@ -84,6 +84,8 @@ class Algorithm:
         pass
 
     def process_minibatch(self, minibatch: TensorDictBase) -> None:
+        """Standardises the advantages (the loss does not): an override calls `super().process_minibatch` to keep
+        that, or standardises them its own way, as E3T does over the ego's transitions."""
         standardize_advantage(minibatch)
 
     def auxiliary_losses(self, minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
