@@ -243,9 +243,10 @@ class KitchenEnv(EnvBase):
         return self._to_tensordict(out, with_reward=False)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        actions = tensordict.get(("agents", "action"))
-        # int32 and contiguous, so JAX takes the memory as it is instead of a down-casting copy.
-        actions = jax.dlpack.from_dlpack(actions.detach().to(torch.int32).contiguous())
+        actions = tensordict.get(("agents", "action")).detach().to(torch.int32).contiguous()
+        # On the CPU a jitted call takes a NumPy array as it is (1.5 us); importing through DLPack costs 19 us a
+        # step. On a GPU, DLPack keeps the actions on the device. int32 and contiguous either way, so no cast.
+        actions = actions.numpy() if actions.device.type == "cpu" else jax.dlpack.from_dlpack(actions)
         self._states, self._deliveries, out = self._step_jax(self._states, self._deliveries, actions)
         return self._to_tensordict(out, with_reward=True)
 

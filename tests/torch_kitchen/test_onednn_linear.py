@@ -27,7 +27,8 @@ def _took_onednn(out: torch.Tensor) -> bool:
 
 
 @pytest.mark.parametrize("bias", [True, False])
-def test_forward_and_every_gradient_equal_nn_linear_to_rounding(bias):
+def test_forward_and_every_gradient_equal_nn_linear_to_rounding(bias, monkeypatch):
+    monkeypatch.setattr(onednn_linear, "ONEDNN_MIN_PRODUCT", 0)  # oneDNN at any size
     plain, onednn = _pair(48, 24, bias)
     x = torch.randn(5, 7, 48)
     x_plain, x_onednn = x.clone().requires_grad_(), x.clone().requires_grad_()
@@ -52,6 +53,16 @@ def test_other_dtypes_and_a_torch_without_onednn_take_torchs_product(monkeypatch
     monkeypatch.setattr(onednn_linear, "_ONEDNN", False)
     assert not _took_onednn(onednn.float()(x.float()))
     torch.testing.assert_close(onednn(x.float()), plain.float()(x.float()))
+
+
+def test_small_products_take_torchs_own_and_large_ones_onednn():
+    # Acting in 16 kitchens (32 rows) against a minibatch of 1,024 rows, at hidden 64.
+    plain, onednn = _pair(64, 64)
+    for rows, expected in [(32, False), (1024, True)]:
+        x = torch.randn(rows, 64)
+        out = onednn(x)
+        assert _took_onednn(out) is expected, rows
+        torch.testing.assert_close(out, plain(x))
 
 
 def test_it_is_a_linear_layer_to_checkpoints():
