@@ -1,0 +1,86 @@
+"""Where a collection step's time goes: microseconds per env step of each layer the trainer's collector runs.
+
+Builds a team as `trainers.ippo` does on a setting of `benchmarks/jax_ppo.py` and times, one after the other,
+each over the same kitchens:
+
+    JAX step           the env's jitted step alone (random actions, its outputs waited for)
+    env.step           TorchRL's `EnvBase.step` of the `KitchenEnv`: the JAX step, DLPack both ways, the TensorDict
+    acting policy      the team's policy on one step's observations (no gradients)
+    collector step     a whole batch of the trainer's `Collector`, per step: policy, `step_and_maybe_reset`, storage
+
+The difference between the last and the two before it is TorchRL's bookkeeping around them (`step_mdp`, resets,
+the collector's carrier and its stacked batch). Run it alone on the machine.
+
+    python benchmarks/collection.py [--setting jaxmarl|ik] [--steps 2000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from collections.abc import Callable
+
+import jax
+import numpy as np
+import torch
+
+from torch_kitchen.teams import TeamPolicy
+from trainers.config import load_config
+from trainers.ippo import build_team, make_env, with_model_transforms
+from trainers.machine import machine_name
+from trainers.rollout import make_collector
+
+
+def microseconds_per_call(fn: Callable[[], object], calls: int, warmup: int = 20) -> float:
+    for _ in range(warmup):
+        fn()
+    started = time.perf_counter()
+    for _ in range(calls):
+        fn()
+    return (time.perf_counter() - started) / calls * 1e6
+
+
+def main(argv=None) -> None:
+    from jax_ppo import SETTINGS, setting_overrides  # with the test extra
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--setting", choices=["jaxmarl", "ik"], default="jaxmarl")
+    parser.add_argument("--steps", type=int, default=2000, help="calls per measurement")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+
+    config = load_config(None, [*setting_overrides(args.setting), "total_steps=1e6", "threads=1"])
+    kitchen = make_env(config, seed=[config.seed])
+    team = build_team(config, tempfile.mkdtemp(), kitchen, 0)
+    env = with_model_transforms(kitchen, team.actor_critic)
+    policy = TeamPolicy([team.policy], [team.stream], config.num_envs)
+
+    rows = {}
+    with torch.no_grad():
+        tensordict = policy(env.reset())
+        states, deliveries = kitchen.states, kitchen._deliveries
+        actions = np.random.default_rng(0).integers(0, 6, (config.num_envs, 2), dtype=np.int32)
+        rows["JAX step"] = microseconds_per_call(
+            lambda: jax.block_until_ready(kitchen._step_jax(states, deliveries, actions)), args.steps)
+        rows["env.step"] = microseconds_per_call(lambda: env.step(tensordict), args.steps)
+        rows["acting policy"] = microseconds_per_call(lambda: policy(tensordict), args.steps)
+    steps = SETTINGS[args.setting]["rollout_steps"]
+    collector = make_collector(env, policy, config.frames_per_batch)
+    batches = iter(collector)
+    next(batches)
+    count = max(1, args.steps // steps)
+    rows["collector step"] = microseconds_per_call(lambda: next(batches), count, warmup=1) / steps
+    collector.shutdown()
+
+    print(f"setting {args.setting}: {config.num_envs} kitchens, hidden {config.hidden}; {machine_name()}, "
+          "torch 1 thread")
+    print(f"{'layer':<16s} {'us per env step':>16s}")
+    for name, value in rows.items():
+        print(f"{name:<16s} {value:16.1f}")
+    rest = rows["collector step"] - rows["env.step"] - rows["acting policy"]
+    print(f"{'(bookkeeping)':<16s} {rest:16.1f}   collector step - env.step - acting policy")
+
+
+if __name__ == "__main__":
+    main()
