@@ -18,27 +18,17 @@ from __future__ import annotations
 
 import argparse
 import tempfile
-import time
-from collections.abc import Callable
 
 import jax
 import numpy as np
 import torch
+from timing import seconds_per_call
 
 from torch_kitchen.teams import TeamPolicy
 from trainers.config import load_config
 from trainers.ippo import build_team, make_env, with_model_transforms
 from trainers.machine import machine_name
 from trainers.rollout import make_collector
-
-
-def microseconds_per_call(fn: Callable[[], object], calls: int, warmup: int = 20) -> float:
-    for _ in range(warmup):
-        fn()
-    started = time.perf_counter()
-    for _ in range(calls):
-        fn()
-    return (time.perf_counter() - started) / calls * 1e6
 
 
 def main(argv=None) -> None:
@@ -61,16 +51,16 @@ def main(argv=None) -> None:
         tensordict = policy(env.reset())
         states, deliveries = kitchen.states, kitchen._deliveries
         actions = np.random.default_rng(0).integers(0, 6, (config.num_envs, 2), dtype=np.int32)
-        rows["JAX step"] = microseconds_per_call(
-            lambda: jax.block_until_ready(kitchen._step_jax(states, deliveries, actions)), args.steps)
-        rows["env.step"] = microseconds_per_call(lambda: env.step(tensordict), args.steps)
-        rows["acting policy"] = microseconds_per_call(lambda: policy(tensordict), args.steps)
+        rows["JAX step"] = 1e6 * seconds_per_call(
+            lambda: jax.block_until_ready(kitchen._step_jax(states, deliveries, actions)), args.steps, warmup=20)
+        rows["env.step"] = 1e6 * seconds_per_call(lambda: env.step(tensordict), args.steps, warmup=20)
+        rows["acting policy"] = 1e6 * seconds_per_call(lambda: policy(tensordict), args.steps, warmup=20)
     steps = SETTINGS[args.setting]["rollout_steps"]
     collector = make_collector(env, policy, config.frames_per_batch)
     batches = iter(collector)
     next(batches)
     count = max(1, args.steps // steps)
-    rows["collector step"] = microseconds_per_call(lambda: next(batches), count, warmup=1) / steps
+    rows["collector step"] = 1e6 * seconds_per_call(lambda: next(batches), count) / steps
     collector.shutdown()
 
     print(f"setting {args.setting}: {config.num_envs} kitchens, hidden {config.hidden}; {machine_name()}, "

@@ -8,9 +8,9 @@ the same observations in the same run: the scripted partner's share of an evalua
 from __future__ import annotations
 
 import argparse
-import time
 
 import torch
+from timing import seconds_per_call
 
 from jax_env import EXPANDED_LAYOUTS
 from torch_kitchen.env import KitchenEnv
@@ -18,14 +18,6 @@ from torch_kitchen.models import make_actor_critic
 from torch_kitchen.scripted import ScriptedCook
 from trainers.evaluate import evaluation_grids
 from trainers.machine import machine_name
-
-
-def milliseconds(call, calls: int) -> float:
-    call()  # warm-up
-    started = time.perf_counter()
-    for _ in range(calls):
-        call()
-    return (time.perf_counter() - started) / calls * 1e3
 
 
 def main(argv=None) -> None:
@@ -39,8 +31,8 @@ def main(argv=None) -> None:
     observation = tensordict["agents", "observation"]
     cook, team = ScriptedCook(), make_actor_critic("mlp", kitchen.kitchen.obs_shape, 64, True)
     with torch.no_grad():
-        scripted = milliseconds(lambda: cook(observation), args.calls)
-        mlp = milliseconds(lambda: team.actor(tensordict.clone()), args.calls)
+        scripted = seconds_per_call(lambda: cook(observation), args.calls) * 1e3
+        mlp = seconds_per_call(lambda: team.actor(tensordict.clone()), args.calls) * 1e3
     machine = machine_name()
     print(f"{machine}, torch threads 1, {args.envs} kitchens")
     print(f"scripted cook {scripted:.1f} ms, MLP actor {mlp:.1f} ms, ratio {scripted / mlp:.1f}")
