@@ -1,7 +1,7 @@
 """The paper's experiment as one command: train every condition of a protocol, evaluate the whole grid, write
 RESULTS.md with the numbers beside the paper's claims.
 
-    python scripts/reproduce.py configs/protocols/reduced.yaml      # about 2 hours of training on a 2-core CPU
+    python scripts/reproduce.py configs/protocols/reduced.yaml      # about 75 min of training on a 2-core CPU
     python scripts/reproduce.py configs/protocols/paper.yaml        # the paper's budget, on a GPU
     python scripts/reproduce.py configs/protocols/reduced.yaml --out results/reduced --results RESULTS.md
 
@@ -30,7 +30,7 @@ import yaml
 from jax_env import EXPANDED_LAYOUTS
 from trainers.config import EvalConfig, load_config
 from trainers.evaluate import SCRIPTED_CONDITION, evaluate
-from trainers.ippo import team_configs, train_or_resume
+from trainers.ippo import RunStopped, team_configs, train_or_resume
 from trainers.machine import machine_name
 
 HELDOUT = "held-out"
@@ -119,7 +119,11 @@ def main(argv=None) -> int:
     seconds = {}
     for name, path in conditions.items():
         print(f"== {name}: {teams} teams, {path} {' '.join(overrides)}", flush=True)
-        train_condition(name, path, overrides, teams, out / "runs")
+        try:
+            train_condition(name, path, overrides, teams, out / "runs")
+        except RunStopped as error:
+            print(f"reproduce: {name}: {error}; run the same command again to continue", file=sys.stderr)
+            return error.exit_code
         seconds[name] = logged_training_seconds(out / "runs" / name)
     evaluation = {**protocol.get("evaluation", {}),
                   **{key: getattr(args, key) for key in ("rollouts", "heldout") if getattr(args, key) is not None}}

@@ -48,3 +48,17 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     stamps = {p: p.stat().st_mtime_ns for p in out.glob("runs/*/seed*/checkpoints/latest.pt")}
     assert reproduce.main(argv) == 0
     assert {p: p.stat().st_mtime_ns for p in out.glob("runs/*/seed*/checkpoints/latest.pt")} == stamps
+
+
+def test_a_stopped_condition_ends_the_command_with_one_line_and_the_signals_code(tmp_path, monkeypatch, capsys):
+    def stopped(name, *args):
+        raise reproduce.RunStopped(15, "stopped by SIGTERM at update 3 (384 of 1,024 env steps), checkpoint written")
+
+    monkeypatch.setattr(reproduce, "train_condition", stopped)
+    path = tmp_path / "protocol.yaml"
+    path.write_text(yaml.safe_dump({"teams": 1, "overrides": TINY, "families": {},
+                                    "conditions": {"ik": str(ROOT / "configs/ippo/mlp_ik.yaml")}}))
+    assert reproduce.main([str(path), "--out", str(tmp_path / "out"), "--results", str(tmp_path / "R.md")]) == 143
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "ik: stopped by SIGTERM" in error and "run the same command again" in error
+    assert not (tmp_path / "R.md").exists()
