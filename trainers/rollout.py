@@ -31,7 +31,7 @@ def make_collector(env: EnvBase, policy, frames_per_batch: int, total_frames: in
         return_same_td=True,
         exploration_type=ExplorationType.RANDOM,
         auto_register_policy_transforms=False,  # the env already carries what the model needs
-        track_traj_ids=False,  # nothing reads them; kept up to date at every step, they cost
+        track_traj_ids=False,  # nothing reads them, and keeping them up to date costs time at every step
     )
 
 
