@@ -62,3 +62,11 @@ def test_a_stopped_condition_ends_the_command_with_one_line_and_the_signals_code
     error = capsys.readouterr().err
     assert error.count("\n") == 1 and "ik: stopped by SIGTERM" in error and "run the same command again" in error
     assert not (tmp_path / "R.md").exists()
+
+
+def test_a_family_without_single_kitchen_conditions_has_only_its_held_out_claim():
+    summary = {("gnn_ik", "held-out (20)"): {"sp": "0.40", "xp": "0.30", "gap": "0.10"}}
+    rows = reproduce.claims(summary, "GNN", "gnn_ik", {}, budget=1_000_000)
+    assert rows == ["| GNN | IK reaches about 10 deliveries in cross-play on held-out levels at 2e9 steps (Fig. 7) | "
+                    "IK cross-play on held-out (20): 0.30 | 1.0e+06 steps, not 2e9: not comparable |"]
+    assert reproduce.claims(summary, "GNN", "gnn_ik", {}, budget=2_000_000_000)[0].endswith("| does not hold |")
