@@ -7,8 +7,6 @@ with separate torsos (no layer is shared between actor and critic). Each torso, 
                      `torch_kitchen.sparse_linear`)
               "ego_mlp": the same over a (2H-1) x (2W-1) window centred on the observing agent
                      (`torch_kitchen.egocentric`): not in the paper
-              "landmark_mlp": "ego_mlp" plus a linear map of where the nearest cell of every channel lies
-                     from the agent (`torch_kitchen.landmarks`): not in the paper
               "gnn": kitchen graph (`torch_kitchen.graph`) -> GATConv(26, 8, heads=4, concat) -> ReLU
                      -> flatten the H*W+2 node embeddings -> Linear(h) + ReLU (the scene embedding)
     memory    recurrent variants only: TorchRL LSTMModule(h) -> LayerNorm(h)
@@ -73,7 +71,6 @@ from torchrl.modules import LSTMModule, ProbabilisticActor
 from jax_env import NUM_ACTIONS
 from torch_kitchen.egocentric import EgocentricLinear
 from torch_kitchen.graph import build_graph, num_nodes
-from torch_kitchen.landmarks import LandmarkLinear
 from torch_kitchen.onednn_linear import OneDNNLinear
 from torch_kitchen.partner import CONTEXT_ACTION, CONTEXT_OBSERVATION, NO_ACTION, PartnerContext
 from torch_kitchen.sparse_linear import SparseInputLinear
@@ -84,15 +81,14 @@ OBSERVATION, LOGITS, ACTION = ("agents", "observation"), ("agents", "logits"), (
 LOG_PROB, VALUE = ("agents", "action_log_prob"), ("agents", "state_value")
 GAT_HEADS, GAT_FEATURES = 4, 8  # per head; concatenated -> 32 features per node
 
-ARCHITECTURES = ("mlp", "mlp_lstm", "gnn", "gnn_lstm", "ego_mlp", "landmark_mlp")
+ARCHITECTURES = ("mlp", "mlp_lstm", "gnn", "gnn_lstm", "ego_mlp")
 E3T_ARCHITECTURES = ("e3t_mlp", "e3t_gnn")  # with a partner predictor: trained with algorithm "e3t"
 
 
 # ------------------------------------------------------------------------------------------- single networks
 def _orthogonal_(layer: nn.Linear, gain: float) -> nn.Linear:
     nn.init.orthogonal_(layer.weight, gain)
-    if layer.bias is not None:
-        nn.init.zeros_(layer.bias)
+    nn.init.zeros_(layer.bias)
     return layer
 
 
@@ -122,19 +118,15 @@ class GraphEncoder(nn.Module):
 
 def make_encoder(kind: str, obs_shape: tuple[int, int, int], hidden: int) -> nn.Module:
     """One agent's encoder: [..., H, W, C] (uint8 observations or float) -> float [..., hidden]; kind "mlp",
-    "ego_mlp" (agent-centred), "landmark_mlp" (agent-centred, with the nearest cell of every channel) or "gnn".
-    The MLPs' first layer reads the observation's non-zero entries alone (`SparseInputLinear`)."""
+    "ego_mlp" (agent-centred) or "gnn". The MLPs' first layer reads the observation's non-zero entries alone
+    (`SparseInputLinear`)."""
     if kind == "mlp":
         return nn.Sequential(nn.Flatten(-3), _hidden_linear(math.prod(obs_shape), hidden, SparseInputLinear), nn.ReLU())
     if kind == "ego_mlp":
         return nn.Sequential(_orthogonal_(EgocentricLinear(obs_shape, hidden), math.sqrt(2)), nn.ReLU())
-    if kind == "landmark_mlp":
-        first = LandmarkLinear(obs_shape, hidden)
-        _orthogonal_(first.window, math.sqrt(2)), _orthogonal_(first.landmarks, math.sqrt(2))
-        return nn.Sequential(first, nn.ReLU())
     if kind == "gnn":
         return GraphEncoder(obs_shape, hidden)
-    raise ValueError(f"unknown encoder {kind!r}, expected 'mlp', 'ego_mlp', 'landmark_mlp' or 'gnn'")
+    raise ValueError(f"unknown encoder {kind!r}, expected 'mlp', 'ego_mlp' or 'gnn'")
 
 
 def make_head(hidden: int, out_features: int, out_gain: float, layer_norm: bool, in_features: int | None = None
@@ -506,8 +498,8 @@ class ActorCritic:
 
 def build_builtin(architecture: str, obs_shape: tuple[int, int, int], hidden: int,
                   share_params: bool) -> ActorCritic:
-    """The four architectures of the paper, "mlp", "mlp_lstm", "gnn", "gnn_lstm", and the agent-centred MLPs
-    "ego_mlp" and "landmark_mlp"."""
+    """The four architectures of the paper, "mlp", "mlp_lstm", "gnn", "gnn_lstm", and the agent-centred MLP
+    "ego_mlp"."""
     encoder, recurrent = architecture.removesuffix("_lstm"), architecture.endswith("_lstm")
     common = {"encoder": encoder, "obs_shape": tuple(obs_shape), "hidden": hidden, "recurrent": recurrent,
               "share_params": share_params}
@@ -554,8 +546,8 @@ del _name
 
 def make_actor_critic(architecture: str, obs_shape: tuple[int, int, int] = (7, 7, 26), hidden: int = 256,
                       share_params: bool = True) -> ActorCritic:
-    """Actor and critic of a registered architecture ("mlp", "mlp_lstm", "gnn", "gnn_lstm", "ego_mlp",
-    "landmark_mlp", "e3t_mlp", "e3t_gnn" or your own).
+    """Actor and critic of a registered architecture ("mlp", "mlp_lstm", "gnn", "gnn_lstm", "ego_mlp", "e3t_mlp",
+    "e3t_gnn" or your own).
 
     obs_shape: (H, W, C) of one agent's observation; the model rejects other shapes. hidden: width h of every
     layer. share_params: one network for both agents (the paper's Infinite Kitchen runs) or one per agent

@@ -95,9 +95,8 @@ class TrainConfig:
 
     # --- model
     architecture: str = option(
-        "mlp", "mlp | mlp_lstm | gnn | gnn_lstm | ego_mlp (agent-centred) | landmark_mlp (agent-centred, with "
-        "the nearest cell of every channel; neither is in the paper), or a name given to register_architecture",
-        group="model"
+        "mlp", "mlp | mlp_lstm | gnn | gnn_lstm | ego_mlp (agent-centred, not in the paper), or a name given to "
+        "register_architecture", group="model"
     )
     hidden: int = option(256, "hidden width: 256 for IK, 128 for SK in the paper")
     share_params: bool = option(True, "one network for both agents (IK) or one per agent (SK)")
