@@ -82,11 +82,11 @@ def claims(summary: dict, family: str, ik: str, sk: dict[str, str], budget: int)
         wins = sum(ik_xp[layout] > sk_xp[layout] for layout in sk)
         pairs = ", ".join(f"{layout.removesuffix('_7x7')} {ik_xp[layout]:.2f} vs {sk_xp[layout]:.2f}" for layout in sk)
         rows.append(("IK beats SK in cross-play on the 5 layouts (Fig. 3a)", pairs, f"{wins} of {len(sk)} layouts"))
-    if heldout and sk:
-        sk_sp = [value(summary, condition, heldout, "sp") for condition in sk.values()]
-        rows.append(("SK scores 0 on generated levels, even in self-play (Fig. 7)",
-                     f"SK self-play on {heldout}: {min(sk_sp):.2f} to {max(sk_sp):.2f}",
-                     "holds" if max(sk_sp) < 0.5 else "does not hold"))
+        if heldout:
+            sk_sp = [value(summary, condition, heldout, "sp") for condition in sk.values()]
+            rows.append(("SK scores 0 on generated levels, even in self-play (Fig. 7)",
+                         f"SK self-play on {heldout}: {min(sk_sp):.2f} to {max(sk_sp):.2f}",
+                         "holds" if max(sk_sp) < 0.5 else "does not hold"))
     if heldout and family in PAPER_HELDOUT_XP:
         paper, ik_heldout = PAPER_HELDOUT_XP[family], value(summary, ik, heldout, "xp")
         at_paper_budget = ("holds" if ik_heldout >= paper - 1 else "does not hold") if budget >= PAPER_STEPS else (
