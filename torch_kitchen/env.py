@@ -159,6 +159,7 @@ class KitchenEnv(EnvBase):
         self._deliveries = None  # int32 [B]: soups delivered this episode
         self._last_obs = None  # the JAX array behind the last observation handed out (zero-copy checks)
         self._restored = False  # set by `load_state_dict`: the next full reset hands out the restored kitchens
+        self._episode_steps = None  # int [B] on the host: each kitchen's steps this episode, as its state counts them
         self.set_seed(seed)
 
     def _make_specs(self) -> None:
@@ -240,6 +241,7 @@ class KitchenEnv(EnvBase):
             self._states, self._deliveries, out = self._reset_masked(
                 self._next_key(), self._states, self._deliveries, mask
             )
+        self._episode_steps = np.array(self._states.step)  # read once per reset, not per step
         return self._to_tensordict(out, with_reward=False)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -248,7 +250,19 @@ class KitchenEnv(EnvBase):
         # step. On a GPU, DLPack keeps the actions on the device. int32 and contiguous either way, so no cast.
         actions = actions.numpy() if actions.device.type == "cpu" else jax.dlpack.from_dlpack(actions)
         self._states, self._deliveries, out = self._step_jax(self._states, self._deliveries, actions)
+        self._episode_steps += 1
         return self._to_tensordict(out, with_reward=True)
+
+    def any_done(self, tensordict: TensorDictBase) -> bool:
+        """Whether a kitchen's episode ended at the step that gave `tensordict` (marked under "_reset", as TorchRL's
+        `EnvBase.any_done` does). Episodes end on a step count, so the host knows without reading "done" from the
+        device: TorchRL's own check would wait for the device at every step."""
+        if self._episode_steps is None:
+            return super().any_done(tensordict)
+        if not (self._episode_steps >= self.kitchen.max_steps).any():
+            return False
+        tensordict.set("_reset", tensordict.get("done").clone())
+        return True
 
     def compile_step(self) -> None:
         """Compiles the step for these kitchens without stepping them (the result is discarded), so that the first

@@ -13,6 +13,9 @@ It is a plain `nn.Linear` where torch has no oneDNN, on other devices, under vma
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+
 import torch
 from torch import nn
 from torch.nn import functional as F
@@ -59,9 +62,26 @@ def _under_vmap(x: torch.Tensor) -> bool:
     return torch._C._functorch.is_batchedtensor(x)
 
 
+_device_path = False  # set by `device_path()`
+
+
+@contextlib.contextmanager
+def device_path() -> Iterator[None]:
+    """Inside it the layers take torch's own products on the CPU too, as they do on a GPU: what a GPU would run,
+    counted or compiled on a machine without one."""
+    global _device_path
+    outer, _device_path = _device_path, True
+    try:
+        yield
+    finally:
+        _device_path = outer
+
+
 def plain_linear_here(x: torch.Tensor, weight: torch.Tensor) -> bool:
-    """Whether a layer should take torch's own product for `x`: off the CPU, under vmap, inside compiled graphs."""
-    return x.device.type != "cpu" or torch.compiler.is_compiling() or _under_vmap(x) or _under_vmap(weight)
+    """Whether a layer should take torch's own product for `x`: off the CPU, under vmap, inside compiled graphs,
+    inside `device_path()`."""
+    return (_device_path or x.device.type != "cpu" or torch.compiler.is_compiling() or _under_vmap(x)
+            or _under_vmap(weight))
 
 
 # Below this many multiply-adds a oneDNN call's fixed cost (about 20 us on a Zen 5 core) outweighs its faster

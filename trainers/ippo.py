@@ -32,7 +32,6 @@ from torchrl.envs import Transform
 from torchrl.envs.utils import set_exploration_type
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import ClipPPOLoss
-from torchrl.objectives.value.functional import generalized_advantage_estimate
 from torchrl.record.loggers import Logger, get_logger
 from tqdm import tqdm
 
@@ -40,6 +39,7 @@ from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.teams import RandomStream, TeamPolicy, TeamTransform, team_rows
 from torch_kitchen.torchrl_internals import PurgingTensorboardLogger
+from trainers.advantages import generalized_advantages
 from trainers.algorithms import ALGORITHMS, Algorithm
 from trainers.checkpoint import (
     LATEST,
@@ -182,19 +182,11 @@ def compute_advantages(batch: TensorDictBase, critic, config: TrainConfig, shapi
     with torch.no_grad():
         after = critic(batch["next"][:, -1].clone()).get(VALUE)
     next_value = torch.cat([value[:, 1:], after.unsqueeze(1)], dim=1)
-    # The functional GAE wants time next to the feature dim: [B, 2, T, 1].
-    advantage, target = generalized_advantage_estimate(
-        config.gamma,
-        config.gae_lambda,
-        value.transpose(1, 2),
-        next_value.transpose(1, 2),
-        reward.transpose(1, 2),
-        done.transpose(1, 2),
-        done.transpose(1, 2),
-        time_dim=-2,
+    advantage, target = generalized_advantages(
+        config.gamma, config.gae_lambda, value, next_value, reward, done, done, time_dim=1
     )
-    batch.set(ADVANTAGE, advantage.transpose(1, 2))
-    batch.set(VALUE_TARGET, target.transpose(1, 2))
+    batch.set(ADVANTAGE, advantage)
+    batch.set(VALUE_TARGET, target)
 
 
 def total_loss(losses: dict[str, torch.Tensor]) -> torch.Tensor:

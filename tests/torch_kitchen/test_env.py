@@ -212,3 +212,31 @@ def test_compile_step_compiles_without_stepping_the_kitchens():
     stepped = [e.step(TensorDict({"agents": {"action": actions}}, batch_size=[2]))["next", "agents", "observation"]
                for e in (env, fresh)]
     assert torch.equal(stepped[0], stepped[1])
+
+
+def test_the_host_knows_when_episodes_end_without_reading_done_from_the_device():
+    """`any_done` answers from the host's step counts, which follow the kitchens' own through full and partial
+    resets; a step and its reset then make the host wait for nothing."""
+    from torch_kitchen.op_audit import OpAudit
+
+    env = KitchenEnv(num_envs=4, levels="infinite", max_steps=5)
+    td = env.reset()
+    ends = {kitchen: [] for kitchen in range(4)}
+    for step in range(17):
+        td["agents", "action"] = torch.randint(0, 6, (4, 2))
+        if step == 7:  # a partial reset of two kitchens mid-episode moves their episodes' ends
+            td.set("_reset", torch.tensor([True, False, True, False]).unsqueeze(-1))
+            td = env.reset(td)
+            td["agents", "action"] = torch.randint(0, 6, (4, 2))
+        with OpAudit() as audit:
+            stepped, td = env.step_and_maybe_reset(td)
+        done = stepped["next", "done"][:, 0]
+        np.testing.assert_array_equal(env._episode_steps, np.asarray(env.states.step))
+        for kitchen in done.nonzero()[:, 0].tolist():
+            ends[kitchen].append(step)
+        if done.any():
+            assert (np.asarray(env.states.step)[done.numpy()] == 0).all()  # reset by the same call
+        else:
+            assert audit.syncs == 0, audit.summary()
+    # Kitchens 0 and 2 restarted their second episode at step 7, which moved its end from step 9 to 11.
+    assert ends == {0: [4, 11, 16], 1: [4, 9, 14], 2: [4, 11, 16], 3: [4, 9, 14]}

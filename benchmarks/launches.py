@@ -1,0 +1,95 @@
+"""Kernel launches and host synchronisations per env step, per GAE and per PPO minibatch, counted on any device.
+
+Counts what the trainer's device path dispatches (`torch_kitchen.op_audit.OpAudit`; on a CPU the layers are held
+to the products a GPU runs, `torch_kitchen.onednn_linear.device_path`): one batch of collection through TorchRL's
+collector (divided by its steps), the advantages of that batch, and one PPO minibatch (loss, backward, clipping,
+Adam step), for 1 team and for K teams in one batch. On a GPU every launch costs a few microseconds of host time
+and every sync waits for the device, so these counts bound the speed there.
+
+    python benchmarks/launches.py [--setting protocol] [--teams 1 6] [--device cpu|cuda]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+
+import torch
+from jax_ppo import SETTINGS, setting_overrides  # with the test extra
+
+from torch_kitchen.onednn_linear import device_path
+from torch_kitchen.op_audit import OpAudit
+from torch_kitchen.teams import TeamPolicy
+from trainers.config import load_config
+from trainers.ippo import (
+    build_team,
+    compute_advantages,
+    make_env,
+    minibatch_step,
+    select_kitchens,
+    shaping_weight_at,
+    start_update,
+    team_configs,
+    with_model_transforms,
+)
+from trainers.machine import machine_name
+from trainers.rollout import make_collector
+
+
+def audit_training(setting: str, teams: int, device: str, steps: int = 8) -> dict[str, OpAudit]:
+    """Audits of one collection batch of `steps` steps ("collection, per step" holds its counts / steps), the
+    advantages of that batch and one minibatch update of the first team, on the setting's shape with `teams`
+    teams."""
+    with tempfile.TemporaryDirectory() as run_dir:
+        config = load_config(None, [*setting_overrides(setting), f"teams={teams}", f"rollout_steps={steps}",
+                                    f"device={device}", f"run_dir={run_dir}", "progress=false"])
+        configs = team_configs(config)
+        lead = configs[0]
+        kitchen = make_env(lead, num_envs=teams * lead.num_envs, seed=[c.seed for c in configs])
+        built = [build_team(c, c.run_path, kitchen, index) for index, c in enumerate(configs)]
+        env = with_model_transforms(kitchen, built[0].actor_critic)
+        policy = TeamPolicy([team.policy for team in built], [team.stream for team in built], lead.num_envs)
+        frames = teams * lead.num_envs * steps
+        collector = make_collector(env, policy, frames, 3 * frames)
+        audits = {name: OpAudit() for name in ("collection, per step", "advantages", "minibatch")}
+        with device_path():
+            batches = iter(collector)
+            next(batches)  # the first batch compiles the env and builds the collector's buffers
+            with audits["collection, per step"]:
+                batch = next(batches)
+            team, team_batch = built[0], batch[: lead.num_envs]
+            with audits["advantages"]:
+                compute_advantages(team_batch, team.actor_critic.critic, lead, shaping_weight_at(lead, 0))
+            with team.stream.active():
+                orders = start_update(team, team_batch)
+            minibatch = select_kitchens(team_batch, orders[0][0])
+            team.algorithm.process_minibatch(minibatch)
+            minibatch_step(team, minibatch, None)  # the first builds the optimizer's state
+            with audits["minibatch"]:
+                minibatch = select_kitchens(team_batch, orders[0][1])
+                team.algorithm.process_minibatch(minibatch)
+                minibatch_step(team, minibatch, None)
+        collector.shutdown()
+    audits["collection, per step"].per = steps
+    return audits
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--setting", choices=list(SETTINGS), default="protocol")
+    parser.add_argument("--teams", type=int, nargs="+", default=[1, 6])
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args(argv)
+    print(f"device: {args.device}, {machine_name()}; setting {args.setting}, the device path")
+    print(f"{'teams':>5s}  {'part':<21s} {'launches':>9s} {'syncs':>6s} {'host tensors':>13s}  syncing ops")
+    for teams in args.teams:
+        for part, audit in audit_training(args.setting, teams, args.device).items():
+            per = getattr(audit, "per", 1)
+            syncing = ", ".join(f"{name} x{count / per:g}" for name, count in sorted(audit.sync_ops().items()))
+            print(f"{teams:5d}  {part:<21s} {audit.launches / per:9.0f} {audit.syncs / per:6.1f} "
+                  f"{audit.host_tensors / per:13.1f}  {syncing or '-'}", flush=True)
+
+
+if __name__ == "__main__":
+    torch.set_num_threads(1)
+    main()
