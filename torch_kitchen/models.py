@@ -316,6 +316,8 @@ def sampling_actor(policy: TensorDictModuleBase) -> ProbabilisticActor:
         in_keys={"logits": ("agents", "logits")},
         out_keys=[("agents", "action")],
         distribution_class=torch.distributions.Categorical,
+        # Validating the logits reads them back on the host at every call; NaN losses are caught once per update.
+        distribution_kwargs={"validate_args": False},
         return_log_prob=True,
         log_prob_key=("agents", "action_log_prob"),
         # The protocol samples actions in training and in evaluation alike.

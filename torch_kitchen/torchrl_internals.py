@@ -8,6 +8,9 @@ there, with the hook named, rather than somewhere deep in training.
   turns these into a plain `build` callable and a public `check_input()`. With shared parameters it runs the
   network built once by `get_stateful_net` instead of MultiAgentNetBase's per-call `to_module` into `_empty_net`;
   with one network per agent, it vmaps `vmap_func_module` over a copy of `_empty_net` of the calling thread's own.
+- `ClipPPOLoss` keeps its value-clipping threshold as the tensor buffer `clip_value` and branches on it (`if
+  self.clip_value:`) in every forward. `hold_value_clip_on_host` makes it a Python float: the same threshold,
+  without a host read per minibatch or a graph break in a compiled loss.
 - `TensorboardLogger` opens its `SummaryWriter` in `_create_experiment()`. `PurgingTensorboardLogger` opens it
   with `purge_step`, so that a resumed run drops the events a killed run wrote after its last checkpoint.
 """
@@ -106,6 +109,14 @@ class MultiAgentNet(MultiAgentNetBase):
         state.pop(TIED, None)  # a copy builds its own, on its own parameters
         state.pop(THREAD_TEMPLATES, None)
         return state
+
+
+def hold_value_clip_on_host(loss: nn.Module) -> None:
+    """Turns a TorchRL PPO loss's `clip_value` buffer (a one-element tensor, or absent) into a Python float: the
+    loss branches on it in every forward, which on a tensor waits for the device (and breaks a compiled graph)."""
+    threshold = loss._buffers.pop("clip_value", None)
+    if threshold is not None:
+        loss.clip_value = float(threshold)
 
 
 class PurgingTensorboardLogger(TensorboardLogger):

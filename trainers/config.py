@@ -79,6 +79,10 @@ class TrainConfig:
     compile_policy: bool = option(
         False, "torch.compile the acting policy: the same actions, faster collection after a one-off compilation"
     )
+    compile_update: bool = option(
+        False, "torch.compile each PPO minibatch step (loss, backward, clipping, Adam with the learning rate a tensor) "
+               "as one function; on a GPU its graphs replay as CUDA graphs; equal to eager up to float rounding"
+    )
 
     algorithm: str = option(
         "ippo", '"ippo" (self-play), "e3t" (mixed partner + partner model; e3t_* architectures), or a registered one'
@@ -163,6 +167,8 @@ class TrainConfig:
         gets the same numbers alone and beside other teams."""
         if self.minibatch_shards:
             return self.minibatch_shards
+        if self.compile_update:  # one compiled step per minibatch
+            return 1
         from trainers.algorithms import ALGORITHMS  # the registry imports this module
 
         pays = (torch.device(self.device).type == "cpu" and self.hidden >= 128 and self.kitchens_per_minibatch % 2 == 0
@@ -234,6 +240,9 @@ class TrainConfig:
                 f"minibatches ({self.minibatches}) must divide num_envs ({self.num_envs}): minibatches are whole "
                 "kitchens' sequences"
             )
+        if self.compile_update and self.minibatch_shards > 1:
+            raise ConfigError(f"compile_update compiles a whole minibatch's step: minibatch_shards={self.minibatch_shards} "
+                              "splits it; set minibatch_shards=1 (or 0)")
         if self.minibatch_shards > 1:
             if self.kitchens_per_minibatch % self.minibatch_shards:
                 raise ConfigError(

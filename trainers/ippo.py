@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import dataclasses
 import functools
 import shutil
@@ -38,7 +39,7 @@ from tqdm import tqdm
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.teams import RandomStream, TeamPolicy, TeamTransform, team_rows
-from torch_kitchen.torchrl_internals import PurgingTensorboardLogger
+from torch_kitchen.torchrl_internals import PurgingTensorboardLogger, hold_value_clip_on_host
 from trainers.advantages import generalized_advantages
 from trainers.algorithms import ALGORITHMS, Algorithm
 from trainers.checkpoint import (
@@ -132,6 +133,7 @@ def make_loss(config: TrainConfig, actor_critic: ActorCritic, algorithm: Algorit
         functional=False,  # PPO keeps no target networks: the modules run as they are
     )
     loss.set_keys(action=ACTION, sample_log_prob=LOG_PROB, value=VALUE, advantage=ADVANTAGE, value_target=VALUE_TARGET)
+    hold_value_clip_on_host(loss)
     algorithm.configure_loss(loss)
     return loss
 
@@ -195,12 +197,12 @@ def total_loss(losses: dict[str, torch.Tensor]) -> torch.Tensor:
 
 
 def diverged(losses: dict[str, torch.Tensor], update: int, env_steps: int) -> TrainingDiverged:
-    """The error naming every loss term that is NaN or infinite."""
+    """The error naming every loss term of a minibatch that is NaN or infinite."""
     bad = [f"{metric_name(key)}={float(value.detach())}" for key, value in losses.items()
            if key.startswith("loss_") and not torch.isfinite(value)]
     return TrainingDiverged(
         f"{', '.join(bad)} at update {update} ({env_steps:,} env steps): training diverged; the weights before "
-        "that minibatch are in the latest checkpoint. Lower lr or max_grad_norm, or check the reward and model"
+        "that update are in the latest checkpoint. Lower lr or max_grad_norm, or check the reward and model"
     )
 
 
@@ -209,12 +211,6 @@ def metric_name(key: str) -> str | None:
     if key in PPO_METRICS:
         return PPO_METRICS[key]
     return f"losses/{key.removeprefix('loss_')}" if key.startswith("loss_") else f"charts/{key}"
-
-
-def explained_variance(value: torch.Tensor, target: torch.Tensor) -> float | None:
-    """1 - Var[target - value] / Var[target]; None where the targets do not vary (it is undefined there)."""
-    variance = target.var()
-    return None if variance == 0 else float(1 - (target - value).var() / variance)
 
 
 # ------------------------------------------------------------------------------------- start, resume, stop
@@ -304,6 +300,7 @@ class Team:
     update: int = 0
     env_steps: int = 0
     loggers: list[Logger] = dataclasses.field(default_factory=list)
+    compiled_step: Callable | None = None  # `ppo_step` compiled for this team (`compile_update`)
 
     @property
     def checkpoint_path(self) -> Path:
@@ -343,14 +340,25 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
         policy = actor_critic.acting_policy(*algorithm.acting_modules())
         loss_module = make_loss(config, actor_critic, algorithm)
         parameters = [*loss_module.parameters(), *algorithm.parameters()]
-        # Fused: one kernel for all parameters instead of a few per tensor (3x faster on a CPU at hidden 256).
-        optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps, fused=True)
-    return Team(
+        if config.compile_update:
+            # The learning rate a tensor, so that annealing it changes a value rather than the compiled graph; on a
+            # GPU, Adam keeps its step counts on the device, as a CUDA graph needs.
+            optimizer = torch.optim.Adam(parameters, lr=torch.tensor(config.lr, device=config.device),
+                                         eps=config.adam_eps, capturable=torch.device(config.device).type == "cuda")
+        else:
+            # Fused: one kernel for all parameters instead of a few per tensor (3x faster on a CPU at hidden 256).
+            optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps, fused=True)
+    team = Team(
         config=config, run=run, stream=stream, actor_critic=actor_critic, algorithm=algorithm, policy=policy,
         loss_module=loss_module, optimizer=optimizer, parameters=parameters,
         identity=model_identity(config.architecture, obs_shape, config.hidden, config.share_params),
         parts={"actor": actor, "critic": critic, "optimizer": optimizer, "env": TeamKitchens(kitchen, index)},
     )  # fmt: skip
+    if config.compile_update:
+        # On a GPU, "reduce-overhead" replays the compiled graphs as CUDA graphs: a minibatch's launches at once.
+        mode = "reduce-overhead" if torch.device(config.device).type == "cuda" else None
+        team.compiled_step = torch.compile(functools.partial(ppo_step, team), mode=mode)
+    return team
 
 
 def algorithm_transforms(teams: list[Team]) -> list[Transform]:
@@ -369,16 +377,20 @@ def start_update(team: Team, batch: TensorDictBase) -> list[tuple[torch.Tensor, 
     team.update += 1
     team.env_steps += batch.numel()
     for group in team.optimizer.param_groups:
-        group["lr"] = learning_rate_at(config, team.update)
+        if isinstance(group["lr"], torch.Tensor):  # a compiled step reads it where it is
+            group["lr"].fill_(learning_rate_at(config, team.update))
+        else:
+            group["lr"] = learning_rate_at(config, team.update)
     compute_advantages(batch, team.actor_critic.critic, config, shaping_weight_at(config, team.env_steps))
     team.algorithm.process_batch(batch)
-    return [torch.randperm(config.num_envs).chunk(config.minibatches) for _ in range(config.epochs)]
+    # Drawn where the batch is: a GPU's minibatches then need nothing from the host.
+    return [torch.randperm(config.num_envs, device=batch.device).chunk(config.minibatches)
+            for _ in range(config.epochs)]
 
 
 def select_kitchens(batch: TensorDictBase, kitchens: torch.Tensor) -> TensorDictBase:
     """batch[kitchens], the rows of those kitchens, gathered by `index_select`: indexing with a tensor gathers the
     uint8 observations element by element, 9x slower."""
-    kitchens = kitchens.to(batch.device)
     return batch.apply(lambda value: value.index_select(0, kitchens),
                        batch_size=torch.Size([len(kitchens), *batch.batch_size[1:]]))
 
@@ -407,29 +419,64 @@ def gradient_for(parameter: torch.nn.Parameter, gradients: list[torch.Tensor | N
 def minibatch_step(team: Team, minibatch: TensorDictBase, pool: ThreadPoolExecutor | None) -> dict[str, torch.Tensor]:
     """One PPO step on a minibatch: the mean of its shards' losses and gradients (`minibatch_shards` equal parts
     by kitchen, on `pool`'s threads at once where given; one after the other gives the same numbers), clipped
-    and applied; returns the losses. Raises TrainingDiverged when a loss is NaN or infinite, before the weights
-    change."""
+    and applied; returns the losses. Reads nothing back from the device: whether the losses were finite is the
+    caller's to check (`learn`, once per update)."""
+    if team.compiled_step is not None:
+        return team.compiled_step(minibatch)
     shards = minibatch.chunk(team.config.shards_per_minibatch, dim=0)
     run = pool.map if pool is not None and len(shards) > 1 else map
     shard_losses, gradients_by_shard = zip(*run(functools.partial(shard_gradients, team), shards))
     losses = {key: mean_over_shards([losses[key] for losses in shard_losses]) for key in shard_losses[0]}
-    if not torch.isfinite(total_loss(losses)):
-        raise diverged(losses, team.update, team.env_steps)
     for parameter, gradients in zip(team.parameters, zip(*gradients_by_shard)):
         parameter.grad = gradient_for(parameter, list(gradients))
+        if parameter.grad is not None:
+            # A diverged minibatch must leave the weights finite until the update's end undoes it: NaN weights
+            # would make the next minibatch's sampling fail (or assert on a GPU) before the check could say why.
+            parameter.grad.nan_to_num_(0.0, 0.0, 0.0)
     losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(team.parameters, team.config.max_grad_norm)
     team.optimizer.step()
     return losses
 
 
+def ppo_step(team: Team, minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
+    """`minibatch_step` as one function for `torch.compile` (`compile_update`; no shards): the loss, its backward,
+    the clipping and the Adam step, with nothing read back on the host; returns the losses."""
+    losses = {**team.loss_module(minibatch), **team.algorithm.auxiliary_losses(minibatch)}
+    total_loss(losses).backward()
+    for parameter in team.parameters:
+        if parameter.grad is not None:
+            parameter.grad.nan_to_num_(0.0, 0.0, 0.0)  # as in `minibatch_step`
+    losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(team.parameters, team.config.max_grad_norm)
+    team.optimizer.step()
+    for parameter in team.parameters:  # what `optimizer.zero_grad()` does, which compiled graphs stop at
+        parameter.grad = None
+    return losses
+
+
+class RestorePoint:
+    """A team's weights and optimizer state as they were, copied on their device: an update whose loss diverged
+    is undone from it, so that the update's minibatches need not stop to ask whether each loss was finite."""
+
+    def __init__(self, team: Team):
+        self.team = team
+        self.weights = [parameter.detach().clone() for parameter in team.parameters]
+        self.optimizer = copy.deepcopy(team.optimizer.state_dict())
+
+    def restore(self) -> None:
+        with torch.no_grad():
+            torch._foreach_copy_([parameter.data for parameter in self.team.parameters], self.weights)
+        self.team.optimizer.load_state_dict(self.optimizer)
+
+
 def learn(team: Team, batch: TensorDictBase, orders: list[tuple[torch.Tensor, ...]],
           pool: ThreadPoolExecutor | None = None) -> dict[str, float]:
     """The PPO epochs of an update over minibatches of whole kitchen sequences, in `orders` (`start_update`),
-    each minibatch's shards on `pool`'s threads where given; returns the update's metrics. Draws nothing at random
-    and sets no global mode, so that several teams learn at once on threads (`learn_teams`). Raises
-    TrainingDiverged when a loss is NaN or infinite, before that minibatch changes the weights."""
+    each minibatch's shards on `pool`'s threads where given; returns the update's metrics, read from the device
+    once. Draws nothing at random and sets no global mode, so that several teams learn at once on threads
+    (`learn_teams`). Raises TrainingDiverged when a loss was NaN or infinite, with the weights and optimizer state
+    put back as they were before the update."""
     config = team.config
-    lr, shaping = learning_rate_at(config, team.update), shaping_weight_at(config, team.env_steps)
+    restore_point = RestorePoint(team)
     stats = []
     for order in orders:
         for kitchens in order:
@@ -437,24 +484,34 @@ def learn(team: Team, batch: TensorDictBase, orders: list[tuple[torch.Tensor, ..
             team.algorithm.process_minibatch(minibatch)
             losses = minibatch_step(team, minibatch, pool)
             stats.append({key: value.detach().float() for key, value in losses.items()})
+    finite = torch.stack([torch.isfinite(total_loss(minibatch_stats)) for minibatch_stats in stats])
+    if not finite.all():  # the update's one read of the losses before its metrics
+        restore_point.restore()
+        raise diverged(stats[int(finite.logical_not().nonzero()[0])], team.update, team.env_steps)
     team.algorithm.after_update()
 
-    # --- metrics
-    metrics = {
-        "charts/episode_return": float(batch.get(REWARD).mean()) * config.max_steps,
-        "charts/shaped_return": float(batch.get(SHAPED_REWARD).mean()) * config.max_steps,
-        "charts/learning_rate": lr,
-        "charts/shaping_weight": shaping,
+    # --- metrics, read from the device at once
+    on_device = {
+        "charts/episode_return": batch.get(REWARD).mean() * config.max_steps,
+        "charts/shaped_return": batch.get(SHAPED_REWARD).mean() * config.max_steps,
     }
-    finished = finished_episode_deliveries(batch)
-    if finished.numel():
-        metrics["charts/episode_deliveries"] = float(finished.mean())
     for key in stats[0]:
         if name := metric_name(key):
-            metrics[name] = float(torch.stack([s[key] for s in stats]).mean())
-    variance = explained_variance(batch.get(VALUE), batch.get(VALUE_TARGET))
-    if variance is not None:
-        metrics["losses/explained_variance"] = variance
+            on_device[name] = torch.stack([minibatch_stats[key] for minibatch_stats in stats]).mean()
+    value, target = batch.get(VALUE), batch.get(VALUE_TARGET)
+    target_variance = target.var()
+    on_device["losses/explained_variance"] = 1 - (target - value).var() / target_variance
+    ended = batch.get(("next", "done"))
+    finished_sum, finished_count = (batch.get(("next", "episode_deliveries")) * ended).sum(), ended.sum().float()
+    *read, target_variance, finished_sum, finished_count = torch.stack(
+        [*on_device.values(), target_variance, finished_sum, finished_count]).tolist()
+    metrics = dict(zip(on_device, read))
+    if target_variance == 0:  # undefined where the targets do not vary
+        del metrics["losses/explained_variance"]
+    if finished_count:
+        metrics["charts/episode_deliveries"] = finished_sum / finished_count
+    metrics["charts/learning_rate"] = learning_rate_at(config, team.update)
+    metrics["charts/shaping_weight"] = shaping_weight_at(config, team.env_steps)
     return metrics
 
 

@@ -350,8 +350,16 @@ def test_a_nan_loss_stops_the_run_with_a_clear_error_and_the_last_good_weights(t
         if len(calls) == 2:
             batch.set(("agents", "advantage"), torch.full_like(batch.get(("agents", "advantage")), float("nan")))
 
+    saved = []  # every checkpoint's weights and optimizer state, as written
+    real_save = trainers.ippo.save_checkpoint
+
+    def keeping_a_copy(path, state):
+        saved.append(copy.deepcopy({key: state[key] for key in ("actor", "critic", "optimizer")}))
+        real_save(path, state)
+
     monkeypatch.setattr(trainers.ippo, "compute_advantages", nan_advantages_at_update_2)
-    argv = [MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "total_steps=256", "checkpoint_every=100"]
+    monkeypatch.setattr(trainers.ippo, "save_checkpoint", keeping_a_copy)
+    argv = [MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "total_steps=256", "checkpoint_every=1"]
     assert main(argv) == 1
     err = capsys.readouterr().err
     assert "kitchen-train: error: losses/policy=nan at update 2 (128 env steps): training diverged" in err
@@ -359,6 +367,15 @@ def test_a_nan_loss_stops_the_run_with_a_clear_error_and_the_last_good_weights(t
     state = load_checkpoint(tmp_path / "main" / "seed0")
     assert state["update"] == 2
     assert all(torch.isfinite(tensor).all() for tensor in state["actor"].values())
+    # The whole update was undone: weights and Adam's moments are those checkpointed after update 1.
+    after_update_1, at_divergence = saved
+    for part in ("actor", "critic"):
+        for key, tensor in after_update_1[part].items():
+            assert torch.equal(at_divergence[part][key], tensor), (part, key)
+    for moments, restored in zip(after_update_1["optimizer"]["state"].values(),
+                                 at_divergence["optimizer"]["state"].values()):
+        for key in moments:
+            assert torch.equal(restored[key], moments[key]), key
     assert not (tmp_path / "main" / "seed0" / "eval.md").exists()
 
 

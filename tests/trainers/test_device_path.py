@@ -1,0 +1,104 @@
+"""The trainer's device path, checked on a CPU: what a GPU would run compiles whole, recompiles nothing across
+updates, and makes the host wait for nothing inside a collection step or a minibatch."""
+
+import torch
+import torch._dynamo
+from tensordict.nn import set_interaction_type
+from tiny import TINY
+from torch._dynamo.utils import counters
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import set_recurrent_mode
+
+from torch_kitchen.onednn_linear import device_path
+from torch_kitchen.op_audit import OpAudit
+from trainers.config import load_config
+from trainers.ippo import build_team, make_env, minibatch_step, select_kitchens, start_update, train
+from trainers.rollout import make_collector
+
+
+def _team_and_minibatch(tmp_path, *overrides):
+    config = load_config(None, [*TINY, f"run_dir={tmp_path}", "total_steps=128", *overrides])
+    env = make_env(config)
+    team = build_team(config, config.run_path, env, 0)
+    collector = make_collector(env, team.policy, config.frames_per_batch, 2 * config.frames_per_batch)
+    batch = next(iter(collector))
+    collector.shutdown()
+    with team.stream.active():
+        orders = start_update(team, batch)
+    minibatch = select_kitchens(batch, orders[0][0])
+    team.algorithm.process_minibatch(minibatch)
+    return team, batch, minibatch
+
+
+def test_the_loss_forward_and_the_acting_pass_compile_without_a_graph_break(tmp_path):
+    team, batch, minibatch = _team_and_minibatch(tmp_path)
+    torch._dynamo.reset()
+    with device_path():
+        loss = torch._dynamo.explain(team.loss_module)(minibatch.clone())
+        acting = torch._dynamo.explain(team.policy)(batch[:, 0].clone())
+    assert loss.graph_break_count == 0, [str(reason.reason)[:200] for reason in loss.break_reasons]
+    assert acting.graph_break_count == 0, [str(reason.reason)[:200] for reason in acting.break_reasons]
+
+
+def test_a_compiled_minibatch_step_is_the_eager_one_to_float_rounding(tmp_path):
+    eager, _, minibatch = _team_and_minibatch(tmp_path / "eager")
+    compiled, _, _ = _team_and_minibatch(tmp_path / "compiled", "compile_update=true")
+    for mine, theirs in zip(compiled.parameters, eager.parameters):
+        assert torch.equal(mine, theirs)  # the same seed builds the same weights
+    with device_path(), set_recurrent_mode(True), set_exploration_type(ExplorationType.RANDOM):
+        eager_losses = minibatch_step(eager, minibatch.clone(), None)
+        compiled_losses = minibatch_step(compiled, minibatch.clone(), None)
+    for key in ("loss_objective", "loss_critic", "loss_entropy", "grad_norm"):
+        torch.testing.assert_close(compiled_losses[key], eager_losses[key], rtol=1e-5, atol=1e-6, msg=key)
+    moved = 0
+    for mine, theirs, before in zip(compiled.parameters, eager.parameters, _team_and_minibatch(
+            tmp_path / "before")[0].parameters):
+        torch.testing.assert_close(mine, theirs, rtol=1e-5, atol=1e-6)
+        moved += not torch.equal(mine, before)
+    assert moved == len(eager.parameters)  # both took a step
+
+
+def test_compiled_training_recompiles_nothing_as_the_learning_rate_and_shaping_anneal(tmp_path):
+    """Graph breaks only where torch itself puts them (backward(), inside the optimizer's step); the annealed
+    learning rate is a tensor and the shaping weight acts outside the step, so no update after the first compiles."""
+    config = load_config(None, [*TINY, f"run_dir={tmp_path}", "total_steps=256", "compile_update=true",
+                                "anneal_lr=true", "shaping_weight=1", "shaping_anneal_steps=200"])
+    torch._dynamo.reset()
+    counters.clear()
+    graphs, rates = [], []
+
+    def on_update(update, metrics):
+        graphs.append(counters["stats"]["unique_graphs"])
+        rates.append(metrics["charts/learning_rate"])
+
+    train(config, on_update=on_update)
+    assert len(set(rates)) == 4 and graphs[0] > 0
+    assert graphs == [graphs[0]] * 4, graphs
+    reasons = " ".join(counters["graph_break"])
+    allowed = ("Tensor.backward()", "Called `torch._dynamo.graph_break()`")
+    for reason in counters["graph_break"]:
+        assert any(text in reason for text in allowed), reason
+    assert "Tensor.backward()" in reasons
+
+
+def test_a_collection_step_makes_the_host_wait_for_nothing_and_a_minibatch_only_for_torchrl(tmp_path):
+    """Eager, on the device path: a collection step reads nothing back; a minibatch reads back only TorchRL's own
+    check that the entropy is finite (once per loss forward), which a compiled loss leaves out (its forward
+    compiles without a graph break, above). Dispatch modes see eager operations, not a compiled graph's kernels."""
+    config = load_config(None, [*TINY, f"run_dir={tmp_path}", "total_steps=128"])
+    env = make_env(config)
+    team = build_team(config, config.run_path, env, 0)
+    collector = make_collector(env, team.policy, 4 * 3, -1)  # 3 steps of the 4 kitchens per batch
+    with device_path():
+        batches = iter(collector)
+        next(batches)
+        with OpAudit() as collection:
+            next(batches)
+        collector.shutdown()
+        team, _, minibatch = _team_and_minibatch(tmp_path / "update")
+        with set_recurrent_mode(True), set_interaction_type(team.loss_module.deterministic_sampling_mode):
+            minibatch_step(team, minibatch.clone(), None)  # builds Adam's state
+            with OpAudit() as update:
+                minibatch_step(team, minibatch.clone(), None)
+    assert collection.launches > 0 and collection.syncs == 0, collection.summary()
+    assert update.sync_ops() == {"_local_scalar_dense": 1} and update.host_tensors == 0, update.summary()
