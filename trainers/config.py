@@ -241,8 +241,8 @@ class TrainConfig:
                 "kitchens' sequences"
             )
         if self.compile_update and self.minibatch_shards > 1:
-            raise ConfigError(f"compile_update compiles a whole minibatch's step: minibatch_shards={self.minibatch_shards} "
-                              "splits it; set minibatch_shards=1 (or 0)")
+            raise ConfigError(f"compile_update compiles a whole minibatch's step: minibatch_shards="
+                              f"{self.minibatch_shards} splits it; set minibatch_shards=1 (or 0)")
         if self.minibatch_shards > 1:
             if self.kitchens_per_minibatch % self.minibatch_shards:
                 raise ConfigError(

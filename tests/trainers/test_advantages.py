@@ -19,8 +19,8 @@ def test_the_scan_is_the_recurrence_at_every_length(steps):
     inputs = torch.randn(5, steps, generator=generator, dtype=torch.float64)
     coefficients = torch.rand(5, steps, generator=generator, dtype=torch.float64)
     coefficients[coefficients < 0.2] = 0  # cuts, as an episode's end makes them
-    torch.testing.assert_close(reverse_linear_scan(inputs, coefficients, dim=-1), _sequential_scan(inputs, coefficients),
-                               rtol=1e-12, atol=1e-12)
+    scanned = reverse_linear_scan(inputs, coefficients, dim=-1)
+    torch.testing.assert_close(scanned, _sequential_scan(inputs, coefficients), rtol=1e-12, atol=1e-12)
 
 
 def test_the_scan_runs_along_any_dim():
