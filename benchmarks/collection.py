@@ -11,7 +11,10 @@ each over the same kitchens:
 The difference between the last and the two before it is TorchRL's bookkeeping around them (`step_mdp`, resets,
 the collector's carrier and its stacked batch). Run it alone on the machine.
 
-    python benchmarks/collection.py [--setting jaxmarl|ik] [--steps 2000]
+    python benchmarks/collection.py [--setting jaxmarl|ik] [--steps 2000] [--envs 192] [--device cuda]
+
+With `--envs 192` at the ik setting, the "JAX step" row is the floor of the paper's protocol (6 teams x 32 kitchens):
+no trainer over this env collects a step faster.
 """
 
 from __future__ import annotations
@@ -37,10 +40,14 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--setting", choices=["jaxmarl", "ik"], default="jaxmarl")
     parser.add_argument("--steps", type=int, default=2000, help="calls per measurement")
+    parser.add_argument("--envs", type=int, default=0, help="kitchens (default: the setting's)")
+    parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
 
-    config = load_config(None, [*setting_overrides(args.setting), "total_steps=1e6", "threads=1"])
+    envs = [f"num_envs={args.envs}"] if args.envs else []
+    config = load_config(None, [*setting_overrides(args.setting), *envs, "total_steps=1e6", "threads=1",
+                                f"device={args.device}"])
     kitchen = make_env(config, seed=[config.seed])
     team = build_team(config, tempfile.mkdtemp(), kitchen, 0)
     env = with_model_transforms(kitchen, team.actor_critic)
@@ -63,8 +70,8 @@ def main(argv=None) -> None:
     rows["collector step"] = 1e6 * seconds_per_call(lambda: next(batches), count) / steps
     collector.shutdown()
 
-    print(f"setting {args.setting}: {config.num_envs} kitchens, hidden {config.hidden}; {machine_name()}, "
-          "torch 1 thread")
+    print(f"setting {args.setting}: {config.num_envs} kitchens, hidden {config.hidden}; {args.device}, "
+          f"{machine_name()}, torch 1 thread")
     print(f"{'layer':<16s} {'us per env step':>16s}")
     for name, value in rows.items():
         print(f"{name:<16s} {value:16.1f}")

@@ -3,8 +3,9 @@
 Counts what the trainer's device path dispatches (`torch_kitchen.op_audit.OpAudit`; on a CPU the layers are held
 to the products a GPU runs, `torch_kitchen.onednn_linear.device_path`): one batch of collection through TorchRL's
 collector (divided by its steps), the advantages of that batch, and one PPO minibatch (loss, backward, clipping,
-Adam step), for 1 team and for K teams in one batch. On a GPU every launch costs a few microseconds of host time
-and every sync waits for the device, so these counts bound the speed there.
+Adam step), for 1 team and for K teams in one batch (the "advantages" row at 8 steps; the last line compares
+GAE at the setting's rollout length against TorchRL's functional GAE). On a GPU every launch costs a few
+microseconds of host time and every sync waits for the device, so these counts bound the speed there.
 
     python benchmarks/launches.py [--setting protocol] [--teams 1 6] [--device cpu|cuda]
 """
@@ -74,6 +75,23 @@ def audit_training(setting: str, teams: int, device: str, steps: int = 8) -> dic
     return audits
 
 
+def audit_advantages(num_envs: int, steps: int) -> tuple[OpAudit, OpAudit]:
+    """Audits of TorchRL's functional GAE (a Python loop over time) and of ours (`trainers.advantages`) on one
+    team's batch of `num_envs` kitchens x `steps` steps, episodes ending at the batch end."""
+    from torchrl.objectives.value.functional import generalized_advantage_estimate
+
+    from trainers.advantages import generalized_advantages
+
+    value, next_value, reward = (torch.randn(num_envs, 2, steps, 1) for _ in range(3))
+    done = torch.zeros(num_envs, 2, steps, 1, dtype=torch.bool)
+    done[:, :, -1] = True
+    audits = OpAudit(), OpAudit()
+    for audit, gae in zip(audits, (generalized_advantage_estimate, generalized_advantages)):
+        with audit:
+            gae(0.99, 0.95, value, next_value, reward, done, done, time_dim=-2)
+    return audits
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--setting", choices=list(SETTINGS), default="protocol")
@@ -88,6 +106,10 @@ def main(argv=None) -> None:
             syncing = ", ".join(f"{name} x{count / per:g}" for name, count in sorted(audit.sync_ops().items()))
             print(f"{teams:5d}  {part:<21s} {audit.launches / per:9.0f} {audit.syncs / per:6.1f} "
                   f"{audit.host_tensors / per:13.1f}  {syncing or '-'}", flush=True)
+    steps = SETTINGS[args.setting]["rollout_steps"]
+    torchrl_gae, ours = audit_advantages(SETTINGS[args.setting]["num_envs"], steps)
+    print(f"GAE over a team's {steps}-step batch: TorchRL's loop {torchrl_gae.launches} launches, "
+          f"trainers.advantages {ours.launches}")
 
 
 if __name__ == "__main__":

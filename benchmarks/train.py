@@ -12,6 +12,7 @@ the ratio of their steps/s.
     python benchmarks/train.py e3t [--encoders mlp gnn] [--envs 32] [--device cpu|cuda]
     python benchmarks/train.py learning [--target 5] [--budget 2e7] [--threads 2] [key=value ...]
     python benchmarks/train.py reference [--setting jaxmarl|ik|protocol|protocol_gnn] [--updates 3] [--compile]
+                                         [--update-compiled true]
     python benchmarks/train.py parity [--setting jaxmarl] [--budget 3e6] [--rows 10] [--seed 0]
     python benchmarks/train.py profile [--setting jaxmarl|ik] [--updates 12] [--rows 40]
 """
@@ -112,7 +113,8 @@ def learning_check(target: float, budget: int, threads: int, device: str, seed: 
         print(f"target {target} not reached within {budget:,} steps ({time.perf_counter() - start:.0f} s)")
 
 
-def reference(setting: str, updates: int, device: str, threads: int, compile_policy: bool = False) -> None:
+def reference(setting: str, updates: int, device: str, threads: int, compile_policy: bool = False,
+              compile_update: bool = False) -> None:
     """Steps/s of our trainer (updates 2..`updates`) and of the JAX reference (all `updates`, compilation excluded,
     the median of 3 runs) on one setting of `benchmarks/jax_ppo.py`, one after the other, and their ratio.
 
@@ -121,7 +123,7 @@ def reference(setting: str, updates: int, device: str, threads: int, compile_pol
     """
     from jax_ppo import SETTINGS, check_supported, run_reference, setting_overrides  # with the test extra
 
-    overrides = [*setting_overrides(setting), f"compile_policy={compile_policy}"]
+    overrides = [*setting_overrides(setting), f"compile_policy={compile_policy}", f"compile_update={compile_update}"]
     num_envs, rollout_steps = SETTINGS[setting]["num_envs"], SETTINGS[setting]["rollout_steps"]
     ours = throughput("mlp", num_envs, rollout_steps, updates, device, threads, overrides=overrides)
     config = load_config(None, [*overrides, f"total_steps={updates * num_envs * rollout_steps}", f"device={device}",
@@ -225,6 +227,8 @@ def main(argv=None):
     ref.add_argument("--device", default="cpu")
     ref.add_argument("--threads", type=int, default=1, help=THREADS_HELP)
     ref.add_argument("--compile", action="store_true", help="ours with compile_policy=true")
+    ref.add_argument("--update-compiled", choices=["false", "true"], default="false",
+                     help="ours with compile_update (the minibatch step compiled; CUDA graphs on a GPU)")
     prof = sub.add_parser("profile")
     prof.add_argument("--setting", choices=["jaxmarl", "ik"], default="jaxmarl")
     prof.add_argument("--updates", type=int, default=12)
@@ -249,7 +253,7 @@ def main(argv=None):
         profile(args.setting, args.updates, args.threads, args.rows, args.device)
         return
     if args.mode == "reference":
-        reference(args.setting, args.updates, args.device, args.threads, args.compile)
+        reference(args.setting, args.updates, args.device, args.threads, args.compile, args.update_compiled == "true")
         return
     if args.mode == "learning":
         learning_check(args.target, int(args.budget), args.threads, args.device, args.seed, args.overrides)
