@@ -37,10 +37,11 @@ from trainers.machine import machine_name
 from trainers.rollout import make_collector
 
 
-def audit_training(setting: str, teams: int, device: str, steps: int = 8) -> dict[str, OpAudit]:
+def audit_training(setting: str, teams: int, device: str, steps: int = 8, stack: bool = False
+                   ) -> dict[str, OpAudit]:
     """Audits of one collection batch of `steps` steps ("collection, per step" holds its counts / steps), the
     advantages of that batch and one minibatch update of the first team, on the setting's shape with `teams`
-    teams."""
+    teams (acting as one stacked network with `stack`, as on a GPU)."""
     with tempfile.TemporaryDirectory() as run_dir:
         config = load_config(None, [*setting_overrides(setting), f"teams={teams}", f"rollout_steps={steps}",
                                     f"device={device}", f"run_dir={run_dir}", "progress=false"])
@@ -49,7 +50,8 @@ def audit_training(setting: str, teams: int, device: str, steps: int = 8) -> dic
         kitchen = make_env(lead, num_envs=teams * lead.num_envs, seed=[c.seed for c in configs])
         built = [build_team(c, c.run_path, kitchen, index) for index, c in enumerate(configs)]
         env = with_model_transforms(kitchen, built[0].actor_critic)
-        policy = TeamPolicy([team.policy for team in built], [team.stream for team in built], lead.num_envs)
+        policy = TeamPolicy([team.policy for team in built], [team.stream for team in built], lead.num_envs,
+                            stack=stack)
         frames = teams * lead.num_envs * steps
         collector = make_collector(env, policy, frames, 3 * frames)
         audits = {name: OpAudit() for name in ("collection, per step", "advantages", "minibatch")}
@@ -99,12 +101,15 @@ def main(argv=None) -> None:
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
     print(f"device: {args.device}, {machine_name()}; setting {args.setting}, the device path")
-    print(f"{'teams':>5s}  {'part':<21s} {'launches':>9s} {'syncs':>6s} {'host tensors':>13s}  syncing ops")
-    for teams in args.teams:
-        for part, audit in audit_training(args.setting, teams, args.device).items():
+    print(f"{'teams':>9s}  {'part':<21s} {'launches':>9s} {'syncs':>6s} {'host tensors':>13s}  syncing ops")
+    for teams, stack in [(teams, stack) for teams in args.teams for stack in ([False, True] if teams > 1 else [False])]:
+        for part, audit in audit_training(args.setting, teams, args.device, stack=stack).items():
+            if stack and part != "collection, per step":
+                continue  # stacking changes acting alone
             per = getattr(audit, "per", 1)
             syncing = ", ".join(f"{name} x{count / per:g}" for name, count in sorted(audit.sync_ops().items()))
-            print(f"{teams:5d}  {part:<21s} {audit.launches / per:9.0f} {audit.syncs / per:6.1f} "
+            label = f"{teams}{' stacked' if stack else ''}"
+            print(f"{label:>9s}  {part:<21s} {audit.launches / per:9.0f} {audit.syncs / per:6.1f} "
                   f"{audit.host_tensors / per:13.1f}  {syncing or '-'}", flush=True)
     steps = SETTINGS[args.setting]["rollout_steps"]
     torchrl_gae, ours = audit_advantages(SETTINGS[args.setting]["num_envs"], steps)

@@ -61,14 +61,22 @@ class EgocentricLinear(SparseInputLinear):
             raise ValueError("EgocentricLinear takes no gradient for its input: pass observations, not features")
         height, width, channels = self.obs_shape
         flat = obs.reshape(-1, height * width * channels)
-        agent_cell = obs[..., Channel.SELF].reshape(-1, height * width).argmax(-1)  # an all-zero row: cell 0
-        columns = window_columns(self.obs_shape, flat.device)
         if plain_linear_here(flat, self.weight):
-            window = torch.zeros(flat.shape[0], self.in_features, dtype=self.weight.dtype, device=flat.device)
-            window = window.scatter(1, columns[agent_cell], flat.to(self.weight.dtype))
-            out = F.linear(window, self.weight, self.bias)
+            out = F.linear(self.window(obs).reshape(flat.shape[0], -1), self.weight, self.bias)
         else:
+            agent_cell = obs[..., Channel.SELF].reshape(-1, height * width).argmax(-1)  # an all-zero row: cell 0
+            columns = window_columns(self.obs_shape, flat.device)
             entries = nonzero_entries(flat, self.weight.dtype)
             moved = columns.reshape(-1).take(agent_cell[entries.rows] * flat.shape[1] + entries.cols)
             out = SparseProduct.apply(flat, self.weight, self.bias, entries.moved(moved, self.in_features))
         return out.reshape(*obs.shape[:-3], self.out_features)
+
+    def window(self, obs: torch.Tensor) -> torch.Tensor:
+        """The agent-centred window of observations [..., H, W, C] as the layer's dense input float [..., in]."""
+        height, width, channels = self.obs_shape
+        flat = obs.reshape(-1, height * width * channels)
+        agent_cell = obs[..., Channel.SELF].reshape(-1, height * width).argmax(-1)  # an all-zero row: cell 0
+        columns = window_columns(self.obs_shape, flat.device)
+        window = torch.zeros(flat.shape[0], self.in_features, dtype=self.weight.dtype, device=flat.device)
+        window = window.scatter(1, columns[agent_cell], flat.to(self.weight.dtype))
+        return window.reshape(*obs.shape[:-3], self.in_features)

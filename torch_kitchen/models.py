@@ -343,21 +343,44 @@ class ActingPass(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         observation = tensordict.get(OBSERVATION)
         logits = self.policy_net(observation)
-        # As torch's Categorical(logits=logits) computes them: normalised logits, then their softmax.
-        log_probs = logits - logits.logsumexp(-1, keepdim=True)
-        probs = torch.softmax(log_probs, -1)
-        mode = interaction_type() or InteractionType.RANDOM  # the actor's default: sample
-        if mode is InteractionType.RANDOM:
-            action = torch.multinomial(probs.reshape(-1, NUM_ACTIONS), 1, True).reshape(logits.shape[:-1])
-        elif mode in (InteractionType.DETERMINISTIC, InteractionType.MODE):
-            action = probs.argmax(-1)
-        else:
-            raise ValueError(f"a categorical policy has no {mode.name.lower()} action; sample or take its mode")
+        action, log_prob = sample_actions(logits)
         tensordict.set(LOGITS, logits)
         tensordict.set(ACTION, action)
-        tensordict.set(LOG_PROB, log_probs.gather(-1, action.unsqueeze(-1)).squeeze(-1))
+        tensordict.set(LOG_PROB, log_prob)
         tensordict.set(VALUE, self.value_net(observation))
         return tensordict
+
+    def shared_networks(self) -> tuple[nn.Sequential, nn.Sequential] | None:
+        """The policy and value networks as chains of plain modules holding these weights (not copies), where both
+        share their parameters between the agents; else None."""
+        if not all(isinstance(part, MultiAgentNet) and part.share_params
+                   for network in (self.policy_net, self.value_net) for part in network):
+            return None
+        return tuple(nn.Sequential(*(part.shared_net() for part in network))
+                     for network in (self.policy_net, self.value_net))
+
+
+def draw_categorical(probs: torch.Tensor) -> torch.Tensor:
+    """One draw per row of probs float [N, 6] from torch's current random stream: int64 [N, 1]."""
+    return torch.multinomial(probs, 1, True)
+
+
+def sample_actions(logits: torch.Tensor, draw: Callable[[torch.Tensor], torch.Tensor] = draw_categorical
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Actions int64 [*B] and their log-probabilities float32 [*B] from logits [*B, 6], as `sampling_actor`'s
+    Categorical gives them, bit for bit: sampled by `draw` (interaction type RANDOM, the default), or the most
+    likely (DETERMINISTIC or MODE)."""
+    # As torch's Categorical(logits=logits) computes them: normalised logits, then their softmax.
+    log_probs = logits - logits.logsumexp(-1, keepdim=True)
+    probs = torch.softmax(log_probs, -1)
+    mode = interaction_type() or InteractionType.RANDOM  # the actor's default: sample
+    if mode is InteractionType.RANDOM:
+        action = draw(probs.reshape(-1, NUM_ACTIONS)).reshape(logits.shape[:-1])
+    elif mode in (InteractionType.DETERMINISTIC, InteractionType.MODE):
+        action = probs.argmax(-1)
+    else:
+        raise ValueError(f"a categorical policy has no {mode.name.lower()} action; sample or take its mode")
+    return action, log_probs.gather(-1, action.unsqueeze(-1)).squeeze(-1)
 
 
 def plain_network(network: TensorDictSequential) -> nn.Sequential:

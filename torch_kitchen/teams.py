@@ -6,11 +6,14 @@ its own JAX key. The torch side keeps the teams apart with three pieces:
 `RandomStream`   a team's own torch random stream (CPU, and its CUDA device), swapped in around the team's work,
                  so its weights, sampled actions and minibatch orders are those of a run of its own;
 `TeamPolicy`     one TensorDict policy over the whole batch: team k's policy acts on team k's rows, in its stream;
+                 stacked (`stack=True`, the GPU's way), the teams' networks run as one vmapped network over weights
+                 stacked along a team dim, and only the sampling runs per team, in its stream;
 `TeamTransform`  one env transform over the whole batch from one stateful transform per team (E3T's partner
                  seats, each drawing from its own generator), each on its team's rows.
 
 Team k's networks see exactly the tensors, of exactly the shapes, that a run of its own would give them, so
-the arithmetic is the same, bit for bit (`tests/trainers/test_teams.py`).
+the arithmetic is the same, bit for bit (`tests/trainers/test_teams.py`). Stacked, the products are batched over
+the teams: the same to float rounding (`tests/torch_kitchen/test_teams.py`), at the kernel launches of one team.
 """
 
 from __future__ import annotations
@@ -20,9 +23,22 @@ from collections.abc import Iterator, Sequence
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+from torch import nn
 from torchrl.data import Composite
 from torchrl.envs import Transform
+
+from torch_kitchen.egocentric import EgocentricLinear
+from torch_kitchen.models import (
+    ACTION,
+    LOG_PROB,
+    LOGITS,
+    OBSERVATION,
+    VALUE,
+    ActingPass,
+    draw_categorical,
+    sample_actions,
+)
 
 
 def team_rows(team: int, team_size: int) -> slice:
@@ -61,11 +77,86 @@ class RandomStream:
             self._restore(outer)
 
 
+def layers_of(network: nn.Module) -> list[nn.Module]:
+    """The layers of a chain of (nested) `nn.Sequential`s, in order."""
+    if isinstance(network, nn.Sequential):
+        return [layer for part in network for layer in layers_of(part)]
+    return [network]
+
+
+class StackedNetworks:
+    """K networks of one architecture, chains of Flatten, Linear (`EgocentricLinear` included) and ReLU layers, run
+    as one: `forward(x)` with x [K, ...] gives network k's output on x[k], each linear layer one batched product
+    (`baddbmm`) over copies of the K weights stacked along a leading team dim. The copies follow the networks: they
+    are taken again whenever a weight has changed in place since (an optimizer step, a load)."""
+
+    def __init__(self, networks: Sequence[nn.Module]):
+        by_network = [layers_of(network) for network in networks]
+        self.layers = by_network[0]
+        if not all(isinstance(layer, STACKABLE) for layer in self.layers):
+            raise ValueError(f"stacked networks hold {', '.join(t.__name__ for t in STACKABLE)} layers alone")
+        self.weights = [[(layer.weight, layer.bias) if isinstance(layer, nn.Linear) else () for layer in layers]
+                        for layers in by_network]
+        self.stacked = [tuple(torch.stack([weights[i][j].detach() for weights in self.weights])
+                              for j in range(len(self.weights[0][i]))) for i in range(len(self.layers))]
+        self.versions = self._versions()
+
+    def _versions(self) -> list[int]:
+        return [tensor._version for weights in self.weights for layer in weights for tensor in layer]
+
+    def _follow(self) -> None:
+        versions = self._versions()
+        if versions != self.versions:
+            with torch.no_grad():
+                for i, stacked in enumerate(self.stacked):
+                    for j, out in enumerate(stacked):
+                        torch.stack([weights[i][j].detach() for weights in self.weights], out=out)
+            self.versions = versions
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        self._follow()
+        for layer, stacked in zip(self.layers, self.stacked):
+            if isinstance(layer, nn.Flatten):
+                x = layer(x)
+            elif isinstance(layer, nn.ReLU):
+                x = torch.relu(x)
+            else:  # a linear layer: [K, *N, in] -> [K, *N, out]
+                if isinstance(layer, EgocentricLinear):
+                    x = layer.window(x)
+                weight, bias = stacked
+                rows = x.reshape(x.shape[0], -1, x.shape[-1]).to(weight.dtype)
+                out = torch.baddbmm(bias.unsqueeze(1), rows, weight.transpose(1, 2))
+                x = out.reshape(*x.shape[:-1], weight.shape[1])
+        return x
+
+
+STACKABLE = (nn.Flatten, nn.Linear, nn.ReLU)
+
+
+def stackable_acting(policies: Sequence[TensorDictModuleBase]) -> list[tuple[nn.Module, nn.Module]] | None:
+    """Each policy's (policy network, value network) as plain chains, where every policy is an `ActingPass` alone
+    over shared networks (`ActingPass.shared_networks`) that `StackedNetworks` can run; else None."""
+    networks = []
+    for policy in policies:
+        acting = policy.module[0] if isinstance(policy, TensorDictSequential) and len(policy.module) == 1 else policy
+        pair = acting.shared_networks() if isinstance(acting, ActingPass) else None
+        if pair is None or not all(isinstance(layer, STACKABLE) for network in pair for layer in layers_of(network)):
+            return None
+        networks.append(pair)
+    return networks
+
+
 class TeamPolicy(TensorDictModuleBase):
     """Team k's `policies[k]` acts on team k's rows of the batch, drawing from `streams[k]` (see the module
-    docstring). The policies read and write the same keys; one team's policy acts on the batch as it is."""
+    docstring). The policies read and write the same keys; one team's policy acts on the batch as it is.
 
-    def __init__(self, policies: Sequence[TensorDictModuleBase], streams: Sequence[RandomStream], team_size: int):
+    stack: run the teams' feed-forward acting passes as one network over stacked weights (`StackedNetworks`) and
+    sample per team; where the policies cannot be stacked (recurrent, GNN, an algorithm's acting modules), or with
+    one team, the policies run one after the other. ValueError if asked to stack what cannot be.
+    """
+
+    def __init__(self, policies: Sequence[TensorDictModuleBase], streams: Sequence[RandomStream], team_size: int,
+                 stack: bool = False):
         super().__init__()
         if len(policies) != len(streams):
             raise ValueError(f"{len(policies)} policies and {len(streams)} random streams: give one of each per team")
@@ -74,16 +165,46 @@ class TeamPolicy(TensorDictModuleBase):
         self.team_size = team_size
         self.in_keys = list(policies[0].in_keys)
         self.out_keys = list(policies[0].out_keys)
+        self.stacked = None
+        if stack and len(policies) > 1:
+            networks = stackable_acting(policies)
+            if networks is None:
+                raise ValueError("only feed-forward acting passes over shared MLP networks stack; these policies "
+                                 "run one team after another")
+            policy_nets, value_nets = zip(*networks)
+            self.stacked = StackedNetworks(policy_nets), StackedNetworks(value_nets)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if len(self.policies) == 1:  # every step: spare one team the split and the copy back
             with self.streams[0].active():
                 return self.policies[0](tensordict)
+        if self.stacked is not None:
+            return self._stacked_forward(tensordict)
         acted = []
         for team, (policy, stream) in enumerate(zip(self.policies, self.streams)):
             with stream.active():
                 acted.append(policy(tensordict[team_rows(team, self.team_size)]).select(*self.out_keys))
         return tensordict.update(torch.cat(acted))
+
+    def _stacked_forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        observation = tensordict.get(OBSERVATION)
+        by_team = observation.reshape(len(self.streams), self.team_size, *observation.shape[1:])
+        policy_net, value_net = self.stacked
+        logits = policy_net(by_team).flatten(0, 1)
+
+        def draw_per_team(probs):  # rows by team: each team's draws from its own stream
+            draws = []
+            for team_probs, stream in zip(probs.chunk(len(self.streams)), self.streams):
+                with stream.active():
+                    draws.append(draw_categorical(team_probs))
+            return torch.cat(draws)
+
+        action, log_prob = sample_actions(logits, draw_per_team)
+        tensordict.set(LOGITS, logits)
+        tensordict.set(ACTION, action)
+        tensordict.set(LOG_PROB, log_prob)
+        tensordict.set(VALUE, value_net(by_team).flatten(0, 1))
+        return tensordict
 
 
 class TeamTransform(Transform):

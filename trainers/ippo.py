@@ -38,7 +38,7 @@ from tqdm import tqdm
 
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.models import ActorCritic, make_actor_critic
-from torch_kitchen.teams import RandomStream, TeamPolicy, TeamTransform, team_rows
+from torch_kitchen.teams import RandomStream, TeamPolicy, TeamTransform, stackable_acting, team_rows
 from torch_kitchen.torchrl_internals import PurgingTensorboardLogger, hold_value_clip_on_host
 from trainers.advantages import generalized_advantages
 from trainers.algorithms import ALGORITHMS, Algorithm
@@ -670,7 +670,10 @@ def train_teams(
              for index, (config, run) in enumerate(zip(configs, runs))]
     env = with_model_transforms(kitchen, teams[0].actor_critic, *algorithm_transforms(teams))
     policies = [torch.compile(team.policy) if lead.compile_policy else team.policy for team in teams]
-    policy = TeamPolicy(policies, [team.stream for team in teams], lead.num_envs)
+    # On a GPU the teams' feed-forward networks act as one stacked network (a team's launches for all of them); on
+    # a CPU one after another, each with its sparse first layer.
+    stack = torch.device(lead.device).type == "cuda" and stackable_acting(policies) is not None
+    policy = TeamPolicy(policies, [team.stream for team in teams], lead.num_envs, stack=stack)
 
     # ---------------------------------------------------------------- resume or start fresh
     saved = [None] * num_teams

@@ -153,3 +153,52 @@ def test_a_shard_pool_runs_the_shards_the_faster_way_and_times_the_other_now_and
             ways.append(on_threads[0])
     assert ways[0] and not ways[1]  # each way timed once
     assert [i for i, at_once in enumerate(ways) if at_once] == [0, 7, 15]  # then one after the other, but every 8th
+
+
+@pytest.mark.parametrize("architecture", ["mlp", "ego_mlp"])
+def test_stacked_teams_act_as_the_teams_one_after_another_at_one_teams_launches(tmp_path, architecture):
+    """The teams' networks stacked and vmapped (the GPU's way) give each team's logits and values to float rounding
+    and, sampled in each team's own stream, its actions; the stacked weights follow the teams' after an update's
+    in-place step; and acting for 3 teams launches one team's kernels but a draw per team."""
+    from tensordict import TensorDict
+
+    from torch_kitchen.onednn_linear import device_path
+    from torch_kitchen.op_audit import OpAudit
+    from torch_kitchen.teams import TeamPolicy
+    from trainers.ippo import build_team, make_env
+
+    config = tiny_config(tmp_path, f"architecture={architecture}", "levels=infinite", "teams=3")
+    configs = team_configs(config)
+    kitchen = make_env(configs[0], num_envs=3 * config.num_envs, seed=[c.seed for c in configs])
+    teams = [build_team(c, tmp_path / str(c.seed), kitchen, k) for k, c in enumerate(configs)]
+    observation = kitchen.reset().get(("agents", "observation"))
+
+    def act(policy_of_teams, streams_seed):
+        streams = [RandomStream(streams_seed + k) for k in range(3)]
+        policy = TeamPolicy([team.policy for team in teams], streams, config.num_envs, stack=policy_of_teams)
+        with torch.no_grad(), OpAudit() as audit:
+            out = policy(TensorDict({("agents", "observation"): observation}, batch_size=[len(observation)]))
+        return out, audit, policy
+
+    with device_path():
+        one_by_one, loop_audit, _ = act(False, 10)
+        stacked, stacked_audit, policy = act(True, 10)
+        for key in ("logits", "state_value", "action_log_prob"):
+            torch.testing.assert_close(stacked["agents", key], one_by_one["agents", key], rtol=1e-5, atol=1e-6)
+        assert torch.equal(stacked["agents", "action"], one_by_one["agents", "action"])
+        with OpAudit() as single:
+            with torch.no_grad():
+                teams[0].policy(TensorDict({("agents", "observation"): observation[:config.num_envs]},
+                                           batch_size=[config.num_envs]))
+        # The networks' and the sampling's kernels once for all teams; per team only its draw, then one concatenation.
+        assert stacked_audit.launches == single.launches + 2 + 1 < loop_audit.launches
+
+        with torch.no_grad():  # an optimizer's in-place step on team 1's weights
+            for parameter in teams[1].parameters:
+                parameter.mul_(0.5)
+        followed = policy(TensorDict({("agents", "observation"): observation}, batch_size=[len(observation)]))
+        rows = slice(config.num_envs, 2 * config.num_envs)
+        expected = teams[1].actor_critic.critic(TensorDict({("agents", "observation"): observation[rows]},
+                                                           batch_size=[config.num_envs]))
+        torch.testing.assert_close(followed["agents", "state_value"][rows], expected["agents", "state_value"],
+                                   rtol=1e-5, atol=1e-6)
