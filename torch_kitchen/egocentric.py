@@ -7,9 +7,9 @@ where it stands; cells beyond the kitchen are zero), then applies a linear layer
 north of the agent always meets the same weights. The env's observation stays exactly JaxMARL's; the move is
 part of the model.
 
-On CPU the move costs almost nothing: the layer finds the observation's non-zero entries (as
-`SparseInputLinear` does) and only renumbers their columns. Elsewhere (a GPU, vmap, compiled graphs) it builds
-the window densely by a scatter; both give the same products (tested).
+`EgocentricLinear` builds the window densely by a scatter. On a CPU the move costs almost nothing:
+`SparseEgocentricLinear` (made by `torch_kitchen.cpu_kernels.accelerate_cpu`) finds the observation's non-zero
+entries (as `SparseInputLinear` does) and only renumbers their columns; both give the same products (tested).
 """
 
 from __future__ import annotations
@@ -17,11 +17,12 @@ from __future__ import annotations
 import functools
 
 import torch
+from torch import nn
 from torch.nn import functional as F
 
 from jax_env.observation import Channel
 from torch_kitchen.onednn_linear import plain_linear_here
-from torch_kitchen.sparse_linear import SparseInputLinear, SparseProduct, nonzero_entries
+from torch_kitchen.sparse_linear import SparseProduct, nonzero_entries, store_by_column
 
 
 def window_shape(obs_shape: tuple[int, int, int]) -> tuple[int, int, int]:
@@ -45,11 +46,12 @@ def window_columns(obs_shape: tuple[int, int, int], device: torch.device) -> tor
     return (row * window_width + col) * channels + channel
 
 
-class EgocentricLinear(SparseInputLinear):
+class EgocentricLinear(nn.Linear):
     """A linear layer over the agent-centred window of an observation (see the module docstring).
 
     uint8 (or float) observations [..., H, W, C] -> float [..., out_features]; the weight is [out, (2H - 1) *
-    (2W - 1) * C]. The observation takes no gradient (none is asked of observations).
+    (2W - 1) * C]. The window is built densely by a scatter; on a CPU, `accelerate_cpu` makes the layer a
+    `SparseEgocentricLinear`.
     """
 
     def __init__(self, obs_shape: tuple[int, int, int], out_features: int, device=None, dtype=None):
@@ -57,19 +59,7 @@ class EgocentricLinear(SparseInputLinear):
         self.obs_shape = tuple(obs_shape)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        if obs.requires_grad:
-            raise ValueError("EgocentricLinear takes no gradient for its input: pass observations, not features")
-        height, width, channels = self.obs_shape
-        flat = obs.reshape(-1, height * width * channels)
-        if plain_linear_here(flat, self.weight):
-            out = F.linear(self.window(obs).reshape(flat.shape[0], -1), self.weight, self.bias)
-        else:
-            agent_cell = obs[..., Channel.SELF].reshape(-1, height * width).argmax(-1)  # an all-zero row: cell 0
-            columns = window_columns(self.obs_shape, flat.device)
-            entries = nonzero_entries(flat, self.weight.dtype)
-            moved = columns.reshape(-1).take(agent_cell[entries.rows] * flat.shape[1] + entries.cols)
-            out = SparseProduct.apply(flat, self.weight, self.bias, entries.moved(moved, self.in_features))
-        return out.reshape(*obs.shape[:-3], self.out_features)
+        return F.linear(self.window(obs), self.weight, self.bias)
 
     def window(self, obs: torch.Tensor) -> torch.Tensor:
         """The agent-centred window of observations [..., H, W, C] as the layer's dense input float [..., in]."""
@@ -80,3 +70,27 @@ class EgocentricLinear(SparseInputLinear):
         window = torch.zeros(flat.shape[0], self.in_features, dtype=self.weight.dtype, device=flat.device)
         window = window.scatter(1, columns[agent_cell], flat.to(self.weight.dtype))
         return window.reshape(*obs.shape[:-3], self.in_features)
+
+
+class SparseEgocentricLinear(EgocentricLinear):
+    """`EgocentricLinear` from the observation's non-zero entries, their columns renumbered into the window (see
+    the module docstring); made by `torch_kitchen.cpu_kernels.accelerate_cpu`. The observation takes no gradient
+    (none is asked of observations)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        store_by_column(self.weight)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        if obs.requires_grad:
+            raise ValueError("EgocentricLinear takes no gradient for its input: pass observations, not features")
+        height, width, channels = self.obs_shape
+        flat = obs.reshape(-1, height * width * channels)
+        if plain_linear_here(flat, self.weight):
+            return super().forward(obs)
+        agent_cell = obs[..., Channel.SELF].reshape(-1, height * width).argmax(-1)  # an all-zero row: cell 0
+        columns = window_columns(self.obs_shape, flat.device)
+        entries = nonzero_entries(flat, self.weight.dtype)
+        moved = columns.reshape(-1).take(agent_cell[entries.rows] * flat.shape[1] + entries.cols)
+        out = SparseProduct.apply(flat, self.weight, self.bias, entries.moved(moved, self.in_features))
+        return out.reshape(*obs.shape[:-3], self.out_features)

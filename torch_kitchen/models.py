@@ -3,8 +3,7 @@
 `make_actor_critic(architecture, ...)` builds an `ActorCritic` whose actor and critic are TensorDict modules
 with separate torsos (no layer is shared between actor and critic). Each torso, with h = `hidden`:
 
-    encoder   "mlp": flatten H*W*26 -> Linear(h) + ReLU (on CPU from the non-zero inputs alone:
-                     `torch_kitchen.sparse_linear`)
+    encoder   "mlp": flatten H*W*26 -> Linear(h) + ReLU (`ObservationLinear`: reads uint8)
               "ego_mlp": the same over a (2H-1) x (2W-1) window centred on the observing agent
                      (`torch_kitchen.egocentric`): not in the paper
               "gnn": kitchen graph (`torch_kitchen.graph`) -> GATConv(26, 8, heads=4, concat) -> ReLU
@@ -12,7 +11,8 @@ with separate torsos (no layer is shared between actor and critic). Each torso, 
     memory    recurrent variants only: TorchRL LSTMModule(h) -> LayerNorm(h)
     head      Linear(h) + ReLU -> Linear(h) + ReLU -> Linear(6 logits | 1 value)
 
-Every other Linear layer computes its CPU products in oneDNN (`torch_kitchen.onednn_linear`).
+The layers are torch's own; on a CPU, `torch_kitchen.cpu_kernels.accelerate_cpu` swaps in faster kernels for the
+same products (oneDNN, and the sparse first layers), as the trainer and the evaluation do.
 
 E3T's models ("e3t_mlp", "e3t_gnn") put a partner predictor (`PartnerPredictor`) before the actor's torso; its
 predicted distribution of the partner's action, detached, is concatenated to the torso's output before the head.
@@ -71,9 +71,8 @@ from torchrl.modules import LSTMModule, ProbabilisticActor
 from jax_env import NUM_ACTIONS
 from torch_kitchen.egocentric import EgocentricLinear
 from torch_kitchen.graph import build_graph, num_nodes
-from torch_kitchen.onednn_linear import OneDNNLinear
 from torch_kitchen.partner import CONTEXT_ACTION, CONTEXT_OBSERVATION, NO_ACTION, PartnerContext
-from torch_kitchen.sparse_linear import SparseInputLinear
+from torch_kitchen.sparse_linear import ObservationLinear
 from torch_kitchen.torchrl_internals import MultiAgentNet
 
 N_AGENTS = 2
@@ -92,7 +91,7 @@ def _orthogonal_(layer: nn.Linear, gain: float) -> nn.Linear:
     return layer
 
 
-def _hidden_linear(in_features: int, out_features: int, layer: type[nn.Linear] = OneDNNLinear) -> nn.Linear:
+def _hidden_linear(in_features: int, out_features: int, layer: type[nn.Linear] = nn.Linear) -> nn.Linear:
     return _orthogonal_(layer(in_features, out_features), math.sqrt(2))
 
 
@@ -119,9 +118,9 @@ class GraphEncoder(nn.Module):
 def make_encoder(kind: str, obs_shape: tuple[int, int, int], hidden: int) -> nn.Module:
     """One agent's encoder: [..., H, W, C] (uint8 observations or float) -> float [..., hidden]; kind "mlp",
     "ego_mlp" (agent-centred) or "gnn". The MLPs' first layer reads the observation's non-zero entries alone
-    (`SparseInputLinear`)."""
+    (`ObservationLinear`: uint8 in)."""
     if kind == "mlp":
-        return nn.Sequential(nn.Flatten(-3), _hidden_linear(math.prod(obs_shape), hidden, SparseInputLinear), nn.ReLU())
+        return nn.Sequential(nn.Flatten(-3), _hidden_linear(math.prod(obs_shape), hidden, ObservationLinear), nn.ReLU())
     if kind == "ego_mlp":
         return nn.Sequential(_orthogonal_(EgocentricLinear(obs_shape, hidden), math.sqrt(2)), nn.ReLU())
     if kind == "gnn":
@@ -138,7 +137,7 @@ def make_head(hidden: int, out_features: int, out_gain: float, layer_norm: bool,
     in_features = in_features or hidden
     layers = [nn.LayerNorm(in_features)] if layer_norm else []
     layers += [_hidden_linear(in_features, hidden), nn.ReLU(), _hidden_linear(hidden, hidden), nn.ReLU()]
-    layers.append(_orthogonal_(OneDNNLinear(hidden, out_features), out_gain))
+    layers.append(_orthogonal_(nn.Linear(hidden, out_features), out_gain))
     return nn.Sequential(*layers)
 
 
@@ -399,7 +398,7 @@ def make_predictor_head(hidden: int, length: int) -> nn.Sequential:
     return nn.Sequential(
         nn.Flatten(-2),
         _hidden_linear(length * (hidden + NO_ACTION + 1), hidden), nn.ReLU(),
-        _orthogonal_(OneDNNLinear(hidden, NUM_ACTIONS), 0.01),
+        _orthogonal_(nn.Linear(hidden, NUM_ACTIONS), 0.01),
     )
 
 

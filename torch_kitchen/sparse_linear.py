@@ -9,8 +9,10 @@ the actor and the critic, which read the same observations, find them once. It i
 (same parameters, state_dict keys and init), so checkpoints and user code see no difference; the sums run in
 another order, so results agree with `nn.Linear` to float32 rounding, not bit for bit.
 
-Where finding the non-zeros would cost more than it saves, the layer is a plain `nn.Linear`: on a GPU (whose
-`nonzero` waits for the device, and whose dense products are cheap), and inside `torch.compile`'s graphs.
+The models are built with the plain `ObservationLinear`; `torch_kitchen.cpu_kernels.accelerate_cpu` makes it a
+`SparseInputLinear` on a CPU. Where finding the non-zeros would cost more than it saves, the layer takes the plain
+product: on a GPU (whose `nonzero` waits for the device, and whose dense products are cheap), under vmap, and
+inside `torch.compile`'s graphs.
 """
 
 from __future__ import annotations
@@ -126,24 +128,40 @@ class SparseProduct(torch.autograd.Function):
         return grad_x, grad_weight, grad_bias, None
 
 
-class SparseInputLinear(nn.Linear):
-    """`nn.Linear` computed from the non-zero entries of its input, on CPU (see the module docstring).
+class ObservationLinear(nn.Linear):
+    """`nn.Linear` over inputs of any real dtype (uint8 observations are cast to the weight's): [..., in_features]
+    -> float [..., out_features]. The MLP encoders' first layer; on a CPU, `accelerate_cpu` makes it a
+    `SparseInputLinear`."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.linear(x.to(self.weight.dtype), self.weight, self.bias)
+
+
+def store_by_column(weight: nn.Parameter) -> None:
+    """Lays out a [out, in] weight column by column, in place (the same Parameter): the sparse product's embedding
+    bag reads weight.T's rows, which are then contiguous without a copy (0.12 ms at hidden 256, twice per
+    collection step), and the weight's gradient comes out in this layout already."""
+    if weight.t().is_contiguous():
+        return
+    weight.data = weight.data.t().contiguous().t()
+
+
+class SparseInputLinear(ObservationLinear):
+    """`ObservationLinear` computed from the non-zero entries of its input, on CPU (see the module docstring);
+    made by `torch_kitchen.cpu_kernels.accelerate_cpu`.
 
     [..., in_features] of any real dtype (uint8 observations need no cast) -> float [..., out_features]; a layer
-    with a bias.
+    with a bias, its weight stored column by column (`store_by_column`).
     """
 
-    def __init__(self, in_features: int, out_features: int, device=None, dtype=None):
-        super().__init__(in_features, out_features, bias=True, device=device, dtype=dtype)
-        # The same [out, in] weight, stored column by column: the forward's embedding bag reads weight.T's rows,
-        # which are then contiguous without a copy (0.12 ms at hidden 256, twice per collection step), and the
-        # weight's gradient comes out in this layout already.
-        self.weight = nn.Parameter(self.weight.detach().t().contiguous().t())
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        store_by_column(self.weight)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         # `nonzero` has no batched form under vmap and would stop torch.compile's graph.
         if plain_linear_here(x, self.weight):
-            return F.linear(x.to(self.weight.dtype), self.weight, self.bias)
+            return super().forward(x)
         flat = x.reshape(-1, self.in_features)
         out = SparseProduct.apply(flat, self.weight, self.bias, nonzero_entries(flat, self.weight.dtype))
         return out.reshape(*x.shape[:-1], self.out_features)

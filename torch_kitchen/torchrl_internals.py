@@ -99,9 +99,14 @@ class MultiAgentNet(MultiAgentNetBase):
             net = self.__dict__[TIED] = self.get_stateful_net(copy=True)
         return net
 
-    def _apply(self, fn, *args, **kwargs):
-        self.__dict__.pop(TIED, None)  # `.to()` may replace the parameters
+    def forget_built_networks(self) -> None:
+        """Drops the shared network and the threads' templates built so far: the next call builds them again from
+        the template and the parameters (after `.to()`, or layers given other classes)."""
+        self.__dict__.pop(TIED, None)
         self.__dict__.pop(THREAD_TEMPLATES, None)
+
+    def _apply(self, fn, *args, **kwargs):
+        self.forget_built_networks()  # `.to()` may replace the parameters
         return super()._apply(fn, *args, **kwargs)
 
     def __getstate__(self) -> dict:

@@ -34,6 +34,7 @@ from tqdm import tqdm
 
 from jax_env import EXPANDED_LAYOUTS, Layout, heldout_levels, layout_from_state, layout_name, load_layout
 from jax_env.render import write_gif
+from torch_kitchen.cpu_kernels import accelerate_cpu
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.pairing import make_seated_actor
@@ -108,6 +109,8 @@ def load_team(checkpoint: str | Path, device: str = "cpu", condition: str = "") 
             f"{where} holds a {model['architecture']!r} model that cannot be built here ({error}); import the "
             "module that registers that architecture before loading it"
         ) from None
+    if torch.device(device).type == "cpu":
+        accelerate_cpu(actor_critic.actor, actor_critic.critic)
     try:
         actor_critic.actor.load_state_dict(state["actor"])
         actor_critic.critic.load_state_dict(state["critic"])

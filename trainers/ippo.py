@@ -36,6 +36,7 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.record.loggers import Logger, get_logger
 from tqdm import tqdm
 
+from torch_kitchen.cpu_kernels import accelerate_cpu
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.teams import RandomStream, TeamPolicy, TeamTransform, stackable_acting, team_rows
@@ -334,6 +335,8 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
     with stream.active():
         if actor_critic is None:
             actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
+            if torch.device(config.device).type == "cpu":
+                accelerate_cpu(actor_critic.actor, actor_critic.critic)
         actor, critic = actor_critic.actor.to(config.device), actor_critic.critic.to(config.device)
         algorithm = make_algorithm(config, actor_critic)
         # The critic runs while acting: its values feed GAE.

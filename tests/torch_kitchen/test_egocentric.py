@@ -4,7 +4,7 @@ from tiny import infinite_observations
 
 from jax_env.observation import Channel
 from torch_kitchen import egocentric
-from torch_kitchen.egocentric import EgocentricLinear, window_shape
+from torch_kitchen.egocentric import SparseEgocentricLinear, window_shape
 
 SHAPE = (7, 7, 26)
 HIDDEN = 16
@@ -16,9 +16,9 @@ def observations() -> torch.Tensor:
     return infinite_observations(32, seed=1)
 
 
-def _layer() -> EgocentricLinear:
+def _layer() -> SparseEgocentricLinear:
     torch.manual_seed(0)
-    return EgocentricLinear(SHAPE, HIDDEN)
+    return SparseEgocentricLinear(SHAPE, HIDDEN)
 
 
 def test_the_sparse_product_equals_the_dense_window_with_gradients(observations, monkeypatch):

@@ -4,6 +4,7 @@ from tensordict import TensorDict
 from torch import nn
 
 from torch_kitchen import onednn_linear
+from torch_kitchen.cpu_kernels import accelerate_cpu
 from torch_kitchen.models import make_actor_critic, make_head
 from torch_kitchen.onednn_linear import OneDNNLinear, onednn_available
 
@@ -71,13 +72,16 @@ def test_it_is_a_linear_layer_to_checkpoints():
     assert onednn.state_dict().keys() == plain.state_dict().keys()
 
 
-def test_the_models_dense_layers_use_it():
+def test_accelerate_cpu_gives_the_models_dense_layers_to_it():
     head = make_head(32, 6, 0.01, layer_norm=False)
-    assert all(isinstance(layer, OneDNNLinear) for layer in head if isinstance(layer, nn.Linear))
+    assert all(type(layer) is nn.Linear for layer in head if isinstance(layer, nn.Linear))
+    accelerate_cpu(head)
+    assert all(type(layer) is OneDNNLinear for layer in head if isinstance(layer, nn.Linear))
     # Per-agent networks run under vmap, where the layer takes torch's product: values stay those of the
     # same weights outside vmap.
     separate = make_actor_critic("mlp", hidden=32, share_params=False).critic
     shared = make_actor_critic("mlp", hidden=32, share_params=True).critic
+    accelerate_cpu(separate, shared)
     shared.load_state_dict({key: value[1] for key, value in separate.state_dict().items()})
     obs = torch.randint(0, 2, (3, 2, 7, 7, 26), dtype=torch.uint8)
     td = TensorDict({("agents", "observation"): obs}, batch_size=[3])

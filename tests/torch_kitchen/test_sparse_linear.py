@@ -8,8 +8,9 @@ from tiny import infinite_observations
 from torch import nn
 
 from torch_kitchen import sparse_linear
+from torch_kitchen.cpu_kernels import accelerate_cpu
 from torch_kitchen.models import make_actor_critic, make_encoder
-from torch_kitchen.sparse_linear import SparseInputLinear
+from torch_kitchen.sparse_linear import ObservationLinear, SparseInputLinear
 
 HIDDEN = 32
 
@@ -104,8 +105,11 @@ def _critic_values(critic, observations: torch.Tensor) -> torch.Tensor:
 
 
 def test_a_shared_mlp_reads_uint8_observations_through_it(observations, monkeypatch):
-    assert isinstance(make_encoder("mlp", (7, 7, 26), HIDDEN)[1], SparseInputLinear)
+    assert type(make_encoder("mlp", (7, 7, 26), HIDDEN)[1]) is ObservationLinear  # plain until accelerated
     critic = make_actor_critic("mlp", hidden=HIDDEN, share_params=True).critic
+    accelerate_cpu(critic)
+    encoder = critic.module[0].module.shared_net()
+    assert isinstance(encoder[1], SparseInputLinear) and encoder[1].weight.t().is_contiguous()
     values = _critic_values(critic, observations[:8])
     values.sum().backward()
     grads = [p.grad.clone() for p in critic.parameters()]
@@ -123,9 +127,11 @@ def test_per_agent_networks_take_the_dense_product_and_agree_with_the_sparse_one
     # Separate networks per agent run under TorchRL's vmap, where `nonzero` has no batched form; agent i's values
     # equal those of a shared network holding agent i's weights, which takes the sparse product.
     separate = make_actor_critic("mlp", hidden=HIDDEN, share_params=False).critic
+    accelerate_cpu(separate)
     values = _critic_values(separate, observations[:8])
     for agent in range(2):
         shared = make_actor_critic("mlp", hidden=HIDDEN, share_params=True).critic
+        accelerate_cpu(shared)
         shared.load_state_dict({key: value[agent] for key, value in separate.state_dict().items()})
         torch.testing.assert_close(_critic_values(shared, observations[:8])[:, agent], values[:, agent])
 

@@ -161,6 +161,7 @@ def test_stacked_teams_act_as_the_teams_one_after_another_at_one_teams_launches(
     and, sampled in each team's own stream, its actions; the stacked weights follow the teams' after an update's
     in-place step; and acting for 3 teams launches one team's kernels but a draw per team."""
     from tensordict import TensorDict
+    from tensordict.nn import InteractionType, set_interaction_type
 
     from torch_kitchen.onednn_linear import device_path
     from torch_kitchen.op_audit import OpAudit
@@ -180,7 +181,7 @@ def test_stacked_teams_act_as_the_teams_one_after_another_at_one_teams_launches(
             out = policy(TensorDict({("agents", "observation"): observation}, batch_size=[len(observation)]))
         return out, audit, policy
 
-    with device_path():
+    with device_path(), set_interaction_type(InteractionType.RANDOM):  # sampled, whatever another test left set
         one_by_one, loop_audit, _ = act(False, 10)
         stacked, stacked_audit, policy = act(True, 10)
         for key in ("logits", "state_value", "action_log_prob"):
