@@ -357,6 +357,18 @@ class KitchenEnv(EnvBase):
         return self._states
 
 
+class TransformedKitchenEnv(TransformedEnv):
+    """A `KitchenEnv` with transforms that leave "done" as the kitchens give it (the models' and algorithms'):
+    whether an episode ended is the kitchens' own answer, known on the host (`KitchenEnv.any_done`)."""
+
+    def any_done(self, tensordict: TensorDictBase) -> bool:
+        return self.base_env.any_done(tensordict)
+
+
 def with_transforms(env: EnvBase, transforms: Sequence[Transform]) -> EnvBase:
-    """`env` with `transforms` appended (e.g. a model's `env_transforms()`), or `env` itself if there are none."""
-    return TransformedEnv(env, Compose(*transforms)) if transforms else env
+    """`env` with `transforms` appended (e.g. a model's `env_transforms()`), or `env` itself if there are none.
+    The transforms must leave "done" as `env` gives it."""
+    if not transforms:
+        return env
+    wrapper = TransformedKitchenEnv if isinstance(env, KitchenEnv) else TransformedEnv
+    return wrapper(env, Compose(*transforms))

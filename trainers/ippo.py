@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictSequential
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.envs import Transform
 from torchrl.envs.utils import set_exploration_type
 from torchrl.modules import set_recurrent_mode
@@ -364,6 +364,13 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
     return team
 
 
+def acts_stacked(config: TrainConfig, policies: Sequence[TensorDictModuleBase]) -> bool:
+    """Whether the teams act as one stacked network (`TeamPolicy`'s `stack`): on a GPU, where the policies allow
+    it, a team's kernel launches for all of them; on a CPU they act one after another, each with its sparse first
+    layer."""
+    return torch.device(config.device).type == "cuda" and stackable_acting(policies) is not None
+
+
 def algorithm_transforms(teams: list[Team]) -> list[Transform]:
     """The env transforms of the teams' algorithms: each team's own, on its rows, where there are several."""
     if len(teams) == 1:
@@ -673,10 +680,7 @@ def train_teams(
              for index, (config, run) in enumerate(zip(configs, runs))]
     env = with_model_transforms(kitchen, teams[0].actor_critic, *algorithm_transforms(teams))
     policies = [torch.compile(team.policy) if lead.compile_policy else team.policy for team in teams]
-    # On a GPU the teams' feed-forward networks act as one stacked network (a team's launches for all of them); on
-    # a CPU one after another, each with its sparse first layer.
-    stack = torch.device(lead.device).type == "cuda" and stackable_acting(policies) is not None
-    policy = TeamPolicy(policies, [team.stream for team in teams], lead.num_envs, stack=stack)
+    policy = TeamPolicy(policies, [team.stream for team in teams], lead.num_envs, stack=acts_stacked(lead, policies))
 
     # ---------------------------------------------------------------- resume or start fresh
     saved = [None] * num_teams

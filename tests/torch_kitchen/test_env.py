@@ -240,3 +240,26 @@ def test_the_host_knows_when_episodes_end_without_reading_done_from_the_device()
             assert audit.syncs == 0, audit.summary()
     # Kitchens 0 and 2 restarted their second episode at step 7, which moved its end from step 9 to 11.
     assert ends == {0: [4, 11, 16], 1: [4, 9, 14], 2: [4, 11, 16], 3: [4, 9, 14]}
+
+
+@pytest.mark.parametrize("architecture", ["mlp_lstm", "e3t_mlp"])
+def test_with_the_models_transforms_a_step_still_waits_for_nothing(architecture):
+    """Recurrent and E3T models put transforms on the env (episode starts, LSTM states, the partner context); the
+    episode ends still come from the host, and the transforms read nothing back either."""
+    from torch_kitchen.env import with_transforms
+    from torch_kitchen.models import make_actor_critic
+    from torch_kitchen.op_audit import OpAudit
+
+    kitchen = KitchenEnv(num_envs=4, levels="infinite", max_steps=3)
+    env = with_transforms(kitchen, make_actor_critic(architecture, hidden=8).env_transforms())
+    td = env.reset()
+    syncs, ends = [], 0
+    for _ in range(7):
+        td["agents", "action"] = torch.randint(0, 6, (4, 2))
+        with OpAudit() as audit:
+            stepped, td = env.step_and_maybe_reset(td)
+        ended = bool(stepped["next", "done"].any())
+        ends += ended
+        if not ended:
+            syncs.append(audit.syncs)
+    assert ends == 2 and syncs == [0] * 5

@@ -203,3 +203,23 @@ def test_stacked_teams_act_as_the_teams_one_after_another_at_one_teams_launches(
                                                            batch_size=[config.num_envs]))
         torch.testing.assert_close(followed["agents", "state_value"][rows], expected["agents", "state_value"],
                                    rtol=1e-5, atol=1e-6)
+
+
+def test_teams_trained_acting_stacked_learn_what_they_learn_acting_one_after_another(tmp_path, monkeypatch):
+    """The trainer's GPU way of acting, forced on the CPU: the networks' products are batched over the teams, and
+    every team still draws from its own stream. The kitchens end where they do acting one after another (the same
+    actions at every step, so the stacked weights followed the first update), and the weights agree to float
+    rounding, which Adam's first steps amplify where a gradient is near zero (up to 2e-4 here)."""
+    import trainers.ippo
+
+    config = tiny_config(tmp_path / "apart", "levels=infinite", "teams=2", "shaping_weight=1")
+    train_teams(team_configs(config))
+    monkeypatch.setattr(trainers.ippo, "acts_stacked", lambda config, policies: True)
+    stacked_config = tiny_config(tmp_path / "stacked", "levels=infinite", "teams=2", "shaping_weight=1")
+    train_teams(team_configs(stacked_config))
+    for seed in (0, 1):
+        apart = load_checkpoint(config.run_path.parent / f"seed{seed}")
+        stacked = load_checkpoint(stacked_config.run_path.parent / f"seed{seed}")
+        torch.testing.assert_close(stacked["env"], apart["env"], rtol=0, atol=0)
+        for part in ("actor", "critic"):
+            torch.testing.assert_close(stacked[part], apart[part], rtol=0, atol=1e-3)
