@@ -15,8 +15,9 @@ export PYTHONPATH=${PYTHONPATH:-$PWD}
 # protocol's 192 kitchens: the floor under any trainer over this env.
 timeout 120 python benchmarks/launches.py --setting protocol --teams 1 6 --device cuda 2>&1 | grep -v Warning | tee "$out/launches_gpu.txt"
 timeout 90 python benchmarks/collection.py --setting ik --envs 192 --steps 300 --device cuda 2>&1 | grep -v Warning | tee "$out/collection_gpu.txt"
-# Where a batch's time goes (collection and update seconds), then the host syncs the device reports itself.
-timeout 120 python benchmarks/train.py profile --setting ik --updates 3 --rows 25 --device cuda 2>&1 | grep -v Warning | tee "$out/profile_gpu.txt"
+# Where a batch's time goes: collection, GAE and update, wall time against GPU busy time; then the host syncs the
+# device reports itself.
+timeout 150 python benchmarks/phases.py --setting protocol --updates 3 --device cuda 2>&1 | grep -v Warning | tee "$out/phases_gpu.txt"
 timeout 90 python -c "
 import torch, sys, warnings; warnings.simplefilter('always'); sys.argv = ['train.py', 'throughput', '--archs', 'mlp', '--envs', '32', '--updates', '2', '--device', 'cuda']
 sys.path.insert(0, 'benchmarks'); torch.cuda.set_sync_debug_mode('warn'); import train; train.main()
@@ -29,6 +30,10 @@ for setting in protocol ik jaxmarl; do
             --update-compiled "$compiled" 2>&1 | grep -v Warning | tee -a "$out/reference_gpu.txt"
     done
 done
+# Everything on: the stacked acting networks replayed as CUDA graphs too (compile_policy).
+echo "== protocol compile_update=true compile_policy=true" | tee -a "$out/reference_gpu.txt"
+timeout 200 python benchmarks/train.py reference --setting protocol --updates 3 --device cuda --threads 1 \
+    --update-compiled true --compile 2>&1 | grep -v Warning | tee -a "$out/reference_gpu.txt"
 echo "== protocol_gnn" | tee -a "$out/reference_gpu.txt"
 timeout 150 python benchmarks/train.py reference --setting protocol_gnn --updates 2 --device cuda --threads 1 2>&1 \
     | grep -v Warning | tee -a "$out/reference_gpu.txt"

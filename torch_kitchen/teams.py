@@ -13,7 +13,7 @@ its own JAX key. The torch side keeps the teams apart with three pieces:
 
 Team k's networks see exactly the tensors, of exactly the shapes, that a run of its own would give them, so
 the arithmetic is the same, bit for bit (`tests/trainers/test_teams.py`). Stacked, the products are batched over
-the teams: the same to float rounding (`tests/torch_kitchen/test_teams.py`), at the kernel launches of one team.
+the teams: the same to float rounding (`tests/trainers/test_teams.py`), at the kernel launches of one team.
 """
 
 from __future__ import annotations
@@ -86,11 +86,14 @@ def layers_of(network: nn.Module) -> list[nn.Module]:
 
 class StackedNetworks:
     """K networks of one architecture, chains of Flatten, Linear (`EgocentricLinear` included) and ReLU layers, run
-    as one: `forward(x)` with x [K, ...] gives network k's output on x[k], each linear layer one batched product
+    as one: called on x [K, ...], it gives network k's output on x[k], each linear layer one batched product
     (`baddbmm`) over copies of the K weights stacked along a leading team dim. The copies follow the networks: they
     are taken again whenever a weight has changed in place since (an optimizer step, a load)."""
 
-    def __init__(self, networks: Sequence[nn.Module]):
+    def __init__(self, networks: Sequence[nn.Module], compile_mode: str | None = None):
+        """compile_mode: run the layers as one `torch.compile`d graph in this mode (None: eagerly). In
+        "reduce-overhead" (a CUDA graph, whose outputs live in buffers the next replay overwrites) every output is
+        copied out, since a collector keeps each step's outputs until the batch is stacked."""
         by_network = [layers_of(network) for network in networks]
         self.layers = by_network[0]
         if not all(isinstance(layer, STACKABLE) for layer in self.layers):
@@ -100,6 +103,9 @@ class StackedNetworks:
         self.stacked = [tuple(torch.stack([weights[i][j].detach() for weights in self.weights])
                               for j in range(len(self.weights[0][i]))) for i in range(len(self.layers))]
         self.versions = self._versions()
+        self.compile_mode = compile_mode
+        self._run = self._layers if compile_mode is None else torch.compile(self._layers, mode=compile_mode,
+                                                                             fullgraph=True)
 
     def _versions(self) -> list[int]:
         return [tensor._version for weights in self.weights for layer in weights for tensor in layer]
@@ -115,7 +121,13 @@ class StackedNetworks:
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         self._follow()
-        for layer, stacked in zip(self.layers, self.stacked):
+        if self.compile_mode != "reduce-overhead":
+            return self._run(x, self.stacked)
+        torch.compiler.cudagraph_mark_step_begin()
+        return self._run(x, self.stacked).clone()
+
+    def _layers(self, x: torch.Tensor, stacked: list[tuple[torch.Tensor, ...]]) -> torch.Tensor:
+        for layer, stacked in zip(self.layers, stacked):
             if isinstance(layer, nn.Flatten):
                 x = layer(x)
             elif isinstance(layer, nn.ReLU):
@@ -150,13 +162,14 @@ class TeamPolicy(TensorDictModuleBase):
     """Team k's `policies[k]` acts on team k's rows of the batch, drawing from `streams[k]` (see the module
     docstring). The policies read and write the same keys; one team's policy acts on the batch as it is.
 
-    stack: run the teams' feed-forward acting passes as one network over stacked weights (`StackedNetworks`) and
-    sample per team; where the policies cannot be stacked (recurrent, GNN, an algorithm's acting modules), or with
-    one team, the policies run one after the other. ValueError if asked to stack what cannot be.
+    stack: run the teams' feed-forward acting passes as one network over stacked weights (`StackedNetworks`, compiled
+    in `compile_mode` where given) and sample per team; where the policies cannot be stacked (recurrent, GNN, an
+    algorithm's acting modules), or with one team, the policies run one after the other. ValueError if asked to
+    stack what cannot be.
     """
 
     def __init__(self, policies: Sequence[TensorDictModuleBase], streams: Sequence[RandomStream], team_size: int,
-                 stack: bool = False):
+                 stack: bool = False, compile_mode: str | None = None):
         super().__init__()
         if len(policies) != len(streams):
             raise ValueError(f"{len(policies)} policies and {len(streams)} random streams: give one of each per team")
@@ -172,7 +185,7 @@ class TeamPolicy(TensorDictModuleBase):
                 raise ValueError("only feed-forward acting passes over shared MLP networks stack; these policies "
                                  "run one team after another")
             policy_nets, value_nets = zip(*networks)
-            self.stacked = StackedNetworks(policy_nets), StackedNetworks(value_nets)
+            self.stacked = StackedNetworks(policy_nets, compile_mode), StackedNetworks(value_nets, compile_mode)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if len(self.policies) == 1:  # every step: spare one team the split and the copy back

@@ -77,7 +77,8 @@ class TrainConfig:
            "0: 2 on a CPU at hidden >= 128 where the kitchens split evenly, else 1"
     )
     compile_policy: bool = option(
-        False, "torch.compile the acting policy: the same actions, faster collection after a one-off compilation"
+        False, "torch.compile the acting policy: the same actions, faster collection after a one-off compilation "
+               "(on a GPU, the teams' stacked networks replay as CUDA graphs)"
     )
     compile_update: bool = option(
         False, "torch.compile each PPO minibatch step (loss, backward, clipping, Adam with the learning rate a tensor) "

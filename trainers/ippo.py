@@ -679,8 +679,13 @@ def train_teams(
     teams = [build_team(config, run, kitchen, index, actor_critic)
              for index, (config, run) in enumerate(zip(configs, runs))]
     env = with_model_transforms(kitchen, teams[0].actor_critic, *algorithm_transforms(teams))
-    policies = [torch.compile(team.policy) if lead.compile_policy else team.policy for team in teams]
-    policy = TeamPolicy(policies, [team.stream for team in teams], lead.num_envs, stack=acts_stacked(lead, policies))
+    policies = [team.policy for team in teams]
+    if acts_stacked(lead, policies):  # compiled, the stacked networks replay as CUDA graphs
+        compile_mode = "reduce-overhead" if lead.compile_policy else None
+        policy = TeamPolicy(policies, [team.stream for team in teams], lead.num_envs, True, compile_mode)
+    else:
+        policies = [torch.compile(policy) if lead.compile_policy else policy for policy in policies]
+        policy = TeamPolicy(policies, [team.stream for team in teams], lead.num_envs)
 
     # ---------------------------------------------------------------- resume or start fresh
     saved = [None] * num_teams

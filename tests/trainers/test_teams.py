@@ -223,3 +223,61 @@ def test_teams_trained_acting_stacked_learn_what_they_learn_acting_one_after_ano
         torch.testing.assert_close(stacked["env"], apart["env"], rtol=0, atol=0)
         for part in ("actor", "critic"):
             torch.testing.assert_close(stacked[part], apart[part], rtol=0, atol=1e-3)
+
+
+def _stacked_team_policy(tmp_path, architecture, compile_mode=None):
+    from torch_kitchen.teams import TeamPolicy
+    from trainers.ippo import build_team, make_env
+
+    config = tiny_config(tmp_path, f"architecture={architecture}", "levels=infinite", "teams=2")
+    configs = team_configs(config)
+    kitchen = make_env(configs[0], num_envs=2 * config.num_envs, seed=[c.seed for c in configs])
+    teams = [build_team(c, tmp_path / str(c.seed), kitchen, k) for k, c in enumerate(configs)]
+    policy = TeamPolicy([team.policy for team in teams], [team.stream for team in teams], config.num_envs, True,
+                        compile_mode)
+    return kitchen, policy
+
+
+@pytest.mark.parametrize("architecture", ["mlp", "ego_mlp"])
+def test_the_stacked_networks_compile_whole_and_equal_eager(tmp_path, architecture):
+    import torch._dynamo
+
+    kitchen, policy = _stacked_team_policy(tmp_path, architecture, compile_mode="default")
+    observation = kitchen.reset().get(("agents", "observation"))
+    by_team = observation.reshape(2, -1, *observation.shape[1:])
+    torch._dynamo.reset()
+    for networks in policy.stacked:  # fullgraph=True: a graph break would raise
+        eager = networks._layers(by_team, networks.stacked)
+        torch.testing.assert_close(networks(by_team), eager, rtol=1e-5, atol=1e-6)
+
+
+def test_a_collector_keeps_every_step_of_stacked_networks_whose_outputs_share_one_buffer(tmp_path):
+    """A CUDA graph writes its outputs into the same buffers at every replay, and the collector keeps each step's
+    outputs by reference until it stacks the batch: the stacked networks copy them out in that mode, so each
+    stored step holds its own logits (without the copy, every step would hold the last one's)."""
+    from trainers.rollout import make_collector
+
+    def replaying_into_one_buffer(networks):
+        buffer = {}
+
+        def run(x, stacked):
+            out = networks._layers(x, stacked)
+            buffer.setdefault("out", torch.empty_like(out)).copy_(out)
+            return buffer["out"]
+        return run
+
+    for mode, keeps_each_step in (("reduce-overhead", True), (None, False)):
+        kitchen, policy = _stacked_team_policy(tmp_path / str(mode), "mlp", compile_mode=mode)
+        for networks in policy.stacked:
+            networks.compile_mode, networks._run = mode, replaying_into_one_buffer(networks)
+        collector = make_collector(kitchen, policy, frames_per_batch=8 * 4, total_frames=8 * 4)
+        batch = next(iter(collector))
+        collector.shutdown()
+        logits = batch["agents", "logits"]  # [8 kitchens, 4 steps, 2, 6]
+        stored_last_everywhere = all(torch.equal(logits[:, t], logits[:, -1]) for t in range(4))
+        assert stored_last_everywhere is not keeps_each_step, mode
+        if keeps_each_step:
+            with torch.no_grad():
+                for step in range(4):
+                    again = policy(batch[:, step].select(("agents", "observation")).clone())
+                    torch.testing.assert_close(again["agents", "logits"], logits[:, step])

@@ -1,0 +1,113 @@
+"""Where a training batch's time goes on a device: collection, advantages and update, each as wall time on the
+host against the device's busy time (the summed time of the kernels it launched), under `torch.profiler`.
+
+Runs `trainers.ippo.train_teams` on a setting of `benchmarks/jax_ppo.py` and labels its three phases from outside
+(the collector's batches, `start_update`, which holds GAE, and `learn_teams`), so the trainer runs as it always
+does. Where busy time is far below wall time, the host (Python, launches, syncs) is what the phase waits on. The
+first update compiles and is left out. On a CPU the device columns are empty.
+
+    python benchmarks/phases.py [--setting protocol] [--updates 3] [--device cuda] [key=value ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import tempfile
+from collections import defaultdict
+
+import torch
+from jax_ppo import SETTINGS, setting_overrides  # with the test extra
+from torch.profiler import ProfilerActivity, profile, record_function
+
+import trainers.ippo
+from trainers.config import load_config
+from trainers.machine import machine_name
+
+PHASES = ("collection", "advantages", "update")
+
+
+def labelled(function, label: str):
+    """`function` run inside a profiler range named `label`."""
+
+    @functools.wraps(function)
+    def run(*args, **kwargs):
+        with record_function(label):
+            return function(*args, **kwargs)
+
+    return run
+
+
+class LabelledCollector:
+    """A collector whose every batch is gathered inside a profiler range named "collection"."""
+
+    def __init__(self, collector):
+        self.collector = collector
+
+    def __iter__(self):
+        batches = iter(self.collector)
+        while True:
+            with record_function("collection"):
+                batch = next(batches, None)
+            if batch is None:
+                return
+            yield batch
+
+    def shutdown(self):
+        self.collector.shutdown()
+
+
+def phase_seconds(setting: str, updates: int, device: str, overrides: list[str]) -> dict[str, list[float]]:
+    """Per phase: [wall seconds, device busy seconds], summed over updates 2..`updates` (all teams)."""
+    make_collector = trainers.ippo.make_collector
+    patched = {
+        "make_collector": lambda *args, **kwargs: LabelledCollector(make_collector(*args, **kwargs)),
+        "start_update": labelled(trainers.ippo.start_update, "advantages"),
+        "learn_teams": labelled(trainers.ippo.learn_teams, "update"),
+    }
+    originals = {name: getattr(trainers.ippo, name) for name in patched}
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.startswith("cuda") else [])
+    frames = SETTINGS[setting]["num_envs"] * SETTINGS[setting]["rollout_steps"] * SETTINGS[setting].get("teams", 1)
+    totals = defaultdict(lambda: [0.0, 0.0])
+    with tempfile.TemporaryDirectory() as run_dir:
+        config = load_config(None, [*setting_overrides(setting), f"total_steps={updates * frames}",
+                                    f"device={device}", f"run_dir={run_dir}", "progress=false", "eval_episodes=0",
+                                    "checkpoint_every=1000", "threads=1", *overrides])
+        try:
+            for name, function in patched.items():
+                setattr(trainers.ippo, name, function)
+            with profile(activities=activities) as profiler:
+                trainers.ippo.train_teams(trainers.ippo.team_configs(config))
+        finally:
+            for name, function in originals.items():
+                setattr(trainers.ippo, name, function)
+    first_update = {"collection": 1, "advantages": config.teams, "update": 1}  # its ranges, left out
+    seen = defaultdict(int)
+    for event in sorted(profiler.events(), key=lambda event: event.time_range.start):
+        if event.name in PHASES:
+            seen[event.name] += 1
+            if seen[event.name] > first_update[event.name]:
+                totals[event.name][0] += event.cpu_time_total / 1e6
+                totals[event.name][1] += event.device_time_total / 1e6
+    return totals
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--setting", choices=list(SETTINGS), default="protocol")
+    parser.add_argument("--updates", type=int, default=3)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("overrides", nargs="*", help="config overrides, key=value")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    totals = phase_seconds(args.setting, args.updates, args.device, args.overrides)
+    timed = args.updates - 1
+    print(f"setting {args.setting}, {args.device}, {machine_name()}; seconds per batch over updates 2..{args.updates}")
+    print(f"{'phase':<12s} {'wall s':>8s} {'device busy s':>14s} {'busy / wall':>12s}")
+    for phase in PHASES:
+        wall, busy = (value / timed for value in totals[phase])
+        print(f"{phase:<12s} {wall:8.3f} {busy:14.3f} {busy / wall if wall else 0:12.2f}")
+
+
+if __name__ == "__main__":
+    main()
