@@ -67,7 +67,7 @@ def phase_seconds(setting: str, updates: int, device: str, overrides: list[str])
     }
     originals = {name: getattr(trainers.ippo, name) for name in patched}
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.startswith("cuda") else [])
-    frames = SETTINGS[setting]["num_envs"] * SETTINGS[setting]["rollout_steps"] * SETTINGS[setting].get("teams", 1)
+    frames = load_config(None, [*setting_overrides(setting), *overrides]).frames_per_batch  # per team
     totals = defaultdict(lambda: [0.0, 0.0])
     with tempfile.TemporaryDirectory() as run_dir:
         config = load_config(None, [*setting_overrides(setting), f"total_steps={updates * frames}",

@@ -1,0 +1,28 @@
+"""The device benchmarks that `benchmarks/gpu_checks.sh` runs, on tiny shapes on the CPU: they run, and count or
+split what they say they do."""
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+
+import launches  # noqa: E402
+import phases  # noqa: E402
+
+TINY_SHAPE = ["num_envs=4", "rollout_steps=8", "hidden=8", "minibatches=2", "epochs=1"]
+
+
+def test_the_phases_of_every_timed_update_are_labelled_and_leave_the_trainer_as_it_was():
+    originals = {name: getattr(phases.trainers.ippo, name) for name in ("make_collector", "start_update",
+                                                                       "learn_teams")}
+    totals = phases.phase_seconds("jaxmarl", updates=3, device="cpu", overrides=TINY_SHAPE)
+    assert set(totals) == set(phases.PHASES)
+    for phase, (wall, busy) in totals.items():
+        assert wall > 0 and busy == 0, phase  # a CPU has no device timeline
+    assert all(getattr(phases.trainers.ippo, name) is function for name, function in originals.items())
+
+
+def test_gae_launches_fall_from_one_loop_step_per_time_step_to_a_scan_of_log_steps():
+    torchrl_loop, scan = launches.audit_advantages(num_envs=2, steps=64)
+    assert scan.syncs == torchrl_loop.syncs == 0
+    assert torchrl_loop.launches >= 2 * 64 > scan.launches
