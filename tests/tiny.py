@@ -1,6 +1,8 @@
 """What the tests share: the tiny training run, a few seconds per run (4 kitchens x 16 steps per update, 16-step
 episodes, narrow networks, no progress bar, no final evaluation), and real observations for the models."""
 
+import functools
+
 TINY = [
     "num_envs=4",
     "rollout_steps=16",
@@ -17,7 +19,12 @@ TINY = [
 
 def infinite_observations(count: int, seed: int, steps: int = 3):
     """Real Infinite Kitchen observations, uint8 torch [count, 2, 7, 7, 26], `steps` random steps into their
-    episodes."""
+    episodes: a copy of one made once per process (each takes a JAX compilation)."""
+    return _infinite_observations(count, seed, steps).clone()
+
+
+@functools.cache
+def _infinite_observations(count: int, seed: int, steps: int):
     import jax
     import numpy as np
     import torch

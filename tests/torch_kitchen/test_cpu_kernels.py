@@ -10,9 +10,15 @@ from torch_kitchen.cpu_kernels import CPU_TWINS, accelerate_cpu
 from torch_kitchen.models import make_actor_critic
 
 
+@pytest.fixture(scope="module")
+def observations() -> torch.Tensor:
+    """Real Infinite Kitchen observations, uint8 [64, 2, 7, 7, 26]."""
+    return infinite_observations(64, seed=0)  # test_sparse_linear's: made once per process
+
+
 @pytest.mark.parametrize("architecture", ["mlp", "ego_mlp", "gnn", "mlp_lstm", "e3t_mlp"])
 @pytest.mark.parametrize("share_params", [True, False])
-def test_an_accelerated_model_is_the_plain_one_with_cpu_kernels(architecture, share_params):
+def test_an_accelerated_model_is_the_plain_one_with_cpu_kernels(architecture, share_params, observations):
     torch.manual_seed(0)
     plain = make_actor_critic(architecture, hidden=32, share_params=share_params)
     torch.manual_seed(0)
@@ -27,8 +33,7 @@ def test_an_accelerated_model_is_the_plain_one_with_cpu_kernels(architecture, sh
         assert any(type(module).__name__.startswith("Sparse") for module in fast.critic.module[0].module.shared_net()
                    .modules())
 
-    observation = torch.as_tensor(infinite_observations(64, seed=2))
-    batch = TensorDict({("agents", "observation"): observation, "is_init": torch.ones(64, 1, dtype=torch.bool)},
+    batch = TensorDict({("agents", "observation"): observations, "is_init": torch.ones(64, 1, dtype=torch.bool)},
                        batch_size=[64])
     values = {}
     for name, model in (("plain", plain), ("fast", fast)):
