@@ -15,6 +15,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from tensordict import TensorDict
 from tensordict.nn import TensorDictSequential
 from tiny import TINY
+from torchrl.envs.utils import set_exploration_type
 from torchrl.modules import set_recurrent_mode
 
 import trainers.ippo
@@ -497,7 +498,9 @@ def test_a_minibatch_in_shards_has_the_losses_and_gradient_of_the_whole_on_threa
 
     def step(shards, pool=None):
         team.config = dataclasses.replace(config, minibatch_shards=shards)
-        with set_recurrent_mode(True):
+        # As `learn_teams` does: the losses' own mode settings, interleaved on threads, then agree, and the
+        # process's mode is left as it was.
+        with set_recurrent_mode(True), set_exploration_type(team.loss_module.deterministic_sampling_mode):
             losses = minibatch_step(team, minibatch, pool)
         return losses, [parameter.grad.clone() for parameter in team.parameters]
 
