@@ -1,39 +1,56 @@
 #!/usr/bin/env bash
 # Every GPU check and benchmark in one call, on a machine with CUDA torch and JAX (outputs under $OUT, or
 # benchmarks/results/gpu). Without a package index, TorchRL's wheels come from .whl/ (see the developers' notes).
-# Order: what costs least and tells most first, so a short loan still brings back the counts and the floor.
+# The steps run in order of what they tell, each within its own timeout, and a step is skipped (saying so) once
+# less than its timeout is left of BUDGET_S seconds (default 540: one call of a 10-minute limit, with set-up).
 set -uo pipefail
 out=${OUT:-benchmarks/results/gpu}
+budget=${BUDGET_S:-540}
 mkdir -p "$out"
 if ! python -c "import torchrl" 2>/dev/null; then
     python -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl
     export PYTHONPATH=/tmp/site:$PWD
 fi
 export PYTHONPATH=${PYTHONPATH:-$PWD}
+
+# step FILE TIMEOUT COMMAND...: runs COMMAND with TIMEOUT seconds, appending its output (warnings dropped) to FILE.
+step() {
+    local file=$1 limit=$2
+    shift 2
+    if (( budget - SECONDS < limit )); then
+        echo "== skipped (${limit} s needed, $(( budget - SECONDS )) s left): $*" | tee -a "$out/$file"
+        return
+    fi
+    echo "== $*" | tee -a "$out/$file"
+    timeout "$limit" "$@" 2>&1 | grep -v Warning | tee -a "$out/$file"
+}
+
 { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv; python -c "import torch, jax; print('torch', torch.__version__, torch.cuda.get_device_name(0), '| jax', jax.__version__, jax.devices())"; } 2>&1 | tee "$out/device.txt"
-# Launches and host syncs per env step, GAE and minibatch (1 and 6 teams), and the JAX step alone at the
-# protocol's 192 kitchens: the floor under any trainer over this env.
-timeout 120 python benchmarks/launches.py --setting protocol --teams 1 6 --device cuda 2>&1 | grep -v Warning | tee "$out/launches_gpu.txt"
-timeout 90 python benchmarks/collection.py --setting ik --envs 192 --steps 300 --device cuda 2>&1 | grep -v Warning | tee "$out/collection_gpu.txt"
-# Where a batch's time goes: collection, GAE and update, wall time against GPU busy time; then the host syncs the
-# device reports itself.
-timeout 150 python benchmarks/phases.py --setting protocol --updates 3 --device cuda 2>&1 | grep -v Warning | tee "$out/phases_gpu.txt"
-timeout 90 python -c "
-import torch, sys, warnings; warnings.simplefilter('always'); sys.argv = ['train.py', 'throughput', '--archs', 'mlp', '--envs', '32', '--updates', '2', '--device', 'cuda']
-sys.path.insert(0, 'benchmarks'); torch.cuda.set_sync_debug_mode('warn'); import train; train.main()
-" 2>&1 | grep -c "synchronizing" | sed 's/^/sync warnings in 2 updates at 32 x 256: /' | tee "$out/sync_audit_gpu.txt"
-# Ours against the pure-JAX yardstick in the same run, eager and with the compiled update (CUDA graphs).
-for setting in protocol ik jaxmarl; do
-    for compiled in false true; do
-        echo "== $setting compile_update=$compiled" | tee -a "$out/reference_gpu.txt"
-        timeout 200 python benchmarks/train.py reference --setting "$setting" --updates 3 --device cuda --threads 1 \
-            --update-compiled "$compiled" 2>&1 | grep -v Warning | tee -a "$out/reference_gpu.txt"
-    done
-done
-# Everything on: the stacked acting networks replayed as CUDA graphs too (compile_policy).
-echo "== protocol compile_update=true compile_policy=true" | tee -a "$out/reference_gpu.txt"
-timeout 200 python benchmarks/train.py reference --setting protocol --updates 3 --device cuda --threads 1 \
-    --update-compiled true --compile 2>&1 | grep -v Warning | tee -a "$out/reference_gpu.txt"
-echo "== protocol_gnn" | tee -a "$out/reference_gpu.txt"
-timeout 150 python benchmarks/train.py reference --setting protocol_gnn --updates 2 --device cuda --threads 1 2>&1 \
-    | grep -v Warning | tee -a "$out/reference_gpu.txt"
+reference="python benchmarks/train.py reference --device cuda --threads 1"
+# The headline first: the paper's protocol (c), ours against the pure-JAX yardstick in the same run, eager, with
+# the compiled update (CUDA graphs), and with the stacked acting networks as CUDA graphs too.
+step reference_gpu.txt 200 $reference --setting protocol --updates 3
+step reference_gpu.txt 200 $reference --setting protocol --updates 3 --update-compiled true
+step reference_gpu.txt 180 $reference --setting protocol --updates 3 --update-compiled true --compile
+# What the host does per step and minibatch, where a batch's time goes, the floor, and the syncs torch reports.
+step launches_gpu.txt 90 python benchmarks/launches.py --setting protocol --teams 1 6 --device cuda
+step phases_gpu.txt 120 python benchmarks/phases.py --setting protocol --updates 3 --device cuda
+step collection_gpu.txt 90 python benchmarks/collection.py --setting ik --envs 192 --steps 300 --device cuda
+if (( budget - SECONDS >= 90 )); then  # its warnings are the output: kept whole
+    timeout 90 python -c "
+import sys, warnings, torch
+warnings.simplefilter('always')
+sys.path.insert(0, 'benchmarks')
+sys.argv = ['train.py', 'throughput', '--archs', 'mlp', '--envs', '32', '--updates', '2', '--device', 'cuda']
+torch.cuda.set_sync_debug_mode('warn')
+import train
+train.main()
+" > "$out/sync_audit_gpu.txt" 2>&1
+    grep -c "synchronizing" "$out/sync_audit_gpu.txt" | sed 's/^/torch sync warnings in 2 updates at 32 x 256: /'
+fi
+# The other settings: one team at the paper's shape (b), JaxMARL's (a), and the GNN protocol (d).
+step reference_gpu.txt 150 $reference --setting ik --updates 3
+step reference_gpu.txt 150 $reference --setting ik --updates 3 --update-compiled true
+step reference_gpu.txt 150 $reference --setting jaxmarl --updates 3
+step reference_gpu.txt 150 $reference --setting jaxmarl --updates 3 --update-compiled true
+step reference_gpu.txt 150 $reference --setting protocol_gnn --updates 2
