@@ -386,11 +386,14 @@ def start_update(team: Team, batch: TensorDictBase) -> list[tuple[torch.Tensor, 
     config = team.config
     team.update += 1
     team.env_steps += batch.numel()
+    lr = learning_rate_at(config, team.update)
     for group in team.optimizer.param_groups:
-        if isinstance(group["lr"], torch.Tensor):  # a compiled step reads it where it is
-            group["lr"].fill_(learning_rate_at(config, team.update))
+        if config.compile_update:  # a tensor the compiled step reads, also after resuming a run saved without it
+            if not isinstance(group["lr"], torch.Tensor):
+                group["lr"] = torch.tensor(lr, device=config.device)
+            group["lr"].fill_(lr)
         else:
-            group["lr"] = learning_rate_at(config, team.update)
+            group["lr"] = lr
     compute_advantages(batch, team.actor_critic.critic, config, shaping_weight_at(config, team.env_steps))
     team.algorithm.process_batch(batch)
     # Drawn where the batch is: a GPU's minibatches then need nothing from the host.

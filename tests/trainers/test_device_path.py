@@ -102,3 +102,18 @@ def test_a_collection_step_makes_the_host_wait_for_nothing_and_a_minibatch_only_
                 minibatch_step(team, minibatch.clone(), None)
     assert collection.launches > 0 and collection.syncs == 0, collection.summary()
     assert update.sync_ops() == {"_local_scalar_dense": 1} and update.host_tensors == 0, update.summary()
+
+
+def test_a_run_resumed_with_the_compiled_update_recompiles_nothing_either(tmp_path):
+    """A checkpoint saved without `compile_update` holds the learning rate as a number: resumed with it, the rate
+    becomes a tensor again, so annealing it still changes a value rather than the graph."""
+    from trainers.config import load_config as load
+
+    config = load(None, [*TINY, f"run_dir={tmp_path}", "total_steps=64", "anneal_lr=true"])
+    train(config)
+    resumed = load(None, [*TINY, f"run_dir={tmp_path}", "total_steps=256", "anneal_lr=true", "compile_update=true"])
+    torch._dynamo.reset()
+    counters.clear()
+    graphs = []
+    train(resumed, resume=True, on_update=lambda update, metrics: graphs.append(counters["stats"]["unique_graphs"]))
+    assert len(graphs) == 3 and graphs == [graphs[0]] * 3, graphs
