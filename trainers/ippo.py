@@ -442,12 +442,7 @@ def minibatch_step(team: Team, minibatch: TensorDictBase, pool: ThreadPoolExecut
     losses = {key: mean_over_shards([losses[key] for losses in shard_losses]) for key in shard_losses[0]}
     for parameter, gradients in zip(team.parameters, zip(*gradients_by_shard)):
         parameter.grad = gradient_for(parameter, list(gradients))
-        if parameter.grad is not None:
-            # A diverged minibatch must leave the weights finite until the update's end undoes it: NaN weights
-            # would make the next minibatch's sampling fail (or assert on a GPU) before the check could say why.
-            parameter.grad.nan_to_num_(0.0, 0.0, 0.0)
-    losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(team.parameters, team.config.max_grad_norm)
-    team.optimizer.step()
+    losses["grad_norm"] = apply_gradients(team)
     return losses
 
 
@@ -456,14 +451,23 @@ def ppo_step(team: Team, minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
     the clipping and the Adam step, with nothing read back on the host; returns the losses."""
     losses = {**team.loss_module(minibatch), **team.algorithm.auxiliary_losses(minibatch)}
     total_loss(losses).backward()
-    for parameter in team.parameters:
-        if parameter.grad is not None:
-            parameter.grad.nan_to_num_(0.0, 0.0, 0.0)  # as in `minibatch_step`
-    losses["grad_norm"] = torch.nn.utils.clip_grad_norm_(team.parameters, team.config.max_grad_norm)
-    team.optimizer.step()
+    losses["grad_norm"] = apply_gradients(team)
     for parameter in team.parameters:  # what `optimizer.zero_grad()` does, which compiled graphs stop at
         parameter.grad = None
     return losses
+
+
+def apply_gradients(team: Team) -> torch.Tensor:
+    """The Adam step on the gradients held by the team's parameters, clipped to `max_grad_norm`; returns their norm
+    before clipping. A non-finite gradient is zeroed first: a diverged minibatch must leave the weights finite until
+    the update's end undoes it (`learn`), since NaN weights would make the next minibatch's sampling fail (or assert
+    on a GPU) before the check could say why."""
+    for parameter in team.parameters:
+        if parameter.grad is not None:
+            parameter.grad.nan_to_num_(0.0, 0.0, 0.0)
+    grad_norm = torch.nn.utils.clip_grad_norm_(team.parameters, team.config.max_grad_norm)
+    team.optimizer.step()
+    return grad_norm
 
 
 class RestorePoint:
