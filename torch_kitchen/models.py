@@ -117,8 +117,8 @@ class GraphEncoder(nn.Module):
 
 def make_encoder(kind: str, obs_shape: tuple[int, int, int], hidden: int) -> nn.Module:
     """One agent's encoder: [..., H, W, C] (uint8 observations or float) -> float [..., hidden]; kind "mlp",
-    "ego_mlp" (agent-centred) or "gnn". The MLPs' first layer reads the observation's non-zero entries alone
-    (`ObservationLinear`: uint8 in)."""
+    "ego_mlp" (agent-centred) or "gnn". The MLPs' first layer reads uint8 observations (`ObservationLinear`,
+    `EgocentricLinear`); on a CPU, `accelerate_cpu` makes it read their non-zero entries alone."""
     if kind == "mlp":
         return nn.Sequential(nn.Flatten(-3), _hidden_linear(math.prod(obs_shape), hidden, ObservationLinear), nn.ReLU())
     if kind == "ego_mlp":
