@@ -4,45 +4,30 @@ updates, and makes the host wait for nothing inside a collection step or a minib
 import torch
 import torch._dynamo
 from tensordict.nn import set_interaction_type
-from tiny import TINY
+from test_ippo import team_and_minibatch, tiny_config
 from torch._dynamo.utils import counters
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import set_recurrent_mode
 
 from torch_kitchen.onednn_linear import device_path
 from torch_kitchen.op_audit import OpAudit
-from trainers.config import load_config
-from trainers.ippo import build_team, make_env, minibatch_step, select_kitchens, start_update, train
+from trainers.ippo import build_team, make_env, minibatch_step, train
 from trainers.rollout import make_collector
 
 
-def _team_and_minibatch(tmp_path, *overrides):
-    config = load_config(None, [*TINY, f"run_dir={tmp_path}", "total_steps=128", *overrides])
-    env = make_env(config)
-    team = build_team(config, config.run_path, env, 0)
-    collector = make_collector(env, team.policy, config.frames_per_batch, 2 * config.frames_per_batch)
-    batch = next(iter(collector))
-    collector.shutdown()
-    with team.stream.active():
-        orders = start_update(team, batch)
-    minibatch = select_kitchens(batch, orders[0][0])
-    team.algorithm.process_minibatch(minibatch)
-    return team, batch, minibatch
-
-
 def test_the_loss_forward_and_the_acting_pass_compile_without_a_graph_break(tmp_path):
-    team, batch, minibatch = _team_and_minibatch(tmp_path)
+    team, minibatch = team_and_minibatch(tiny_config(tmp_path), tmp_path)
     torch._dynamo.reset()
     with device_path():
         loss = torch._dynamo.explain(team.loss_module)(minibatch.clone())
-        acting = torch._dynamo.explain(team.policy)(batch[:, 0].clone())
+        acting = torch._dynamo.explain(team.policy)(minibatch[:, 0].clone())
     assert loss.graph_break_count == 0, [str(reason.reason)[:200] for reason in loss.break_reasons]
     assert acting.graph_break_count == 0, [str(reason.reason)[:200] for reason in acting.break_reasons]
 
 
 def test_a_compiled_minibatch_step_is_the_eager_one_to_float_rounding(tmp_path):
-    eager, _, minibatch = _team_and_minibatch(tmp_path / "eager")
-    compiled, _, _ = _team_and_minibatch(tmp_path / "compiled", "compile_update=true")
+    eager, minibatch = team_and_minibatch(tiny_config(tmp_path / "eager"), tmp_path / "eager")
+    compiled, _ = team_and_minibatch(tiny_config(tmp_path / "compiled", "compile_update=true"), tmp_path / "compiled")
     for mine, theirs in zip(compiled.parameters, eager.parameters):
         assert torch.equal(mine, theirs)  # the same seed builds the same weights
     with device_path(), set_recurrent_mode(True), set_exploration_type(ExplorationType.RANDOM):
@@ -51,8 +36,8 @@ def test_a_compiled_minibatch_step_is_the_eager_one_to_float_rounding(tmp_path):
     for key in ("loss_objective", "loss_critic", "loss_entropy", "grad_norm"):
         torch.testing.assert_close(compiled_losses[key], eager_losses[key], rtol=1e-5, atol=1e-6, msg=key)
     moved = 0
-    for mine, theirs, before in zip(compiled.parameters, eager.parameters, _team_and_minibatch(
-            tmp_path / "before")[0].parameters):
+    before, _ = team_and_minibatch(tiny_config(tmp_path / "before"), tmp_path / "before")
+    for mine, theirs, before in zip(compiled.parameters, eager.parameters, before.parameters):
         torch.testing.assert_close(mine, theirs, rtol=1e-5, atol=1e-6)
         moved += not torch.equal(mine, before)
     assert moved == len(eager.parameters)  # both took a step
@@ -61,8 +46,8 @@ def test_a_compiled_minibatch_step_is_the_eager_one_to_float_rounding(tmp_path):
 def test_compiled_training_recompiles_nothing_as_the_learning_rate_and_shaping_anneal(tmp_path):
     """Graph breaks only where torch itself puts them (backward(), inside the optimizer's step); the annealed
     learning rate is a tensor and the shaping weight acts outside the step, so no update after the first compiles."""
-    config = load_config(None, [*TINY, f"run_dir={tmp_path}", "total_steps=256", "compile_update=true",
-                                "anneal_lr=true", "shaping_weight=1", "shaping_anneal_steps=200"])
+    config = tiny_config(tmp_path, "compile_update=true", "anneal_lr=true", "shaping_weight=1",
+                         "shaping_anneal_steps=200", updates=4)
     torch._dynamo.reset()
     counters.clear()
     graphs, rates = [], []
@@ -85,7 +70,7 @@ def test_a_collection_step_makes_the_host_wait_for_nothing_and_a_minibatch_only_
     """Eager, on the device path: a collection step reads nothing back; a minibatch reads back only TorchRL's own
     check that the entropy is finite (once per loss forward), which a compiled loss leaves out (its forward
     compiles without a graph break, above). Dispatch modes see eager operations, not a compiled graph's kernels."""
-    config = load_config(None, [*TINY, f"run_dir={tmp_path}", "total_steps=128"])
+    config = tiny_config(tmp_path)
     env = make_env(config)
     team = build_team(config, config.run_path, env, 0)
     collector = make_collector(env, team.policy, 4 * 3, -1)  # 3 steps of the 4 kitchens per batch
@@ -95,7 +80,7 @@ def test_a_collection_step_makes_the_host_wait_for_nothing_and_a_minibatch_only_
         with OpAudit() as collection:
             next(batches)
         collector.shutdown()
-        team, _, minibatch = _team_and_minibatch(tmp_path / "update")
+        team, minibatch = team_and_minibatch(tiny_config(tmp_path / "update"), tmp_path / "update")
         with set_recurrent_mode(True), set_interaction_type(team.loss_module.deterministic_sampling_mode):
             minibatch_step(team, minibatch.clone(), None)  # builds Adam's state
             with OpAudit() as update:
@@ -107,11 +92,8 @@ def test_a_collection_step_makes_the_host_wait_for_nothing_and_a_minibatch_only_
 def test_a_run_resumed_with_the_compiled_update_recompiles_nothing_either(tmp_path):
     """A checkpoint saved without `compile_update` holds the learning rate as a number: resumed with it, the rate
     becomes a tensor again, so annealing it still changes a value rather than the graph."""
-    from trainers.config import load_config as load
-
-    config = load(None, [*TINY, f"run_dir={tmp_path}", "total_steps=64", "anneal_lr=true"])
-    train(config)
-    resumed = load(None, [*TINY, f"run_dir={tmp_path}", "total_steps=256", "anneal_lr=true", "compile_update=true"])
+    train(tiny_config(tmp_path, "anneal_lr=true", updates=1))
+    resumed = tiny_config(tmp_path, "anneal_lr=true", "compile_update=true", updates=4)
     torch._dynamo.reset()
     counters.clear()
     graphs = []
