@@ -3,9 +3,10 @@
 Counts what the trainer's device path dispatches (`torch_kitchen.op_audit.OpAudit`; on a CPU the layers are held
 to the products a GPU runs, `torch_kitchen.onednn_linear.device_path`): one batch of collection through TorchRL's
 collector (divided by its steps), the advantages of that batch, and one PPO minibatch (loss, backward, clipping,
-Adam step), for 1 team and for K teams in one batch (the "advantages" row at 8 steps; the last line compares
-GAE at the setting's rollout length against TorchRL's functional GAE). On a GPU every launch costs a few
-microseconds of host time and every sync waits for the device, so these counts bound the speed there.
+Adam step), for 1 team and for K teams in one batch, one after another and stacked (the "advantages" row at 8
+steps; the last line compares GAE at the setting's rollout length against TorchRL's functional GAE). On a GPU
+every launch costs a few microseconds of host time and every sync waits for the device, so these counts bound
+the speed there.
 
     python benchmarks/launches.py [--setting protocol] [--teams 1 6] [--device cpu|cuda]
 """
@@ -20,7 +21,7 @@ from jax_ppo import SETTINGS, setting_overrides  # with the test extra
 
 from torch_kitchen.onednn_linear import device_path
 from torch_kitchen.op_audit import OpAudit
-from torch_kitchen.teams import TeamPolicy
+from torch_kitchen.teams import TeamPolicy, team_rows
 from trainers.config import load_config
 from trainers.ippo import (
     build_team,
@@ -29,6 +30,7 @@ from trainers.ippo import (
     minibatch_step,
     select_kitchens,
     shaping_weight_at,
+    stacked_update,
     start_update,
     team_configs,
     with_model_transforms,
@@ -40,8 +42,8 @@ from trainers.rollout import make_collector
 def audit_training(setting: str, teams: int, device: str, steps: int = 8, stack: bool = False
                    ) -> dict[str, OpAudit]:
     """Audits of one collection batch of `steps` steps ("collection, per step" holds its counts / steps), the
-    advantages of that batch and one minibatch update of the first team, on the setting's shape with `teams`
-    teams (acting as one stacked network with `stack`, as on a GPU)."""
+    advantages of the first team's part of it, and one minibatch update, on the setting's shape with `teams` teams:
+    the first team's, or with `stack` every team's as one (acting and learning stacked, as on a GPU)."""
     with tempfile.TemporaryDirectory() as run_dir:
         config = load_config(None, [*setting_overrides(setting), f"teams={teams}", f"rollout_steps={steps}",
                                     f"device={device}", f"run_dir={run_dir}", "progress=false"])
@@ -63,15 +65,25 @@ def audit_training(setting: str, teams: int, device: str, steps: int = 8, stack:
             team, team_batch = built[0], batch[: lead.num_envs]
             with audits["advantages"]:
                 compute_advantages(team_batch, team.actor_critic.critic, lead, shaping_weight_at(lead, 0))
-            with team.stream.active():
-                orders = start_update(team, team_batch)
-            minibatch = select_kitchens(team_batch, orders[0][0])
-            team.algorithm.process_minibatch(minibatch)
-            minibatch_step(team, minibatch, None)  # the first builds the optimizer's state
+            team_batches = [batch[team_rows(index, lead.num_envs)] for index in range(teams)]
+            orders = []
+            for team, team_batch in zip(built, team_batches):
+                with team.stream.active():
+                    orders.append(start_update(team, team_batch))
+            if stack:  # every team's minibatch as one step
+                step = stacked_update(built)
+
+                def update(index: int) -> None:  # the first epoch's minibatch `index`
+                    step(torch.stack([select_kitchens(team_batch, order[0][index])
+                                      for team_batch, order in zip(team_batches, orders)]))
+            else:  # the first team's minibatch
+                def update(index: int) -> None:
+                    minibatch = select_kitchens(team_batches[0], orders[0][0][index])
+                    built[0].algorithm.process_minibatch(minibatch)
+                    minibatch_step(built[0], minibatch, None)
+            update(0)  # the first builds the optimizer's state
             with audits["minibatch"]:
-                minibatch = select_kitchens(team_batch, orders[0][1])
-                team.algorithm.process_minibatch(minibatch)
-                minibatch_step(team, minibatch, None)
+                update(1)
         collector.shutdown()
     audits["collection, per step"].per = steps
     return audits
@@ -104,8 +116,10 @@ def main(argv=None) -> None:
     print(f"{'teams':>9s}  {'part':<21s} {'launches':>9s} {'syncs':>6s} {'host tensors':>13s}  syncing ops")
     for teams, stack in [(teams, stack) for teams in args.teams for stack in ([False, True] if teams > 1 else [False])]:
         for part, audit in audit_training(args.setting, teams, args.device, stack=stack).items():
-            if stack and part != "collection, per step":
-                continue  # stacking changes acting alone
+            if stack and part == "advantages":
+                continue  # the same as apart: a team's GAE
+            if part == "minibatch":
+                part = "minibatch, all teams" if stack else "minibatch, one team"
             per = getattr(audit, "per", 1)
             syncing = ", ".join(f"{name} x{count / per:g}" for name, count in sorted(audit.sync_ops().items()))
             label = f"{teams}{' stacked' if stack else ''}"

@@ -1,15 +1,17 @@
 """Several independently trained teams in one batch of kitchens: each team acts, draws and resets as it would alone.
 
 A `KitchenEnv` built with K seeds holds K teams of B/K kitchens, team k on rows k*B/K .. (k+1)*B/K - 1, each with
-its own JAX key. The torch side keeps the teams apart with three pieces:
+its own JAX key. The torch side keeps the teams apart with four pieces:
 
 `RandomStream`   a team's own torch random stream (CPU, and its CUDA device), swapped in around the team's work,
                  so its weights, sampled actions and minibatch orders are those of a run of its own;
 `TeamPolicy`     one TensorDict policy over the whole batch: team k's policy acts on team k's rows, in its stream;
-                 stacked (`stack=True`, the GPU's way), the teams' networks run as one vmapped network over weights
+                 stacked (`stack=True`, the GPU's way), the teams' networks run as one batched network over weights
                  stacked along a team dim, and only the sampling runs per team, in its stream;
 `TeamTransform`  one env transform over the whole batch from one stateful transform per team (E3T's partner
                  seats, each drawing from its own generator), each on its team's rows.
+`StackedLoss`    the K teams' losses of a minibatch as one computation (`torch.vmap` over their parameters
+                 stacked along a team dim): every team's loss terms and metrics, at the kernel launches of one.
 
 Team k's networks see exactly the tensors, of exactly the shapes, that a run of its own would give them, so
 the arithmetic is the same, bit for bit (`tests/trainers/test_teams.py`). Stacked, the products are batched over
@@ -19,10 +21,11 @@ the teams: the same to float rounding (`tests/trainers/test_teams.py`), at the k
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Sequence
+import copy
+from collections.abc import Callable, Iterator, Sequence
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torch import nn
 from torchrl.data import Composite
@@ -87,8 +90,9 @@ def layers_of(network: nn.Module) -> list[nn.Module]:
 class StackedNetworks:
     """K networks of one architecture, chains of Flatten, Linear (`EgocentricLinear` included) and ReLU layers, run
     as one: called on x [K, ...], it gives network k's output on x[k], each linear layer one batched product
-    (`baddbmm`) over copies of the K weights stacked along a leading team dim. The copies follow the networks: they
-    are taken again whenever a weight has changed in place since (an optimizer step, a load)."""
+    (`baddbmm`) over copies of the K weights stacked along a leading team dim. The copies are taken again by
+    `restack()`, after the networks' weights changed (an update, a load): optimizers change weights in place
+    without a trace (fused Adam bumps no version counter)."""
 
     def __init__(self, networks: Sequence[nn.Module], compile_mode: str | None = None):
         """compile_mode: run the layers as one `torch.compile`d graph in this mode (None: eagerly). In
@@ -102,25 +106,18 @@ class StackedNetworks:
                         for layers in by_network]
         self.stacked = [tuple(torch.stack([weights[i][j].detach() for weights in self.weights])
                               for j in range(len(self.weights[0][i]))) for i in range(len(self.layers))]
-        self.versions = self._versions()
         self.compile_mode = compile_mode
         self._run = self._layers if compile_mode is None else torch.compile(self._layers, mode=compile_mode,
                                                                              fullgraph=True)
 
-    def _versions(self) -> list[int]:
-        return [tensor._version for weights in self.weights for layer in weights for tensor in layer]
-
-    def _follow(self) -> None:
-        versions = self._versions()
-        if versions != self.versions:
-            with torch.no_grad():
-                for i, stacked in enumerate(self.stacked):
-                    for j, out in enumerate(stacked):
-                        torch.stack([weights[i][j].detach() for weights in self.weights], out=out)
-            self.versions = versions
+    def restack(self) -> None:
+        """Copies the networks' weights into the stacked ones (in place: a CUDA graph keeps reading them there)."""
+        with torch.no_grad():
+            for i, stacked in enumerate(self.stacked):
+                for j, out in enumerate(stacked):
+                    torch.stack([weights[i][j].detach() for weights in self.weights], out=out)
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        self._follow()
         if self.compile_mode != "reduce-overhead":
             return self._run(x, self.stacked)
         torch.compiler.cudagraph_mark_step_begin()
@@ -163,9 +160,9 @@ class TeamPolicy(TensorDictModuleBase):
     docstring). The policies read and write the same keys; one team's policy acts on the batch as it is.
 
     stack: run the teams' feed-forward acting passes as one network over stacked weights (`StackedNetworks`, compiled
-    in `compile_mode` where given) and sample per team; where the policies cannot be stacked (recurrent, GNN, an
-    algorithm's acting modules), or with one team, the policies run one after the other. ValueError if asked to
-    stack what cannot be.
+    in `compile_mode` where given; `restack()` after the weights change) and sample per team; where the policies
+    cannot be stacked (recurrent, GNN, an algorithm's acting modules), or with one team, the policies run one after
+    the other. ValueError if asked to stack what cannot be.
     """
 
     def __init__(self, policies: Sequence[TensorDictModuleBase], streams: Sequence[RandomStream], team_size: int,
@@ -186,6 +183,11 @@ class TeamPolicy(TensorDictModuleBase):
                                  "run one team after another")
             policy_nets, value_nets = zip(*networks)
             self.stacked = StackedNetworks(policy_nets, compile_mode), StackedNetworks(value_nets, compile_mode)
+
+    def restack(self) -> None:
+        """Takes the stacked copies of the teams' weights again, if stacked: after every change to them."""
+        for networks in self.stacked or ():
+            networks.restack()
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if len(self.policies) == 1:  # every step: spare one team the split and the copy back
@@ -218,6 +220,45 @@ class TeamPolicy(TensorDictModuleBase):
         tensordict.set(LOG_PROB, log_prob)
         tensordict.set(VALUE, value_net(by_team).flatten(0, 1))
         return tensordict
+
+
+class StackedLoss:
+    """The losses of K teams (modules of one kind, e.g. TorchRL's `ClipPPOLoss`) as one computation: one of them
+    runs under `torch.vmap` over the teams' parameters stacked along a leading team dim, on their minibatches
+    stacked the same way. Called on minibatches [K, ...], it gives every output of team k's loss on minibatch k,
+    reduced to its mean, as entry k of a [K] tensor: loss terms and metrics are each team's own (to float rounding),
+    and the gradient of the sum of the teams' loss terms reaches each team's own parameters as its loss's gradient.
+
+    `prepare(minibatch)`, where given, runs on each team's minibatch first (an algorithm's `process_minibatch`).
+    Under vmap, the loss and `prepare` may branch on no tensor's value: feed-forward models with shared parameters
+    (recurrent ones do, and per-agent networks vmap over agents themselves).
+    """
+
+    def __init__(self, losses: Sequence[nn.Module], prepare: Callable[[TensorDictBase], None] | None = None):
+        self.losses = list(losses)
+        self.template = copy.deepcopy(self.losses[0])  # runs every team's parameters in turn, its own none
+        # Reduced per team below: under vmap a loss's mean is a scalar, which TorchRL then fails to squeeze.
+        self.template.reduction = "none"
+        self.names = [name for name, _ in self.template.named_parameters()]
+        self.prepare = prepare
+
+    def parameters(self) -> TensorDictBase:
+        """The teams' parameters stacked along the team dim, differentiably: gradients flow back to each team's."""
+        by_team = [dict(loss.named_parameters()) for loss in self.losses]
+        stacked = {name: torch.stack([parameters[name] for parameters in by_team]) for name in self.names}
+        return TensorDict(stacked, batch_size=[len(self.losses)]).unflatten_keys(".")
+
+    def _team_loss(self, parameters: TensorDictBase, minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
+        if self.prepare is not None:
+            self.prepare(minibatch)
+        # tensordict's swap keeps the stacked tensors as they are; `torch.func.functional_call` would make the
+        # entries of TorchRL's `TensorDictParams` new leaf parameters, cutting them off from the teams' weights.
+        with parameters.to_module(self.template):
+            outputs = self.template(minibatch)
+        return {key: value.mean() for key, value in outputs.items()}
+
+    def __call__(self, minibatches: TensorDictBase) -> dict[str, torch.Tensor]:
+        return torch.vmap(self._team_loss)(self.parameters(), minibatches)
 
 
 class TeamTransform(Transform):

@@ -6,11 +6,14 @@ there, with the hook named, rather than somewhere deep in training.
 - `MultiAgentNetBase` builds each agent's network through `_build_single_net()`, checks inputs in
   `_pre_forward_check()` and keeps a parameter-less template of the network in `_empty_net`. `MultiAgentNet`
   turns these into a plain `build` callable and a public `check_input()`. With shared parameters it runs the
-  network built once by `get_stateful_net` instead of MultiAgentNetBase's per-call `to_module` into `_empty_net`;
-  with one network per agent, it vmaps `vmap_func_module` over a copy of `_empty_net` of the calling thread's own.
+  network built once by `get_stateful_net` instead of MultiAgentNetBase's per-call `to_module` into `_empty_net`,
+  while the parameters are its own (others swapped in by a functional call run through the template); with one
+  network per agent, it vmaps `vmap_func_module` over a copy of `_empty_net` of the calling thread's own.
 - `ClipPPOLoss` keeps its value-clipping threshold as the tensor buffer `clip_value` and branches on it (`if
   self.clip_value:`) in every forward. `hold_value_clip_on_host` makes it a Python float: the same threshold,
   without a host read per minibatch or a graph break in a compiled loss.
+- `ClipPPOLoss._get_entropy` checks the closed-form entropy for non-finite entries on the host (eager) or mixes in
+  a sampled estimate (compiled). `entropy_without_host_check` takes the closed form as it is, eager and compiled.
 - `TensorboardLogger` opens its `SummaryWriter` in `_create_experiment()`. `PurgingTensorboardLogger` opens it
   with `purge_step`, so that a resumed run drops the events a killed run wrote after its last checkpoint.
 """
@@ -25,11 +28,13 @@ from pathlib import Path
 import torch
 from torch import nn
 from torch.utils.tensorboard import SummaryWriter
+from torchrl.modules.distributions.utils import has_analytic_entropy
 from torchrl.modules.models.multiagent import MultiAgentNetBase
 from torchrl.record.loggers import TensorboardLogger
 
 TEMPLATE = "_empty_net"  # MultiAgentNetBase's parameter-less copy of one agent's network
 TIED = "_shared_net"  # the shared network holding the parameters, kept out of the module tree
+TIED_LEAF = "_shared_net_leaf"  # (key, tensor): one of the parameters as the shared network holds it
 THREAD_TEMPLATES = "_thread_templates"  # threading.local: each thread's copy of the template
 
 
@@ -55,6 +60,7 @@ class MultiAgentNet(MultiAgentNetBase):
         # torch-geometric layers save their weights themselves, even from the parameter-less template that
         # MultiAgentNetBase keeps; those entries are not parameters and must stay out of checkpoints.
         self.register_state_dict_post_hook(_drop_template_entries)
+        self._tie()
 
     def check_input(self, inputs: torch.Tensor) -> torch.Tensor:
         """Raises ValueError unless `inputs` is [..., n_agents, *in_shape]; returns what the networks read."""
@@ -73,12 +79,21 @@ class MultiAgentNet(MultiAgentNetBase):
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
         inputs = self.check_input(torch.cat(inputs, -1) if len(inputs) > 1 else inputs[0])
-        if self.share_params:  # one network for all agents: the agent dim is one more batch dim
+        if self.share_params and self.holds_own_parameters():  # the agent dim is one more batch dim
             return self.shared_net()(inputs)
+        if self.share_params:  # parameters swapped in from outside (a functional call, vmap over teams)
+            with self.params.to_module(self.thread_template(), preserve_module_state=False):
+                return self.thread_template()(inputs)
         agent_dim = inputs.ndim + self.agent_dim
         per_agent = self.vmap_func_module(self.thread_template(), in_dims=(0, agent_dim), out_dims=(agent_dim,),
                                           randomness=self.vmap_randomness)
         return per_agent(self.params, inputs)
+
+    def holds_own_parameters(self) -> bool:
+        """Whether `params` are the parameters the built shared network holds: not while a functional call
+        (`torch.func.functional_call`, `TensorDict.to_module`) has swapped others in."""
+        tied = self.__dict__[TIED_LEAF]
+        return tied is None or self.params.get(tied[0]) is tied[1]
 
     def thread_template(self) -> nn.Module:
         """The calling thread's copy of the parameter-less template into which each agent's parameters are moved
@@ -99,6 +114,11 @@ class MultiAgentNet(MultiAgentNetBase):
             net = self.__dict__[TIED] = self.get_stateful_net(copy=True)
         return net
 
+    def _tie(self) -> None:
+        """Notes one of the parameters as the module holds it now (built, moved or copied)."""
+        key = next(iter(self.params.keys(include_nested=True, leaves_only=True)), None)
+        self.__dict__[TIED_LEAF] = None if key is None else (key, self.params.get(key))  # None: no parameters
+
     def forget_built_networks(self) -> None:
         """Drops the shared network and the threads' templates built so far: the next call builds them again from
         the template and the parameters (after `.to()`, or layers given other classes)."""
@@ -107,13 +127,19 @@ class MultiAgentNet(MultiAgentNetBase):
 
     def _apply(self, fn, *args, **kwargs):
         self.forget_built_networks()  # `.to()` may replace the parameters
-        return super()._apply(fn, *args, **kwargs)
+        module = super()._apply(fn, *args, **kwargs)
+        self._tie()
+        return module
 
     def __getstate__(self) -> dict:
         state = dict(super().__getstate__())
-        state.pop(TIED, None)  # a copy builds its own, on its own parameters
-        state.pop(THREAD_TEMPLATES, None)
+        for built in (TIED, TIED_LEAF, THREAD_TEMPLATES):  # a copy builds its own, on its own parameters
+            state.pop(built, None)
         return state
+
+    def __setstate__(self, state: dict) -> None:
+        super().__setstate__(state)
+        self._tie()
 
 
 def hold_value_clip_on_host(loss: nn.Module) -> None:
@@ -122,6 +148,19 @@ def hold_value_clip_on_host(loss: nn.Module) -> None:
     threshold = loss._buffers.pop("clip_value", None)
     if threshold is not None:
         loss.clip_value = float(threshold)
+
+
+def entropy_without_host_check(loss: nn.Module) -> None:
+    """Gives a TorchRL PPO loss the closed-form entropy of its distribution as it is. Eager, the loss asks the device
+    whether that entropy is finite in every forward (`entropy.isfinite().all()`): a host read per minibatch, and a
+    branch on a tensor's value, which `torch.vmap` refuses. A categorical distribution over finite logits has a
+    finite entropy; over NaN logits the loss is NaN either way."""
+    def entropy(dist, adv_shape):
+        if not has_analytic_entropy(dist):
+            return type(loss)._get_entropy(loss, dist, adv_shape=adv_shape)
+        return dist.entropy().unsqueeze(-1)
+
+    loss._get_entropy = entropy
 
 
 class PurgingTensorboardLogger(TensorboardLogger):

@@ -39,8 +39,19 @@ from tqdm import tqdm
 from torch_kitchen.cpu_kernels import accelerate_cpu
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.models import ActorCritic, make_actor_critic
-from torch_kitchen.teams import RandomStream, TeamPolicy, TeamTransform, stackable_acting, team_rows
-from torch_kitchen.torchrl_internals import PurgingTensorboardLogger, hold_value_clip_on_host
+from torch_kitchen.teams import (
+    RandomStream,
+    StackedLoss,
+    TeamPolicy,
+    TeamTransform,
+    stackable_acting,
+    team_rows,
+)
+from torch_kitchen.torchrl_internals import (
+    PurgingTensorboardLogger,
+    entropy_without_host_check,
+    hold_value_clip_on_host,
+)
 from trainers.advantages import generalized_advantages
 from trainers.algorithms import ALGORITHMS, Algorithm
 from trainers.checkpoint import (
@@ -135,6 +146,7 @@ def make_loss(config: TrainConfig, actor_critic: ActorCritic, algorithm: Algorit
     )
     loss.set_keys(action=ACTION, sample_log_prob=LOG_PROB, value=VALUE, advantage=ADVANTAGE, value_target=VALUE_TARGET)
     hold_value_clip_on_host(loss)
+    entropy_without_host_check(loss)
     algorithm.configure_loss(loss)
     return loss
 
@@ -358,10 +370,26 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
         parts={"actor": actor, "critic": critic, "optimizer": optimizer, "env": TeamKitchens(kitchen, index)},
     )  # fmt: skip
     if config.compile_update:
-        # On a GPU, "reduce-overhead" replays the compiled graphs as CUDA graphs: a minibatch's launches at once.
-        mode = "reduce-overhead" if torch.device(config.device).type == "cuda" else None
-        team.compiled_step = torch.compile(functools.partial(ppo_step, team), mode=mode)
+        team.compiled_step = compile_step(functools.partial(ppo_step, team), config.device)
     return team
+
+
+def compile_step(step: Callable[[TensorDictBase], dict[str, torch.Tensor]],
+                 device: str | torch.device) -> Callable[[TensorDictBase], dict[str, torch.Tensor]]:
+    """A minibatch step (`ppo_step`, `stacked_step`) compiled (`compile_update`). On a GPU in "reduce-overhead"
+    mode, which replays the compiled graphs as CUDA graphs (a minibatch's launches at once); their outputs live in
+    buffers that the next replay overwrites, and the update keeps every minibatch's losses, so these are copied
+    out, all in one tensor."""
+    compiled = torch.compile(step, mode="reduce-overhead" if torch.device(device).type == "cuda" else None)
+
+    def run(minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
+        torch.compiler.cudagraph_mark_step_begin()
+        losses = compiled(minibatch)
+        copied = torch.cat([value.detach().reshape(-1) for value in losses.values()])
+        parts = copied.split([value.numel() for value in losses.values()])
+        return {key: part.view_as(value) for (key, value), part in zip(losses.items(), parts)}
+
+    return run
 
 
 def acts_stacked(config: TrainConfig, policies: Sequence[TensorDictModuleBase]) -> bool:
@@ -369,6 +397,23 @@ def acts_stacked(config: TrainConfig, policies: Sequence[TensorDictModuleBase]) 
     it, a team's kernel launches for all of them; on a CPU they act one after another, each with its sparse first
     layer."""
     return torch.device(config.device).type == "cuda" and stackable_acting(policies) is not None
+
+
+def learns_stacked(config: TrainConfig, teams: Sequence[Team]) -> bool:
+    """Whether the teams' minibatch steps run as one (`stacked_update`): on a GPU, where several teams learn and
+    their model and algorithm allow it (feed-forward with shared parameters, `Algorithm.stackable`); on a CPU each
+    team learns on its own, with its sparse first layer, on threads where `parallel_teams`."""
+    stackable = (config.share_params and not teams[0].actor_critic.recurrent and teams[0].algorithm.stackable
+                 and config.shards_per_minibatch == 1)
+    return torch.device(config.device).type == "cuda" and len(teams) > 1 and stackable
+
+
+def stacked_update(teams: Sequence[Team]) -> Callable[[TensorDictBase], dict[str, torch.Tensor]]:
+    """The teams' minibatch step as one computation: `stacked_step` over their `StackedLoss`, compiled with
+    `compile_update` (on a GPU, replayed as CUDA graphs)."""
+    loss = StackedLoss([team.loss_module for team in teams], teams[0].algorithm.process_minibatch)
+    step = functools.partial(stacked_step, teams, loss)
+    return compile_step(step, teams[0].config.device) if teams[0].config.compile_update else step
 
 
 def algorithm_transforms(teams: list[Team]) -> list[Transform]:
@@ -488,11 +533,10 @@ class RestorePoint:
 def learn(team: Team, batch: TensorDictBase, orders: list[tuple[torch.Tensor, ...]],
           pool: ThreadPoolExecutor | None = None) -> dict[str, float]:
     """The PPO epochs of an update over minibatches of whole kitchen sequences, in `orders` (`start_update`),
-    each minibatch's shards on `pool`'s threads where given; returns the update's metrics, read from the device
-    once. Draws nothing at random and sets no global mode, so that several teams learn at once on threads
-    (`learn_teams`). Raises TrainingDiverged when a loss was NaN or infinite, with the weights and optimizer state
-    put back as they were before the update."""
-    config = team.config
+    each minibatch's shards on `pool`'s threads where given; returns the update's metrics (`finish_update`). Draws
+    nothing at random and sets no global mode, so that several teams learn at once on threads (`learn_teams`).
+    Raises TrainingDiverged when a loss was NaN or infinite, with the weights and optimizer state put back as they
+    were before the update."""
     restore_point = RestorePoint(team)
     stats = []
     for order in orders:
@@ -501,13 +545,51 @@ def learn(team: Team, batch: TensorDictBase, orders: list[tuple[torch.Tensor, ..
             team.algorithm.process_minibatch(minibatch)
             losses = minibatch_step(team, minibatch, pool)
             stats.append({key: value.detach().float() for key, value in losses.items()})
+    return finish_update(team, batch, stats, restore_point)
+
+
+def learn_stacked(teams: Sequence[Team], step: Callable[[TensorDictBase], dict[str, torch.Tensor]],
+                  batches: Sequence[TensorDictBase],
+                  orders: Sequence[list[tuple[torch.Tensor, ...]]]) -> list[list[dict[str, torch.Tensor]]]:
+    """The PPO epochs of K teams' updates as one: each minibatch of all teams (team k's kitchens in its own order),
+    stacked along a team dim, goes through `step` (`stacked_step`). Returns each team's losses by minibatch, on the
+    device, for `finish_update`."""
+    stats = [[] for _ in teams]
+    for kitchens_by_team in zip(*[[kitchens for order in team_orders for kitchens in order]
+                                  for team_orders in orders]):
+        minibatches = torch.stack([select_kitchens(batch, kitchens)
+                                   for batch, kitchens in zip(batches, kitchens_by_team)])
+        losses = step(minibatches)
+        for index, team_stats in enumerate(stats):
+            team_stats.append({key: value[index].detach().float() for key, value in losses.items()})
+    return stats
+
+
+def stacked_step(teams: Sequence[Team], loss: StackedLoss, minibatches: TensorDictBase) -> dict[str, torch.Tensor]:
+    """`ppo_step` of K teams at once on their minibatches [K, ...]: one loss (`StackedLoss`, the algorithm's
+    `process_minibatch` included) and one backward, then each team's clipped Adam step on its own gradients;
+    returns the losses, [K] each."""
+    losses = loss(minibatches)
+    total_loss(losses).sum().backward()  # the sum of the teams' losses: each team's weights get its own gradient
+    losses["grad_norm"] = torch.stack([apply_gradients(team) for team in teams])
+    for team in teams:
+        for parameter in team.parameters:
+            parameter.grad = None
+    return losses
+
+
+def finish_update(team: Team, batch: TensorDictBase, stats: list[dict[str, torch.Tensor]],
+                  restore_point: RestorePoint) -> dict[str, float]:
+    """The end of `team`'s update, after its minibatches' `stats` (losses on the device): raises TrainingDiverged if
+    a loss was NaN or infinite, with the team put back to `restore_point`; else the algorithm's `after_update`, and
+    the update's metrics, read from the device at once."""
+    config = team.config
     finite = torch.stack([torch.isfinite(total_loss(minibatch_stats)) for minibatch_stats in stats])
     if not finite.all():  # the update's one read of the losses before its metrics
         restore_point.restore()
         raise diverged(stats[int(finite.logical_not().nonzero()[0])], team.update, team.env_steps)
     team.algorithm.after_update()
 
-    # --- metrics, read from the device at once
     on_device = {
         "charts/episode_return": batch.get(REWARD).mean() * config.max_steps,
         "charts/shaped_return": batch.get(SHAPED_REWARD).mean() * config.max_steps,
@@ -533,10 +615,12 @@ def learn(team: Team, batch: TensorDictBase, orders: list[tuple[torch.Tensor, ..
 
 
 def learn_teams(teams: Sequence[Team], batches: Sequence[TensorDictBase], orders: Sequence[list],
-                pool: ThreadPoolExecutor | None) -> list[tuple[dict[str, float], float]]:
+                pool: ThreadPoolExecutor | None,
+                stacked: Callable[[TensorDictBase], dict] | None = None) -> list[tuple[dict[str, float], float]]:
     """Every team's `learn` on its batch, on `pool`'s threads at once (None: one after the other; a single team
-    runs its minibatches' shards there); returns each team's metrics and seconds. A team whose loss diverged is
-    checkpointed with its last good weights once the teams before it are done, and its error raised.
+    runs its minibatches' shards there), or all teams' updates as one with `stacked` (`stacked_update`); returns
+    each team's metrics and seconds. A team whose loss diverged is checkpointed with its last good weights once the
+    teams before it are done, and its error raised.
 
     The modes that TorchRL's losses set while they run (recurrent mode, deterministic sampling) are process-wide;
     set here around all the teams, the losses' own settings and restorings, interleaved on threads, agree.
@@ -546,9 +630,19 @@ def learn_teams(teams: Sequence[Team], batches: Sequence[TensorDictBase], orders
         metrics = learn(team, batch, team_orders, shard_pool)
         return metrics, time.perf_counter() - started
 
+    def timed_finish(team, batch, team_stats, restore_point, seconds):
+        return finish_update(team, batch, team_stats, restore_point), seconds
+
     with set_recurrent_mode(True), set_exploration_type(teams[0].loss_module.deterministic_sampling_mode):
         arguments = list(zip(teams, batches, orders))
-        if len(teams) == 1:
+        if stacked is not None:
+            started = time.perf_counter()
+            restore_points = [RestorePoint(team) for team in teams]
+            stats = learn_stacked(teams, stacked, batches, orders)
+            seconds = time.perf_counter() - started  # the teams' one update
+            pending = [functools.partial(timed_finish, *team_arguments, seconds)
+                       for team_arguments in zip(teams, batches, stats, restore_points)]
+        elif len(teams) == 1:
             pending = [functools.partial(timed_learn, *arguments[0], pool)]
         elif pool is None:  # each team learns when its result is asked for
             pending = [functools.partial(timed_learn, *team_arguments) for team_arguments in arguments]
@@ -694,6 +788,8 @@ def train_teams(
         policies = [torch.compile(policy) if lead.compile_policy else policy for policy in policies]
         policy = TeamPolicy(policies, [team.stream for team in teams], lead.num_envs)
 
+    stacked = stacked_update(teams) if learns_stacked(lead, teams) else None
+
     # ---------------------------------------------------------------- resume or start fresh
     saved = [None] * num_teams
     if resume:  # the collector's first reset hands out the restored kitchens
@@ -703,6 +799,7 @@ def train_teams(
             raise ConfigError(f"teams resumed together must be at the same update ({at}): resume them one by one")
         for team in teams:
             drop_csv_rows_after(team.run / "csv", team.env_steps)
+        policy.restack()
     else:
         for team in teams:
             start_fresh(team.run)
@@ -744,7 +841,8 @@ def train_teams(
                     with team.stream.active():
                         orders.append(start_update(team, team_batch))
                     prepare_seconds.append(time.perf_counter() - preparing)
-                learned = learn_teams(teams, batches, orders, pool)
+                learned = learn_teams(teams, batches, orders, pool, stacked)
+                policy.restack()
                 now = time.perf_counter()
                 asked = False
                 for team, (metrics, seconds), prepared in zip(teams, learned, prepare_seconds):

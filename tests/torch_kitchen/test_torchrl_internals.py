@@ -6,10 +6,20 @@ import functools
 import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
 from torch import nn
+from torchrl.modules import ProbabilisticActor, ValueOperator
+from torchrl.objectives import ClipPPOLoss
 
 from torch_kitchen.models import make_encoder
-from torch_kitchen.torchrl_internals import TEMPLATE, MultiAgentNet, PurgingTensorboardLogger
+from torch_kitchen.op_audit import OpAudit
+from torch_kitchen.torchrl_internals import (
+    TEMPLATE,
+    MultiAgentNet,
+    PurgingTensorboardLogger,
+    entropy_without_host_check,
+)
 
 
 def test_multi_agent_net_builds_one_network_per_agent_through_build_single_net():
@@ -61,6 +71,48 @@ def test_a_shared_net_runs_get_stateful_nets_network_on_its_own_parameters():
     assert torch.equal(copied(inputs), changed)
     moved = net.to(torch.float64)  # a move may replace the parameters: the network follows
     assert moved(inputs.double()).dtype == torch.float64
+
+
+def test_a_shared_net_runs_parameters_swapped_in_from_outside():
+    """A functional call (tensordict's `to_module`, also under vmap over stacked parameters) swaps other parameters
+    into `params`; the network built on the net's own must not run in their place."""
+    torch.manual_seed(0)
+    build = lambda: nn.Sequential(nn.Linear(3, 4), nn.ReLU(), nn.Linear(4, 2))  # noqa: E731
+    net, other, third = (MultiAgentNet(build, (3,)) for _ in range(3))
+    inputs = torch.randn(5, 2, 3)
+    own = net(inputs)
+    with TensorDict.from_module(other).to_module(net):
+        torch.testing.assert_close(net(inputs), other(inputs))
+    assert torch.equal(net(inputs), own)  # its own again
+    stacked = torch.stack([TensorDict.from_module(other), TensorDict.from_module(third)])
+
+    def swapped(parameters, x):
+        with parameters.to_module(net):
+            return net(x)
+
+    by_net = torch.vmap(swapped, (0, None))(stacked, inputs)
+    torch.testing.assert_close(by_net, torch.stack([other(inputs), third(inputs)]))
+
+
+def test_the_ppo_loss_takes_the_closed_form_entropy_without_a_host_read():
+    """TorchRL's eager check of the entropy reads the device (`_local_scalar_dense`); the hook's loss reads nothing
+    and gives the same entropy and losses."""
+    torch.manual_seed(0)
+    actor = ProbabilisticActor(TensorDictModule(nn.Linear(3, 6), ["observation"], ["logits"]), ["logits"],
+                               distribution_class=torch.distributions.Categorical, return_log_prob=True)
+    critic = ValueOperator(nn.Linear(3, 1), ["observation"])
+    batch = TensorDict({"observation": torch.randn(8, 3), "action": torch.randint(6, (8,)),
+                        "action_log_prob": torch.full((8,), -1.8), "advantage": torch.randn(8, 1),
+                        "value_target": torch.randn(8, 1)}, batch_size=[8])
+    theirs, ours = ClipPPOLoss(actor, critic), ClipPPOLoss(actor, critic)
+    entropy_without_host_check(ours)
+    with OpAudit() as checked:
+        expected = theirs(batch.clone())
+    with OpAudit() as unchecked:
+        got = ours(batch.clone())
+    assert checked.sync_ops() == {"_local_scalar_dense": 1} and unchecked.syncs == 0, unchecked.summary()
+    for key in ("entropy", "loss_entropy", "loss_objective", "loss_critic"):
+        torch.testing.assert_close(got[key], expected[key], rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("share_params", [True, False])

@@ -66,10 +66,10 @@ def test_compiled_training_recompiles_nothing_as_the_learning_rate_and_shaping_a
     assert "Tensor.backward()" in reasons
 
 
-def test_a_collection_step_makes_the_host_wait_for_nothing_and_a_minibatch_only_for_torchrl(tmp_path):
-    """Eager, on the device path: a collection step reads nothing back; a minibatch reads back only TorchRL's own
-    check that the entropy is finite (once per loss forward), which a compiled loss leaves out (its forward
-    compiles without a graph break, above). Dispatch modes see eager operations, not a compiled graph's kernels."""
+def test_a_collection_step_and_a_minibatch_make_the_host_wait_for_nothing(tmp_path):
+    """Eager, on the device path: neither a collection step nor a minibatch reads anything back from the device
+    (TorchRL's own check that the entropy is finite is left out: `entropy_without_host_check`). Dispatch modes see
+    eager operations, not a compiled graph's kernels."""
     config = tiny_config(tmp_path)
     env = make_env(config)
     team = build_team(config, config.run_path, env, 0)
@@ -86,7 +86,42 @@ def test_a_collection_step_makes_the_host_wait_for_nothing_and_a_minibatch_only_
             with OpAudit() as update:
                 minibatch_step(team, minibatch.clone(), None)
     assert collection.launches > 0 and collection.syncs == 0, collection.summary()
-    assert update.sync_ops() == {"_local_scalar_dense": 1} and update.host_tensors == 0, update.summary()
+    assert update.launches > 0 and update.syncs == 0 and update.host_tensors == 0, update.summary()
+
+
+def test_the_teams_stacked_step_compiles_to_the_eager_one_and_launches_fewer_kernels_than_two_teams(tmp_path):
+    """Three teams' minibatch step as one (`stacked_update`, the GPU's way), eager and compiled, moves every team's
+    weights as the other does; eager, it launches fewer kernels than two teams' steps one after another."""
+    from trainers.ippo import stacked_update
+
+    def teams_and_minibatches(name, *overrides):
+        return zip(*[team_and_minibatch(tiny_config(tmp_path / name / str(seed), f"seed={seed}", *overrides),
+                                        tmp_path / name / str(seed)) for seed in range(3)])
+
+    eager_teams, minibatches = teams_and_minibatches("eager")
+    compiled_teams, _ = teams_and_minibatches("compiled", "compile_update=true")
+    apart_teams, _ = teams_and_minibatches("apart")
+    minibatches = torch.stack(minibatches)
+    torch._dynamo.reset()
+    with device_path(), set_recurrent_mode(True):
+        eager_losses = stacked_update(eager_teams)(minibatches.clone())
+        compiled_losses = stacked_update(compiled_teams)(minibatches.clone())
+        for key in ("loss_objective", "loss_critic", "loss_entropy", "grad_norm"):
+            assert compiled_losses[key].shape == (3,)
+            torch.testing.assert_close(compiled_losses[key], eager_losses[key], rtol=1e-5, atol=1e-6, msg=key)
+        for compiled, eager in zip(compiled_teams, eager_teams):
+            for mine, theirs in zip(compiled.parameters, eager.parameters):
+                torch.testing.assert_close(mine, theirs, rtol=1e-5, atol=1e-6)
+
+        with OpAudit() as stacked:
+            stacked_update(eager_teams)(minibatches.clone())
+        with OpAudit() as apart:
+            for team, minibatch in zip(apart_teams, minibatches):
+                minibatch = minibatch.clone()
+                team.algorithm.process_minibatch(minibatch)
+                minibatch_step(team, minibatch, None)
+    # The loss's and backward's kernels once for all teams; per team its clipping and Adam step.
+    assert stacked.syncs == 0 and stacked.launches < 2 * apart.launches / 3, (stacked.summary(), apart.summary())
 
 
 def test_a_run_resumed_with_the_compiled_update_recompiles_nothing_either(tmp_path):

@@ -1,5 +1,6 @@
 """Several teams in one process: each team gets exactly what a run of its own with its seed gets."""
 
+import dataclasses
 import threading
 import time
 
@@ -158,8 +159,8 @@ def test_a_shard_pool_runs_the_shards_the_faster_way_and_times_the_other_now_and
 @pytest.mark.parametrize("architecture", ["mlp", "ego_mlp"])
 def test_stacked_teams_act_as_the_teams_one_after_another_at_one_teams_launches(tmp_path, architecture):
     """The teams' networks stacked and vmapped (the GPU's way) give each team's logits and values to float rounding
-    and, sampled in each team's own stream, its actions; the stacked weights follow the teams' after an update's
-    in-place step; and acting for 3 teams launches one team's kernels but a draw per team."""
+    and, sampled in each team's own stream, its actions; restacked, the weights are the teams' after an optimizer's
+    step; and acting for 3 teams launches one team's kernels but a draw per team."""
     from tensordict import TensorDict
     from tensordict.nn import InteractionType, set_interaction_type
 
@@ -194,9 +195,10 @@ def test_stacked_teams_act_as_the_teams_one_after_another_at_one_teams_launches(
         # The networks' and the sampling's kernels once for all teams; per team only its draw, then one concatenation.
         assert stacked_audit.launches == single.launches + 2 + 1 < loop_audit.launches
 
-        with torch.no_grad():  # an optimizer's in-place step on team 1's weights
-            for parameter in teams[1].parameters:
-                parameter.mul_(0.5)
+        for parameter in teams[1].parameters:  # a step of team 1's fused Adam, which leaves no trace on the weights
+            parameter.grad = torch.ones_like(parameter)
+        teams[1].optimizer.step()
+        policy.restack()
         followed = policy(TensorDict({("agents", "observation"): observation}, batch_size=[len(observation)]))
         rows = slice(config.num_envs, 2 * config.num_envs)
         expected = teams[1].actor_critic.critic(TensorDict({("agents", "observation"): observation[rows]},
@@ -205,24 +207,81 @@ def test_stacked_teams_act_as_the_teams_one_after_another_at_one_teams_launches(
                                    rtol=1e-5, atol=1e-6)
 
 
-def test_teams_trained_acting_stacked_learn_what_they_learn_acting_one_after_another(tmp_path, monkeypatch):
-    """The trainer's GPU way of acting, forced on the CPU: the networks' products are batched over the teams, and
-    every team still draws from its own stream. The kitchens end where they do acting one after another (the same
-    actions at every step, so the stacked weights followed the first update), and the weights agree to float
-    rounding, which Adam's first steps amplify where a gradient is near zero (up to 2e-4 here)."""
+def test_teams_trained_the_gpus_way_learn_what_they_learn_one_after_another(tmp_path, monkeypatch):
+    """The trainer's GPU way, forced on the CPU: the teams act as one stacked network, each drawing from its own
+    stream, and learn as one vmapped loss with each team's own clipping and Adam step. The kitchens end where they
+    do one team after another (the same actions at every step), every team logs its own losses, and the weights
+    agree to float rounding, which Adam's first steps amplify where a gradient is near zero (up to 2e-4 here)."""
     import trainers.ippo
 
-    config = tiny_config(tmp_path / "apart", "levels=infinite", "teams=2", "shaping_weight=1")
-    train_teams(team_configs(config))
+    overrides = ["levels=infinite", "teams=2", "shaping_weight=1"]
+    apart = tiny_config(tmp_path / "apart", *overrides)
+    train_teams(team_configs(apart))
     monkeypatch.setattr(trainers.ippo, "acts_stacked", lambda config, policies: True)
-    stacked_config = tiny_config(tmp_path / "stacked", "levels=infinite", "teams=2", "shaping_weight=1")
-    train_teams(team_configs(stacked_config))
+    monkeypatch.setattr(trainers.ippo, "learns_stacked", lambda config, teams: True)
+    stacked = tiny_config(tmp_path / "stacked", *overrides)
+    train_teams(team_configs(stacked))
     for seed in (0, 1):
-        apart = load_checkpoint(config.run_path.parent / f"seed{seed}")
-        stacked = load_checkpoint(stacked_config.run_path.parent / f"seed{seed}")
-        torch.testing.assert_close(stacked["env"], apart["env"], rtol=0, atol=0)
-        for part in ("actor", "critic"):
-            torch.testing.assert_close(stacked[part], apart[part], rtol=0, atol=1e-3)
+        apart_run, stacked_run = apart.run_path.parent / f"seed{seed}", stacked.run_path.parent / f"seed{seed}"
+        apart_state, stacked_state = load_checkpoint(apart_run), load_checkpoint(stacked_run)
+        torch.testing.assert_close(stacked_state["env"], apart_state["env"], rtol=0, atol=0)
+        for part in ("actor", "critic", "optimizer"):
+            torch.testing.assert_close(stacked_state[part], apart_state[part], rtol=0, atol=1e-3)
+        apart_metrics, stacked_metrics = read_metrics(apart_run), read_metrics(stacked_run)
+        assert apart_metrics.keys() == stacked_metrics.keys()
+        for name in ("losses/policy", "losses/value", "losses/approx_kl", "losses/entropy", "losses/grad_norm"):
+            torch.testing.assert_close(torch.tensor(stacked_metrics[name]), torch.tensor(apart_metrics[name]),
+                                       rtol=1e-3, atol=1e-6, msg=name)
+
+
+@pytest.mark.parametrize("architecture", ["mlp", "gnn"])
+def test_a_stacked_loss_gives_each_team_its_own_losses_and_gradients(tmp_path, architecture):
+    """One vmapped computation over three teams' stacked parameters: each team's loss terms and metrics, and the
+    gradient of the teams' summed losses on each team's weights, are those of its own loss on its own minibatch."""
+    from test_ippo import team_and_minibatch
+    from torchrl.modules import set_recurrent_mode
+
+    from torch_kitchen.teams import StackedLoss
+    from trainers.ippo import total_loss
+
+    teams, minibatches = zip(*[team_and_minibatch(tiny_config(tmp_path / str(seed), f"seed={seed}",
+                                                              f"architecture={architecture}"), tmp_path / str(seed))
+                               for seed in range(3)])
+    stacked = StackedLoss([team.loss_module for team in teams])
+    with set_recurrent_mode(True):
+        losses = stacked(torch.stack(minibatches))
+        total_loss(losses).sum().backward()
+        stacked_gradients = [[parameter.grad.clone() for parameter in team.parameters] for team in teams]
+        for team, minibatch, gradients in zip(teams, minibatches, stacked_gradients):
+            team.loss_module.zero_grad()
+            own = team.loss_module(minibatch)
+            total_loss(own).backward()
+            for key in ("loss_objective", "loss_critic", "loss_entropy", "entropy", "kl_approx", "clip_fraction"):
+                index = teams.index(team)
+                torch.testing.assert_close(losses[key][index], own[key].mean(), rtol=1e-5, atol=1e-7, msg=key)
+            for parameter, gradient in zip(team.parameters, gradients):
+                torch.testing.assert_close(gradient, parameter.grad, rtol=1e-4, atol=1e-7)
+    assert not torch.equal(losses["loss_critic"][0], losses["loss_critic"][1])  # the teams differ
+
+
+@pytest.mark.parametrize(("overrides", "stacks"), [
+    ([], True),
+    (["architecture=gnn"], True),
+    (["device=cpu"], False),  # a CPU's teams learn each on its own, with its sparse first layer
+    (["architecture=mlp_lstm"], False),  # TorchRL's LSTM branches on its input's values
+    (["share_params=false"], False),  # per-agent networks are vmapped by TorchRL already
+    (["algorithm=e3t", "architecture=e3t_mlp"], False),  # each team's partner predictor and seats
+    (["minibatch_shards=2"], False),
+])
+def test_teams_learn_as_one_where_the_gpu_model_and_algorithm_allow(tmp_path, overrides, stacks):
+    from trainers.ippo import build_team, learns_stacked, make_env
+
+    configs = team_configs(tiny_config(tmp_path, "teams=2", *overrides))
+    kitchen = make_env(configs[0], num_envs=2 * configs[0].num_envs, seed=[c.seed for c in configs])
+    teams = [build_team(c, tmp_path / str(c.seed), kitchen, k) for k, c in enumerate(configs)]
+    on_gpu = configs[0] if "device=cpu" in overrides else dataclasses.replace(configs[0], device="cuda")
+    assert learns_stacked(on_gpu, teams) is stacks
+    assert learns_stacked(on_gpu, teams[:1]) is False  # one team alone
 
 
 def _stacked_team_policy(tmp_path, architecture, compile_mode=None):

@@ -55,6 +55,10 @@ class Algorithm:
     # The PPO loss and every auxiliary loss are plain means over the minibatch's transitions, so the mean of
     # equal shards' gradients is the minibatch's gradient (`minibatch_shards`).
     shardable = True
+    # Where K teams learn at once on a GPU, `process_minibatch` and the loss of all K run as one computation under
+    # `torch.vmap` (`torch_kitchen.teams.StackedLoss`), with the first team's hooks: they branch on no tensor's
+    # value and keep no state of a team's own; an algorithm with parameters or losses of its own says False.
+    stackable = True
 
     def __init__(self, config: TrainConfig, actor_critic: ActorCritic):
         self.config = config

@@ -51,6 +51,7 @@ def partner_prediction_loss(predictor, minibatch: TensorDictBase) -> tuple[torch
 class E3T(Algorithm):
     # Its PPO terms average over the ego's transitions only, which equal shards of a minibatch split unevenly.
     shardable = False
+    stackable = False  # its partner predictor and the seats are each team's own
 
     def __init__(self, config: TrainConfig, actor_critic: ActorCritic):
         super().__init__(config, actor_critic)
