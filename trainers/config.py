@@ -129,6 +129,20 @@ class TrainConfig:
     partner_copy_rate: float = option(0.01, '"copy": after every update, copy += rate * (ego - copy)')
     predictor_coef: float = option(1.0, "weight of the partner predictor's cross-entropy in the loss")
 
+    # --- planner-guided start (kitchen-distill, then init_from)
+    init_from: str = option(
+        "", "a run directory whose latest checkpoint's weights start this run, e.g. a team distilled from the "
+            "scripted cook by kitchen-distill ({seed} stands for the team's seed); empty: start from scratch",
+        group="planner-guided start (kitchen-distill, then init_from)",
+    )
+    distill_rounds: int = option(7, "kitchen-distill: DAgger rounds of num_envs x rollout_steps steps each")
+    distill_teacher_decay: float = option(
+        0.5, "kitchen-distill: a seat takes the scripted cook's action with probability decay**round (round 0: always)"
+    )
+    distill_epochs: int = option(2, "kitchen-distill: passes over all the rounds' data after each round")
+    distill_minibatch: int = option(4, "kitchen-distill: kitchens (whole sequences) per fitting step")
+    distill_lr: float = option(1e-3, "kitchen-distill: Adam's rate, annealed linearly over the rounds")
+
     # --- logging, checkpoints, final evaluation
     checkpoint_every: int = option(
         10,
@@ -201,15 +215,16 @@ class TrainConfig:
         _check_name(self.name)
         _check_seed(self.seed)
         counts = ["max_steps", "num_envs", "rollout_steps", "total_steps", "hidden", "epochs", "minibatches"]
-        _at_least(self, [*counts, "checkpoint_every", "threads", "teams"], 1)
+        _at_least(self, [*counts, "checkpoint_every", "threads", "teams", "distill_rounds", "distill_epochs",
+                          "distill_minibatch"], 1)
         if self.seed + self.teams - 1 > MAX_SEED:
             raise ConfigError(f"teams={self.teams} from seed={self.seed} go past the largest seed, {MAX_SEED}")
         weights = ["entropy_coef", "value_coef", "predictor_coef", "shaping_weight"]
         _at_least(self, ["eval_episodes", "shaping_anneal_steps", "parallel_teams", "minibatch_shards", *weights], 0)
-        for name in ("lr", "adam_eps", "clip_epsilon", "max_grad_norm"):
+        for name in ("lr", "adam_eps", "clip_epsilon", "max_grad_norm", "distill_lr"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be greater than 0, got {getattr(self, name)}")
-        for name in ("gamma", "gae_lambda", "partner_epsilon", "partner_copy_rate"):
+        for name in ("gamma", "gae_lambda", "partner_epsilon", "partner_copy_rate", "distill_teacher_decay"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
         if not 0 <= self.eval_heldout <= NUM_HELDOUT_GENERATED:
@@ -269,6 +284,10 @@ class TrainConfig:
                 raise ConfigError(
                     f"name={self.name}: {path} is a file, not a folder (the run directory is {self.run_path})"
                 )
+
+    def init_path(self) -> Path | None:
+        """The run directory (or checkpoint file) `init_from` names for this seed; None: from scratch."""
+        return Path(self.init_from.replace("{seed}", str(self.seed))) if self.init_from else None
 
     def check_levels(self, allow_unsolvable: bool = False) -> list[str]:
         """Loads every layout named in `levels` and refuses unsolvable ones (no team can deliver a soup there);

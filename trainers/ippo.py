@@ -392,6 +392,15 @@ def compile_step(step: Callable[[TensorDictBase], dict[str, torch.Tensor]],
     return run
 
 
+def start_from(team: Team, run: Path) -> None:
+    """Loads the actor's and critic's weights of `run`'s latest checkpoint into `team` (`init_from`: e.g. a team
+    distilled from the scripted cook); CheckpointError if its model is not the team's."""
+    state = load_checkpoint(run, map_location=team.config.device)
+    check_identity(state, team.identity)
+    team.parts["actor"].load_state_dict(state["actor"])
+    team.parts["critic"].load_state_dict(state["critic"])
+
+
 def acts_stacked(config: TrainConfig, policies: Sequence[TensorDictModuleBase]) -> bool:
     """Whether the teams act as one stacked network (`TeamPolicy`'s `stack`): on a GPU, where the policies allow
     it, a team's kernel launches for all of them; on a CPU they act one after another, each with its sparse first
@@ -803,6 +812,9 @@ def train_teams(
     else:
         for team in teams:
             start_fresh(team.run)
+            if (start := team.config.init_path()) is not None:
+                start_from(team, start)
+        policy.restack()
     for team in teams:
         team.run.mkdir(parents=True, exist_ok=True)
         save_config(team.config, team.run / "config.yaml")

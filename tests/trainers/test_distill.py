@@ -1,0 +1,61 @@
+"""The planner-guided start: DAgger from the scripted cook (`kitchen-distill`), then IPPO from it (`init_from`)."""
+
+import torch
+from tensordict import TensorDict
+from test_ippo import MAIN_CONFIG, read_metrics, tiny_config
+from tiny import TINY
+
+from torch_kitchen.scripted import ScriptedCook
+from trainers.checkpoint import load_checkpoint
+from trainers.distill import DATA, TEACHER_PROBS, distill, main
+from trainers.ippo import main as train_main
+from trainers.ippo import train
+
+ROUNDS = ["distill_rounds=3", "distill_epochs=1"]
+
+
+def test_dagger_labels_every_visited_state_with_the_cooks_distribution_and_keeps_every_round(tmp_path):
+    run = distill(tiny_config(tmp_path, *ROUNDS))
+    rounds = [TensorDict.load_memmap(run / DATA / f"round{r}") for r in range(3)]
+    cook = ScriptedCook()
+    for data in rounds:
+        assert data.shape == (4, 16)  # every kitchen's every step, both seats
+        observation = data["agents", "observation"]
+        torch.testing.assert_close(data[TEACHER_PROBS], torch.softmax(cook(observation), -1), rtol=0, atol=0)
+    assert not torch.equal(rounds[0]["agents", "observation"], rounds[1]["agents", "observation"])
+    metrics = read_metrics(run)
+    assert [share for _, share in metrics["distill/teacher_share"]] == [1.0, 0.5, 0.25]
+    assert [steps for _, steps in metrics["distill/kitchen_steps"]] == [64, 128, 192]  # no round dropped
+    assert all(0 <= agreement <= 1 for _, agreement in metrics["distill/agreement"])
+    state = load_checkpoint(run)
+    assert (state["update"], state["env_steps"]) == (3, 192)
+
+
+def test_a_distillation_resumed_after_a_round_ends_as_one_run_straight_through(tmp_path):
+    straight = distill(tiny_config(tmp_path / "straight", *ROUNDS))
+    stopped = distill(tiny_config(tmp_path / "stopped", *ROUNDS), on_round=lambda round_, metrics: round_ == 2)
+    assert load_checkpoint(stopped)["update"] == 2
+    assert main(["--resume", str(stopped)]) == 0
+    for part in ("actor", "critic", "optimizer", "env"):
+        torch.testing.assert_close(load_checkpoint(stopped)[part], load_checkpoint(straight)[part], rtol=0, atol=0)
+
+
+def test_self_play_starts_from_the_distilled_team_and_resumes_without_it(tmp_path, capsys):
+    distilled = distill(tiny_config(tmp_path, *ROUNDS, "name=distilled", "seed=1"))
+    init_from = f"init_from={tmp_path}/distilled/seed{{seed}}"  # {seed}: each team its own
+    # A rate so small that the first update leaves the weights where they started.
+    run = train(tiny_config(tmp_path, init_from, "seed=1", "lr=1e-12", "anneal_lr=false", updates=1))
+    scratch = train(tiny_config(tmp_path / "scratch", "seed=1", "lr=1e-12", "anneal_lr=false", updates=1))
+    for part in ("actor", "critic"):
+        weights = load_checkpoint(run)[part]
+        torch.testing.assert_close(weights, load_checkpoint(distilled)[part], rtol=0, atol=1e-9)
+        assert not all(torch.allclose(mine, theirs) for mine, theirs in
+                       zip(weights.values(), load_checkpoint(scratch)[part].values()))
+
+    other_model = [MAIN_CONFIG, *TINY, f"run_dir={tmp_path / 'other'}", init_from, "seed=1", "hidden=8"]
+    assert train_main(other_model) == 2
+    assert "holds another model (hidden: checkpoint 16, expected 8)" in capsys.readouterr().err
+
+    (distilled / "checkpoints" / "latest.pt").unlink()  # a resumed run reads its own checkpoint only
+    assert train_main(["--resume", str(run), "total_steps=128"]) == 0
+    assert load_checkpoint(run)["update"] == 2

@@ -1,0 +1,282 @@
+"""A planner-guided start: the scripted cook distilled into a team's torch networks by DAgger.
+
+    kitchen-distill configs/ippo/ego_mlp_ik.yaml name=distill_ego_mlp_ik
+    kitchen-train configs/ippo/ego_mlp_ik.yaml init_from=runs/distill_ego_mlp_ik/seed{seed}
+
+Round r rolls out the learner in `num_envs` kitchens for `rollout_steps` steps, both seats, where each seat takes
+the scripted cook's action instead of its own with probability `distill_teacher_decay ** r` (round 0: the cook
+alone, behaviour cloning). Every visited state is labelled with the cook's action distribution and kept: the
+data of every round, none dropped. Then the actor is fitted to all the labels by cross-entropy
+(`distill_epochs` passes), and the critic to the value targets of the round's own batch (GAE, as PPO's), so
+that self-play starts with values for the policy it starts from.
+
+Logged (TensorBoard, CSV), checkpointed after every round and resumed (`--resume RUN_DIR`) as training is. A
+checkpoint holds the networks in the trainer's format: `kitchen-eval` and `kitchen-play` read it as a trained
+team, and `init_from` starts IPPO from it. Any architecture distils (recurrent ones over whole sequences).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+from torchrl.modules import set_recurrent_mode
+from tqdm import tqdm
+
+from jax_env import NUM_ACTIONS
+from torch_kitchen.cpu_kernels import accelerate_cpu
+from torch_kitchen.models import ACTION, LOGITS, OBSERVATION, VALUE, ActorCritic, make_actor_critic
+from torch_kitchen.scripted import ScriptedCook
+from trainers.checkpoint import (
+    LATEST,
+    CheckpointError,
+    capture_rng_states,
+    check_identity,
+    load_checkpoint,
+    model_identity,
+    restore_rng_states,
+    save_checkpoint,
+)
+from trainers.config import ConfigError, TrainConfig, config_help, load_config, save_config
+from trainers.ippo import (
+    VALUE_TARGET,
+    TeamKitchens,
+    compute_advantages,
+    make_env,
+    make_loggers,
+    select_kitchens,
+    shaping_weight_at,
+    start_fresh,
+    with_model_transforms,
+)
+from trainers.rollout import finished_episode_deliveries, make_collector
+
+TEACHER_PROBS = ("agents", "teacher_probs")  # the scripted cook's action distribution in the visited state
+DATA = "dagger"  # the run's folder of every round's labelled batch
+
+
+class GuidedPolicy(TensorDictModuleBase):
+    """The learner's acting policy (actor and critic), where each seat takes the teacher's sampled action instead of
+    its own with probability `teacher_share`; writes the teacher's action distribution (`TEACHER_PROBS`)."""
+
+    def __init__(self, learner: TensorDictModuleBase, teacher: nn.Module):
+        super().__init__()
+        self.learner, self.teacher = learner, teacher
+        self.in_keys = list(learner.in_keys)
+        self.out_keys = [*learner.out_keys, TEACHER_PROBS]
+        self.teacher_share = 1.0
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        tensordict = self.learner(tensordict)
+        probs = torch.softmax(self.teacher(tensordict.get(OBSERVATION)), dim=-1)
+        teacher_action = torch.multinomial(probs.reshape(-1, NUM_ACTIONS), 1).reshape(probs.shape[:-1])
+        takes = torch.rand(teacher_action.shape, device=probs.device) < self.teacher_share
+        tensordict.set(ACTION, torch.where(takes, teacher_action, tensordict.get(ACTION)))
+        tensordict.set(TEACHER_PROBS, probs)
+        return tensordict
+
+
+def teacher_share(config: TrainConfig, round_: int) -> float:
+    """The probability that a seat acts as the teacher in round `round_` (0-based): 1 in the first."""
+    return config.distill_teacher_decay ** round_
+
+
+def learning_rate(config: TrainConfig, round_: int) -> float:
+    """The fitting rate of round `round_`: `distill_lr`, annealed linearly over the rounds."""
+    return config.distill_lr * (1.0 - round_ / config.distill_rounds)
+
+
+def cross_entropy(logits: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
+    """The mean over seats and steps of -sum(p * log q): logits [..., 6] of q, p the teacher's [..., 6]."""
+    return -(probs * torch.log_softmax(logits, dim=-1)).sum(-1).mean()
+
+
+def minibatches(data: TensorDictBase, size: int) -> list[TensorDictBase]:
+    """`data` [K, T] in a random order of its kitchens, in minibatches of `size` kitchens (whole sequences)."""
+    order = torch.randperm(data.shape[0], device=data.device)
+    return [select_kitchens(data, kitchens) for kitchens in order.split(size)]
+
+
+def fit(actor_critic: ActorCritic, optimizer: torch.optim.Optimizer, data: TensorDictBase,
+        batch: TensorDictBase, config: TrainConfig) -> dict[str, float]:
+    """`distill_epochs` passes of the actor's cross-entropy to the teacher over all the `data` [K, T], and of the
+    critic's squared error to the value targets of this round's `batch` [num_envs, T]; returns their means and the
+    actor's agreement with the teacher's most likely action."""
+    size = config.distill_minibatch
+    sums = torch.zeros(3)
+    count = 0
+    with set_recurrent_mode(True):
+        for _ in range(config.distill_epochs):
+            for own, current in zip(minibatches(data, size), itertools.cycle(minibatches(batch, size))):
+                logits = actor_critic.actor(own.clone(False)).get(LOGITS)
+                probs = own.get(TEACHER_PROBS)
+                imitation = cross_entropy(logits, probs)
+                value = actor_critic.critic(current.clone(False)).get(VALUE)
+                value_error = (value - current.get(VALUE_TARGET)).pow(2).mean()
+                optimizer.zero_grad()
+                (imitation + config.value_coef * value_error).backward()
+                nn.utils.clip_grad_norm_([p for group in optimizer.param_groups for p in group["params"]],
+                                         config.max_grad_norm)
+                optimizer.step()
+                agreement = (logits.argmax(-1) == probs.argmax(-1)).float().mean()
+                sums += torch.stack([imitation.detach(), value_error.detach(), agreement]).cpu()
+                count += 1
+    imitation, value_error, agreement = (sums / count).tolist()
+    return {"distill/cross_entropy": imitation, "distill/value_error": value_error, "distill/agreement": agreement}
+
+
+def kept(batch: TensorDictBase, actor_critic: ActorCritic) -> TensorDictBase:
+    """What a round keeps of its batch: what the actor reads and the teacher's labels (a copy: the collector
+    reuses its buffers)."""
+    keys = {*actor_critic.actor.in_keys, TEACHER_PROBS}
+    return batch.select(*keys, strict=False).clone()
+
+
+def round_path(run: Path, round_: int) -> Path:
+    return run / DATA / f"round{round_}"
+
+
+def load_rounds(run: Path, rounds: int) -> list[TensorDictBase]:
+    """The labelled data of rounds 0 .. rounds - 1 (memory-mapped)."""
+    missing = [r for r in range(rounds) if not round_path(run, r).exists()]
+    if missing:
+        raise CheckpointError(f"{run} lacks the data of round(s) {missing} in {run / DATA}: distil it again")
+    return [TensorDict.load_memmap(round_path(run, r)) for r in range(rounds)]
+
+
+def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
+            on_round: Callable[[int, dict], bool | None] | None = None) -> Path:
+    """Distils the scripted cook into `config.architecture` over `config.distill_rounds` rounds (see the module
+    docstring); returns the run directory. `resume`: continue the run from its last round. `on_round(round,
+    metrics)`: called after every round's checkpoint; returning True stops the run there. Raises ConfigError or
+    CheckpointError before any work."""
+    config.check()
+    config.check_run_location()
+    if config.teams != 1:
+        raise ConfigError("kitchen-distill distils one team; run it once per seed")
+    for warning in config.check_levels():
+        print(f"kitchen-distill: warning: {warning}", file=sys.stderr)
+    torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed)
+    run = Path(run or config.run_path)
+    checkpoint = run / "checkpoints" / LATEST
+    if not resume and checkpoint.exists():
+        raise ConfigError(f"{run} already holds a run; resume it with `kitchen-distill --resume {run}`, or choose "
+                          "another name=, seed= or run_dir=")
+
+    kitchen = make_env(config)
+    obs_shape = kitchen.kitchen.obs_shape
+    actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
+    if torch.device(config.device).type == "cpu":
+        accelerate_cpu(actor_critic.actor, actor_critic.critic)
+    actor_critic.actor.to(config.device)
+    actor_critic.critic.to(config.device)
+    parameters = [*actor_critic.actor.parameters(), *actor_critic.critic.parameters()]
+    optimizer = torch.optim.Adam(parameters, lr=config.distill_lr, eps=config.adam_eps)
+    identity = model_identity(config.architecture, obs_shape, config.hidden, config.share_params)
+    parts = {"actor": actor_critic.actor, "critic": actor_critic.critic, "optimizer": optimizer,
+             "env": TeamKitchens(kitchen, 0)}
+    policy = GuidedPolicy(actor_critic.acting_policy(), ScriptedCook())
+
+    done_rounds, env_steps, rng = 0, 0, None
+    if resume:
+        state = load_checkpoint(checkpoint, map_location=config.device)
+        check_identity(state, identity)
+        for name, part in parts.items():
+            part.load_state_dict(state[name])
+        done_rounds, env_steps, rng = state["update"], state["env_steps"], state["rng"]
+    else:
+        start_fresh(run)
+    data = load_rounds(run, done_rounds)
+    run.mkdir(parents=True, exist_ok=True)
+    save_config(config, run / "config.yaml")
+    loggers = make_loggers(config, run, purge_step=env_steps + 1 if resume else None)
+    if done_rounds >= config.distill_rounds:
+        print(f"{run}: already distilled for {done_rounds} rounds; raise distill_rounds to go on")
+        return run
+
+    collector = make_collector(with_model_transforms(kitchen, actor_critic), policy, config.frames_per_batch)
+    if rng is not None:  # after the collector, whose construction runs the policy once
+        restore_rng_states(rng)
+    bar = tqdm(total=config.distill_rounds, initial=done_rounds, unit="round", disable=not config.progress,
+               dynamic_ncols=True)
+    try:
+        batches = iter(collector)
+        for round_ in range(done_rounds, config.distill_rounds):
+            policy.teacher_share = teacher_share(config, round_)
+            batch = next(batches)
+            env_steps += batch.numel()
+            deliveries = finished_episode_deliveries(batch)
+            compute_advantages(batch, actor_critic.critic, config, shaping_weight_at(config, env_steps))
+            data.append(kept(batch, actor_critic).memmap_(round_path(run, round_)))
+            for group in optimizer.param_groups:
+                group["lr"] = learning_rate(config, round_)
+            metrics = fit(actor_critic, optimizer, torch.cat(data), batch.select(*actor_critic.critic.in_keys,
+                                                                                    VALUE_TARGET, strict=False),
+                          config)
+            metrics["distill/teacher_share"] = policy.teacher_share
+            metrics["distill/kitchen_steps"] = sum(part.numel() for part in data)
+            metrics["charts/learning_rate"] = learning_rate(config, round_)
+            if len(deliveries):
+                metrics["charts/episode_deliveries"] = float(deliveries.float().mean())
+            for logger in loggers:
+                logger.log_metrics(metrics, step=env_steps)
+            save_checkpoint(checkpoint, {
+                "config": config.to_dict(), "model": identity,
+                **{name: part.state_dict() for name, part in parts.items()},
+                "algorithm": {}, "update": round_ + 1, "env_steps": env_steps, "rng": capture_rng_states(),
+            })  # fmt: skip
+            bar.update(1)
+            bar.set_postfix(agreement=f"{metrics['distill/agreement']:.2f}",
+                            deliveries=f"{metrics.get('charts/episode_deliveries', float('nan')):.2f}")
+            if on_round is not None and on_round(round_ + 1, metrics):
+                break
+    finally:
+        collector.shutdown()
+        bar.close()
+        for logger in loggers:
+            logger.close()
+    return run
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="kitchen-distill",
+        description="Distil the scripted cook into a team's networks by DAgger over its kitchens (a planner-guided "
+                    "start for kitchen-train's init_from). Overrides: any config key as key=value.",
+        epilog=config_help(TrainConfig),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("config", nargs="?", help="a YAML config (configs/...); omit it with --resume")
+    parser.add_argument("overrides", nargs="*", help="key=value config overrides")
+    parser.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its latest round")
+    args = parser.parse_args(argv)
+    try:
+        if args.resume:
+            overrides = [item for item in [args.config, *args.overrides] if item]
+            saved = Path(args.resume) / "config.yaml"
+            if not saved.is_file():
+                raise ConfigError(f"{args.resume} is not a run directory (no config.yaml in it)")
+            distill(load_config(saved, overrides), resume=True, run=Path(args.resume))
+        else:
+            if args.config is None:
+                raise ConfigError("give a config file (e.g. configs/ippo/ego_mlp_ik.yaml) or --resume RUN_DIR")
+            distill(load_config(args.config, args.overrides))
+    except (ConfigError, CheckpointError, ValueError) as error:
+        print(f"kitchen-distill: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("kitchen-distill: stopped; continue from the last round with --resume", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
