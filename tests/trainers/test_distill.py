@@ -1,5 +1,6 @@
 """The planner-guided start: DAgger from the scripted cook (`kitchen-distill`), then IPPO from it (`init_from`)."""
 
+import pytest
 import torch
 from tensordict import TensorDict
 from test_ippo import MAIN_CONFIG, read_metrics, tiny_config
@@ -59,3 +60,14 @@ def test_self_play_starts_from_the_distilled_team_and_resumes_without_it(tmp_pat
     (distilled / "checkpoints" / "latest.pt").unlink()  # a resumed run reads its own checkpoint only
     assert train_main(["--resume", str(run), "total_steps=128"]) == 0
     assert load_checkpoint(run)["update"] == 2
+
+
+@pytest.mark.parametrize("architecture", ["mlp_lstm", "gnn", "ego_mlp"])
+def test_any_architecture_distils_and_its_team_plays_as_a_trained_one(tmp_path, architecture):
+    """Recurrent models fit whole sequences; the checkpoint is a trained team's (`kitchen-eval`, `kitchen-play`)."""
+    from trainers.evaluate import load_team
+
+    run = distill(tiny_config(tmp_path, f"architecture={architecture}", "distill_rounds=2", "distill_epochs=1"))
+    team = load_team(run)
+    assert team.config.architecture == architecture
+    assert len(read_metrics(run)["distill/cross_entropy"]) == 2
