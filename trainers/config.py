@@ -139,9 +139,9 @@ class TrainConfig:
     distill_teacher_decay: float = option(
         0.5, "kitchen-distill: a seat takes the scripted cook's action with probability decay**round (round 0: always)"
     )
-    distill_epochs: int = option(2, "kitchen-distill: passes over all the rounds' data after each round")
+    distill_epochs: int = option(8, "kitchen-distill: passes over all the rounds' data after each round")
     distill_minibatch: int = option(4, "kitchen-distill: kitchens (whole sequences) per fitting step")
-    distill_lr: float = option(1e-3, "kitchen-distill: Adam's rate, annealed linearly over the rounds")
+    distill_lr: float = option(3e-3, "kitchen-distill: Adam's rate, annealed linearly over the rounds")
 
     # --- logging, checkpoints, final evaluation
     checkpoint_every: int = option(
