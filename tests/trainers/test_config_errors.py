@@ -315,6 +315,7 @@ def test_config_help_lists_every_key_with_type_default_and_meaning():
     assert "    levels: str | list[str] = infinite\n" in text and "    share_params: bool = true\n" in text
     groups = [line.strip() for line in text.splitlines() if line.startswith("  ") and not line.startswith("   ")]
     assert groups == ["run:", "environment:", "model:", "PPO:", "E3T (algorithm: e3t):",
+                      "planner-guided start (kitchen-distill, then init_from):",
                       "logging, checkpoints, final evaluation:"]  # fmt: skip
     assert "    layouts: list[str] = [cramped_room_7x7, " in config_help(EvalConfig)
 
