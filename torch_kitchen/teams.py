@@ -242,11 +242,11 @@ class StackedLoss:
         self.names = [name for name, _ in self.template.named_parameters()]
         self.prepare = prepare
 
-    def parameters(self) -> TensorDictBase:
-        """The teams' parameters stacked along the team dim, differentiably: gradients flow back to each team's."""
+    def parameters(self) -> dict[str, torch.Tensor]:
+        """The teams' parameters stacked along the team dim, by name, differentiably: gradients flow back to each
+        team's (or stop at these, `torch.autograd.grad`)."""
         by_team = [dict(loss.named_parameters()) for loss in self.losses]
-        stacked = {name: torch.stack([parameters[name] for parameters in by_team]) for name in self.names}
-        return TensorDict(stacked, batch_size=[len(self.losses)]).unflatten_keys(".")
+        return {name: torch.stack([parameters[name] for parameters in by_team]) for name in self.names}
 
     def _team_loss(self, parameters: TensorDictBase, minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
         if self.prepare is not None:
@@ -257,8 +257,12 @@ class StackedLoss:
             outputs = self.template(minibatch)
         return {key: value.mean() for key, value in outputs.items()}
 
-    def __call__(self, minibatches: TensorDictBase) -> dict[str, torch.Tensor]:
-        return torch.vmap(self._team_loss)(self.parameters(), minibatches)
+    def __call__(self, minibatches: TensorDictBase,
+                 parameters: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+        """Every team's loss outputs on its minibatch, [K] each, with `parameters` (default: `self.parameters()`)."""
+        stacked = self.parameters() if parameters is None else parameters
+        parameters = TensorDict(stacked, batch_size=[len(self.losses)]).unflatten_keys(".")
+        return torch.vmap(self._team_loss)(parameters, minibatches)
 
 
 class TeamTransform(Transform):

@@ -576,15 +576,35 @@ def learn_stacked(teams: Sequence[Team], step: Callable[[TensorDictBase], dict[s
 
 def stacked_step(teams: Sequence[Team], loss: StackedLoss, minibatches: TensorDictBase) -> dict[str, torch.Tensor]:
     """`ppo_step` of K teams at once on their minibatches [K, ...]: one loss (`StackedLoss`, the algorithm's
-    `process_minibatch` included) and one backward, then each team's clipped Adam step on its own gradients;
-    returns the losses, [K] each."""
-    losses = loss(minibatches)
-    total_loss(losses).sum().backward()  # the sum of the teams' losses: each team's weights get its own gradient
-    losses["grad_norm"] = torch.stack([apply_gradients(team) for team in teams])
-    for team in teams:
+    `process_minibatch` included) and one backward to the teams' stacked parameters, each team's gradient zeroed
+    where not finite and clipped to its own norm there (`clip_per_team`), then each team's Adam step; returns the
+    losses, [K] each."""
+    parameters = loss.parameters()
+    losses = loss(minibatches, parameters)
+    # The sum of the teams' losses: the gradient of each team's entry of a stacked parameter is its own loss's.
+    gradients = torch.autograd.grad(total_loss(losses).sum(), list(parameters.values()), allow_unused=True)
+    losses["grad_norm"] = clip_per_team([gradient for gradient in gradients if gradient is not None],
+                                        teams[0].config.max_grad_norm)
+    for index, team in enumerate(teams):
+        for parameter, gradient in zip(team.parameters, gradients, strict=True):
+            parameter.grad = None if gradient is None else gradient_for(parameter, [gradient[index]])
+        team.optimizer.step()
         for parameter in team.parameters:
             parameter.grad = None
     return losses
+
+
+def clip_per_team(gradients: list[torch.Tensor], max_norm: float) -> torch.Tensor:
+    """What `apply_gradients` does to one team's gradients before its Adam step, for K teams' gradients stacked
+    along a leading team dim, in place: non-finite entries zeroed, then each team's clipped to `max_norm` by their
+    joint norm (as `clip_grad_norm_`). Returns the K norms before clipping."""
+    for gradient in gradients:
+        gradient.nan_to_num_(0.0, 0.0, 0.0)
+    norms = torch.stack([gradient.flatten(1).norm(dim=1) for gradient in gradients]).norm(dim=0)
+    scale = (max_norm / (norms + 1e-6)).clamp(max=1.0)
+    for gradient in gradients:
+        gradient.mul_(scale.view(-1, *[1] * (gradient.dim() - 1)))
+    return norms
 
 
 def finish_update(team: Team, batch: TensorDictBase, stats: list[dict[str, torch.Tensor]],

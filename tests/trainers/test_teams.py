@@ -340,3 +340,22 @@ def test_a_collector_keeps_every_step_of_stacked_networks_whose_outputs_share_on
                 for step in range(4):
                     again = policy(batch[:, step].select(("agents", "observation")).clone())
                     torch.testing.assert_close(again["agents", "logits"], logits[:, step])
+
+
+def test_clipping_per_team_on_stacked_gradients_is_clip_grad_norm_of_each_team():
+    from trainers.ippo import clip_per_team
+
+    torch.manual_seed(0)
+    stacked = [torch.randn(3, 4, 5), torch.randn(3, 5) * 0.01, torch.randn(3, 2)]
+    stacked[0][1, 2, 3] = float("nan")  # team 1's: zeroed first, as apply_gradients does
+    teams = [[gradient[team].clone().nan_to_num_(0.0, 0.0, 0.0) for gradient in stacked] for team in range(3)]
+    norms = clip_per_team(stacked, max_norm=0.5)
+    for team, gradients in enumerate(teams):
+        parameters = [torch.nn.Parameter(torch.zeros_like(gradient)) for gradient in gradients]
+        for parameter, gradient in zip(parameters, gradients):
+            parameter.grad = gradient
+        norm = torch.nn.utils.clip_grad_norm_(parameters, 0.5)
+        torch.testing.assert_close(norms[team], norm)
+        for parameter, gradient in zip(parameters, stacked):
+            torch.testing.assert_close(gradient[team], parameter.grad)
+    assert (norms > 0.5).all()  # every team was clipped
