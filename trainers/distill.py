@@ -110,8 +110,8 @@ def fit(actor_critic: ActorCritic, optimizer: torch.optim.Optimizer, data: Tenso
     critic's squared error to the value targets of this round's `batch` [num_envs, T]; returns their means and the
     actor's agreement with the teacher's most likely action."""
     size = config.distill_minibatch
-    sums = torch.zeros(3)
-    count = 0
+    parameters = [parameter for group in optimizer.param_groups for parameter in group["params"]]
+    sums = []  # on the device, read once at the end
     with set_recurrent_mode(True):
         for _ in range(config.distill_epochs):
             for own, current in zip(minibatches(data, size), itertools.cycle(minibatches(batch, size))):
@@ -122,13 +122,11 @@ def fit(actor_critic: ActorCritic, optimizer: torch.optim.Optimizer, data: Tenso
                 value_error = (value - current.get(VALUE_TARGET)).pow(2).mean()
                 optimizer.zero_grad()
                 (imitation + config.value_coef * value_error).backward()
-                nn.utils.clip_grad_norm_([p for group in optimizer.param_groups for p in group["params"]],
-                                         config.max_grad_norm)
+                nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
                 optimizer.step()
                 agreement = (logits.argmax(-1) == probs.argmax(-1)).float().mean()
-                sums += torch.stack([imitation.detach(), value_error.detach(), agreement]).cpu()
-                count += 1
-    imitation, value_error, agreement = (sums / count).tolist()
+                sums.append(torch.stack([imitation.detach(), value_error.detach(), agreement]))
+    imitation, value_error, agreement = torch.stack(sums).mean(0).tolist()
     return {"distill/cross_entropy": imitation, "distill/value_error": value_error, "distill/agreement": agreement}
 
 
@@ -218,9 +216,10 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
             data.append(kept(batch, actor_critic).memmap_(round_path(run, round_)))
             for group in optimizer.param_groups:
                 group["lr"] = learning_rate(config, round_)
-            metrics = fit(actor_critic, optimizer, torch.cat(data), batch.select(*actor_critic.critic.in_keys,
-                                                                                    VALUE_TARGET, strict=False),
-                          config)
+            # Every round's data, from the memory-mapped files to the networks' device.
+            every_round = torch.cat(data).to(config.device)
+            metrics = fit(actor_critic, optimizer, every_round,
+                          batch.select(*actor_critic.critic.in_keys, VALUE_TARGET, strict=False), config)
             metrics["distill/teacher_share"] = policy.teacher_share
             metrics["distill/kitchen_steps"] = sum(part.numel() for part in data)
             metrics["charts/learning_rate"] = learning_rate(config, round_)

@@ -828,13 +828,12 @@ def train_teams(
             raise ConfigError(f"teams resumed together must be at the same update ({at}): resume them one by one")
         for team in teams:
             drop_csv_rows_after(team.run / "csv", team.env_steps)
-        policy.restack()
     else:
         for team in teams:
             start_fresh(team.run)
             if (start := team.config.init_path()) is not None:
                 start_from(team, start)
-        policy.restack()
+    policy.restack()  # the weights just loaded
     for team in teams:
         team.run.mkdir(parents=True, exist_ok=True)
         save_config(team.config, team.run / "config.yaml")
