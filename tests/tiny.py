@@ -14,6 +14,8 @@ TINY = [
     "progress=false",
     "eval_episodes=0",
     "levels=cramped_room_7x7",
+    "distill_kitchens=4",
+    "init_from=",  # from scratch, whatever the config starts from
 ]
 
 

@@ -39,6 +39,7 @@ class ConfigError(ValueError):
 
 LOGGERS = ("tensorboard", "csv", "wandb", "mlflow", "trackio")  # TorchRL's `get_logger` backends
 PARTNER_POLICIES = ("ego", "copy")
+PLANNER_START = "scripted_cook"  # init_from: start from the scripted cook, distilled into the run's folder
 GENERATED_LEVELS = ("infinite", "heldout")  # `levels` values that name generated levels rather than layouts
 # torch takes 64-bit seeds, but JAX (32-bit by default) keeps only a seed's low 32 bits: 2**32 + 5 would replay 5.
 MAX_SEED = 2**32 - 1
@@ -131,17 +132,22 @@ class TrainConfig:
 
     # --- planner-guided start (kitchen-distill, then init_from)
     init_from: str = option(
-        "", "a run directory whose latest checkpoint's weights start this run, e.g. a team distilled from the "
-            "scripted cook by kitchen-distill ({seed} stands for the team's seed); empty: start from scratch",
+        "", f'"{PLANNER_START}": distil the scripted cook first (kitchen-distill, into RUN/distilled) and start '
+            "from it; or a run directory whose latest checkpoint's weights start this run, e.g. one kitchen-distill "
+            "wrote ({seed} stands for the team's seed); empty: start from scratch",
         group="planner-guided start (kitchen-distill, then init_from)",
     )
-    distill_rounds: int = option(7, "kitchen-distill: DAgger rounds of num_envs x rollout_steps steps each")
+    distill_rounds: int = option(7, "kitchen-distill: DAgger rounds of distill_kitchens x rollout_steps steps each")
+    distill_kitchens: int = option(128, "kitchen-distill: kitchens rolled out at once in each round")
     distill_teacher_decay: float = option(
         0.5, "kitchen-distill: a seat takes the scripted cook's action with probability decay**round (round 0: always)"
     )
     distill_epochs: int = option(8, "kitchen-distill: passes over all the rounds' data after each round")
     distill_minibatch: int = option(4, "kitchen-distill: kitchens (whole sequences) per fitting step")
     distill_lr: float = option(3e-3, "kitchen-distill: Adam's rate, annealed linearly over the rounds")
+    distill_symmetries: bool = option(
+        True, "kitchen-distill: fit each minibatch under a random mirror image or quarter turn of its kitchens"
+    )
 
     # --- logging, checkpoints, final evaluation
     checkpoint_every: int = option(
@@ -215,8 +221,8 @@ class TrainConfig:
         _check_name(self.name)
         _check_seed(self.seed)
         counts = ["max_steps", "num_envs", "rollout_steps", "total_steps", "hidden", "epochs", "minibatches"]
-        _at_least(self, [*counts, "checkpoint_every", "threads", "teams", "distill_rounds", "distill_epochs",
-                          "distill_minibatch"], 1)
+        distilling = ["distill_rounds", "distill_kitchens", "distill_epochs", "distill_minibatch"]
+        _at_least(self, [*counts, "checkpoint_every", "threads", "teams", *distilling], 1)
         if self.seed + self.teams - 1 > MAX_SEED:
             raise ConfigError(f"teams={self.teams} from seed={self.seed} go past the largest seed, {MAX_SEED}")
         weights = ["entropy_coef", "value_coef", "predictor_coef", "shaping_weight"]
@@ -285,8 +291,11 @@ class TrainConfig:
                     f"name={self.name}: {path} is a file, not a folder (the run directory is {self.run_path})"
                 )
 
-    def init_path(self) -> Path | None:
-        """The run directory (or checkpoint file) `init_from` names for this seed; None: from scratch."""
+    def init_path(self, run: Path) -> Path | None:
+        """The run directory (or checkpoint file) whose weights start the run `run` of this seed; None: from
+        scratch. The planner-guided start is distilled into the run's own folder."""
+        if self.init_from == PLANNER_START:
+            return run / "distilled"
         return Path(self.init_from.replace("{seed}", str(self.seed))) if self.init_from else None
 
     def check_levels(self, allow_unsolvable: bool = False) -> list[str]:
@@ -538,6 +547,8 @@ def _merge(schema: type, merged: DictConfig, values: dict, source: str) -> DictC
         if key not in hints:
             raise unknown_key(schema, key, source)
         expected = hints[key]
+        if expected is str and value is None:  # `key=` on the command line: the empty string
+            value = ""
         if expected is int and isinstance(value, str | float) and not isinstance(value, bool):
             try:  # 2e6 is a float to YAML and a string to PyYAML; OmegaConf takes neither as an int
                 value = int(float(value)) if float(value).is_integer() else value

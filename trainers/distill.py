@@ -2,12 +2,14 @@
 
     kitchen-distill configs/ippo/ego_mlp_ik.yaml name=distill_ego_mlp_ik
     kitchen-train configs/ippo/ego_mlp_ik.yaml init_from=runs/distill_ego_mlp_ik/seed{seed}
+    kitchen-train configs/ippo/ego_mlp_ik.yaml init_from=scripted_cook    # both: distils into RUN/distilled first
 
-Round r rolls out the learner in `num_envs` kitchens for `rollout_steps` steps, both seats, where each seat takes
-the scripted cook's action instead of its own with probability `distill_teacher_decay ** r` (round 0: the cook
-alone, behaviour cloning). Every visited state is labelled with the cook's action distribution and kept: the
+Round r rolls out the learner in `distill_kitchens` kitchens for `rollout_steps` steps, both seats, where each
+seat takes the scripted cook's action instead of its own with probability `distill_teacher_decay ** r` (round 0:
+the cook alone, behaviour cloning). Every visited state is labelled with the cook's action distribution and kept: the
 data of every round, none dropped. Then the actor is fitted to all the labels by cross-entropy
-(`distill_epochs` passes), and the critic to the value targets of the round's own batch (GAE, as PPO's), so
+(`distill_epochs` passes, each minibatch under a random mirror image or quarter turn of its kitchens with
+`distill_symmetries`), and the critic to the value targets of the round's own batch (GAE, as PPO's), so
 that self-play starts with values for the policy it starts from.
 
 Logged (TensorBoard, CSV), checkpointed after every round and resumed (`--resume RUN_DIR`) as training is. A
@@ -18,6 +20,7 @@ team, and `init_from` starts IPPO from it. Any architecture distils (recurrent o
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import sys
 from collections.abc import Callable, Sequence
@@ -34,6 +37,7 @@ from jax_env import NUM_ACTIONS
 from torch_kitchen.cpu_kernels import accelerate_cpu
 from torch_kitchen.models import ACTION, LOGITS, OBSERVATION, VALUE, ActorCritic, make_actor_critic
 from torch_kitchen.scripted import ScriptedCook
+from torch_kitchen.symmetry import symmetries_of, transform_action_probs, transform_observation
 from trainers.checkpoint import (
     LATEST,
     CheckpointError,
@@ -98,6 +102,17 @@ def cross_entropy(logits: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
     return -(probs * torch.log_softmax(logits, dim=-1)).sum(-1).mean()
 
 
+def under_random_symmetry(data: TensorDictBase) -> TensorDictBase:
+    """`data`'s observations and the teacher's labels under one random symmetry of the kitchen
+    (`torch_kitchen.symmetry`): the same lesson in a mirrored kitchen."""
+    observation = data.get(OBSERVATION)
+    symmetry = int(torch.randint(symmetries_of(*observation.shape[-3:-1]), ()))
+    mirrored = data.clone(False)
+    mirrored.set(OBSERVATION, transform_observation(observation, symmetry))
+    mirrored.set(TEACHER_PROBS, transform_action_probs(data.get(TEACHER_PROBS), symmetry))
+    return mirrored
+
+
 def minibatches(data: TensorDictBase, size: int) -> list[TensorDictBase]:
     """`data` [K, T] in a random order of its kitchens, in minibatches of `size` kitchens (whole sequences)."""
     order = torch.randperm(data.shape[0], device=data.device)
@@ -107,14 +122,16 @@ def minibatches(data: TensorDictBase, size: int) -> list[TensorDictBase]:
 def fit(actor_critic: ActorCritic, optimizer: torch.optim.Optimizer, data: TensorDictBase,
         batch: TensorDictBase, config: TrainConfig) -> dict[str, float]:
     """`distill_epochs` passes of the actor's cross-entropy to the teacher over all the `data` [K, T], and of the
-    critic's squared error to the value targets of this round's `batch` [num_envs, T]; returns their means and the
-    actor's agreement with the teacher's most likely action."""
+    critic's squared error to the value targets of this round's `batch` [distill_kitchens, T]; returns their
+    means and the actor's agreement with the teacher's most likely action."""
     size = config.distill_minibatch
     parameters = [parameter for group in optimizer.param_groups for parameter in group["params"]]
     sums = []  # on the device, read once at the end
     with set_recurrent_mode(True):
         for _ in range(config.distill_epochs):
             for own, current in zip(minibatches(data, size), itertools.cycle(minibatches(batch, size))):
+                if config.distill_symmetries:
+                    own = under_random_symmetry(own)
                 logits = actor_critic.actor(own.clone(False)).get(LOGITS)
                 probs = own.get(TEACHER_PROBS)
                 imitation = cross_entropy(logits, probs)
@@ -169,7 +186,7 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
         raise ConfigError(f"{run} already holds a run; resume it with `kitchen-distill --resume {run}`, or choose "
                           "another name=, seed= or run_dir=")
 
-    kitchen = make_env(config)
+    kitchen = make_env(config, num_envs=config.distill_kitchens)
     obs_shape = kitchen.kitchen.obs_shape
     actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
     if torch.device(config.device).type == "cpu":
@@ -200,7 +217,8 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
         print(f"{run}: already distilled for {done_rounds} rounds; raise distill_rounds to go on")
         return run
 
-    collector = make_collector(with_model_transforms(kitchen, actor_critic), policy, config.frames_per_batch)
+    collector = make_collector(with_model_transforms(kitchen, actor_critic), policy,
+                               config.distill_kitchens * config.rollout_steps)
     if rng is not None:  # after the collector, whose construction runs the policy once
         restore_rng_states(rng)
     bar = tqdm(total=config.distill_rounds, initial=done_rounds, unit="round", disable=not config.progress,
@@ -243,6 +261,13 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
         for logger in loggers:
             logger.close()
     return run
+
+
+def distill_start(config: TrainConfig, run: Path) -> Path:
+    """The planner-guided start of a training run (`init_from: scripted_cook`): distils the scripted cook with
+    the run's config into `run`, or finishes a distillation stopped there."""
+    resume = (run / "checkpoints" / LATEST).exists()
+    return distill(dataclasses.replace(config, init_from=""), resume=resume, run=run)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

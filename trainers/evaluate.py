@@ -493,16 +493,17 @@ def evaluate(config: EvalConfig) -> Path:
 
 def report_trained_team(run: str | Path, episodes: int | None = None, num_heldout: int | None = None) -> Path:
     """The self-play evaluation of a finished run, into the run directory: eval.md, pairs.csv, learning_curve.png, a
-    team.gif."""
+    team.gif (at home; a held-out level for a team of generated kitchens, where the table has one)."""
     run = Path(run)
     team = load_team(run)
     config = team.config
     seven_by_seven = team.obs_shape[:2] == (7, 7)  # the held-out levels are 7x7
     layouts = sorted(team.home) if team.home else list(EXPANDED_LAYOUTS)
+    num_heldout = (config.eval_heldout if num_heldout is None else num_heldout) if seven_by_seven else 0
     out = evaluate(EvalConfig(
         conditions={team.condition: str(run)},
         layouts=layouts,
-        heldout=(config.eval_heldout if num_heldout is None else num_heldout) if seven_by_seven else 0,
+        heldout=num_heldout,
         rollouts=episodes or config.eval_episodes,
         max_steps=config.max_steps,
         seed=config.seed, device=config.device, threads=config.threads, progress=False,
@@ -515,7 +516,8 @@ def report_trained_team(run: str | Path, episodes: int | None = None, num_heldou
     if curve := draw_learning_curve(run):
         print(f"learning curve: {curve}")
     if config.gif:
-        print(f"gif: {record_gif(team, team, layouts[0], run / 'team.gif', config.max_steps, config.seed)}")
+        grid = evaluation_grids([], 1)[0] if num_heldout and not team.home else load_layout(layouts[0])
+        print(f"gif: {record_gif(team, team, grid, run / 'team.gif', config.max_steps, config.seed)}")
     return out / "eval.md"
 
 

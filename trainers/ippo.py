@@ -64,7 +64,7 @@ from trainers.checkpoint import (
     restore_rng_states,
     save_checkpoint,
 )
-from trainers.config import ConfigError, TrainConfig, config_help, load_config, save_config
+from trainers.config import PLANNER_START, ConfigError, TrainConfig, config_help, load_config, save_config
 from trainers.machine import usable_cores
 from trainers.rollout import finished_episode_deliveries, make_collector
 
@@ -831,7 +831,11 @@ def train_teams(
     else:
         for team in teams:
             start_fresh(team.run)
-            if (start := team.config.init_path()) is not None:
+            if (start := team.config.init_path(team.run)) is not None:
+                if team.config.init_from == PLANNER_START:
+                    from trainers.distill import distill_start  # distillation builds on this module
+
+                    distill_start(team.config, start)
                 start_from(team, start)
     policy.restack()  # the weights just loaded
     for team in teams:

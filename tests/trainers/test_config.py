@@ -51,9 +51,11 @@ def test_a_regime_chosen_on_the_command_line_replaces_the_files(regime):
 
 def test_a_regime_on_the_command_line_comes_after_the_file_and_before_the_keys():
     main = load_config(CONFIG_DIR / "main.yaml")
-    assert (main.levels, main.hidden, main.share_params) == ("cramped_room_7x7", 64, True)  # the file's own width
+    assert (main.levels, main.hidden, main.share_params) == ("infinite", 128, True)  # the file's own width
     ik = load_config(CONFIG_DIR / "main.yaml", ["regime=ik"])
     assert (ik.levels, ik.hidden, ik.share_params, ik.lr) == ("infinite", 256, True, main.lr)
+    sk = load_config(CONFIG_DIR / "main.yaml", ["regime=sk_forced_coord"])
+    assert (sk.levels, sk.hidden, sk.share_params, sk.init_from) == ("forced_coord_7x7", 128, False, main.init_from)
     assert load_config(CONFIG_DIR / "main.yaml", ["hidden=64", "regime=ik"]).hidden == 64
     with pytest.raises(ConfigError, match=r"^regime in the command line must be one of ik, sk_asymm_advantages, "
                                           r"sk_coord_ring, sk_counter_circuit, sk_cramped_room, sk_forced_coord, "

@@ -53,13 +53,24 @@ def test_self_play_starts_from_the_distilled_team_and_resumes_without_it(tmp_pat
         assert not all(torch.allclose(mine, theirs) for mine, theirs in
                        zip(weights.values(), load_checkpoint(scratch)[part].values()))
 
-    other_model = [MAIN_CONFIG, *TINY, f"run_dir={tmp_path / 'other'}", init_from, "seed=1", "hidden=8"]
+    other_model = [MAIN_CONFIG, *TINY, f"run_dir={tmp_path / 'other'}", init_from, "seed=1", "architecture=mlp",
+                   "hidden=8"]
     assert train_main(other_model) == 2
     assert "holds another model (hidden: checkpoint 16, expected 8)" in capsys.readouterr().err
 
     (distilled / "checkpoints" / "latest.pt").unlink()  # a resumed run reads its own checkpoint only
     assert train_main(["--resume", str(run), "total_steps=128"]) == 0
     assert load_checkpoint(run)["update"] == 2
+
+
+def test_a_run_from_the_scripted_cook_distils_its_start_into_its_own_folder_first(tmp_path):
+    config = tiny_config(tmp_path, *ROUNDS, "init_from=scripted_cook", "lr=1e-12", "anneal_lr=false", updates=1)
+    run = train(config)
+    distilled = run / "distilled"
+    assert load_checkpoint(distilled)["update"] == 3  # every round
+    for part in ("actor", "critic"):
+        torch.testing.assert_close(load_checkpoint(run)[part], load_checkpoint(distilled)[part], rtol=0, atol=1e-9)
+    assert read_metrics(distilled)["distill/teacher_share"][0][1] == 1.0
 
 
 @pytest.mark.parametrize("architecture", ["mlp_lstm", "gnn", "ego_mlp"])

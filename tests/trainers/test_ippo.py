@@ -19,6 +19,7 @@ from torchrl.envs.utils import set_exploration_type
 from torchrl.modules import set_recurrent_mode
 
 import trainers.ippo
+from jax_env import EXPANDED_LAYOUTS
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
 from trainers.algorithms import ALGORITHMS, IPPO, register_algorithm
@@ -58,11 +59,16 @@ def read_metrics(run: Path) -> dict[str, list[tuple[float, float]]]:
 
 
 def test_the_entry_point_trains_checkpoints_logs_and_evaluates(tmp_path, capsys):
-    overrides = [o for o in TINY if not o.startswith(("eval_episodes", "levels"))]
-    argv = [MAIN_CONFIG, *overrides, f"run_dir={tmp_path}", "total_steps=128", "eval_episodes=2", "eval_heldout=1"]
+    """The main job's pipeline, tiny: the scripted cook distilled into the run's folder, self-play from it on
+    generated kitchens, the final table on a held-out level and the classics."""
+    overrides = [o for o in TINY if not o.startswith(("eval_episodes", "levels", "init_from"))]
+    argv = [MAIN_CONFIG, *overrides, f"run_dir={tmp_path}", "total_steps=128", "eval_episodes=2", "eval_heldout=1",
+            "distill_rounds=2", "distill_epochs=1"]
     assert main(argv) == 0
     run = tmp_path / "main" / "seed0"
-    assert load_config(run / "config.yaml").levels == "cramped_room_7x7"
+    config = load_config(run / "config.yaml")
+    assert (config.levels, config.init_from) == ("infinite", "scripted_cook")
+    assert load_checkpoint(run / "distilled")["update"] == 2
     state = load_checkpoint(run)
     assert (state["update"], state["env_steps"]) == (2, 128)
 
@@ -79,7 +85,7 @@ def test_the_entry_point_trains_checkpoints_logs_and_evaluates(tmp_path, capsys)
     assert lr[0] == pytest.approx(base_lr) and lr[1] == pytest.approx(base_lr / 2)  # annealed linearly
 
     table = (run / "eval.md").read_text()
-    layouts = ["cramped_room_7x7"]  # the team's home, beside the held-out levels it never trained on
+    layouts = list(EXPANDED_LAYOUTS)  # a team of generated kitchens: the classics beside held-out levels
     for group in [*layouts, "held-out (1)"]:
         assert f"| main | {group} |" in table
     assert "with the scripted cook |" in table  # a partner outside its training, in either seat
@@ -163,7 +169,7 @@ def test_bad_runs_and_checkpoints_get_a_clear_message(tmp_path, capsys):
     assert "unknown config key 'lrr' in the command line (did you mean 'lr'?)" in capsys.readouterr().err
 
     assert main([MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "algorithm=e3t"]) == 2
-    assert "algorithm=e3t needs a model with a partner predictor, and 'mlp' has none" in capsys.readouterr().err
+    assert "algorithm=e3t needs a model with a partner predictor, and 'ego_mlp' has none" in capsys.readouterr().err
     assert main([MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "architecture=e3t_mlp"]) == 2
     assert "'e3t_mlp' carries E3T's partner predictor, which only algorithm=e3t trains" in capsys.readouterr().err
     assert main([MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "partner_policy=past"]) == 2
