@@ -1,15 +1,17 @@
 """IPPO from scratch against the planner-guided learner on the Infinite Kitchen, same config and seeds: deliveries
 on held-out levels (self-play, cross-play between seeds, with the scripted cook) against env steps and CPU minutes.
 
-The planner-guided learner first distils the scripted cook (`kitchen-distill`: DAgger, its default rounds) and
-then trains IPPO from it (`init_from`); the other trains IPPO from scratch. Both train `--config` for `--budget`
+The planner-guided learner first distils the scripted cook (`kitchen-distill`: DAgger, the config's rounds) and
+then trains IPPO from it (`init_from`); the other trains IPPO from scratch, whatever the config starts from. Both
+train `--config` (default: the main job's) for `--budget`
 IPPO steps into `--runs/<learner>/`, one run after the other, keeping a snapshot of the team every `--every`
 updates with the env steps and the CPU minutes spent so far (this process's, distillation's included; the
 distilled team itself is the first snapshot). Then every snapshot taken by all seeds plays `--rollouts` episodes
-on each of the first `--heldout` held-out levels, and the table goes to stdout and `--out`.
+on each of the first `--heldout` held-out levels; the table goes to stdout and `--out`, the curves against CPU
+minutes to `--figure`.
 
-    python benchmarks/planner_start.py --budget 4194304 --every 128 --seeds 0 1 --heldout 100 \
-        --out benchmarks/results/planner_start_cpu.md
+    python benchmarks/planner_start.py --budget 1572864 --every 48 --seeds 0 1 --heldout 20 --rollouts 2 \
+        --out benchmarks/results/planner_start_cpu.md --figure docs/planner_start_cpu.png
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ def snapshot(run: Path, env_steps: int, minutes: float, into: dict) -> None:
 def train_learner(learner: str, seed: int, args) -> dict[int, tuple[Path, float]]:
     """Trains one learner's team of `seed`; returns its snapshots: env steps -> (checkpoint, CPU minutes)."""
     overrides = [*args.overrides, f"seed={seed}", f"total_steps={args.budget}", f"checkpoint_every={args.every}",
-                 f"run_dir={args.runs / learner}", "eval_episodes=0", "progress=false"]
+                 f"run_dir={args.runs / learner}", "eval_episodes=0", "progress=false", "init_from="]
     snapshots, started = {}, time.process_time()
     if learner == "planner":
         distilled = distill(load_config(args.config, [*overrides, "name=distilled"]))
@@ -101,9 +103,32 @@ def table(rows: list[dict], args) -> str:
     return "\n".join(lines) + "\n"
 
 
+def draw_curves(rows: list[dict], path: Path) -> Path:
+    """SP, XP and play with the scripted cook on the held-out levels against CPU minutes, one line per learner."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    kinds = {"SP": "self-play", "XP": "cross-play between seeds", "partner": "with the scripted cook"}
+    figure, axes = plt.subplots(1, len(kinds), figsize=(12, 3.4), sharey=True)
+    for axis, (kind, title) in zip(axes, kinds.items()):
+        for learner in LEARNERS:
+            points = sorted((row["CPU minutes"], row[kind]) for row in rows if row["learner"] == learner)
+            axis.plot(*zip(*points), marker="o", label=learner)
+        axis.set(title=title, xlabel="CPU minutes")
+        axis.grid(alpha=0.3)
+    axes[0].set_ylabel("deliveries per episode, held-out levels")
+    axes[0].legend()
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--config", type=Path, default=ROOT / "configs" / "ippo" / "ego_mlp_ik.yaml")
+    parser.add_argument("--config", type=Path, default=ROOT / "configs" / "main.yaml")
     parser.add_argument("--budget", type=int, default=4_194_304, help="IPPO env steps per run")
     parser.add_argument("--every", type=int, default=128, help="updates between snapshots")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
@@ -112,14 +137,18 @@ def main(argv=None) -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--runs", type=Path, default=ROOT / "runs" / "planner_start")
     parser.add_argument("--out", type=Path, help="also write the table here")
+    parser.add_argument("--figure", type=Path, help="draw the curves against CPU minutes here (PNG)")
     parser.add_argument("overrides", nargs="*", help="key=value config overrides for both learners")
     args = parser.parse_args(argv)
     args.config = args.config.resolve()
     snapshots = {learner: [train_learner(learner, seed, args) for seed in args.seeds] for learner in LEARNERS}
-    text = table(evaluate_snapshots(snapshots, args), args)
+    rows = evaluate_snapshots(snapshots, args)
+    text = table(rows, args)
     print(text)
     if args.out:
         args.out.write_text(text)
+    if args.figure:
+        print(f"wrote {draw_curves(rows, args.figure)}")
 
 
 if __name__ == "__main__":

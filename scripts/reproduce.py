@@ -5,9 +5,11 @@ RESULTS.md with the numbers beside the paper's claims.
     python scripts/reproduce.py configs/protocols/paper.yaml        # the paper's budget, on a GPU
     python scripts/reproduce.py configs/protocols/reduced.yaml --out results/reduced --results RESULTS.md
 
-A protocol file names the conditions (a trainer config each), the overrides they share, the seeds trained
-together per condition (`teams`), the families compared (an IK condition and the SK conditions of the same
-architecture, which it cross-plays), and the evaluation's sizes.
+A protocol file names the conditions (a trainer config each, or a config and the condition's own overrides,
+applied after the shared ones), the overrides they share, the seeds trained together per condition (`teams`),
+the families compared (an IK condition and the SK conditions of the same architecture and learner, which it
+cross-plays; `learner` says how they learn, `paper` whose of the paper's figures apply), further pairs to
+cross-play (`cross`), and the evaluation's sizes.
 Training writes `<out>/runs/<condition>/seed<k>`; a condition already trained is skipped and one that stopped
 part-way is resumed, so an interrupted reproduction continues where it stopped. Extra `key=value` arguments
 override every condition (e.g. `total_steps=1e5` for a smoke run). The evaluation (`kitchen-eval`'s code) goes to
@@ -37,6 +39,20 @@ HELDOUT = "held-out"
 PAPER_STEPS = 2e9  # env steps per team in the paper
 # Deliveries in cross-play on held-out levels the paper reports for IK teams at 2e9 steps (Fig. 7), per family.
 PAPER_HELDOUT_XP = {"MLP": 9, "GNN": 10}
+
+
+SCRATCH = "IPPO from scratch"  # the paper's learner, a family's unless it names another
+
+
+def condition_entry(entry: str | dict) -> tuple[str, list[str]]:
+    """A protocol's condition -> (its trainer config, its own overrides): a path, or {config:, overrides:}, where
+    overrides may hold lists (a YAML alias to another condition's) that count as their items."""
+    if isinstance(entry, str):
+        return entry, []
+    overrides = []
+    for item in entry.get("overrides", []):
+        overrides += item if isinstance(item, list) else [item]
+    return entry["config"], overrides
 
 
 def train_condition(name: str, path: str, overrides: list[str], teams: int, runs: Path) -> None:
@@ -70,10 +86,12 @@ def value(summary: dict, condition: str, grids: str, key: str) -> float:
     return float(row[key]) if row is not None and row[key] != "" else math.nan
 
 
-def claims(summary: dict, family: str, ik: str, sk: dict[str, str], budget: int) -> list[str]:
-    """Markdown rows: each of the paper's claims for one family (an IK condition, layout -> its SK condition), what
-    came out here, and whether it holds at this budget (env steps per team). A family without SK conditions has
-    only its held-out claim."""
+def claims(summary: dict, family: str, ik: str, sk: dict[str, str], budget: int, learner: str = SCRATCH,
+           paper: str | None = None) -> list[str]:
+    """Markdown rows: each of the paper's claims for one family (an IK condition, layout -> its SK condition) and
+    the learner it was tested under, what came out here, and whether it holds at this budget (env steps per team).
+    A family without SK conditions has only its held-out claim; `paper`: the paper's family whose held-out figure
+    applies (default: this one's name)."""
     heldout = next((grids for _, grids in summary if grids.startswith(HELDOUT)), None)
     rows = []
     if sk:
@@ -87,8 +105,8 @@ def claims(summary: dict, family: str, ik: str, sk: dict[str, str], budget: int)
             rows.append(("SK scores 0 on generated levels, even in self-play (Fig. 7)",
                          f"SK self-play on {heldout}: {min(sk_sp):.2f} to {max(sk_sp):.2f}",
                          "holds" if max(sk_sp) < 0.5 else "does not hold"))
-    if heldout and family in PAPER_HELDOUT_XP:
-        paper, ik_heldout = PAPER_HELDOUT_XP[family], value(summary, ik, heldout, "xp")
+    if heldout and (paper or family) in PAPER_HELDOUT_XP:
+        paper, ik_heldout = PAPER_HELDOUT_XP[paper or family], value(summary, ik, heldout, "xp")
         at_paper_budget = ("holds" if ik_heldout >= paper - 1 else "does not hold") if budget >= PAPER_STEPS else (
             f"{budget:.1e} steps, not 2e9: not comparable")
         rows.append((f"IK reaches about {paper} deliveries in cross-play on held-out levels at 2e9 steps (Fig. 7)",
@@ -100,7 +118,7 @@ def claims(summary: dict, family: str, ik: str, sk: dict[str, str], budget: int)
         rows.append(("The SP - XP gap is smaller for IK (Fig. 3b)",
                      f"mean gap IK {sum(ik_gap) / len(ik_gap):.2f}, SK {sum(sk_gap) / len(sk_gap):.2f}",
                      f"smaller on {smaller} of {len(sk)} layouts"))
-    return [f"| {family} | {claim} | {ours} | {verdict} |" for claim, ours, verdict in rows]
+    return [f"| {family} | {learner} | {claim} | {ours} | {verdict} |" for claim, ours, verdict in rows]
 
 
 def main(argv=None) -> int:
@@ -117,27 +135,31 @@ def main(argv=None) -> int:
     out = Path(args.out)
     overrides = [*protocol.get("overrides", []), *args.overrides]
     teams, conditions = args.teams or protocol["teams"], protocol["conditions"]
-    families = {  # family -> (its IK condition, layout -> its SK condition)
-        family: (members["ik"], {load_config(conditions[name]).levels: name for name in members["sk"]})
+    entries = {name: condition_entry(entry) for name, entry in conditions.items()}
+    families = {  # family -> (its IK condition, layout -> its SK condition, its learner, the paper's family)
+        family: (members["ik"],
+                 {load_config(entries[name][0], entries[name][1]).levels: name for name in members["sk"]},
+                 members.get("learner", SCRATCH), members.get("paper"))
         for family, members in protocol["families"].items()
     }
 
     seconds = {}
-    for name, path in conditions.items():
-        print(f"== {name}: {teams} teams, {path} {' '.join(overrides)}", flush=True)
+    for name, (path, own) in entries.items():
+        print(f"== {name}: {teams} teams, {path} {' '.join([*overrides, *own])}", flush=True)
         try:
-            train_condition(name, path, overrides, teams, out / "runs")
+            train_condition(name, path, [*overrides, *own], teams, out / "runs")
         except RunStopped as error:
             print(f"reproduce: {name}: {error}; run the same command again to continue", file=sys.stderr)
             return error.exit_code
         seconds[name] = logged_training_seconds(out / "runs" / name)
     evaluation = {**protocol.get("evaluation", {}),
                   **{key: getattr(args, key) for key in ("rollouts", "heldout") if getattr(args, key) is not None}}
-    shared = load_config(next(iter(conditions.values())), overrides)  # what every condition shares: budget, device
+    shared = load_config(entries[next(iter(conditions))][0], overrides)  # what every condition shares: budget, device
     device = shared.device
     eval_config = EvalConfig(
         conditions={name: str(out / "runs" / name / "seed*") for name in conditions},
-        cross=[[ik, name] for ik, sk in families.values() for name in sk.values()],
+        cross=[*([ik, name] for ik, sk, _, _ in families.values() for name in sk.values()),
+               *protocol.get("cross", [])],
         layouts=list(EXPANDED_LAYOUTS), heldout=evaluation["heldout"],
         rollouts=evaluation["rollouts"], max_steps=evaluation.get("max_steps", 256),
         heatmaps=evaluation.get("heatmaps", []), device=device,
@@ -170,6 +192,7 @@ def main(argv=None) -> int:
         "budget comes first: read the training curves of the runs (`tensorboard --logdir "
         f"{out / 'runs'}`) before the claim.",
         f"- **Shared overrides:** `{' '.join(overrides)}`.",
+        *(f"- **{name}** adds `{' '.join(own)}`." for name, (_, own) in entries.items() if own),
         f"- **Machine:** {machine}. **Time:** {sum(seconds.values()) / 60:.0f} min in all; "
         + ", ".join(f"{name} {s / 60:.1f} min" for name, s in seconds.items())
         + " (training from the runs' logs: collection and updates; evaluation: its wall time).",
@@ -179,9 +202,10 @@ def main(argv=None) -> int:
         "",
         "## The paper's claims, here",
         "",
-        "| family | claim | here | at this budget |",
-        "|---|---|---|---|",
-        *(row for family, (ik, sk) in families.items() for row in claims(summary, family, ik, sk, shared.total_steps)),
+        "| family | learner | claim | here | at this budget |",
+        "|---|---|---|---|---|",
+        *(row for family, (ik, sk, learner, paper) in families.items()
+          for row in claims(summary, family, ik, sk, shared.total_steps, learner, paper)),
         "",
         "## Self-play, cross-play and the scripted partner",
         "",

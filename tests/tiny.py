@@ -40,3 +40,15 @@ def _infinite_observations(count: int, seed: int, steps: int):
         key, act = jax.random.split(key)
         obs, states, *_ = env.step_batch(key, states, jax.random.randint(act, (count, 2), 0, 6))
     return torch.from_numpy(np.array(obs))
+
+
+@functools.cache
+def script_module(name: str):
+    """A script of scripts/ (a folder of scripts, not a package) as a module, loaded from its file."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

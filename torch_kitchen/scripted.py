@@ -73,9 +73,19 @@ def distance_to(targets: torch.Tensor, walkable: torch.Tensor) -> torch.Tensor:
     return distance_from(walkable & _beside(targets), walkable)
 
 
+MOVE_ORDER = "NSEW"  # the move a cook takes where several are equally short: the first of them in this order
+
+
 class ScriptedCook(nn.Module):
     """uint8 observations [..., 2, H, W, 26] -> logits [..., 2, 6]: each seat's planned action with certainty, or
-    uniform logits where it is stuck."""
+    uniform logits where it is stuck. `move_order`: its preference among equally short moves, a permutation of
+    "NSEW" (cooks with different orders keep different conventions, e.g. which way round a table)."""
+
+    def __init__(self, move_order: str = MOVE_ORDER):
+        super().__init__()
+        if sorted(move_order) != sorted(MOVE_ORDER):
+            raise ValueError(f"move_order must be a permutation of {MOVE_ORDER!r}, got {move_order!r}")
+        self.move_order = [MOVE_ORDER.index(direction) for direction in move_order]
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         batch_shape = observation.shape[:-3]
@@ -146,7 +156,9 @@ class ScriptedCook(nn.Module):
         def next_step(distance):  # the move towards a lower distance, and whether there is one
             here = (distance * me).sum((-2, -1), keepdim=True)[:, :, 0]
             downhill = around_me(distance, UNREACHABLE) == here - 1
-            return downhill.float().argmax(1), (here[:, 0] < UNREACHABLE) & downhill.any(1)
+            order = torch.tensor(self.move_order, device=distance.device)
+            move = order[downhill[:, order].float().argmax(1)]  # the first downhill move in the cook's order
+            return move, (here[:, 0] < UNREACHABLE) & downhill.any(1)
 
         tile = around_me(goal.float(), 0.0).argmax(1)  # where the goal's tile lies, once beside it
         facing = (obs[..., Channel.SELF_FACING:Channel.SELF_FACING + 4] * me[..., None]).sum((1, 2)).argmax(1)

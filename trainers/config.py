@@ -145,6 +145,10 @@ class TrainConfig:
     distill_epochs: int = option(8, "kitchen-distill: passes over all the rounds' data after each round")
     distill_minibatch: int = option(4, "kitchen-distill: kitchens (whole sequences) per fitting step")
     distill_lr: float = option(3e-3, "kitchen-distill: Adam's rate, annealed linearly over the rounds")
+    distill_move_order: str = option(
+        "NSEW", "kitchen-distill: the scripted cook's choice among equally short moves, the first in this order (a "
+                "permutation of NSEW; cooks with other orders keep other conventions)"
+    )
     distill_symmetries: bool = option(
         True, "kitchen-distill: fit each minibatch under a random mirror image or quarter turn of its kitchens"
     )
@@ -227,6 +231,8 @@ class TrainConfig:
             raise ConfigError(f"teams={self.teams} from seed={self.seed} go past the largest seed, {MAX_SEED}")
         weights = ["entropy_coef", "value_coef", "predictor_coef", "shaping_weight"]
         _at_least(self, ["eval_episodes", "shaping_anneal_steps", "parallel_teams", "minibatch_shards", *weights], 0)
+        if sorted(self.distill_move_order) != sorted("NSEW"):
+            raise ConfigError(f"distill_move_order must be a permutation of NSEW, got {self.distill_move_order!r}")
         for name in ("lr", "adam_eps", "clip_epsilon", "max_grad_norm", "distill_lr"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be greater than 0, got {getattr(self, name)}")

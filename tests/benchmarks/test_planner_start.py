@@ -4,6 +4,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from PIL import Image  # noqa: E402
 from planner_start import main  # noqa: E402
 from tiny import TINY  # noqa: E402
 
@@ -15,7 +16,8 @@ def test_both_learners_train_the_same_seeds_and_every_snapshot_is_evaluated(tmp_
     snapshots every update; each row holds SP, XP between the two seeds and play with the scripted cook."""
     out = tmp_path / "table.md"
     main(["--budget", "128", "--every", "1", "--seeds", "0", "1", "--heldout", "1", "--rollouts", "1",
-          "--runs", str(tmp_path / "runs"), "--out", str(out), *TINY, "distill_rounds=2", "distill_epochs=1"])
+          "--runs", str(tmp_path / "runs"), "--out", str(out), "--figure", str(tmp_path / "curves.png"), *TINY,
+          "distill_rounds=2", "distill_epochs=1"])
     rows = [line.split("|")[1:-1] for line in out.read_text().splitlines() if line.startswith("| ")]
     learners_steps = [(cells[0].strip(), cells[1].strip()) for cells in rows[1:]]
     assert learners_steps == [("scratch", "64"), ("scratch", "128"), ("planner", "0"), ("planner", "64"),
@@ -31,3 +33,5 @@ def test_both_learners_train_the_same_seeds_and_every_snapshot_is_evaluated(tmp_
     assert f"init_from: {tmp_path / 'runs' / 'planner' / 'distilled' / 'seed1'}" in (ippo / "config.yaml").read_text()
     assert planner_start["update"] == 2  # the distilled team: 2 rounds
     assert "| learner | env steps |" in capsys.readouterr().out
+    with Image.open(tmp_path / "curves.png") as curves:
+        assert curves.width > curves.height > 100

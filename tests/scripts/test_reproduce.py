@@ -1,17 +1,14 @@
 """The reproduction command end to end at a tiny budget: it trains, evaluates, writes RESULTS.md, and resumes."""
 
-import importlib.util
 from pathlib import Path
 
 import yaml
+from tiny import script_module
 
 from trainers.config import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
-# scripts/ is a folder of scripts, not a package: load the module from its file.
-spec = importlib.util.spec_from_file_location("reproduce", ROOT / "scripts" / "reproduce.py")
-reproduce = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(reproduce)
+reproduce = script_module("reproduce")
 
 TINY = ["hidden=8", "num_envs=4", "rollout_steps=16", "max_steps=16", "total_steps=128", "epochs=1",
         "minibatches=2", "checkpoint_every=1", "eval_episodes=0", "progress=false", "loggers=[csv]"]
@@ -21,8 +18,12 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     protocol = {
         "teams": 2, "overrides": TINY,
         "conditions": {"ik": str(ROOT / "configs/ippo/mlp_ik.yaml"),
-                       "sk_cramped": str(ROOT / "configs/ippo/mlp_sk_cramped_room.yaml")},
-        "families": {"MLP": {"ik": "ik", "sk": ["sk_cramped"]}},
+                       "sk_cramped": str(ROOT / "configs/ippo/mlp_sk_cramped_room.yaml"),
+                       "guided_sk": {"config": str(ROOT / "configs/ippo/mlp_ik.yaml"),
+                                     "overrides": ["regime=sk_cramped_room", "hidden=4"]}},
+        "families": {"MLP": {"ik": "ik", "sk": ["sk_cramped"]},
+                     "MLP guided": {"ik": "ik", "sk": ["guided_sk"], "learner": "guided", "paper": "MLP"}},
+        "cross": [["sk_cramped", "guided_sk"]],
         "evaluation": {"heldout": 1, "rollouts": 1, "max_steps": 16},
     }  # fmt: skip
     path = tmp_path / "protocol.yaml"
@@ -31,18 +32,23 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     argv = [str(path), "--out", str(out), "--results", str(results)]
     assert reproduce.main(argv) == 0
 
-    for condition in ("ik", "sk_cramped"):
+    for condition in ("ik", "sk_cramped", "guided_sk"):
         for seed in (0, 1):
             run = out / "runs" / condition / f"seed{seed}"
             assert (run / "checkpoints" / "latest.pt").is_file()
             assert load_config(run / "config.yaml").seed == seed
+    guided = load_config(out / "runs" / "guided_sk" / "seed0" / "config.yaml")  # its own overrides, after TINY's
+    assert (guided.levels, guided.hidden, guided.total_steps) == ("cramped_room_7x7", 4, 128)
     report = results.read_text()
-    assert "| MLP | IK beats SK in cross-play on the 5 layouts (Fig. 3a) | cramped_room" in report
+    assert "| MLP | IPPO from scratch | IK beats SK in cross-play on the 5 layouts (Fig. 3a) | cramped_room" in report
+    assert "| MLP guided | guided | IK beats SK in cross-play on the 5 layouts (Fig. 3a) | cramped_room" in report
+    assert "- **guided_sk** adds `regime=sk_cramped_room hidden=4`." in report
     assert "SK scores 0 on generated levels" in report and "with the scripted cook" in report
     assert "128 env steps per team (2 updates of 4 kitchens x 16 steps), 2 teams" in report
     assert (tmp_path / "docs" / "results").is_dir() and "![" in report
     summary = reproduce.read_summary(out / "eval" / "summary.csv")
-    assert ("ik x sk_cramped", "cramped_room_7x7") in summary
+    assert ("ik x sk_cramped", "cramped_room_7x7") in summary and ("guided_sk x ik", "cramped_room_7x7") in summary
+    assert ("guided_sk x sk_cramped", "cramped_room_7x7") in summary  # a pair the protocol adds
 
     # Run again: every condition is trained already, so nothing trains and the checkpoints stay as they were.
     stamps = {p: p.stat().st_mtime_ns for p in out.glob("runs/*/seed*/checkpoints/latest.pt")}
@@ -67,6 +73,7 @@ def test_a_stopped_condition_ends_the_command_with_one_line_and_the_signals_code
 def test_a_family_without_single_kitchen_conditions_has_only_its_held_out_claim():
     summary = {("gnn_ik", "held-out (20)"): {"sp": "0.40", "xp": "0.30", "gap": "0.10"}}
     rows = reproduce.claims(summary, "GNN", "gnn_ik", {}, budget=1_000_000)
-    assert rows == ["| GNN | IK reaches about 10 deliveries in cross-play on held-out levels at 2e9 steps (Fig. 7) | "
-                    "IK cross-play on held-out (20): 0.30 | 1.0e+06 steps, not 2e9: not comparable |"]
+    assert rows == ["| GNN | IPPO from scratch | IK reaches about 10 deliveries in cross-play on held-out levels at "
+                    "2e9 steps (Fig. 7) | IK cross-play on held-out (20): 0.30 | "
+                    "1.0e+06 steps, not 2e9: not comparable |"]
     assert reproduce.claims(summary, "GNN", "gnn_ik", {}, budget=2_000_000_000)[0].endswith("| does not hold |")

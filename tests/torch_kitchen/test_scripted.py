@@ -1,4 +1,6 @@
+import pytest
 import torch
+from tiny import infinite_observations
 
 from jax_env import EXPANDED_LAYOUTS
 from torch_kitchen.env import KitchenEnv
@@ -65,3 +67,18 @@ def test_each_seat_gets_its_plan_a_coin_flip_or_any_action_and_it_builds_like_a_
     assert (choices == 1).float().mean() > 0.5
     ac = make_actor_critic(SCRIPTED_COOK, (7, 7, 26))
     assert not list(ac.actor.parameters()) and ac.acting is None
+
+
+def test_cooks_with_another_move_order_take_other_equally_short_ways_and_plan_alike_otherwise():
+    observation = infinite_observations(64, seed=5, steps=6)
+    planned = {order: ScriptedCook(order)(observation) for order in ("NSEW", "EWSN")}
+    assert torch.equal(planned["NSEW"], ScriptedCook()(observation))
+    certain = (planned["NSEW"] == 0).sum(-1).eq(1) & (planned["EWSN"] == 0).sum(-1).eq(1)
+    first, second = planned["NSEW"].argmax(-1)[certain], planned["EWSN"].argmax(-1)[certain]
+    differ = first != second
+    assert differ.any() and (first[differ] < 4).all() and (second[differ] < 4).all()  # only the moves differ
+    # Both ways are equally short, so each cook took the one that comes first in its own order.
+    rank = torch.tensor(["EWSN".index(direction) for direction in "NSEW"])
+    assert (first[differ] < second[differ]).all() and (rank[second[differ]] < rank[first[differ]]).all()
+    with pytest.raises(ValueError, match="move_order must be a permutation of 'NSEW', got 'NNEW'"):
+        ScriptedCook("NNEW")

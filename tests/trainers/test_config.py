@@ -4,8 +4,9 @@ from pathlib import Path
 
 import pytest
 import yaml
+from tiny import script_module
 
-from trainers.config import ConfigError, EvalConfig, TrainConfig, load_config
+from trainers.config import PLANNER_START, ConfigError, EvalConfig, TrainConfig, load_config
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 # configs/eval: kitchen-eval's configs; configs/protocols: scripts/reproduce.py's (conditions, not one trainer config)
@@ -69,13 +70,19 @@ def test_every_protocol_names_configs_that_load_with_its_overrides():
         protocol = yaml.safe_load(path.read_text())
         assert protocol["teams"] >= 3, path
         overrides = [o for o in protocol["overrides"] if not o.startswith("device=")]  # checked where it runs
-        for name, train in protocol["conditions"].items():
-            config = load_config(CONFIG_DIR.parent / train, [*overrides, f"teams={protocol['teams']}"])
-            assert config.name == name, (path, name)
+        for name, entry in protocol["conditions"].items():
+            train, own = script_module("reproduce").condition_entry(entry)
+            config = load_config(CONFIG_DIR.parent / train, [*overrides, f"teams={protocol['teams']}", *own])
+            assert config.name == name or own, (path, name)  # a shipped config under its own name, or one varied
+            if config.init_from == PLANNER_START:
+                assert config.distill_rounds > 0 and config.total_steps == load_config(
+                    CONFIG_DIR.parent / train, overrides).total_steps, (path, name)  # the same budget as the rest
         for family in protocol["families"].values():
             members = [family["ik"], *family["sk"]]
             # An SK condition per expanded layout, or none (a family compared on held-out levels alone)
             assert set(members) <= set(protocol["conditions"]) and len(family["sk"]) in (0, 5), path
+        for pair in protocol.get("cross", []):
+            assert len(pair) == 2 and set(pair) <= set(protocol["conditions"]), (path, pair)
 
 
 def test_a_later_layer_replaces_a_mapping_rather_than_merging_into_it():

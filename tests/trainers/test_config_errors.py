@@ -24,7 +24,8 @@ from trainers.config import (
 WALLED_POT = "WWWWW\nOA  W\nB  AW\nWWXWW\nWPWWW\n"
 OPEN_POT = "WWPWW\nOA  W\nB  AW\nWWXWW\nWWWWW\n"
 ALLOWED_DEVICES = r"use device=cpu, device=cuda or device=cuda:<index>"
-COUNTS = "max_steps num_envs rollout_steps total_steps hidden epochs minibatches checkpoint_every threads".split()
+COUNTS = ("max_steps num_envs rollout_steps total_steps hidden epochs minibatches checkpoint_every threads "
+          "distill_rounds distill_kitchens distill_epochs distill_minibatch").split()
 NON_NEGATIVE = ("eval_episodes shaping_anneal_steps entropy_coef value_coef predictor_coef shaping_weight "
                 "minibatch_shards").split()
 
@@ -62,6 +63,7 @@ NON_NEGATIVE = ("eval_episodes shaping_anneal_steps entropy_coef value_coef pred
         ("levels=[]", r"^levels is empty"),
         ("algorithm=ppo", r"^algorithm must be one of ippo, e3t, got 'ppo'$"),
         ("partner_policy=slow", r"^partner_policy must be one of ego, copy, got 'slow'$"),
+        ("distill_move_order=NSE", r"^distill_move_order must be a permutation of NSEW, got 'NSE'$"),
         ("minibatch_shards=3", r"^minibatch_shards \(3\) must divide the 8 kitchens of a minibatch"),
     ],
 )
