@@ -93,7 +93,8 @@ def evaluate_snapshots(snapshots: dict[str, list[dict]], args) -> list[dict]:
 
 
 def table(rows: list[dict], args) -> str:
-    lines = [f"Machine: {machine_name()}; `{args.config.relative_to(ROOT)}` {' '.join(args.overrides)}, seeds "
+    config = " ".join([f"`{args.config.relative_to(ROOT)}`", *args.overrides])
+    lines = [f"Machine: {machine_name()}; {config}, seeds "
              f"{' '.join(map(str, args.seeds))}; {args.heldout} held-out levels x {args.rollouts} episodes.", "",
              "| learner | env steps | CPU minutes | SP | XP | with the scripted cook |",
              "|---|---:|---:|---:|---:|---:|"]
