@@ -70,7 +70,7 @@ def test_each_seat_gets_its_plan_a_coin_flip_or_any_action_and_it_builds_like_a_
 
 
 def test_cooks_with_another_move_order_take_other_equally_short_ways_and_plan_alike_otherwise():
-    observation = infinite_observations(64, seed=5, steps=6)
+    observation = infinite_observations(64, seed=0)  # test_sparse_linear's: made once per process
     planned = {order: ScriptedCook(order)(observation) for order in ("NSEW", "EWSN")}
     assert torch.equal(planned["NSEW"], ScriptedCook()(observation))
     certain = (planned["NSEW"] == 0).sum(-1).eq(1) & (planned["EWSN"] == 0).sum(-1).eq(1)
