@@ -8,8 +8,10 @@ The lobby (`/`) lists the partners and the kitchens; `POST /api/games` checks a 
 partner that cannot be loaded or cannot play that kitchen's size are refused with the reason) and makes the game;
 the page then plays it over the WebSocket `/ws/games/<id>`. In real time the server ticks every `tick_ms` and the
 person's latest key applies to the next tick (STAY if none); in turns mode the kitchen steps when the person acts.
-Each game has its own kitchen, partner and record (`play.game`); a malformed message is answered with an error
-and logged, and a closed tab ends its game with the record complete. Needs the `play` extra:
+Each game has its own kitchen, partner and record (`play.game`); any message other than an action (malformed,
+too long, binary) is answered with a one-line error and logged, and the game goes on; a closed tab ends its game
+with the record complete, as does a turns-mode game left without an action for `--idle-s` seconds ("idle") and
+every game when the server stops (SIGTERM or SIGINT). Needs the `play` extra:
 `pip install .[play]`.
 """
 
@@ -20,10 +22,10 @@ import asyncio
 import functools
 import glob
 import itertools
-import json
 import logging
 import sys
 import time
+import typing
 from pathlib import Path
 
 import jax
@@ -56,6 +58,12 @@ try:
         seat: int = 0
         mode: str = "realtime"
         seed: int | None = None
+
+    class ActionMessage(BaseModel):
+        """The one message a player sends: {"type": "action", "action": "left"}."""
+
+        type: typing.Literal["action"]
+        action: typing.Literal[tuple(ACTIONS)]
 except ImportError:  # the optional extra
     FastAPI = None
 
@@ -94,22 +102,29 @@ def make_kitchen(name: str, level_files: list[str], seed: int) -> Layout:
                      f"heldout_000..heldout_099, {GENERATED!r} or a level file given on the command line")
 
 
+MAX_MESSAGE = 256  # characters: an action message is about 40
+EXPECTED = f'expected {{"type": "action", "action": ...}} with the action one of {", ".join(ACTIONS)}'
+
+
 def parse_action(text: str) -> int:
-    """The action index of a client message {"type": "action", "action": "left"}; ValueError says what is wrong."""
+    """The action index of a client message {"type": "action", "action": "left"}; ValueError says, in one short
+    line, what is wrong (never echoing more than a few characters of the message)."""
+    if len(text) > MAX_MESSAGE:
+        raise ValueError(f"message of {len(text):,} characters; {EXPECTED}")
     try:
-        message = json.loads(text)
-    except json.JSONDecodeError:
-        raise ValueError("not JSON") from None
-    if not isinstance(message, dict) or message.get("type") != "action":
-        raise ValueError('expected {"type": "action", "action": ...}')
-    if message.get("action") not in ACTIONS:
-        raise ValueError(f"unknown action {message.get('action')!r}; one of {', '.join(ACTIONS)}")
-    return ACTIONS[message["action"]]
+        return ACTIONS[ActionMessage.model_validate_json(text).action]
+    except ValueError as error:  # pydantic's ValidationError: bad JSON, too deep, wrong fields or values
+        errors = getattr(error, "errors", lambda: [])()
+        where = f" at {'.'.join(map(str, errors[0]['loc']))}" if errors and errors[0]["loc"] else ""
+        reason = errors[0]["msg"] if errors else "not an action"
+        raise ValueError(f"{reason}{where}; {EXPECTED}"[:300]) from None
 
 
 def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int = 150, device: str = "cpu",
-               level_files: list[str] = (), max_steps: int = 400, runs_root: str = "runs") -> FastAPI:
-    """The web app: lobby, game creation and the games' WebSockets."""
+               level_files: list[str] = (), max_steps: int = 400, runs_root: str = "runs",
+               idle_s: float = 600.0) -> FastAPI:
+    """The web app: lobby, game creation and the games' WebSockets. A turns-mode game whose player sends no
+    action for `idle_s` seconds ends ("idle")."""
     if FastAPI is None:
         raise ImportError("kitchen-play needs the play extra: pip install .[play]")
     app = FastAPI(title="kitchen-play")
@@ -164,28 +179,43 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
         latest = [STAY]
 
         async def receive() -> None:
+            """Reads the player's messages until the socket closes; a message it cannot use is answered with an
+            error and logged, and the game goes on."""
             try:
                 while True:
-                    text = await websocket.receive_text()
+                    message = await websocket.receive()
+                    if message["type"] == "websocket.disconnect":
+                        break
                     try:
-                        action = parse_action(text)
+                        if message.get("text") is None:
+                            raise ValueError(f"a binary frame; {EXPECTED}, as text")
+                        action = parse_action(message["text"])
                     except ValueError as error:
-                        log.warning("game %s: refused message %r: %s", game_id, text[:200], error)
+                        log.warning("game %s: refused message %r: %s", game_id, str(message.get("text"))[:80], error)
                         await websocket.send_json({"type": "error", "reason": str(error)})
                         continue
                     latest[0] = action
                     await pending.put(action)
-            except WebSocketDisconnect:
+            except (WebSocketDisconnect, RuntimeError):
+                pass
+            finally:
                 await pending.put(None)
 
         receiver = asyncio.create_task(receive())
         loop = asyncio.get_running_loop()
+        reason = "disconnected"
         try:
             await websocket.send_json(game.view())
             next_tick = loop.time()
             while not game.over:
                 if mode == "turns":
-                    action = await pending.get()
+                    try:
+                        action = await asyncio.wait_for(pending.get(), idle_s)
+                    except TimeoutError:
+                        reason = "idle"
+                        await websocket.send_json({"type": "error", "reason": f"no action for {idle_s:g} s: "
+                                                                              "the game ended"})
+                        break
                     if action is None:
                         break
                 else:  # ticks on a fixed schedule: the time a step takes does not delay the next one
@@ -199,10 +229,10 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
             pass
         finally:
             receiver.cancel()
-            reason = "finished" if game.t >= game.max_steps else "disconnected"
+            reason = "finished" if game.t >= game.max_steps else reason
             game.end(reason)
             log.info("game %s ended (%s) after %d steps, score %d", game_id, reason, game.t, game.score)
-        if reason == "finished":
+        if reason in ("finished", "idle"):
             await websocket.close()
 
     return app
@@ -232,11 +262,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--records", default="games", help="folder of the games' JSON Lines records")
     parser.add_argument("--tick-ms", type=int, default=150, help="milliseconds per step in real time")
     parser.add_argument("--max-steps", type=int, default=400, help="steps per game")
+    parser.add_argument("--idle-s", type=float, default=600.0,
+                        help="seconds without an action after which a turns-mode game ends")
     parser.add_argument("--levels", nargs="*", default=[], help="level files to offer as kitchens")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
     try:
-        app = create_app(args.runs, args.records, args.tick_ms, args.device, args.levels, args.max_steps)
+        app = create_app(args.runs, args.records, args.tick_ms, args.device, args.levels, args.max_steps,
+                         idle_s=args.idle_s)
     except ImportError as error:
         print(f"kitchen-play: error: {error}", file=sys.stderr)
         return 2
@@ -244,7 +277,9 @@ def main(argv: list[str] | None = None) -> int:
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     print(f"kitchen-play: open http://{args.host}:{args.port}/ (records in {args.records}/)", flush=True)
-    uvicorn.run(app, host=args.host, port=args.port, log_level="warning")
+    # On SIGTERM or SIGINT every game's socket is closed, which ends its game with the record complete; a handler
+    # still running after 5 s is cancelled, which ends its game too.
+    uvicorn.run(app, host=args.host, port=args.port, log_level="warning", timeout_graceful_shutdown=5)
     return 0
 
 

@@ -48,7 +48,7 @@ def test_a_person_plays_with_the_scripted_cook_and_the_record_replays(server, tm
         page.select_option("#partner", SCRIPTED)
         page.select_option("#kitchen", "cramped_room_7x7")
         page.screenshot(path=str(tmp_path / "lobby.png"))
-        page.click("#start")
+        page.dblclick("#start")  # one game, however eager the click (the record below is the only one)
         page.wait_for_function("/time left \\d+/.test(document.getElementById('time').textContent)", timeout=60_000)
         first = page.evaluate("document.getElementById('canvas').toDataURL()")
         for key in ["ArrowLeft", "ArrowUp", "Space", "KeyD", "KeyS", "KeyE"] * 3:
@@ -58,6 +58,8 @@ def test_a_person_plays_with_the_scripted_cook_and_the_record_replays(server, tm
         assert page.evaluate("document.getElementById('canvas').toDataURL()") != first
         assert page.text_content("#score").startswith("score ")
         assert "you hold" in page.text_content("#holding")
+        page.evaluate("socket.send('not an action')")  # the server's refusal shows on the page
+        page.wait_for_function("document.getElementById('game-error').textContent.includes('expected')")
         page.screenshot(path=str(tmp_path / "game.png"))
         browser.close()  # the tab closes mid-game: the server ends the game and completes its record
     (record,) = records.glob("*.jsonl")

@@ -93,13 +93,31 @@ def test_malformed_messages_are_refused_and_the_game_goes_on(client):
     game = new_game(client)
     with client.websocket_connect(f"/ws/games/{game['id']}") as socket:
         assert socket.receive_json()["t"] == 0
-        for bad in ["not json", json.dumps({"type": "action", "action": "fly"}), json.dumps({"foo": 1})]:
-            socket.send_text(bad)
+        bad = ["not json", json.dumps({"type": "action", "action": "fly"}), json.dumps({"foo": 1}),
+               '{"type":"action","action":[]}', '{"type":"action","action":{}}', "[" * 100_000,
+               json.dumps({"type": "action", "action": "x" * 5_000_000}), '{"type": "action"}', "null", "[]"]
+        for text in bad:
+            socket.send_text(text)
             reply = socket.receive_json()
-            assert reply["type"] == "error" and reply["reason"]
+            assert reply["type"] == "error" and "expected" in reply["reason"] and len(reply["reason"]) <= 300, text
+        socket.send_bytes(b"\x00\x01")
+        assert "binary frame" in socket.receive_json()["reason"]
         socket.send_text(json.dumps({"type": "action", "action": "up"}))
         assert socket.receive_json()["t"] == 1
     assert [s["t"] for s in read_record(game["record"])[1]] == [1]
+
+
+def test_a_turns_game_without_actions_ends_idle_with_its_record_closed(tmp_path):
+    app = create_app(records=tmp_path / "games", max_steps=30, runs_root=str(tmp_path / "runs"), idle_s=0.3)
+    with TestClient(app) as client:
+        game = new_game(client)
+        with client.websocket_connect(f"/ws/games/{game['id']}") as socket:
+            assert socket.receive_json()["t"] == 0
+            assert "no action for 0.3 s" in socket.receive_json()["reason"]
+            with pytest.raises(WebSocketDisconnect):
+                socket.receive_json()
+    header, steps, end = read_record(game["record"])
+    assert steps == [] and end["reason"] == "idle"
 
 
 def test_a_closed_tab_ends_a_real_time_game_with_its_record_complete(client):
@@ -137,3 +155,41 @@ def test_a_finished_game_replays_through_the_command_and_loads_as_a_dataset(clie
     data = load_dataset([game["record"]])
     assert data["observation"][0].shape == (30, 2, 7, 7, 26) and data["human_seat"] == [0]
     assert torch.equal(data["action"][0], torch.tensor([s["actions"] for s in steps]))
+
+
+def test_sigterm_stops_the_server_with_a_waiting_turns_game_and_its_record_closed(tmp_path):
+    import signal
+    import socket as sockets
+    import subprocess
+    import sys
+    import time
+
+    import httpx
+    from websockets.sync.client import connect
+
+    with sockets.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    records = tmp_path / "games"
+    server = subprocess.Popen([sys.executable, "-m", "play.server", "--port", str(port), "--records", str(records)],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        for _ in range(600):
+            try:
+                game = httpx.post(f"http://127.0.0.1:{port}/api/games", json={
+                    "partner": SCRIPTED, "kitchen": "cramped_room_7x7", "mode": "turns", "seed": 1}).json()
+                break
+            except httpx.TransportError:
+                time.sleep(0.1)
+        with connect(f"ws://127.0.0.1:{port}/ws/games/{game['id']}") as socket:
+            assert json.loads(socket.recv(timeout=60))["t"] == 0  # the game waits for the person's first action
+            socket.send(b"\x00")  # a binary frame once ended the reader, and the server then never stopped
+            assert json.loads(socket.recv(timeout=10))["type"] == "error"
+            server.send_signal(signal.SIGTERM)
+            # uvicorn shuts down gracefully, then ends with the signal it caught
+            assert server.wait(timeout=30) in (0, -signal.SIGTERM)
+    finally:
+        server.kill()
+        output = server.communicate()[0]
+    header, steps, end = read_record(game["record"])
+    assert end is not None and end["reason"] == "disconnected" and steps == [], output
