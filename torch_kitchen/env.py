@@ -244,11 +244,16 @@ class KitchenEnv(EnvBase):
         self._episode_steps = np.array(self._states.step)  # read once per reset, not per step
         return self._to_tensordict(out, with_reward=False)
 
+    @staticmethod
+    def _actions_to_jax(actions: torch.Tensor):
+        """int actions [B, 2] -> what the jitted step takes. On the CPU a jitted call takes a NumPy array as it is
+        (1.5 us); importing through DLPack costs 19 us a step. On a GPU, DLPack keeps the actions on the device.
+        int32 and contiguous either way, so no cast."""
+        actions = actions.detach().to(torch.int32).contiguous()
+        return actions.numpy() if actions.device.type == "cpu" else jax.dlpack.from_dlpack(actions)
+
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        actions = tensordict.get(("agents", "action")).detach().to(torch.int32).contiguous()
-        # On the CPU a jitted call takes a NumPy array as it is (1.5 us); importing through DLPack costs 19 us a
-        # step. On a GPU, DLPack keeps the actions on the device. int32 and contiguous either way, so no cast.
-        actions = actions.numpy() if actions.device.type == "cpu" else jax.dlpack.from_dlpack(actions)
+        actions = self._actions_to_jax(tensordict.get(("agents", "action")))
         self._states, self._deliveries, out = self._step_jax(self._states, self._deliveries, actions)
         self._episode_steps += 1
         return self._to_tensordict(out, with_reward=True)
@@ -270,7 +275,8 @@ class KitchenEnv(EnvBase):
         one game's tick. Resets first if the kitchens were never reset."""
         if self._states is None:
             self.reset()
-        actions = jax.device_put(jnp.zeros((self.num_envs, 2), jnp.int32), self._jax_device)
+        # Actions of the kind a real step passes (a NumPy array on the CPU is not a device array to the jit cache).
+        actions = self._actions_to_jax(torch.zeros(self.num_envs, 2, dtype=torch.int32, device=self.device))
         jax.block_until_ready(self._step_jax(self._states, self._deliveries, actions))
 
     def _set_seed(self, seed: int | Sequence[int] | None) -> None:

@@ -212,6 +212,8 @@ def test_compile_step_compiles_without_stepping_the_kitchens():
     stepped = [e.step(TensorDict({"agents": {"action": actions}}, batch_size=[2]))["next", "agents", "observation"]
                for e in (env, fresh)]
     assert torch.equal(stepped[0], stepped[1])
+    # The step it compiled is the one the real steps use: no second compilation (a game's first tick would pay it).
+    assert env._step_jax._cache_size() == 1
 
 
 def test_the_host_knows_when_episodes_end_without_reading_done_from_the_device():
