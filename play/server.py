@@ -11,7 +11,8 @@ person's latest key applies to the next tick (STAY if none); in turns mode the k
 Each game has its own kitchen, partner and record (`play.game`); any message other than an action (malformed,
 too long, binary) is answered with a one-line error and logged, and the game goes on; a closed tab ends its game
 with the record complete, as does a turns-mode game left without an action for `--idle-s` seconds ("idle") and
-every game when the server stops (SIGTERM or SIGINT). Needs the `play` extra:
+every game when the server stops (SIGTERM or SIGINT). Game ids are random keys, games nobody connects to expire,
+and only the server's own Host and Origin are answered. Needs the `play` extra:
 `pip install .[play]`.
 """
 
@@ -23,6 +24,7 @@ import functools
 import glob
 import itertools
 import logging
+import secrets
 import sys
 import time
 import typing
@@ -120,15 +122,34 @@ def parse_action(text: str) -> int:
         raise ValueError(f"{reason}{where}; {EXPECTED}"[:300]) from None
 
 
+def same_origin(origin: str | None, host: str | None) -> bool:
+    """Whether a browser's Origin header names the server it connects to (a client outside a browser sends
+    none): a page served from anywhere else may not play, or take over, a game."""
+    return origin is None or (host is not None and origin in (f"http://{host}", f"https://{host}"))
+
+
 def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int = 150, device: str = "cpu",
                level_files: list[str] = (), max_steps: int = 400, runs_root: str = "runs",
-               idle_s: float = 600.0) -> FastAPI:
+               idle_s: float = 600.0, hosts: list[str] | None = None, connect_s: float = 120.0) -> FastAPI:
     """The web app: lobby, game creation and the games' WebSockets. A turns-mode game whose player sends no
-    action for `idle_s` seconds ends ("idle")."""
+    action for `idle_s` seconds ends ("idle"); a game nobody connects to within `connect_s` seconds expires
+    ("never connected"). `hosts`: the Host headers the server answers to (against DNS rebinding; None: any)."""
     if FastAPI is None:
         raise ImportError("kitchen-play needs the play extra: pip install .[play]")
     app = FastAPI(title="kitchen-play")
-    games: dict[str, tuple[Game, str]] = {}
+    games: dict[str, tuple[Game, str, float]] = {}  # games made, not yet connected: (game, mode, made at)
+
+    @app.middleware("http")
+    async def known_host(request, call_next):
+        if hosts is not None and request.headers.get("host") not in hosts:
+            return HTMLResponse(f"unknown host {request.headers.get('host')!r}", status_code=400)
+        return await call_next(request)
+
+    def expire_unconnected() -> None:
+        for game_id, (game, _, made) in list(games.items()):
+            if time.monotonic() - made > connect_s and games.pop(game_id, None) is not None:
+                game.end("never connected")
+                log.info("game %s expired: nobody connected within %g s", game_id, connect_s)
     counter = itertools.count()
     records = Path(records)
     level_files = list(level_files)
@@ -147,6 +168,7 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
 
     @app.post("/api/games")
     def new_game(choice: Choice) -> dict:
+        expire_unconnected()
         if choice.mode not in MODES:
             raise HTTPException(400, f"unknown mode {choice.mode!r}; one of {', '.join(MODES)}")
         if choice.seat not in (0, 1):
@@ -158,23 +180,30 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
         try:
             layout = make_kitchen(choice.kitchen, level_files, seed)
             partner = load_partner(choice.partner, device)
-            game_id = f"{time.strftime('%Y%m%d-%H%M%S')}-{number}"
-            game = Game(layout, partner, choice.seat, records / f"{game_id}.jsonl", seed=seed, max_steps=max_steps,
+            record = records / f"{time.strftime('%Y%m%d-%H%M%S')}-{number}.jsonl"
+            game = Game(layout, partner, choice.seat, record, seed=seed, max_steps=max_steps,
                         tick_ms=tick_ms, mode=choice.mode, device=device)
         except (ValueError, CheckpointError) as error:
             raise HTTPException(400, str(error)) from None
-        games[game_id] = (game, choice.mode)
+        game_id = secrets.token_urlsafe(16)  # the game's key: whoever holds it plays it, so nobody can guess it
+        games[game_id] = (game, choice.mode, time.monotonic())
         log.info("game %s: %s with %s on %s, seat %d", game_id, choice.mode, partner.name, layout.name, choice.seat)
         return {"id": game_id, "record": str(game.recorder.path)}
 
     @app.websocket("/ws/games/{game_id}")
     async def play(websocket: WebSocket, game_id: str) -> None:
+        host, origin = websocket.headers.get("host"), websocket.headers.get("origin")
+        if (hosts is not None and host not in hosts) or not same_origin(origin, host):
+            log.warning("refused a connection to a game from origin %r to host %r", origin, host)
+            await websocket.close(code=1008)  # policy violation, before accepting: the game stays its owner's
+            return
         await websocket.accept()
+        expire_unconnected()
         if game_id not in games:
-            await websocket.send_json({"type": "error", "reason": f"no game {game_id!r}"})
+            await websocket.send_json({"type": "error", "reason": "no such game waiting (ended, expired or taken)"})
             await websocket.close()
             return
-        game, mode = games.pop(game_id)  # one connection per game
+        game, mode, _ = games.pop(game_id)  # one connection per game
         pending: asyncio.Queue[int | None] = asyncio.Queue()
         latest = [STAY]
 
@@ -264,12 +293,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-steps", type=int, default=400, help="steps per game")
     parser.add_argument("--idle-s", type=float, default=600.0,
                         help="seconds without an action after which a turns-mode game ends")
+    parser.add_argument("--allow-host", action="append", default=[], metavar="HOST[:PORT]",
+                        help="another Host header to answer to (a study behind a proxy); the server's own address "
+                             "and localhost are always allowed")
     parser.add_argument("--levels", nargs="*", default=[], help="level files to offer as kitchens")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
     try:
+        hosts = [f"{name}:{args.port}" for name in dict.fromkeys([args.host, "127.0.0.1", "localhost"])]
         app = create_app(args.runs, args.records, args.tick_ms, args.device, args.levels, args.max_steps,
-                         idle_s=args.idle_s)
+                         idle_s=args.idle_s, hosts=[*hosts, *args.allow_host])
     except ImportError as error:
         print(f"kitchen-play: error: {error}", file=sys.stderr)
         return 2

@@ -1,6 +1,7 @@
 """The kitchen-play server without a browser: lobby checks, games over WebSockets, records and their replay."""
 
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -143,7 +144,7 @@ def test_a_finished_game_replays_through_the_command_and_loads_as_a_dataset(clie
     gif = tmp_path / "game.gif"
     assert main(["replay", game["record"], "--gif", str(gif)]) == 0 and gif.stat().st_size > 0
     assert "30 steps replayed exactly" in capsys.readouterr().out
-    lines = (tmp_path / "games" / f"{game['id']}.jsonl").read_text().splitlines()
+    lines = Path(game["record"]).read_text().splitlines()
     step = json.loads(lines[5])
     step["positions"][0][0] += 1  # a record that does not match the kitchen
     lines[5] = json.dumps(step)
@@ -193,3 +194,26 @@ def test_sigterm_stops_the_server_with_a_waiting_turns_game_and_its_record_close
         output = server.communicate()[0]
     header, steps, end = read_record(game["record"])
     assert end is not None and end["reason"] == "disconnected" and steps == [], output
+
+
+def test_a_page_from_another_origin_cannot_take_a_game_and_its_owner_still_can(client):
+    game = new_game(client)
+    assert len(game["id"]) >= 20 and game["id"] not in game["record"]  # a random key, not the record's date
+    with pytest.raises(WebSocketDisconnect) as refused:
+        with client.websocket_connect(f"/ws/games/{game['id']}", headers={"origin": "http://localhost:9999"}):
+            pass
+    assert refused.value.code == 1008
+    with client.websocket_connect(f"/ws/games/{game['id']}", headers={"origin": "http://testserver"}) as socket:
+        assert socket.receive_json()["t"] == 0
+
+
+def test_unknown_hosts_are_refused_and_games_nobody_joins_expire(tmp_path):
+    app = create_app(records=tmp_path / "games", max_steps=30, runs_root=str(tmp_path / "runs"), connect_s=0,
+                     hosts=["testserver"])
+    with TestClient(app) as client:
+        assert client.get("/", headers={"host": "rebound.example:8000"}).status_code == 400
+        abandoned = new_game(client)
+        new_game(client)  # any later activity ends the games nobody connected to in time
+        assert read_record(abandoned["record"])[2]["reason"] == "never connected"
+        with client.websocket_connect(f"/ws/games/{abandoned['id']}") as socket:
+            assert "no such game" in socket.receive_json()["reason"]
