@@ -182,13 +182,30 @@ class Game:
 
 
 # --------------------------------------------------------------------------------------------- records
+HEADER_FIELDS = ("layout", "layout_name", "seed", "max_steps", "seat")  # what a replay needs
+
+
 def read_record(path: str | Path) -> tuple[dict, list[dict], dict | None]:
-    """(header, step lines, end line or None) of a game record; ValueError for a file that is not one."""
-    lines = [json.loads(line) for line in Path(path).read_text(encoding="utf-8").splitlines() if line.strip()]
-    if not lines or lines[0].get("type") != "header":
+    """(header, step lines, end line or None) of a game record; ValueError for a file that is not one (a line
+    that is not JSON, no header, a header without what a replay needs, a step without two legal actions)."""
+    lines = []
+    for number, text in enumerate(Path(path).read_text(encoding="utf-8").splitlines(), 1):
+        if text.strip():
+            try:
+                lines.append(json.loads(text))
+            except json.JSONDecodeError:
+                raise ValueError(f"{path}: line {number} is not JSON (a record cut short?)") from None
+    if not lines or not isinstance(lines[0], dict) or lines[0].get("type") != "header":
         raise ValueError(f"{path} is not a game record (no header line)")
-    steps = [line for line in lines if line.get("type") == "step"]
-    ends = [line for line in lines if line.get("type") == "end"]
+    if missing := [field for field in HEADER_FIELDS if field not in lines[0]]:
+        raise ValueError(f"{path}: the header lacks {', '.join(missing)}")
+    steps = [line for line in lines if isinstance(line, dict) and line.get("type") == "step"]
+    for line in steps:
+        actions = line.get("actions")
+        if not (isinstance(actions, list) and len(actions) == 2
+                and all(isinstance(a, int) and 0 <= a < NUM_ACTIONS for a in actions)):
+            raise ValueError(f"{path}: step {line.get('t')} has actions {actions!r}, not two of 0..{NUM_ACTIONS - 1}")
+    ends = [line for line in lines if isinstance(line, dict) and line.get("type") == "end"]
     return lines[0], steps, (ends[0] if ends else None)
 
 
@@ -213,8 +230,11 @@ def take_actions(kitchen: KitchenEnv, tensordict: TensorDictBase, actions: list[
 
 def replay(path: str | Path, gif: str | Path | None = None) -> dict:
     """Replays a record through the JAX env: every step's positions and score must match. Returns a summary;
-    raises ValueError at the first step that differs. `gif`: also write the game as an animated GIF."""
+    raises ValueError at the first step that differs, and for a game that never ended (no end line: the record
+    was cut, or its server killed). `gif`: also write the game as an animated GIF."""
     header, steps, end = read_record(path)
+    if end is None:
+        raise ValueError(f"{path}: the game never ended (no end line after {len(steps)} steps): the record is cut")
     kitchen, td = recorded_kitchen(header)
     frames = [jax.tree_util.tree_map(lambda leaf: leaf[0], kitchen.states)]
     score = 0

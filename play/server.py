@@ -25,6 +25,7 @@ import glob
 import itertools
 import logging
 import secrets
+import socket
 import sys
 import time
 import typing
@@ -50,7 +51,7 @@ from trainers.evaluate import evaluation_grids
 try:
     from fastapi import FastAPI, HTTPException, WebSocket, WebSocketDisconnect
     from fastapi.responses import HTMLResponse
-    from pydantic import BaseModel
+    from pydantic import BaseModel, Field
 
     class Choice(BaseModel):
         """A lobby choice: who partners the person, where, in which seat, at which pace (and the kitchen's seed)."""
@@ -59,7 +60,7 @@ try:
         kitchen: str
         seat: int = 0
         mode: str = "realtime"
-        seed: int | None = None
+        seed: int | None = Field(None, ge=0, le=2**32 - 1)
 
     class ActionMessage(BaseModel):
         """The one message a player sends: {"type": "action", "action": "left"}."""
@@ -299,6 +300,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--levels", nargs="*", default=[], help="level files to offer as kitchens")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
+    for flag, value in (("--tick-ms", args.tick_ms), ("--max-steps", args.max_steps), ("--idle-s", args.idle_s)):
+        if value <= 0:
+            parser.error(f"{flag} must be positive, got {value:g}")
+    with socket.socket() as probe:  # say so before printing an address nothing will answer at
+        try:
+            probe.bind((args.host, args.port))
+        except OSError as error:
+            print(f"kitchen-play: error: cannot serve on {args.host}:{args.port}: {error.strerror} (another "
+                  "server there? choose another --port)", file=sys.stderr)
+            return 2
     try:
         hosts = [f"{name}:{args.port}" for name in dict.fromkeys([args.host, "127.0.0.1", "localhost"])]
         app = create_app(args.runs, args.records, args.tick_ms, args.device, args.levels, args.max_steps,

@@ -30,6 +30,7 @@ def test_an_lstm_partner_acts_from_the_state_carried_through_the_game(tmp_path):
     with torch.no_grad():
         assert not torch.allclose(actor_critic.actor(carried.clone())["agents", "logits"][0, 1],
                                   actor_critic.actor(fresh)["agents", "logits"][0, 1])
+    game.end("disconnected")
     assert replay(tmp_path / "game.jsonl")["steps"] == len(PERSON)
 
 
@@ -40,4 +41,5 @@ def test_an_e3t_partner_reads_the_persons_last_actions_as_its_context(tmp_path):
     length = context.shape[-1]
     assert context[1].tolist() == PERSON[-length:]
     assert context[0].tolist() == [line["actions"][1] for line in steps][-length:]
+    game.end("disconnected")
     assert replay(tmp_path / "game.jsonl")["steps"] == len(PERSON)

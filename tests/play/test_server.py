@@ -45,6 +45,9 @@ def test_the_lobby_offers_partners_and_kitchens_and_refuses_bad_choices_with_the
     assert "unknown kitchen 'nowhere'" in refused(kitchen="nowhere")
     assert "unknown partner" in refused(partner="runs/none/seed0")
     assert "seat must be 0 or 1" in refused(seat=2)
+    for seed in (2**63, -1):  # checked by the request's schema: a 422 naming the field, not a server error
+        response = client.post("/api/games", json={"partner": SCRIPTED, "kitchen": "cramped_room_7x7", "seed": seed})
+        assert response.status_code == 422 and response.json()["detail"][0]["loc"][-1] == "seed"
     # A trained team offered from runs/ whose networks were built for 4x5 kitchens cannot play a 7x7 one.
     run = tmp_path / "runs" / "small" / "seed0"
     actor_critic = make_actor_critic("mlp", (4, 5, 26), 8, True)
@@ -153,9 +156,40 @@ def test_a_finished_game_replays_through_the_command_and_loads_as_a_dataset(clie
     assert main(["replay", str(tampered)]) == 1
     assert "step 5 differs" in capsys.readouterr().err
 
+    # Records that are not a whole game are refused with the reason, never replayed "exactly".
+    header_only, cut, wild, bare = (tmp_path / name for name in ("header.jsonl", "cut.jsonl", "wild.jsonl",
+                                                                  "bare.jsonl"))
+    header_only.write_text(lines[0] + "\n")
+    cut.write_text("\n".join(Path(game["record"]).read_text().splitlines()[:-1]))
+    step = json.loads(lines[3])
+    step["actions"] = [99, 4]
+    wild.write_text("\n".join([*lines[:3], json.dumps(step), *lines[4:]]))
+    bare.write_text("\n".join([json.dumps({"type": "header"}), *lines[1:]]))
+    for path, message in [(header_only, "never ended (no end line after 0 steps)"),
+                          (cut, "never ended (no end line after 30 steps)"),
+                          (wild, "has actions [99, 4], not two of 0..5"), (bare, "the header lacks layout")]:
+        assert main(["replay", str(path)]) == 1
+        error = capsys.readouterr().err
+        assert message in error and error.count("\n") == 1, error
+
     data = load_dataset([game["record"]])
     assert data["observation"][0].shape == (30, 2, 7, 7, 26) and data["human_seat"] == [0]
     assert torch.equal(data["action"][0], torch.tensor([s["actions"] for s in steps]))
+
+
+def test_bad_server_options_and_a_busy_port_get_one_line_before_any_address_is_printed(capsys):
+    for flag in ("--tick-ms=0", "--tick-ms=-1", "--idle-s=0"):
+        with pytest.raises(SystemExit):
+            main([flag])
+        assert "must be positive" in capsys.readouterr().err
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        assert main(["--port", str(busy.getsockname()[1])]) == 2
+    printed = capsys.readouterr()
+    assert "cannot serve on 127.0.0.1" in printed.err and "open http" not in printed.out
 
 
 def test_sigterm_stops_the_server_with_a_waiting_turns_game_and_its_record_closed(tmp_path):
