@@ -148,6 +148,8 @@ class Game:
         self.t += 1
         self.score += delivered
         self.over = bool(stepped["next", "done"][0, 0])
+        if self.recorder is None:  # ended while this step ran (the server stopping): the record is closed
+            return self.view()
         self.recorder.write({
             "type": "step", "t": self.t, "actions": actions[0].tolist(), "reward": reward, "deliveries": delivered,
             "score": self.score, "positions": self.positions(),

@@ -254,7 +254,9 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
                     if receiver.done():
                         break
                     action, latest[0] = latest[0], STAY
-                await websocket.send_json(game.step(action))
+                # The partner's forward pass and the kitchen's step run on a worker thread (both release the GIL):
+                # the event loop keeps ticking the other games meanwhile.
+                await websocket.send_json(await asyncio.to_thread(game.step, action))
         except (WebSocketDisconnect, RuntimeError):
             pass
         finally:
