@@ -121,6 +121,20 @@ def claims(summary: dict, family: str, ik: str, sk: dict[str, str], budget: int,
     return [f"| {family} | {learner} | {claim} | {ours} | {verdict} |" for claim, ours, verdict in rows]
 
 
+def cross_pairs(summary: dict, pairs: list[list[str]]) -> list[str]:
+    """Markdown rows: each pair a protocol adds, its cross-play beside each side's cross-play between its own
+    seeds, on every grid group where the pair was measured (n/a where a side has no cross-play there)."""
+    rows = []
+    for first, second in pairs:
+        pair = " x ".join(sorted((first, second)))
+        for condition, grids in summary:
+            if condition == pair:
+                values = [value(summary, name, grids, "xp") for name in (pair, first, second)]
+                cells = " | ".join("n/a" if math.isnan(v) else f"{v:.2f}" for v in values)
+                rows.append(f"| {first} | {second} | {grids} | {cells} |")
+    return rows
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("protocol", help="a protocol file (configs/protocols/reduced.yaml or paper.yaml)")
@@ -207,6 +221,18 @@ def main(argv=None) -> int:
         *(row for family, (ik, sk, learner, paper) in families.items()
           for row in claims(summary, family, ik, sk, shared.total_steps, learner, paper)),
         "",
+        *([
+            "## Cross-play across learners and teachers",
+            "",
+            "Teams that imitated one teacher share its conventions, so their cross-play between seeds can overstate "
+            "how well they play with strangers. Each pair the protocol adds: its cross-play, beside each side's "
+            "cross-play between its own seeds.",
+            "",
+            "| team | partner | grids | XP of the pair | XP within the team | XP within the partner |",
+            "|---|---|---|---:|---:|---:|",
+            *cross_pairs(summary, protocol["cross"]),
+            "",
+        ] if protocol.get("cross") else []),
         "## Self-play, cross-play and the scripted partner",
         "",
         (out / "eval" / "eval.md").read_text(),

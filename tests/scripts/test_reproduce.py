@@ -43,6 +43,7 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     assert "| MLP | IPPO from scratch | IK beats SK in cross-play on the 5 layouts (Fig. 3a) | cramped_room" in report
     assert "| MLP guided | guided | IK beats SK in cross-play on the 5 layouts (Fig. 3a) | cramped_room" in report
     assert "- **guided_sk** adds `regime=sk_cramped_room hidden=4`." in report
+    assert "| sk_cramped | guided_sk | cramped_room_7x7 |" in report  # the added pair beside its sides' own XP
     assert "SK scores 0 on generated levels" in report and "with the scripted cook" in report
     assert "128 env steps per team (2 updates of 4 kitchens x 16 steps), 2 teams" in report
     assert (tmp_path / "docs" / "results").is_dir() and "![" in report
