@@ -45,6 +45,7 @@ def test_a_person_plays_with_the_scripted_cook_and_the_record_replays(server, tm
         browser = driver.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
         page = browser.new_page()
         page.goto(url)
+        assert page.is_visible("text=Arrows or WASD move")  # the controls, before a game starts
         page.select_option("#partner", SCRIPTED)
         page.select_option("#kitchen", "cramped_room_7x7")
         page.screenshot(path=str(tmp_path / "lobby.png"))
