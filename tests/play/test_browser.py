@@ -74,3 +74,4 @@ def test_a_person_plays_with_the_scripted_cook_and_the_record_replays(server, tm
     pressed = [step["actions"][0] for step in steps]
     assert {0, 1, 3, 5} & set(pressed)  # the person's keys reached the kitchen (up, down, left, interact)
     assert replay(record)["steps"] == len(steps)
+

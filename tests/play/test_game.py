@@ -1,8 +1,11 @@
 """A game's partner keeps its memory between ticks: an LSTM team's state and an E3T team's partner context."""
 
+from pathlib import Path
+
 import torch
 
 from jax_env import load_layout
+from jax_env.render import AGENT_COLOURS
 from play.game import Game, Partner, read_record, replay
 from torch_kitchen.models import make_actor_critic, recurrent_states
 from torch_kitchen.partner import CONTEXT_ACTION
@@ -43,3 +46,9 @@ def test_an_e3t_partner_reads_the_persons_last_actions_as_its_context(tmp_path):
     assert context[0].tolist() == [line["actions"][1] for line in steps][-length:]
     game.end("disconnected")
     assert replay(tmp_path / "game.jsonl")["steps"] == len(PERSON)
+
+
+def test_the_page_colours_the_cooks_as_the_recorded_gifs_do():
+    page = (Path(__file__).resolve().parents[2] / "play" / "static" / "index.html").read_text()
+    colours = ", ".join('"#%02x%02x%02x"' % colour for colour in AGENT_COLOURS)
+    assert f"const SEAT_COLOURS = [{colours}];" in page
