@@ -16,7 +16,7 @@ from trainers.sweep import main, regimes  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ["num_envs=2", "rollout_steps=8", "max_steps=8", "hidden=8", "minibatches=1", "eval_episodes=0", "gif=false",
-        "progress=false", "checkpoint_every=1"]
+        "progress=false", "checkpoint_every=1", "init_from=''"]  # from scratch, whatever the config starts from
 
 
 def kitchen_sweep(cwd: Path, *arguments: str, config: str = "main.yaml") -> subprocess.Popen:
