@@ -51,7 +51,7 @@ from trainers.evaluate import evaluation_grids
 try:
     from fastapi import FastAPI, HTTPException, WebSocket, WebSocketDisconnect
     from fastapi.responses import HTMLResponse
-    from pydantic import BaseModel, Field
+    from pydantic import BaseModel, Field, ValidationError
 
     class Choice(BaseModel):
         """A lobby choice: who partners the person, where, in which seat, at which pace (and the kitchen's seed)."""
@@ -116,11 +116,10 @@ def parse_action(text: str) -> int:
         raise ValueError(f"message of {len(text):,} characters; {EXPECTED}")
     try:
         return ACTIONS[ActionMessage.model_validate_json(text).action]
-    except ValueError as error:  # pydantic's ValidationError: bad JSON, too deep, wrong fields or values
-        errors = getattr(error, "errors", lambda: [])()
-        where = f" at {'.'.join(map(str, errors[0]['loc']))}" if errors and errors[0]["loc"] else ""
-        reason = errors[0]["msg"] if errors else "not an action"
-        raise ValueError(f"{reason}{where}; {EXPECTED}"[:300]) from None
+    except ValidationError as error:  # bad JSON, too deep, wrong fields or values
+        first = error.errors()[0]
+        where = f" at {'.'.join(map(str, first['loc']))}" if first["loc"] else ""
+        raise ValueError(f"{first['msg']}{where}; {EXPECTED}"[:300]) from None
 
 
 def same_origin(origin: str | None, host: str | None) -> bool:
@@ -140,9 +139,12 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
     app = FastAPI(title="kitchen-play")
     games: dict[str, tuple[Game, str, float]] = {}  # games made, not yet connected: (game, mode, made at)
 
+    def known(host: str | None) -> bool:
+        return hosts is None or host in hosts
+
     @app.middleware("http")
     async def known_host(request, call_next):
-        if hosts is not None and request.headers.get("host") not in hosts:
+        if not known(request.headers.get("host")):
             return HTMLResponse(f"unknown host {request.headers.get('host')!r}", status_code=400)
         return await call_next(request)
 
@@ -194,7 +196,7 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
     @app.websocket("/ws/games/{game_id}")
     async def play(websocket: WebSocket, game_id: str) -> None:
         host, origin = websocket.headers.get("host"), websocket.headers.get("origin")
-        if (hosts is not None and host not in hosts) or not same_origin(origin, host):
+        if not known(host) or not same_origin(origin, host):
             log.warning("refused a connection to a game from origin %r to host %r", origin, host)
             await websocket.close(code=1008)  # policy violation, before accepting: the game stays its owner's
             return

@@ -31,7 +31,7 @@ import yaml
 
 from jax_env import EXPANDED_LAYOUTS
 from trainers.config import EvalConfig, load_config
-from trainers.evaluate import SCRIPTED_CONDITION, evaluate
+from trainers.evaluate import SCRIPTED_CONDITION, cross_condition, evaluate
 from trainers.ippo import RunStopped, team_configs, train_or_resume
 from trainers.machine import machine_name
 
@@ -126,7 +126,7 @@ def cross_pairs(summary: dict, pairs: list[list[str]]) -> list[str]:
     seeds, on every grid group where the pair was measured (n/a where a side has no cross-play there)."""
     rows = []
     for first, second in pairs:
-        pair = " x ".join(sorted((first, second)))
+        pair = cross_condition(first, second)
         for condition, grids in summary:
             if condition == pair:
                 values = [value(summary, name, grids, "xp") for name in (pair, first, second)]

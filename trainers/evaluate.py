@@ -200,6 +200,11 @@ def evaluation_grids(layouts: Sequence[str], num_heldout: int = 100) -> list[Lay
     return [load_layout(name) for name in layouts] + heldout
 
 
+def cross_condition(first: str, second: str) -> str:
+    """The summary's name of the cross-play between two conditions, whichever order they are given in."""
+    return " x ".join(sorted((first, second)))
+
+
 def is_heldout(grid_name: str) -> bool:
     return grid_name.startswith("heldout_")
 
@@ -363,7 +368,7 @@ def summary_rows(outcomes: Outcomes) -> list[dict]:
                 outcomes, lambda m, a, b: m.kind == CROSS and tuple(sorted((a.condition, b.condition))) == pair, names
             )
             mean, stderr = mean_and_stderr(scores)
-            rows.append({"condition": " x ".join(pair), "label": "cross", "grids": group, "sp": float("nan"),
+            rows.append({"condition": cross_condition(*pair), "label": "cross", "grids": group, "sp": float("nan"),
                          "sp_stderr": float("nan"), "sp_pairs": 0, "xp": mean, "xp_stderr": stderr,
                          "xp_pairs": len(scores), "gap": float("nan"), "partner": float("nan"),
                          "partner_stderr": float("nan"), "partner_pairs": 0})

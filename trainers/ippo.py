@@ -392,10 +392,18 @@ def compile_step(step: Callable[[TensorDictBase], dict[str, torch.Tensor]],
     return run
 
 
-def start_from(team: Team, run: Path) -> None:
-    """Loads the actor's and critic's weights of `run`'s latest checkpoint into `team` (`init_from`: e.g. a team
-    distilled from the scripted cook); CheckpointError if its model is not the team's."""
-    state = load_checkpoint(run, map_location=team.config.device)
+def start_from(team: Team) -> None:
+    """Loads into `team` the actor's and critic's weights that its `init_from` names (nothing to load from scratch):
+    a run's latest checkpoint, or the scripted cook distilled first into the team's run folder. CheckpointError if
+    that model is not the team's."""
+    start = team.config.init_path(team.run)
+    if start is None:
+        return
+    if team.config.init_from == PLANNER_START:
+        from trainers.distill import distill_start  # distillation builds on this module
+
+        distill_start(team.config, start)
+    state = load_checkpoint(start, map_location=team.config.device)
     check_identity(state, team.identity)
     team.parts["actor"].load_state_dict(state["actor"])
     team.parts["critic"].load_state_dict(state["critic"])
@@ -831,12 +839,7 @@ def train_teams(
     else:
         for team in teams:
             start_fresh(team.run)
-            if (start := team.config.init_path(team.run)) is not None:
-                if team.config.init_from == PLANNER_START:
-                    from trainers.distill import distill_start  # distillation builds on this module
-
-                    distill_start(team.config, start)
-                start_from(team, start)
+            start_from(team)
     policy.restack()  # the weights just loaded
     for team in teams:
         team.run.mkdir(parents=True, exist_ok=True)
