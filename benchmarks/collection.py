@@ -59,7 +59,7 @@ def main(argv=None) -> None:
         states, deliveries = kitchen.states, kitchen._deliveries
         actions = np.random.default_rng(0).integers(0, 6, (config.num_envs, 2), dtype=np.int32)
         rows["JAX step"] = 1e6 * seconds_per_call(
-            lambda: jax.block_until_ready(kitchen._step_jax(states, deliveries, actions)), args.steps, warmup=20)
+            lambda: jax.block_until_ready(kitchen._programs.step(states, deliveries, actions)), args.steps, warmup=20)
         rows["env.step"] = 1e6 * seconds_per_call(lambda: env.step(tensordict), args.steps, warmup=20)
         rows["acting policy"] = 1e6 * seconds_per_call(lambda: policy(tensordict), args.steps, warmup=20)
     steps = SETTINGS[args.setting]["rollout_steps"]

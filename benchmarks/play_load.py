@@ -5,9 +5,13 @@ latency of one tick of one game (`play.game.Game.step`: the partner's forward pa
 line), its median and 95th percentile, and the games one core could tick every `--tick-ms` from that; then that
 many games (and more) at once, each a WebSocket client of a real `kitchen-play` server in this process (one event
 loop, torch on one thread), reporting the mean and the 95th percentile of the interval between a game's ticks
-against the target.
+against the target. Then a study's load (`--games`, 40 by default): that many whole real-time games with the MLP
+team at once, each client sending a key on every state it gets: the time to create each game, the gaps between a
+game's states (p50, p90, p99, max), how far behind schedule games end, and the server process's resident memory
+idle (after one warm-up game), with the games running, and after they ended.
 
-    python benchmarks/play_load.py [--tick-ms 150] [--seconds 10] [--partners mlp gnn]
+    python benchmarks/play_load.py [--tick-ms 150] [--seconds 10] [--partners mlp gnn] [--games 40]
+        [--game-steps 200] [--skip-capacity]
 """
 
 from __future__ import annotations
@@ -58,6 +62,107 @@ def tick_latency(architecture: str, records: Path, ticks: int = 300) -> list[flo
     return times
 
 
+def resident_mb() -> float:
+    """This process's resident memory (Linux's /proc), MB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+class Serving:
+    """A `kitchen-play` app served by uvicorn on a free loopback port, on a thread of this process."""
+
+    def __init__(self, app):
+        import uvicorn
+
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            self.url = f"http://127.0.0.1:{probe.getsockname()[1]}"
+        self.server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=int(self.url.rsplit(":", 1)[1]),
+                                                    log_level="warning"))
+
+    def __enter__(self) -> str:
+        self.thread = threading.Thread(target=self.server.run)
+        self.thread.start()
+        while not self.server.started:
+            time.sleep(0.05)
+        return self.url
+
+    def __exit__(self, *exc) -> None:
+        self.server.should_exit = True  # and wait for it: a thread still serving at exit aborts the interpreter
+        self.thread.join()
+
+
+async def study(url: str, partner: str, games: int, tick: float) -> dict:
+    """`games` whole real-time games at once, each client sending a random key on every state it receives."""
+    import random
+
+    import httpx
+    import websockets
+
+    created = []
+    async with httpx.AsyncClient(base_url=url, timeout=120) as client:
+        ids = []
+        for _ in range(games):
+            started = time.perf_counter()
+            response = await client.post("/api/games", json={"partner": partner, "kitchen": KITCHEN, "mode": "realtime"})
+            response.raise_for_status()
+            created.append(time.perf_counter() - started)
+            ids.append(response.json()["id"])
+    peak = [resident_mb()]
+
+    async def one(game_id: str) -> tuple[list[float], float]:
+        keys = random.Random(game_id)
+        arrivals, steps = [], 0
+        async with websockets.connect(f"{url.replace('http', 'ws')}/ws/games/{game_id}") as ws:
+            async for message in ws:
+                state = json.loads(message)
+                arrivals.append(time.perf_counter())
+                steps = state["t"]
+                if state["over"]:
+                    break
+                await ws.send(json.dumps({"type": "action", "action": keys.choice(["up", "down", "left", "right",
+                                                                                  "stay", "interact"])}))
+                if steps % 50 == 0:
+                    peak[0] = max(peak[0], resident_mb())
+        lag = arrivals[-1] - (arrivals[0] + steps * tick)  # the last state against the schedule from the first
+        return [b - a for a, b in zip(arrivals[1:], arrivals[2:])], lag
+
+    results = await asyncio.gather(*(one(game_id) for game_id in ids))
+    gaps = sorted(gap for intervals, _ in results for gap in intervals)
+    lags = sorted(lag for _, lag in results)
+    return {"created": sorted(created), "gaps": gaps, "lags": lags, "peak_mb": peak[0]}
+
+
+def quantile(values: list[float], q: float) -> float:
+    return values[min(len(values) - 1, int(q * len(values)))]
+
+
+def run_study(partner_run: str, games: int, steps: int, tick_ms: int, records: Path) -> None:
+    import gc
+
+    app = create_app([partner_run], records=records, tick_ms=tick_ms, max_steps=steps)
+    tick = tick_ms / 1000
+    with Serving(app) as url:
+        asyncio.run(study(url, partner_run, 1, tick))  # warm-up: the partner loaded, the kitchen compiled
+        gc.collect()
+        idle = resident_mb()
+        result = asyncio.run(study(url, partner_run, games, tick))
+        gc.collect()
+        time.sleep(1.0)
+        after = resident_mb()
+    created, gaps, lags = result["created"], result["gaps"], result["lags"]
+    print(f"\n{games} real-time games at once, mlp team, {steps} steps each, a key on every state")
+    print(f"{'create mean s':>13s} {'create max s':>12s} {'gap p50 ms':>10s} {'gap p90 ms':>10s} {'gap p99 ms':>10s} "
+          f"{'gap max ms':>10s} {'lag median s':>12s} {'lag max s':>9s} {'idle MB':>8s} {'peak MB':>8s} "
+          f"{'after MB':>8s}")
+    print(f"{statistics.mean(created):13.3f} {created[-1]:12.3f} {quantile(gaps, 0.5) * 1e3:10.1f} "
+          f"{quantile(gaps, 0.9) * 1e3:10.1f} {quantile(gaps, 0.99) * 1e3:10.1f} {gaps[-1] * 1e3:10.1f} "
+          f"{statistics.median(lags):12.2f} {lags[-1]:9.2f} {idle:8.0f} {result['peak_mb']:8.0f} {after:8.0f}",
+          flush=True)
+
+
 async def play_games(url: str, partner: str, games: int, seconds: float) -> list[float]:
     """Intervals (s) between consecutive ticks of `games` real-time games played at once for `seconds`."""
     import httpx
@@ -89,39 +194,35 @@ def main(argv=None) -> None:
     parser.add_argument("--tick-ms", type=int, default=150)
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--partners", nargs="+", default=["mlp", "gnn"])
+    parser.add_argument("--games", type=int, default=40, help="games at once in the study case (0: skip it)")
+    parser.add_argument("--game-steps", type=int, default=200, help="steps of each game in the study case")
+    parser.add_argument("--skip-capacity", action="store_true", help="only the study case")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     tick = args.tick_ms / 1000
-    print(f"{machine_name()}, torch threads 1, "
-          f"tick {args.tick_ms} ms, kitchen {KITCHEN}")
+    print(f"{machine_name()}, torch threads 1, tick {args.tick_ms} ms, kitchen {KITCHEN}")
     with tempfile.TemporaryDirectory() as scratch:
         scratch = Path(scratch)
+        partners = sorted({*args.partners, "mlp"}) if args.games else args.partners
         runs = {architecture: save_team(scratch / "runs" / architecture / "seed0", architecture)
-                for architecture in args.partners}
-        app = create_app(list(runs.values()), records=scratch / "games", tick_ms=args.tick_ms, max_steps=100_000)
-        with socket.socket() as probe:
-            probe.bind(("127.0.0.1", 0))
-            port = probe.getsockname()[1]
-        import uvicorn
-
-        server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-        serving = threading.Thread(target=server.run)
-        serving.start()
-        while not server.started:
-            time.sleep(0.05)
-        print(f"{'partner':>8s} {'tick p50 ms':>12s} {'tick p95 ms':>12s} {'games/core':>11s} {'games':>6s} "
-              f"{'interval mean ms':>17s} {'interval p95 ms':>16s}")
-        for architecture, run in runs.items():
-            latency = sorted(tick_latency(architecture, scratch))
-            p50, p95 = statistics.median(latency), latency[int(0.95 * len(latency))]
-            capacity = int(tick / p95)
-            for games in sorted({max(1, capacity // 2), max(1, capacity)}):
-                intervals = sorted(asyncio.run(play_games(f"http://127.0.0.1:{port}", run, games, args.seconds)))
-                mean, late = statistics.mean(intervals), intervals[int(0.95 * len(intervals))]
-                print(f"{architecture:>8s} {p50 * 1e3:12.2f} {p95 * 1e3:12.2f} {capacity:11d} {games:6d} "
-                      f"{mean * 1e3:17.1f} {late * 1e3:16.1f}", flush=True)
-        server.should_exit = True  # and wait for it: a thread still serving at exit aborts the interpreter
-        serving.join()
+                for architecture in partners}
+        if not args.skip_capacity:
+            app = create_app([runs[a] for a in args.partners], records=scratch / "games", tick_ms=args.tick_ms,
+                             max_steps=100_000)
+            with Serving(app) as url:
+                print(f"{'partner':>8s} {'tick p50 ms':>12s} {'tick p95 ms':>12s} {'games/core':>11s} {'games':>6s} "
+                      f"{'interval mean ms':>17s} {'interval p95 ms':>16s}")
+                for architecture in args.partners:
+                    latency = sorted(tick_latency(architecture, scratch))
+                    p50, p95 = statistics.median(latency), latency[int(0.95 * len(latency))]
+                    capacity = int(tick / p95)
+                    for games in sorted({max(1, capacity // 2), max(1, capacity)}):
+                        intervals = sorted(asyncio.run(play_games(url, runs[architecture], games, args.seconds)))
+                        mean, late = statistics.mean(intervals), intervals[int(0.95 * len(intervals))]
+                        print(f"{architecture:>8s} {p50 * 1e3:12.2f} {p95 * 1e3:12.2f} {capacity:11d} {games:6d} "
+                              f"{mean * 1e3:17.1f} {late * 1e3:16.1f}", flush=True)
+        if args.games:
+            run_study(runs["mlp"], args.games, args.game_steps, args.tick_ms, scratch / "study")
 
 
 if __name__ == "__main__":

@@ -45,11 +45,11 @@ def raw_step_per_second(env: KitchenEnv, steps: int) -> float:
     states, deliveries = env._states, env._deliveries
     key = jax.device_put(jax.random.PRNGKey(0), env._jax_device)
     actions = jax.jit(lambda key, t: _random_actions(env, jax.random.fold_in(key, t)))
-    states, deliveries, out = env._step_jax(states, deliveries, actions(key, 0))  # compile
+    states, deliveries, out = env._programs.step(states, deliveries, actions(key, 0))  # compile
     jax.block_until_ready(out)
     start = time.perf_counter()
     for t in range(steps):
-        states, deliveries, out = env._step_jax(states, deliveries, actions(key, t))
+        states, deliveries, out = env._programs.step(states, deliveries, actions(key, t))
     jax.block_until_ready(out)
     return env.num_envs * steps / (time.perf_counter() - start)
 
@@ -73,7 +73,7 @@ def raw_trajectory_per_second(env: KitchenEnv, steps: int) -> float:
     @jax.jit
     def trajectory(states, deliveries, key):
         def body(carry, key):
-            states, deliveries, out = env._step_jax(*carry, _random_actions(env, key))
+            states, deliveries, out = env._programs.step(*carry, _random_actions(env, key))
             return (states, deliveries), out
 
         return jax.lax.scan(body, (states, deliveries), jax.random.split(key, steps))

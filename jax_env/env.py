@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 from typing import NamedTuple, Sequence, Union
 
 import jax
@@ -134,6 +135,25 @@ class Overcooked:
     def num_levels(self) -> int:
         """How many levels episodes are drawn from (0 for the Infinite Kitchen, which generates them)."""
         return 0 if self._bank is None else int(self._bank.step.shape[0])
+
+    @property
+    def start_states(self) -> State | None:
+        """The start state of every level episodes are drawn from, batched (None for the Infinite Kitchen)."""
+        return self._bank
+
+    @property
+    def settings(self) -> tuple:
+        """Everything the methods depend on but the levels' start states: kitchens with equal settings step alike,
+        so one compiled program serves them all, given each one's `start_states` (see `with_start_states`)."""
+        generated = self._heldout_grids is not None
+        return (self.height, self.width, self.max_steps, self.shaping, self.generator, generated, self.num_levels)
+
+    def with_start_states(self, start_states: State | None) -> "Overcooked":
+        """These settings over other levels of the same size and number (traced arrays too): inside a jitted
+        function that takes the start states as an argument, kitchens that differ only in their levels share it."""
+        other = copy.copy(self)
+        other._bank = start_states
+        return other
 
     def reset(self, key: jax.Array) -> tuple[jax.Array, State]:
         state = self.initial_state(key)

@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import ctypes
+import ctypes.util
 import functools
 import glob
 import itertools
@@ -73,7 +75,25 @@ except ImportError:  # the optional extra
 STATIC = Path(__file__).parent / "static"
 GENERATED = "a freshly generated Infinite Kitchen level"
 MODES = ("realtime", "turns")
+NO_TOKEN = "this server's games are for a study's participants: open the link you were given (it carries a token)"
 log = logging.getLogger("kitchen-play")
+
+
+@functools.cache
+def _malloc_trim():
+    """glibc's malloc_trim, or None (another C library)."""
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
+
+
+def release_freed_memory() -> None:
+    """Hands the memory of ended games back to the system. Games step on worker threads, and glibc keeps what a
+    thread freed in that thread's arena: without this a server's resident memory only grows (measured: idle 811 MB,
+    994 MB after 40 games of 200 steps had ended, 772 MB once trimmed)."""
+    if (trim := _malloc_trim()) is not None:
+        trim(0)
 
 
 def find_runs(root: str = "runs") -> list[str]:
@@ -130,10 +150,12 @@ def same_origin(origin: str | None, host: str | None) -> bool:
 
 def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int = 150, device: str = "cpu",
                level_files: list[str] = (), max_steps: int = 400, runs_root: str = "runs",
-               idle_s: float = 600.0, hosts: list[str] | None = None, connect_s: float = 120.0) -> FastAPI:
+               idle_s: float = 600.0, hosts: list[str] | None = None, connect_s: float = 120.0,
+               token: str | None = None) -> FastAPI:
     """The web app: lobby, game creation and the games' WebSockets. A turns-mode game whose player sends no
     action for `idle_s` seconds ends ("idle"); a game nobody connects to within `connect_s` seconds expires
-    ("never connected"). `hosts`: the Host headers the server answers to (against DNS rebinding; None: any)."""
+    ("never connected"). `hosts`: the Host headers the server answers to (against DNS rebinding; None: any).
+    `token`: a study's participants' key; when set, every page, request and game needs `?token=<token>`."""
     if FastAPI is None:
         raise ImportError("kitchen-play needs the play extra: pip install .[play]")
     app = FastAPI(title="kitchen-play")
@@ -142,10 +164,15 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
     def known(host: str | None) -> bool:
         return hosts is None or host in hosts
 
+    def admitted(given: str | None) -> bool:
+        return token is None or (given is not None and secrets.compare_digest(given.encode(), token.encode()))
+
     @app.middleware("http")
     async def known_host(request, call_next):
         if not known(request.headers.get("host")):
             return HTMLResponse(f"unknown host {request.headers.get('host')!r}", status_code=400)
+        if not admitted(request.query_params.get("token")):
+            return HTMLResponse(NO_TOKEN, status_code=403)
         return await call_next(request)
 
     def expire_unconnected() -> None:
@@ -196,8 +223,9 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
     @app.websocket("/ws/games/{game_id}")
     async def play(websocket: WebSocket, game_id: str) -> None:
         host, origin = websocket.headers.get("host"), websocket.headers.get("origin")
-        if not known(host) or not same_origin(origin, host):
-            log.warning("refused a connection to a game from origin %r to host %r", origin, host)
+        if not known(host) or not same_origin(origin, host) or not admitted(websocket.query_params.get("token")):
+            log.warning("refused a connection to a game from origin %r to host %r (or without the token)", origin,
+                        host)
             await websocket.close(code=1008)  # policy violation, before accepting: the game stays its owner's
             return
         await websocket.accept()
@@ -266,8 +294,13 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
             reason = "finished" if game.t >= game.max_steps else reason
             game.end(reason)
             log.info("game %s ended (%s) after %d steps, score %d", game_id, reason, game.t, game.score)
+        del game  # its kitchen and tensors freed, then handed back
+        await asyncio.to_thread(release_freed_memory)
         if reason in ("finished", "idle"):
-            await websocket.close()
+            try:
+                await websocket.close()
+            except (WebSocketDisconnect, RuntimeError):
+                pass  # the player left first
 
     return app
 
@@ -301,6 +334,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--allow-host", action="append", default=[], metavar="HOST[:PORT]",
                         help="another Host header to answer to (a study behind a proxy); the server's own address "
                              "and localhost are always allowed")
+    parser.add_argument("--token", help="a key for a study's participants: the server answers only links carrying "
+                             "it (?token=...); 'random' makes one, printed in the link")
     parser.add_argument("--levels", nargs="*", default=[], help="level files to offer as kitchens")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
@@ -314,17 +349,19 @@ def main(argv: list[str] | None = None) -> int:
             print(f"kitchen-play: error: cannot serve on {args.host}:{args.port}: {error.strerror} (another "
                   "server there? choose another --port)", file=sys.stderr)
             return 2
+    token = secrets.token_urlsafe(16) if args.token == "random" else args.token
     try:
         hosts = [f"{name}:{args.port}" for name in dict.fromkeys([args.host, "127.0.0.1", "localhost"])]
         app = create_app(args.runs, args.records, args.tick_ms, args.device, args.levels, args.max_steps,
-                         idle_s=args.idle_s, hosts=[*hosts, *args.allow_host])
+                         idle_s=args.idle_s, hosts=[*hosts, *args.allow_host], token=token)
     except ImportError as error:
         print(f"kitchen-play: error: {error}", file=sys.stderr)
         return 2
     import uvicorn
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    print(f"kitchen-play: open http://{args.host}:{args.port}/ (records in {args.records}/)", flush=True)
+    link = f"http://{args.host}:{args.port}/" + (f"?token={token}" if token else "")
+    print(f"kitchen-play: open {link} (records in {args.records}/)", flush=True)
     # On SIGTERM or SIGINT every game's socket is closed, which ends its game with the record complete; a handler
     # still running after 5 s is cancelled, which ends its game too.
     uvicorn.run(app, host=args.host, port=args.port, log_level="warning", timeout_graceful_shutdown=5)

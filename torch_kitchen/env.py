@@ -25,7 +25,9 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from typing import Sequence
+import threading
+from collections import OrderedDict
+from typing import Callable, NamedTuple, Sequence
 
 # JAX would otherwise take 75% of the GPU's memory at its first operation and starve torch.
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
@@ -68,6 +70,84 @@ _STATE_FIELDS = dataclasses.fields(State)  # the kitchens travel in checkpoints 
 def _to_tensor(array, dtype=None) -> torch.Tensor:
     """A CPU tensor copy of a JAX array (a copy: JAX's host buffers are read-only)."""
     return torch.from_numpy(np.array(array, dtype=dtype))
+
+
+class KitchenPrograms(NamedTuple):
+    """The jitted JAX functions behind a `KitchenEnv`. Each returns (states, deliveries, (observation [B, 2, H, W,
+    26], scalars [B, 6], done [B, 1])), fresh arrays only, none of them part of the state; the per-env scalars
+    travel as one float32 array (reward x2, shaped reward x2, deliveries this step, episode deliveries) so that a
+    step crosses DLPack three times instead of six. The levels' start states are an argument, not a constant, so
+    that kitchens of one size and settings share one compilation (a server starting a game compiles nothing)."""
+
+    reset_all: Callable  # (start_states, keys [teams, 2]) -> every kitchen fresh
+    reset_masked: Callable  # (start_states, keys, states, deliveries, mask [B]) -> the masked kitchens fresh
+    observe: Callable  # (states, deliveries) -> the kitchens as they stand: nothing earned, not done
+    step: Callable  # (states, deliveries, actions int32 [B, 2]) -> one step of every kitchen, no reset
+    split_keys: Callable  # keys [teams, 2] -> (kept, used)
+
+
+_PROGRAMS: OrderedDict[tuple, KitchenPrograms] = OrderedDict()
+_PROGRAMS_KEPT = 32  # least recently used programs beyond this are dropped (with their compilations)
+_PROGRAMS_LOCK = threading.Lock()  # envs are built from several threads (teams trained in parallel, a server)
+
+
+def kitchen_programs(kitchen: Overcooked, num_envs: int, teams: int, pin_levels: bool) -> KitchenPrograms:
+    """The programs of `num_envs` kitchens of `kitchen`'s settings in `teams` teams, built once per settings and
+    shape and reused by every env of them (see `KitchenPrograms`)."""
+    key = (kitchen.settings, num_envs, teams, pin_levels)
+    with _PROGRAMS_LOCK:
+        if key not in _PROGRAMS:
+            _PROGRAMS[key] = _build_programs(kitchen, num_envs, teams, pin_levels)
+            if len(_PROGRAMS) > _PROGRAMS_KEPT:
+                _PROGRAMS.popitem(last=False)
+        _PROGRAMS.move_to_end(key)
+        return _PROGRAMS[key]
+
+
+def _build_programs(kitchen: Overcooked, num_envs: int, teams: int, pin_levels: bool) -> KitchenPrograms:
+    team_size = num_envs // teams
+    # The level of every kitchen of a team, or None: a fresh draw per episode.
+    levels_of_team = jnp.asarray(np.arange(team_size) % kitchen.num_levels, jnp.int32) if pin_levels else None
+
+    def outputs(states, deliveries, reward, shaped_reward, done):
+        delivered = (reward[:, 0] / DELIVERY_REWARD).astype(jnp.int32)
+        deliveries = deliveries + delivered
+        scalars = jnp.concatenate(
+            [reward, shaped_reward, delivered[:, None], deliveries[:, None]], axis=1, dtype=jnp.float32
+        )
+        return states, deliveries, (jax.vmap(kitchen.get_obs)(states), scalars, done[:, None])
+
+    def observe(states, deliveries):
+        zeros = jnp.zeros((num_envs, 2), jnp.float32)
+        return outputs(states, deliveries, zeros, zeros, jnp.zeros(num_envs, bool))
+
+    # Resets run per team (vmapped over the teams' keys) on [teams, team_size] views of the kitchens.
+    def by_team(tree):
+        return jax.tree_util.tree_map(lambda x: x.reshape(teams, team_size, *x.shape[1:]), tree)
+
+    def flat(tree):
+        return jax.tree_util.tree_map(lambda x: x.reshape(num_envs, *x.shape[2:]), tree)
+
+    def reset_all(start_states, keys):
+        levels = kitchen.with_start_states(start_states)
+        _, states = jax.vmap(lambda key: levels.reset_batch(key, team_size, levels_of_team))(keys)
+        return observe(flat(states), jnp.zeros(num_envs, jnp.int32))
+
+    def reset_masked(start_states, keys, states, deliveries, mask):
+        levels = kitchen.with_start_states(start_states)
+        reset = jax.vmap(lambda key, states, mask: levels.reset_where(key, states, mask, levels_of_team))
+        states = flat(reset(keys, by_team(states), by_team(mask)))
+        return observe(states, jnp.where(mask, 0, deliveries))
+
+    def step(states, deliveries, actions):
+        states, reward, done, info = jax.vmap(kitchen.step_env)(states, actions)
+        return outputs(states, deliveries, reward, info["shaped_reward"], done)
+
+    def split_keys(keys):
+        keys = jax.vmap(jax.random.split)(keys)  # [teams, 2, 2]
+        return keys[:, 0], keys[:, 1]
+
+    return KitchenPrograms(*(jax.jit(f) for f in (reset_all, reset_masked, observe, step, split_keys)))
 
 
 class KitchenEnv(EnvBase):
@@ -116,45 +196,9 @@ class KitchenEnv(EnvBase):
         kitchen = self.kitchen
         if pin_levels and kitchen.num_levels == 0:
             raise ValueError("pin_levels needs a list of levels (or 'heldout'); the Infinite Kitchen generates them")
-        # The level of every kitchen of a team, or None: a fresh draw per episode.
-        levels_of_team = np.arange(team_size) % kitchen.num_levels if pin_levels else None
-        self.pinned_levels = None if levels_of_team is None else np.tile(levels_of_team, self.teams)
-        levels_of_team = None if levels_of_team is None else jnp.asarray(levels_of_team, jnp.int32)
-
-        def observe(states, deliveries):
-            """The outputs of kitchens as they stand: nothing earned, not done (resets and restores)."""
-            zeros = jnp.zeros((num_envs, 2), jnp.float32)
-            return self._outputs(states, deliveries, zeros, zeros, jnp.zeros(num_envs, bool))
-
-        # Resets run per team (vmapped over the teams' keys) on [teams, team_size] views of the kitchens.
-        def by_team(tree):
-            return jax.tree_util.tree_map(lambda x: x.reshape(self.teams, team_size, *x.shape[1:]), tree)
-
-        def flat(tree):
-            return jax.tree_util.tree_map(lambda x: x.reshape(num_envs, *x.shape[2:]), tree)
-
-        def reset_all(keys):
-            _, states = jax.vmap(lambda key: kitchen.reset_batch(key, team_size, levels_of_team))(keys)
-            return observe(flat(states), jnp.zeros(num_envs, jnp.int32))
-
-        def reset_masked(keys, states, deliveries, mask):
-            reset = jax.vmap(lambda key, states, mask: kitchen.reset_where(key, states, mask, levels_of_team))
-            states = flat(reset(keys, by_team(states), by_team(mask)))
-            return observe(states, jnp.where(mask, 0, deliveries))
-
-        def split_keys(keys):
-            keys = jax.vmap(jax.random.split)(keys)  # [teams, 2, 2]
-            return keys[:, 0], keys[:, 1]
-
-        def step(states, deliveries, actions):
-            states, reward, done, info = jax.vmap(kitchen.step_env)(states, actions)
-            return self._outputs(states, deliveries, reward, info["shaped_reward"], done)
-
-        self._reset_all = jax.jit(reset_all)
-        self._observe = jax.jit(observe)
-        self._reset_masked = jax.jit(reset_masked)
-        self._step_jax = jax.jit(step)
-        self._split_keys = jax.jit(split_keys)
+        self.pinned_levels = np.tile(np.arange(team_size) % kitchen.num_levels, self.teams) if pin_levels else None
+        self._programs = kitchen_programs(kitchen, num_envs, self.teams, pin_levels)
+        self._start_states = kitchen.start_states
         self._states = None  # the JAX kitchens, batched
         self._deliveries = None  # int32 [B]: soups delivered this episode
         self._last_obs = None  # the JAX array behind the last observation handed out (zero-copy checks)
@@ -186,22 +230,9 @@ class KitchenEnv(EnvBase):
         self.done_spec = Composite(done=done, terminated=done.clone(), truncated=done.clone(), shape=batch)
 
     # -------------------------------------------------------------------------------------------- JAX side
-    def _outputs(self, states, deliveries, reward, shaped_reward, done):
-        """(states, deliveries, (observation, scalars, done)): fresh arrays only, none of them part of the state.
-
-        The per-env scalars travel as one float32 [B, 6] array (reward x2, shaped reward x2, deliveries this
-        step, episode deliveries) so that a step crosses DLPack three times instead of six.
-        """
-        delivered = (reward[:, 0] / DELIVERY_REWARD).astype(jnp.int32)
-        deliveries = deliveries + delivered
-        scalars = jnp.concatenate(
-            [reward, shaped_reward, delivered[:, None], deliveries[:, None]], axis=1, dtype=jnp.float32
-        )
-        return states, deliveries, (jax.vmap(self.kitchen.get_obs)(states), scalars, done[:, None])
-
     def _next_key(self) -> jax.Array:
         """uint32 [teams, 2]: a fresh key per team (each team's stream advances as a one-team env's would)."""
-        self._key, key = self._split_keys(self._key)
+        self._key, key = self._programs.split_keys(self._key)
         return key
 
     # ------------------------------------------------------------------------------------------ torch side
@@ -233,13 +264,13 @@ class KitchenEnv(EnvBase):
         full = mask is None or bool(mask.all())
         if self._restored and full:
             self._restored = False
-            self._states, self._deliveries, out = self._observe(self._states, self._deliveries)
+            self._states, self._deliveries, out = self._programs.observe(self._states, self._deliveries)
         elif self._states is None or full:
-            self._states, self._deliveries, out = self._reset_all(self._next_key())
+            self._states, self._deliveries, out = self._programs.reset_all(self._start_states, self._next_key())
         else:
             mask = jax.dlpack.from_dlpack(mask.reshape(-1).contiguous())
-            self._states, self._deliveries, out = self._reset_masked(
-                self._next_key(), self._states, self._deliveries, mask
+            self._states, self._deliveries, out = self._programs.reset_masked(
+                self._start_states, self._next_key(), self._states, self._deliveries, mask
             )
         self._episode_steps = np.array(self._states.step)  # read once per reset, not per step
         return self._to_tensordict(out, with_reward=False)
@@ -254,7 +285,7 @@ class KitchenEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         actions = self._actions_to_jax(tensordict.get(("agents", "action")))
-        self._states, self._deliveries, out = self._step_jax(self._states, self._deliveries, actions)
+        self._states, self._deliveries, out = self._programs.step(self._states, self._deliveries, actions)
         self._episode_steps += 1
         return self._to_tensordict(out, with_reward=True)
 
@@ -277,7 +308,7 @@ class KitchenEnv(EnvBase):
             self.reset()
         # Actions of the kind a real step passes (a NumPy array on the CPU is not a device array to the jit cache).
         actions = self._actions_to_jax(torch.zeros(self.num_envs, 2, dtype=torch.int32, device=self.device))
-        jax.block_until_ready(self._step_jax(self._states, self._deliveries, actions))
+        jax.block_until_ready(self._programs.step(self._states, self._deliveries, actions))
 
     def _set_seed(self, seed: int | Sequence[int] | None) -> None:
         seeds = list(seed) if isinstance(seed, Sequence) else [seed or 0]
@@ -306,7 +337,7 @@ class KitchenEnv(EnvBase):
     def load_team_state(self, team: int, state: dict) -> None:
         """Restores one team's `team_state`; once every team's is loaded, the next full `reset()` hands the kitchens
         out as they were."""
-        expected_states, expected_deliveries, _ = jax.eval_shape(self._reset_all, self._key)
+        expected_states, expected_deliveries, _ = jax.eval_shape(self._programs.reset_all, self._start_states, self._key)
         expected = {field.name: getattr(expected_states, field.name) for field in _STATE_FIELDS}
         saved = state["states"]
         team_shapes = {name: (self.team_size, *value.shape[1:]) for name, value in expected.items()}

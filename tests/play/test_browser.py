@@ -28,13 +28,15 @@ def server(tmp_path):
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
-    app = create_app(records=tmp_path / "games", tick_ms=60, max_steps=400, runs_root=str(tmp_path / "runs"))
+    # A study's server: the page must carry the participants' token on to every request and the game's socket.
+    app = create_app(records=tmp_path / "games", tick_ms=60, max_steps=400, runs_root=str(tmp_path / "runs"),
+                     token="participant-7")
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     while not server.started:
         time.sleep(0.05)
-    yield f"http://127.0.0.1:{port}", tmp_path / "games"
+    yield f"http://127.0.0.1:{port}/?token=participant-7", tmp_path / "games"
     server.should_exit = True
     thread.join(timeout=10)
 

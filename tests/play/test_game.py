@@ -52,3 +52,20 @@ def test_the_page_colours_the_cooks_as_the_recorded_gifs_do():
     page = (Path(__file__).resolve().parents[2] / "play" / "static" / "index.html").read_text()
     colours = ", ".join('"#%02x%02x%02x"' % colour for colour in AGENT_COLOURS)
     assert f"const SEAT_COLOURS = [{colours}];" in page
+
+
+def test_a_new_game_compiles_nothing_its_kitchen_steps_with_the_first_games_programs(tmp_path):
+    """Games on kitchens of one size share one compiled reset and step, so starting a game never stalls the others
+    with a compilation; each plays and records its own kitchen."""
+    partner = Partner("random", make_actor_critic("mlp", (7, 7, 26), 8, True), (7, 7, 26))
+    first = Game(load_layout("cramped_room_7x7"), partner, 0, tmp_path / "first.jsonl", max_steps=12)
+    for _ in range(10):
+        first.step(4)
+    second = Game(load_layout("coord_ring_7x7"), partner, 1, tmp_path / "second.jsonl", max_steps=12)
+    while not second.over:
+        second.step(5)
+    programs = first.kitchen._programs
+    assert second.kitchen._programs is programs
+    assert programs.step._cache_size() == 1 and programs.reset_all._cache_size() == 1
+    assert replay(tmp_path / "second.jsonl")["steps"] == 12
+    assert read_record(tmp_path / "second.jsonl")[0]["layout"] == load_layout("coord_ring_7x7").to_text()

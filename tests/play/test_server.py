@@ -251,3 +251,21 @@ def test_unknown_hosts_are_refused_and_games_nobody_joins_expire(tmp_path):
         assert read_record(abandoned["record"])[2]["reason"] == "never connected"
         with client.websocket_connect(f"/ws/games/{abandoned['id']}") as socket:
             assert "no such game" in socket.receive_json()["reason"]
+
+
+def test_a_study_token_admits_only_links_that_carry_it(tmp_path):
+    app = create_app(records=tmp_path / "games", max_steps=30, runs_root=str(tmp_path / "runs"), token="s3cret")
+    with TestClient(app) as client:
+        for path in ("/", "/api/options", "/?token=guess"):
+            response = client.get(path)
+            assert response.status_code == 403 and "link you were given" in response.text
+        assert client.get("/?token=s3cret").status_code == 200
+        choice = {"partner": SCRIPTED, "kitchen": "cramped_room_7x7", "mode": "turns", "seed": 1}
+        assert client.post("/api/games", json=choice).status_code == 403
+        game = client.post("/api/games?token=s3cret", json=choice).json()
+        with pytest.raises(WebSocketDisconnect) as refused:
+            with client.websocket_connect(f"/ws/games/{game['id']}"):
+                pass
+        assert refused.value.code == 1008
+        with client.websocket_connect(f"/ws/games/{game['id']}?token=s3cret") as socket:
+            assert socket.receive_json()["t"] == 0  # the refused attempt left the game to its player

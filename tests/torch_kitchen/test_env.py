@@ -9,7 +9,8 @@ from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.envs.utils import RandomPolicy, check_env_specs
 
-from jax_env import State
+from jax_env import State, load_layout
+from jax_env.state import make_state
 from torch_kitchen.env import KitchenEnv
 
 
@@ -213,7 +214,26 @@ def test_compile_step_compiles_without_stepping_the_kitchens():
                for e in (env, fresh)]
     assert torch.equal(stepped[0], stepped[1])
     # The step it compiled is the one the real steps use: no second compilation (a game's first tick would pay it).
-    assert env._step_jax._cache_size() == 1
+    assert env._programs.step._cache_size() == 1
+
+
+def test_kitchens_of_one_size_share_one_compilation_and_keep_their_own_levels():
+    """A server starts each game on a new env: kitchens that differ only in their levels reuse the first one's
+    compiled reset and step (no compilation when a game starts), and each still plays its own layout."""
+    first = KitchenEnv(1, levels="cramped_room_7x7", max_steps=37, seed=3)
+    first.compile_step()
+    second = KitchenEnv(1, levels="coord_ring_7x7", max_steps=37, seed=3)
+    assert second._programs is first._programs
+    second.compile_step()
+    actions = TensorDict({"agents": {"action": torch.tensor([[1, 2]])}}, batch_size=[1])
+    for env in (first, second):
+        env.step(actions.clone())
+    programs = first._programs
+    assert programs.step._cache_size() == 1 and programs.reset_all._cache_size() == 1
+    for env, name in ((first, "cramped_room_7x7"), (second, "coord_ring_7x7")):
+        assert np.array_equal(np.asarray(env.states.grid[0]), np.asarray(make_state(load_layout(name)).grid))
+    # Other settings are another program.
+    assert KitchenEnv(1, levels="cramped_room_7x7", max_steps=38)._programs is not programs
 
 
 def test_the_host_knows_when_episodes_end_without_reading_done_from_the_device():
