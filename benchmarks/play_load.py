@@ -106,7 +106,8 @@ async def study(url: str, partner: str, games: int, tick: float) -> dict:
         ids = []
         for _ in range(games):
             started = time.perf_counter()
-            response = await client.post("/api/games", json={"partner": partner, "kitchen": KITCHEN, "mode": "realtime"})
+            choice = {"partner": partner, "kitchen": KITCHEN, "mode": "realtime"}
+            response = await client.post("/api/games", json=choice)
             response.raise_for_status()
             created.append(time.perf_counter() - started)
             ids.append(response.json()["id"])

@@ -337,7 +337,8 @@ class KitchenEnv(EnvBase):
     def load_team_state(self, team: int, state: dict) -> None:
         """Restores one team's `team_state`; once every team's is loaded, the next full `reset()` hands the kitchens
         out as they were."""
-        expected_states, expected_deliveries, _ = jax.eval_shape(self._programs.reset_all, self._start_states, self._key)
+        reset = self._programs.reset_all
+        expected_states, expected_deliveries, _ = jax.eval_shape(reset, self._start_states, self._key)
         expected = {field.name: getattr(expected_states, field.name) for field in _STATE_FIELDS}
         saved = state["states"]
         team_shapes = {name: (self.team_size, *value.shape[1:]) for name, value in expected.items()}

@@ -1,0 +1,146 @@
+"""The 2019 human games' conversion, on games the tests write in the study's format from the scripted cook's play."""
+
+import ast
+import io
+import pickle
+import subprocess
+import tarfile
+
+import jax
+import numpy as np
+import pytest
+import torch
+
+pandas = pytest.importorskip("pandas", reason="the human games need pandas: pip install .[humans]")
+
+from jax_env import Overcooked, load_layout  # noqa: E402
+from jax_env.human_games import (  # noqa: E402
+    LAYOUTS,
+    RECORDED_REWARD,
+    SOURCE,
+    TERRAIN,
+    TRIALS,
+    human_games,
+    load_dataset,
+    write_dataset,
+)
+from jax_env.layouts import POT  # noqa: E402
+from jax_env.state import DIR_VECTORS, DISH, ONION, PLATE, POT_EMPTY, POT_FULL  # noqa: E402
+from torch_kitchen.scripted import ScriptedCook  # noqa: E402
+from trainers.humans import main  # noqa: E402
+
+SYMBOL = {kind: symbol for symbol, kind in TERRAIN.items() if symbol not in "12"}
+NAMES = {ONION: "onion", PLATE: "dish", DISH: "soup"}
+STUDY_NAME = {ours: theirs for theirs, ours in LAYOUTS.items()}
+
+
+def study_state(state, width: int) -> dict:
+    """A state as the study's game logged it: pots as [onions, cook time] counting past 20, soups on plates."""
+    grid, contents = np.asarray(state.grid), np.asarray(state.contents)
+    objects = {}
+    for y, x in zip(*np.nonzero((contents > 0) | (grid == POT))):  # a ready pot's status is 0
+        if grid[y, x] == POT:
+            status = int(contents[y, x])
+            if status == POT_EMPTY:
+                continue
+            onions, cook_time = (POT_EMPTY - status, 0) if status > POT_FULL else (3, POT_FULL - status)
+            cook_time += 4 if status == 0 else 0  # the client went on counting once a soup was ready
+            objects[f"{x},{y}"] = {"name": "soup", "position": [int(x), int(y)], "state": ["onion", onions, cook_time]}
+        else:
+            objects[f"{x},{y}"] = {"name": NAMES[int(contents[y, x])], "position": [int(x), int(y)]}
+    players = []
+    for pos, facing, held in zip(np.asarray(state.agent_pos), np.asarray(state.agent_dir), np.asarray(state.agent_inv)):
+        player = {"position": [int(pos % width), int(pos // width)], "orientation": list(DIR_VECTORS[int(facing)])}
+        if held:
+            player["held_object"] = {"name": NAMES[int(held)], "position": player["position"]}
+        players.append(player)
+    return {"players": players, "objects": objects, "order_list": ["onion"], "pot_explosion": False}
+
+
+def study_action(action: int):
+    return "INTERACT" if action == 5 else [0, 0] if action == 4 else list(DIR_VECTORS[action])
+
+
+def scripted_game(layout_name: str, steps: int, worker: int, seed: int = 0) -> pandas.DataFrame:
+    """`steps` steps of two scripted cooks (sampling) on a classic layout, as rows of the study's trials."""
+    layout = load_layout(layout_name)
+    kitchen = Overcooked(layout, max_steps=10_000)
+    state = kitchen.initial_state(jax.random.PRNGKey(seed))
+    cook, generator = ScriptedCook(), torch.Generator().manual_seed(seed)
+    terrain_rows = str(["".join(SYMBOL[kind] for kind in row) for row in np.asarray(layout.grid)])
+    rows = []
+    for t in range(steps):
+        observation = torch.from_numpy(np.asarray(kitchen.get_obs(state)))
+        actions = torch.multinomial(cook(observation).softmax(-1), 1, generator=generator)[:, 0].tolist()
+        after, reward, _, _ = kitchen.step_env(state, np.asarray(actions))
+        rows.append({
+            "layout_name": STUDY_NAME[layout_name], "workerid_num": worker, "run": "run-1", "round_num": 1.0,
+            "cur_gameloop": float(t), "layout": terrain_rows,
+            "state": str(study_state(state, layout.width)), "next_state": str(study_state(after, layout.width)),
+            "joint_action": str([study_action(a) for a in actions]),
+            "reward": float(reward[0]) / 20 * RECORDED_REWARD,
+        })  # fmt: skip
+        state = after
+    return pandas.DataFrame(rows).sample(frac=1.0, random_state=seed)  # the study's rows are not in step order
+
+
+@pytest.fixture(scope="module")
+def trials():
+    return pandas.concat([scripted_game("cramped_room", 150, worker=3), scripted_game("forced_coord", 40, worker=4)],
+                         ignore_index=True)
+
+
+def test_the_study_games_convert_and_every_step_replays_through_the_jax_env(trials, tmp_path):
+    games = list(human_games(trials, "train"))
+    assert [(g.layout, len(g)) for g in games] == [("cramped_room", 150), ("forced_coord", 40)]
+    cramped = games[0]
+    assert cramped.deliveries >= 1  # soups were cooked, plated, carried and served: every encoding crossed
+    assert {PLATE, DISH} <= set(np.unique(cramped.agent_inv)) and (cramped.contents == 0).any()
+    in_step_order = trials[trials.workerid_num == 3].sort_values("cur_gameloop")
+    for t in (0, 7, 149):  # the study's actions, in its own notation, as action indices
+        study = ast.literal_eval(in_step_order.joint_action.iloc[t])
+        assert cramped.actions[t].tolist() == [
+            5 if a == "INTERACT" else 4 if a == [0, 0] else DIR_VECTORS.index(tuple(a)) for a in study
+        ]
+    written = write_dataset(games, tmp_path)
+    assert written == {("train", "cramped_room"): 150, ("train", "forced_coord"): 40}
+    loaded = load_dataset(tmp_path, "train", "cramped_room")
+    assert [g.name for g in loaded] == [cramped.name]
+    for field in ("contents", "agent_pos", "agent_dir", "agent_inv", "actions", "delivered"):
+        assert np.array_equal(getattr(loaded[0], field), getattr(cramped, field))
+
+
+def test_a_step_that_does_not_replay_is_named_by_game_and_step(trials):
+    broken = trials.copy()
+    row = broken.index[(broken.workerid_num == 4) & (broken.cur_gameloop == 12.0)][0]
+    actions = ast.literal_eval(broken.loc[row, "joint_action"])
+    broken.loc[row, "joint_action"] = str([actions[0], "INTERACT" if actions[1] != "INTERACT" else [0, 0]])
+    with pytest.raises(ValueError, match=r"forced_coord-worker4-run-1-round1: step 12 "):
+        list(human_games(broken, "test"))
+
+
+def test_fetch_reads_the_source_distribution_and_writes_the_dataset(trials, tmp_path, capsys):
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    name, version = SOURCE.split("==")
+    with tarfile.open(cache / f"{name.replace('-', '_')}-{version}.tar.gz", "w:gz") as archive:
+        for split, member in TRIALS.items():
+            data = pickle.dumps(trials if split == "train" else trials[trials.workerid_num == 4])
+            info = tarfile.TarInfo(f"{name}-{version}/{member}")
+            info.size = len(data)
+            archive.addfile(info, io.BytesIO(data))
+    assert main(["fetch", "--cache", str(cache), "--out", str(tmp_path / "humans")]) == 0
+    assert "3 games, 230 of 230 recorded steps replayed exactly" in capsys.readouterr().out
+    assert sorted(p.name for p in (tmp_path / "humans").iterdir()) == [
+        "test_forced_coord.npz", "train_cramped_room.npz", "train_forced_coord.npz"]
+
+
+def test_a_failed_download_is_one_line(tmp_path, monkeypatch, capsys):
+    def offline(command, **kwargs):
+        return subprocess.CompletedProcess(command, 1, "", "ERROR: No matching distribution found\n")
+
+    monkeypatch.setattr(subprocess, "run", offline)
+    assert main(["fetch", "--cache", str(tmp_path / "cache"), "--out", str(tmp_path / "humans")]) == 1
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "could not download overcooked-ai==1.1.0" in error
+    assert not (tmp_path / "humans").exists()
