@@ -19,6 +19,7 @@ from jax_env.layouts import (
     FLOOR,
     GOAL,
     ONION_PILE,
+    PADDED_LAYOUTS,
     PLATE_PILE,
     POT,
     Layout,

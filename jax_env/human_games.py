@@ -10,7 +10,7 @@ deliveries are compared, not rewards.
 
     frame = read_trials(path)                       # needs pandas
     for game in human_games(frame, "train"):        # HumanGame: arrays per step, checked on construction
-        ...
+        padded_game(game)                           # the same game in its layout drawn inside a 7x7 kitchen
     write_dataset(games, folder)                    # one .npz per split and layout
     load_dataset(folder, "test", "cramped_room")    # -> HumanGames of that split and layout
 """
@@ -28,7 +28,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from jax_env.env import DELIVERY_REWARD, INTERACT, STAY, Overcooked
-from jax_env.layouts import COUNTER, FLOOR, GOAL, ONION_PILE, PLATE_PILE, POT, Layout, load_layout
+from jax_env.layouts import (
+    COUNTER,
+    FLOOR,
+    GOAL,
+    ONION_PILE,
+    PADDED_LAYOUTS,
+    PADDED_SIZE,
+    PLATE_PILE,
+    POT,
+    Layout,
+    load_layout,
+    padded_offset,
+)
 from jax_env.state import DIR_VECTORS, DISH, EMPTY, ONION, PLATE, POT_EMPTY, POT_FULL, State
 
 RECORDED_REWARD = 5.0  # per soup delivered, in the study's game
@@ -183,9 +195,10 @@ def replay_steps(game: HumanGame) -> tuple[dict[str, np.ndarray], np.ndarray]:
 
 def check_replay(game: HumanGame, recorded_after: dict[str, np.ndarray]) -> None:
     """`ValueError` at the first step whose replay differs from the recorded state after it (or its deliveries), or
-    that does not start where the step before it ended."""
+    that does not start where the step before it ended. `recorded_after` may stop a step short (a game whose state
+    after its last step is not known)."""
     replayed, delivered = replay_steps(game)
-    for t in range(len(game)):
+    for t in range(len(recorded_after["contents"])):
         for field in FIELDS:
             if not np.array_equal(replayed[field][t], recorded_after[field][t]):
                 raise ValueError(f"{game.name}: step {t} replays to {field} {replayed[field][t].tolist()}, the "
@@ -197,6 +210,22 @@ def check_replay(game: HumanGame, recorded_after: dict[str, np.ndarray]) -> None
             for field in FIELDS:
                 if not np.array_equal(getattr(game, field)[t + 1], recorded_after[field][t]):
                     raise ValueError(f"{game.name}: step {t + 1} does not start where step {t} ended ({field})")
+
+
+def padded_game(game: HumanGame) -> HumanGame:
+    """`game` in its layout drawn inside a 7x7 kitchen (`jax_env.layouts.PADDED_LAYOUTS`), where 7x7 teams can
+    meet a proxy of its players: the same steps, every cell shifted."""
+    layout = f"{game.layout}_in_{PADDED_SIZE}x{PADDED_SIZE}"
+    if layout not in PADDED_LAYOUTS:
+        raise ValueError(f"{game.layout} does not fit a {PADDED_SIZE}x{PADDED_SIZE} kitchen")
+    (dx, dy), (height, width) = padded_offset(game.layout), game.contents.shape[1:]
+    contents = np.zeros((len(game), PADDED_SIZE, PADDED_SIZE), np.uint8)
+    contents[:, dy:dy + height, dx:dx + width] = game.contents
+    x, y = game.agent_pos % width, game.agent_pos // width
+    agent_pos = ((y + dy) * PADDED_SIZE + x + dx).astype(np.int32)
+    padded = dataclasses.replace(game, layout=layout, contents=contents, agent_pos=agent_pos)
+    check_replay(padded, {field: getattr(padded, field)[1:] for field in FIELDS})
+    return padded
 
 
 def write_dataset(games: Iterable[HumanGame], folder: str | Path) -> dict[tuple[str, str], int]:

@@ -168,11 +168,36 @@ _EXPANDED = {
 
 CLASSIC_LAYOUTS: tuple[str, ...] = tuple(_CLASSIC)
 EXPANDED_LAYOUTS: tuple[str, ...] = tuple(_EXPANDED)
+PADDED_SIZE = 7  # the Infinite Kitchen's size
+
+
+def padded_text(text: str, size: int = PADDED_SIZE) -> str:
+    """A grid drawn in the middle of a `size` x `size` kitchen of counters. The classic layouts are walled in, so
+    the added cells are out of reach and the kitchen steps exactly as the classic one does (its cells shifted)."""
+    rows = text.split("\n")
+    top, left = (size - len(rows)) // 2, (size - len(rows[0])) // 2
+    middle = ["W" * left + row + "W" * (size - len(row) - left) for row in rows]
+    return "\n".join(["W" * size] * top + middle + ["W" * size] * (size - len(rows) - top))
+
+
+# The classic layouts that fit a 7x7 kitchen (asymm_advantages and counter_circuit are 9 and 8 wide), drawn inside
+# one: where 7x7 teams meet partners that know only the classic kitchen (the human proxies).
+_PADDED = {
+    f"{name}_in_7x7": name for name, (text, _) in _CLASSIC.items()
+    if max(len(text.split("\n")), len(text.split("\n")[0])) <= PADDED_SIZE
+}  # fmt: skip
+PADDED_LAYOUTS: tuple[str, ...] = tuple(_PADDED)
 
 
 def layout_names() -> tuple[str, ...]:
     """Every registered layout name."""
-    return CLASSIC_LAYOUTS + EXPANDED_LAYOUTS
+    return CLASSIC_LAYOUTS + EXPANDED_LAYOUTS + PADDED_LAYOUTS
+
+
+def padded_offset(name: str) -> tuple[int, int]:
+    """(dx, dy): where cell (0, 0) of classic layout `name` lies in its 7x7 drawing."""
+    text = _CLASSIC[name][0].split("\n")
+    return (PADDED_SIZE - len(text[0])) // 2, (PADDED_SIZE - len(text)) // 2
 
 
 def get_layout(name: str) -> Layout:
@@ -182,6 +207,9 @@ def get_layout(name: str) -> Layout:
         return parse_layout(text, name=name, agent_order=order)
     if name in _EXPANDED:
         return parse_layout(_EXPANDED[name], name=name)
+    if name in _PADDED:
+        text, order = _CLASSIC[_PADDED[name]]
+        return parse_layout(padded_text(text), name=name, agent_order=order)
     raise ValueError(f"unknown layout {name!r}; registered layouts: {', '.join(layout_names())}")
 
 

@@ -5,7 +5,8 @@
 `fetch` downloads the `overcooked-ai` 1.1.0 source distribution through pip into a cache folder (once), reads the
 two trials pickles from it (pandas: `pip install .[humans]`), converts every game (`jax_env.human_games`), checks
 that each recorded step replays exactly through the JAX env (a mismatch stops with the game and step named), and
-writes one compact file per split and layout: the states before each step and both players' actions.
+writes one compact file per split and layout: the states before each step and both players' actions. The games of
+the layouts that fit a 7x7 kitchen are also written drawn inside one (`<layout>_in_7x7`), checked the same way.
 """
 
 from __future__ import annotations
@@ -17,7 +18,8 @@ import tarfile
 from pathlib import Path
 from typing import Sequence
 
-from jax_env.human_games import SOURCE, TRIALS, HumanGame, human_games, read_trials, write_dataset
+from jax_env.human_games import SOURCE, TRIALS, HumanGame, human_games, padded_game, read_trials, write_dataset
+from jax_env.layouts import PADDED_LAYOUTS, PADDED_SIZE
 
 DATA = Path("data/humans")
 CACHE = Path.home() / ".cache" / "infinite-kitchen"
@@ -52,23 +54,29 @@ def trials_in(archive: Path) -> dict[str, object]:
 
 
 def convert(frames: dict[str, object], progress: bool = True) -> list[HumanGame]:
-    """Every game of every split, checked step by step."""
+    """Every game of every split, checked step by step, and again drawn inside a 7x7 kitchen where it fits."""
     from tqdm import tqdm
 
     games = []
     for split, frame in frames.items():
         for game in tqdm(human_games(frame, split), desc=f"{split} games", disable=not progress, leave=False):
             games.append(game)
+            if f"{game.layout}_in_{PADDED_SIZE}x{PADDED_SIZE}" in PADDED_LAYOUTS:
+                games.append(padded_game(game))
     return games
 
 
 def fetch(out: Path, cache: Path, progress: bool = True) -> list[HumanGame]:
     games = convert(trials_in(download_source(cache)), progress)
     written = write_dataset(games, out)
-    steps = sum(written.values())
-    print(f"{len(games)} games, {steps:,} of {steps:,} recorded steps replayed exactly; written to {out}/:")
+    recorded = [g for g in games if g.layout not in PADDED_LAYOUTS]
+    steps = sum(len(g) for g in recorded)
+    padded = sum(len(g) for g in games) - steps
+    print(f"{len(recorded)} games, {steps:,} of {steps:,} recorded steps replayed exactly (and {padded:,} steps of "
+          f"their games drawn inside a {PADDED_SIZE}x{PADDED_SIZE} kitchen); written to {out}/:")
     for (split, layout), count in sorted(written.items()):
-        print(f"  {split}_{layout}.npz  {count:>6,} steps, "
+        file = f"{split}_{layout}.npz"
+        print(f"  {file:<34} {count:>6,} steps, "
               f"{sum(1 for g in games if (g.split, g.layout) == (split, layout))} games")
     return games
 

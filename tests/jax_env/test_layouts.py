@@ -1,7 +1,17 @@
 import numpy as np
 import pytest
 
-from jax_env import CLASSIC_LAYOUTS, EXPANDED_LAYOUTS, FLOOR, GOAL, POT, get_layout, layout_names, parse_layout
+from jax_env import (
+    CLASSIC_LAYOUTS,
+    EXPANDED_LAYOUTS,
+    FLOOR,
+    GOAL,
+    PADDED_LAYOUTS,
+    POT,
+    get_layout,
+    layout_names,
+    parse_layout,
+)
 
 VALID = "WWPWW\nOA AO\nW   W\nWBWXW"
 
@@ -38,7 +48,7 @@ def test_malformed_grids_are_refused_with_the_place_and_reason(text, message):
 
 
 def test_registry_has_every_layout_and_jaxmarl_agent_order():
-    assert set(layout_names()) == set(CLASSIC_LAYOUTS) | set(EXPANDED_LAYOUTS)
+    assert set(layout_names()) == set(CLASSIC_LAYOUTS) | set(EXPANDED_LAYOUTS) | set(PADDED_LAYOUTS)
     # JaxMARL's agent start cells as flat indices y * W + x.
     expected = {
         "cramped_room": [6, 8],

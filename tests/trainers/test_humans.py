@@ -1,6 +1,7 @@
 """The 2019 human games' conversion, on games the tests write in the study's format from the scripted cook's play."""
 
 import ast
+import dataclasses
 import io
 import pickle
 import subprocess
@@ -22,6 +23,7 @@ from jax_env.human_games import (  # noqa: E402
     TRIALS,
     human_games,
     load_dataset,
+    padded_game,
     write_dataset,
 )
 from jax_env.layouts import POT  # noqa: E402
@@ -110,6 +112,19 @@ def test_the_study_games_convert_and_every_step_replays_through_the_jax_env(tria
         assert np.array_equal(getattr(loaded[0], field), getattr(cramped, field))
 
 
+def test_a_game_drawn_inside_a_7x7_kitchen_replays_exactly_with_its_cells_shifted(trials):
+    game = next(human_games(trials, "train"))
+    padded = padded_game(game)  # checks every step's replay in the 7x7 kitchen
+    assert padded.layout == "cramped_room_in_7x7" and padded.contents.shape == (150, 7, 7)
+    classic, seven = load_layout("cramped_room"), load_layout("cramped_room_in_7x7")
+    start = [(int(p % 5), int(p // 5)) for p in game.agent_pos[0]]
+    assert [(int(p % 7), int(p // 7)) for p in padded.agent_pos[0]] == [(x + 1, y + 1) for x, y in start]
+    assert np.array_equal(np.asarray(seven.grid)[1:5, 1:6], np.asarray(classic.grid))
+    assert padded.deliveries == game.deliveries and np.array_equal(padded.actions, game.actions)
+    with pytest.raises(ValueError, match="does not fit a 7x7 kitchen"):
+        padded_game(dataclasses.replace(game, layout="counter_circuit"))
+
+
 def test_a_step_that_does_not_replay_is_named_by_game_and_step(trials):
     broken = trials.copy()
     row = broken.index[(broken.workerid_num == 4) & (broken.cur_gameloop == 12.0)][0]
@@ -132,7 +147,8 @@ def test_fetch_reads_the_source_distribution_and_writes_the_dataset(trials, tmp_
     assert main(["fetch", "--cache", str(cache), "--out", str(tmp_path / "humans")]) == 0
     assert "3 games, 230 of 230 recorded steps replayed exactly" in capsys.readouterr().out
     assert sorted(p.name for p in (tmp_path / "humans").iterdir()) == [
-        "test_forced_coord.npz", "train_cramped_room.npz", "train_forced_coord.npz"]
+        "test_forced_coord.npz", "test_forced_coord_in_7x7.npz", "train_cramped_room.npz",
+        "train_cramped_room_in_7x7.npz", "train_forced_coord.npz", "train_forced_coord_in_7x7.npz"]
 
 
 def test_a_failed_download_is_one_line(tmp_path, monkeypatch, capsys):

@@ -1,0 +1,128 @@
+"""Human proxies: the project's torch policies behaviour-cloned from the 2019 human games, one per classic layout.
+
+A proxy is fitted on the train split's games (both seats, one shared network) by cross-entropy to the humans'
+actions, and measured on the test split: its accuracy against always-STAY, its accuracy on the humans' moves and
+interactions (STAY labels left out) against their most frequent one, and the soups two copies of it deliver
+together in games as long as the humans' against what the humans delivered. It is saved as a trained team
+(`runs/human_proxy_<layout>/seed0`), so `kitchen-eval` and `kitchen-play` seat it like any other team.
+
+`stay_weight` weighs the STAY labels in the loss: humans press no key on 49-72% of the 150 ms ticks, and a proxy
+fitted to that waits where they would have moved (see `kitchen-humans train --help` and BENCHMARKS.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax
+import numpy as np
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from jax_env import STAY, load_layout
+from jax_env.human_games import HumanGame
+from jax_env.observation import get_obs
+from torch_kitchen.env import KitchenEnv
+from torch_kitchen.models import ACTION, LOGITS, OBSERVATION, ActorCritic, make_actor_critic
+from trainers.checkpoint import LATEST, model_identity, save_checkpoint
+from trainers.config import TrainConfig
+
+HUMAN_ACTION = ("agents", "human_action")  # the label, kept apart from the actor's own sampled action
+
+
+@dataclasses.dataclass(frozen=True)
+class ProxySettings:
+    """How a proxy is fitted: its network, the passes over the data, and the weight of the STAY labels."""
+
+    architecture: str = "mlp"
+    hidden: int = 64
+    epochs: int = 30
+    lr: float = 1e-3
+    minibatch: int = 256
+    stay_weight: float = 1.0
+    seed: int = 0
+
+
+def human_batch(games: list[HumanGame]) -> TensorDict:
+    """Every step of `games` as a batch [N]: both seats' observations (uint8 [N, 2, H, W, 26], the time left
+    counted to each game's own end) and the humans' actions (int64 [N, 2])."""
+    observations = [np.asarray(jax.vmap(lambda s, n=len(g): get_obs(s, n))(g.states())) for g in games]
+    observation = torch.from_numpy(np.concatenate(observations))
+    action = torch.from_numpy(np.concatenate([g.actions for g in games]))
+    return TensorDict({OBSERVATION: observation, HUMAN_ACTION: action}, batch_size=[len(action)])
+
+
+def proxy_logits(actor_critic: ActorCritic, batch: TensorDict) -> torch.Tensor:
+    """The proxy's action logits [N, 2, 6] for the batch's observations."""
+    return actor_critic.actor(batch.select(OBSERVATION).clone(False)).get(LOGITS)
+
+
+def fit_proxy(train: TensorDict, settings: ProxySettings) -> tuple[ActorCritic, list[float]]:
+    """A proxy fitted to `train` (a `human_batch`); returns it and the mean loss of each epoch."""
+    torch.manual_seed(settings.seed)
+    obs_shape = tuple(train.get(OBSERVATION).shape[-3:])
+    actor_critic = make_actor_critic(settings.architecture, obs_shape, settings.hidden, share_params=True)
+    optimizer = torch.optim.Adam(actor_critic.actor.parameters(), lr=settings.lr)
+    weights = torch.ones(6)
+    weights[STAY] = settings.stay_weight
+    losses = []
+    for _ in range(settings.epochs):
+        total = torch.zeros(())
+        order = torch.randperm(len(train))
+        for rows in order.split(settings.minibatch):
+            batch = train[rows]
+            logits = proxy_logits(actor_critic, batch)
+            loss = torch.nn.functional.cross_entropy(logits.reshape(-1, 6), batch.get(HUMAN_ACTION).reshape(-1),
+                                                     weight=weights)
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            total += loss.detach() * len(rows)
+        losses.append(float(total) / len(train))
+    actor_critic.actor.eval()
+    return actor_critic, losses
+
+
+@torch.no_grad()
+def accuracy(actor_critic: ActorCritic, test: TensorDict, train: TensorDict) -> dict[str, float]:
+    """On `test`: the proxy's most likely action against the humans' (all labels, and the moves and interactions
+    alone, STAY excluded from both sides), with the baselines always-STAY and the train split's most frequent
+    move or interaction."""
+    logits = proxy_logits(actor_critic, test)
+    labels = test.get(HUMAN_ACTION)
+    moving = labels != STAY
+    no_stay = logits.clone()
+    no_stay[..., STAY] = -torch.inf
+    train_labels = train.get(HUMAN_ACTION)
+    majority = int(torch.bincount(train_labels[train_labels != STAY], minlength=6).argmax())
+    return {
+        "accuracy": float((logits.argmax(-1) == labels).float().mean()),
+        "always_stay": float((labels == STAY).float().mean()),
+        "moving_accuracy": float((no_stay.argmax(-1) == labels)[moving].float().mean()),
+        "moving_majority": float((labels[moving] == majority).float().mean()),
+    }
+
+
+@torch.no_grad()
+def deliveries_together(actor_critic: ActorCritic, layout: str, steps: int, episodes: int = 8,
+                        seed: int = 0) -> float:
+    """Mean soups delivered by two copies of the proxy (sampling) in `episodes` games of `steps` steps."""
+    env = KitchenEnv(episodes, levels=layout, max_steps=steps, seed=seed)
+    torch.manual_seed(seed)
+    with set_exploration_type(ExplorationType.RANDOM):
+        rollout = env.rollout(steps, actor_critic.actor, break_when_any_done=False)
+    return float(rollout.get(("next", "deliveries")).sum() / episodes)
+
+
+def save_proxy(actor_critic: ActorCritic, settings: ProxySettings, layout: str, run: Path) -> Path:
+    """The proxy as a trained team's checkpoint in `run` (what `kitchen-eval` and `kitchen-play` load)."""
+    obs_shape = list(load_layout(layout).shape) + [26]
+    config = TrainConfig(name=run.parent.name, run_dir=str(run.parent.parent), levels=layout,
+                         architecture=settings.architecture, hidden=settings.hidden, seed=settings.seed)
+    return save_checkpoint(run / "checkpoints" / LATEST, {
+        "config": config.to_dict(),
+        "model": model_identity(settings.architecture, obs_shape, settings.hidden, True),
+        "actor": actor_critic.actor.state_dict(), "critic": actor_critic.critic.state_dict(),
+    })  # fmt: skip
