@@ -38,6 +38,7 @@ import jax
 from jax_env import (
     CLASSIC_LAYOUTS,
     EXPANDED_LAYOUTS,
+    PADDED_LAYOUTS,
     STAY,
     GeneratorConfig,
     Layout,
@@ -102,7 +103,8 @@ def find_runs(root: str = "runs") -> list[str]:
 
 
 def kitchen_names(level_files: list[str]) -> list[str]:
-    return [*level_files, *EXPANDED_LAYOUTS, *CLASSIC_LAYOUTS, GENERATED, *(f"heldout_{i:03d}" for i in range(100))]
+    return [*level_files, *EXPANDED_LAYOUTS, *CLASSIC_LAYOUTS, *PADDED_LAYOUTS, GENERATED,
+            *(f"heldout_{i:03d}" for i in range(100))]
 
 
 @functools.cache

@@ -25,7 +25,7 @@ from jax_env import STAY, load_layout
 from jax_env.human_games import HumanGame
 from jax_env.observation import get_obs
 from torch_kitchen.env import KitchenEnv
-from torch_kitchen.models import ACTION, LOGITS, OBSERVATION, ActorCritic, make_actor_critic
+from torch_kitchen.models import LOGITS, OBSERVATION, ActorCritic, make_actor_critic
 from trainers.checkpoint import LATEST, model_identity, save_checkpoint
 from trainers.config import TrainConfig
 
@@ -36,13 +36,14 @@ HUMAN_ACTION = ("agents", "human_action")  # the label, kept apart from the acto
 class ProxySettings:
     """How a proxy is fitted: its network, the passes over the data, and the weight of the STAY labels."""
 
-    architecture: str = "mlp"
-    hidden: int = 64
+    architecture: str = "ego_mlp"
+    hidden: int = 128
     epochs: int = 30
     lr: float = 1e-3
     minibatch: int = 256
-    stay_weight: float = 1.0
+    stay_weight: float = 0.3
     seed: int = 0
+    threads: int = 1  # torch threads
 
 
 def human_batch(games: list[HumanGame]) -> TensorDict:

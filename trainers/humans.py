@@ -1,25 +1,50 @@
 """`kitchen-humans`: the 2019 human-human games as a dataset of this project's states and actions.
 
     kitchen-humans fetch                      # -> data/humans/{train,test}_<layout>.npz, every step checked
+    kitchen-humans train                      # -> runs/human_proxy_<layout>/seed0, and a table of how they play
 
 `fetch` downloads the `overcooked-ai` 1.1.0 source distribution through pip into a cache folder (once), reads the
 two trials pickles from it (pandas: `pip install .[humans]`), converts every game (`jax_env.human_games`), checks
 that each recorded step replays exactly through the JAX env (a mismatch stops with the game and step named), and
 writes one compact file per split and layout: the states before each step and both players' actions. The games of
 the layouts that fit a 7x7 kitchen are also written drawn inside one (`<layout>_in_7x7`), checked the same way.
+
+`train` fits a human proxy per layout on the train split (`trainers.behaviour_cloning`), saves it as a trained team
+that `kitchen-eval` and `kitchen-play` seat, and writes a table of the proxies on the test split: accuracy against
+always-STAY, accuracy on the humans' moves and interactions against their most frequent one, and the soups two
+proxies deliver together in games of the humans' length against the humans' own.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import subprocess
 import sys
 import tarfile
 from pathlib import Path
 from typing import Sequence
 
-from jax_env.human_games import SOURCE, TRIALS, HumanGame, human_games, padded_game, read_trials, write_dataset
+from jax_env.human_games import (
+    LAYOUTS,
+    SOURCE,
+    TRIALS,
+    HumanGame,
+    human_games,
+    load_dataset,
+    padded_game,
+    read_trials,
+    write_dataset,
+)
 from jax_env.layouts import PADDED_LAYOUTS, PADDED_SIZE
+from trainers.behaviour_cloning import (
+    ProxySettings,
+    accuracy,
+    deliveries_together,
+    fit_proxy,
+    human_batch,
+    save_proxy,
+)
 
 DATA = Path("data/humans")
 CACHE = Path.home() / ".cache" / "infinite-kitchen"
@@ -81,6 +106,47 @@ def fetch(out: Path, cache: Path, progress: bool = True) -> list[HumanGame]:
     return games
 
 
+def train(data: Path, runs: Path, layouts: Sequence[str], settings: ProxySettings, episodes: int,
+          report: Path | None, game_steps: int = 0) -> str:
+    """A proxy per layout, saved under `runs`; returns (and writes to `report`) the table of how they play. Two
+    proxies play `episodes` games of `game_steps` steps together (0: as long as the humans' test games)."""
+    import numpy as np
+    import torch
+
+    torch.set_num_threads(settings.threads)
+    rows = []
+    for layout in layouts:
+        train_games, test_games = load_dataset(data, "train", layout), load_dataset(data, "test", layout)
+        train_batch, test_batch = human_batch(train_games), human_batch(test_games)
+        proxy, _ = fit_proxy(train_batch, settings)
+        run = runs / f"human_proxy_{layout}" / f"seed{settings.seed}"
+        save_proxy(proxy, settings, layout, run)
+        scores = accuracy(proxy, test_batch, train_batch)
+        steps = game_steps or int(round(np.mean([len(game) for game in test_games])))
+        together = deliveries_together(proxy, layout, steps, episodes, settings.seed)
+        humans = float(np.mean([game.deliveries for game in test_games]))
+        rows.append(f"| {layout} | {len(train_batch):,} / {len(test_batch):,} | {scores['accuracy']:.3f} | "
+                    f"{scores['always_stay']:.3f} | {scores['moving_accuracy']:.3f} | "
+                    f"{scores['moving_majority']:.3f} | {steps} | {together:.2f} | {humans:.2f} | "
+                    + (f"{together / humans:.2f} |" if humans else "- |"))
+        print(rows[-1], flush=True)
+    table = "\n".join([
+        f"Human proxies: {settings.architecture} hidden {settings.hidden}, {settings.epochs} epochs, lr "
+        f"{settings.lr:g}, STAY weight {settings.stay_weight:g}, seed {settings.seed}; two proxies together: "
+        f"{episodes} games per layout (actions sampled), "
+        + (f"{game_steps} steps each." if game_steps else "as long as the humans' test games."),
+        "",
+        "| layout | steps train / test | accuracy | always STAY | accuracy on moves | their majority | game steps "
+        "| BC+BC soups | humans' soups | ratio |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        *rows,
+    ]) + "\n"  # fmt: skip
+    if report is not None:
+        report.parent.mkdir(parents=True, exist_ok=True)
+        report.write_text(table)
+    return table
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="kitchen-humans", description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -88,10 +154,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     fetching = commands.add_parser("fetch", help="download, convert and check the games; write the dataset")
     fetching.add_argument("--out", type=Path, default=DATA, help=f"dataset folder (default {DATA})")
     fetching.add_argument("--cache", type=Path, default=CACHE, help=f"download folder (default {CACHE})")
+    training = commands.add_parser("train", help="fit a human proxy per layout; write a table of how they play")
+    defaults = ProxySettings()
+    training.add_argument("--data", type=Path, default=DATA, help=f"the fetched dataset (default {DATA})")
+    training.add_argument("--runs", type=Path, default=Path("runs"), help="where the proxies go (default runs)")
+    training.add_argument("--layouts", nargs="+", default=[*LAYOUTS.values(), *PADDED_LAYOUTS],
+                          help="layouts to fit (default: the 5 classic ones and those drawn inside a 7x7 kitchen)")
+    training.add_argument("--report", type=Path, help="also write the table here")
+    training.add_argument("--episodes", type=int, default=32, help="games of two proxies per layout")
+    training.add_argument("--game-steps", type=int, default=0,
+                          help="steps of those games (default: as long as the humans' test games)")
+    for field in dataclasses.fields(ProxySettings):
+        training.add_argument(f"--{field.name.replace('_', '-')}", type=type(getattr(defaults, field.name)),
+                              default=getattr(defaults, field.name), help=f"default {getattr(defaults, field.name)}")
     args = parser.parse_args(argv)
     try:
-        fetch(args.out, args.cache)
-    except (RuntimeError, ValueError, ImportError) as error:
+        if args.command == "fetch":
+            fetch(args.out, args.cache)
+        else:
+            names = [field.name for field in dataclasses.fields(ProxySettings)]
+            settings = ProxySettings(**{name: getattr(args, name) for name in names})
+            print(train(args.data, args.runs, args.layouts, settings, args.episodes, args.report, args.game_steps))
+    except (RuntimeError, ValueError, ImportError, FileNotFoundError) as error:
         print(f"kitchen-humans: error: {error}", file=sys.stderr)
         return 1
     return 0

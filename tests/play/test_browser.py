@@ -13,10 +13,16 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 if CHROMIUM is None:
     pytest.skip("no Chromium on this machine (Debian: apt-get install chromium)", allow_module_level=True)
 
+import torch  # noqa: E402
 import uvicorn  # noqa: E402
+from tensordict import TensorDict  # noqa: E402
 
-from play.game import SCRIPTED, read_record, replay  # noqa: E402
+from play.game import read_record, replay  # noqa: E402
 from play.server import create_app  # noqa: E402
+from torch_kitchen.models import OBSERVATION  # noqa: E402
+from trainers.behaviour_cloning import HUMAN_ACTION, ProxySettings, fit_proxy, save_proxy  # noqa: E402
+
+PROXY_KITCHEN = "cramped_room_in_7x7"  # a classic layout drawn inside a 7x7 kitchen, where human proxies play
 
 # Headless, and no calls home: this machine's network is closed (see the README).
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -28,6 +34,11 @@ def server(tmp_path):
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
+    # A human proxy in the lobby: fitted (briefly, to made-up games) and saved as `kitchen-humans train` does.
+    games = TensorDict({OBSERVATION: torch.randint(0, 2, (32, 2, 7, 7, 26), dtype=torch.uint8),
+                        HUMAN_ACTION: torch.randint(0, 6, (32, 2))}, batch_size=[32])
+    proxy, _ = fit_proxy(games, ProxySettings(hidden=8, epochs=1))
+    save_proxy(proxy, ProxySettings(hidden=8), PROXY_KITCHEN, tmp_path / "runs" / f"human_proxy_{PROXY_KITCHEN}/seed0")
     # A study's server: the page must carry the participants' token on to every request and the game's socket.
     app = create_app(records=tmp_path / "games", tick_ms=60, max_steps=400, runs_root=str(tmp_path / "runs"),
                      token="participant-7")
@@ -41,15 +52,16 @@ def server(tmp_path):
     thread.join(timeout=10)
 
 
-def test_a_person_plays_with_the_scripted_cook_and_the_record_replays(server, tmp_path):
+def test_a_person_plays_with_a_human_proxy_and_the_record_replays(server, tmp_path):
     url, records = server
     with playwright.sync_playwright() as driver:
         browser = driver.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
         page = browser.new_page()
         page.goto(url)
         assert page.is_visible("text=Arrows or WASD move")  # the controls, before a game starts
-        page.select_option("#partner", SCRIPTED)
-        page.select_option("#kitchen", "cramped_room_7x7")
+        proxy = str(tmp_path / "runs" / f"human_proxy_{PROXY_KITCHEN}" / "seed0")
+        page.select_option("#partner", proxy)
+        page.select_option("#kitchen", PROXY_KITCHEN)
         page.screenshot(path=str(tmp_path / "lobby.png"))
         page.dblclick("#start")  # one game, however eager the click (the record below is the only one)
         page.wait_for_function("/time left \\d+/.test(document.getElementById('time').textContent)", timeout=60_000)
@@ -72,7 +84,8 @@ def test_a_person_plays_with_the_scripted_cook_and_the_record_replays(server, tm
             break
         time.sleep(0.05)
     assert end is not None and end["reason"] == "disconnected" and len(steps) >= 20
-    assert header["partner"] == SCRIPTED and header["layout_name"] == "cramped_room_7x7"
+    assert header["partner"] == f"human_proxy_{PROXY_KITCHEN}/seed0" and header["layout_name"] == PROXY_KITCHEN
+    assert header["checkpoint"].startswith(proxy)
     pressed = [step["actions"][0] for step in steps]
     assert {0, 1, 3, 5} & set(pressed)  # the person's keys reached the kitchen (up, down, left, interact)
     assert replay(record)["steps"] == len(steps)

@@ -28,7 +28,9 @@ from jax_env.human_games import (  # noqa: E402
 )
 from jax_env.layouts import POT  # noqa: E402
 from jax_env.state import DIR_VECTORS, DISH, ONION, PLATE, POT_EMPTY, POT_FULL  # noqa: E402
+from play.game import Game, Partner, replay  # noqa: E402
 from torch_kitchen.scripted import ScriptedCook  # noqa: E402
+from trainers.evaluate import load_team  # noqa: E402
 from trainers.humans import main  # noqa: E402
 
 SYMBOL = {kind: symbol for symbol, kind in TERRAIN.items() if symbol not in "12"}
@@ -134,9 +136,9 @@ def test_a_step_that_does_not_replay_is_named_by_game_and_step(trials):
         list(human_games(broken, "test"))
 
 
-def test_fetch_reads_the_source_distribution_and_writes_the_dataset(trials, tmp_path, capsys):
-    cache = tmp_path / "cache"
-    cache.mkdir()
+def study_archive(trials, cache):
+    """The study's source distribution as pip would download it, holding `trials` (test split: worker 4's game)."""
+    cache.mkdir(parents=True, exist_ok=True)
     name, version = SOURCE.split("==")
     with tarfile.open(cache / f"{name.replace('-', '_')}-{version}.tar.gz", "w:gz") as archive:
         for split, member in TRIALS.items():
@@ -144,6 +146,11 @@ def test_fetch_reads_the_source_distribution_and_writes_the_dataset(trials, tmp_
             info = tarfile.TarInfo(f"{name}-{version}/{member}")
             info.size = len(data)
             archive.addfile(info, io.BytesIO(data))
+
+
+def test_fetch_reads_the_source_distribution_and_writes_the_dataset(trials, tmp_path, capsys):
+    cache = tmp_path / "cache"
+    study_archive(trials, cache)
     assert main(["fetch", "--cache", str(cache), "--out", str(tmp_path / "humans")]) == 0
     assert "3 games, 230 of 230 recorded steps replayed exactly" in capsys.readouterr().out
     assert sorted(p.name for p in (tmp_path / "humans").iterdir()) == [
@@ -160,3 +167,32 @@ def test_a_failed_download_is_one_line(tmp_path, monkeypatch, capsys):
     error = capsys.readouterr().err
     assert error.count("\n") == 1 and "could not download overcooked-ai==1.1.0" in error
     assert not (tmp_path / "humans").exists()
+
+
+def test_human_proxies_are_fitted_measured_and_saved_as_teams_that_play(trials, tmp_path, capsys):
+    study_archive(trials, tmp_path / "cache")
+    assert main(["fetch", "--cache", str(tmp_path / "cache"), "--out", str(tmp_path / "humans")]) == 0
+    report = tmp_path / "proxies.md"
+    assert main(["train", "--data", str(tmp_path / "humans"), "--runs", str(tmp_path / "runs"), "--layouts",
+                 "forced_coord", "forced_coord_in_7x7", "--hidden", "32", "--epochs", "40", "--minibatch", "8", "--episodes", "2",
+                 "--game-steps", "30", "--report", str(report)]) == 0
+    rows = [line.split("|")[1:-1] for line in report.read_text().splitlines() if line.startswith("| forced")]
+    assert [row[0].strip() for row in rows] == ["forced_coord", "forced_coord_in_7x7"]
+    games = load_dataset(tmp_path / "humans", "test", "forced_coord")
+    stays = np.mean(np.concatenate([g.actions for g in games]) == 4)
+    for row in rows:
+        accuracy, always_stay, moving, majority = (float(cell) for cell in row[2:6])
+        assert always_stay == pytest.approx(stays, abs=1e-3)
+        assert moving > majority  # the cooks' moves are a function of what they see: the proxy learned some
+        assert float(row[7]) >= 0 and float(row[8]) == pytest.approx(np.mean([g.deliveries for g in games]))
+    # Saved as trained teams: evaluation and kitchen-play load them like any run.
+    team = load_team(tmp_path / "runs" / "human_proxy_forced_coord_in_7x7" / "seed0")
+    assert team.obs_shape == (7, 7, 26) and team.config.levels == "forced_coord_in_7x7"
+    game = Game(load_layout("forced_coord_in_7x7"), Partner(team.name, team.actor_critic, team.obs_shape), 0,
+                tmp_path / "game.jsonl", max_steps=5)
+    while not game.over:
+        game.step(4)
+    assert replay(tmp_path / "game.jsonl")["steps"] == 5
+    # A layout without games is one line.
+    assert main(["train", "--data", str(tmp_path / "humans"), "--layouts", "coord_ring"]) == 1
+    assert "run `kitchen-humans fetch` first" in capsys.readouterr().err
