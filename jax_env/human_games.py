@@ -100,8 +100,9 @@ def game_state(record: dict, layout: Layout, step: int) -> dict[str, np.ndarray]
 
 @dataclasses.dataclass(frozen=True)
 class HumanGame:
-    """One recorded game on one of the classic layouts: the state before each of its T steps, both players'
-    actions from it, and the soups each step delivered.
+    """One recorded game on a registered layout: the state before each of its T steps, both players' actions from
+    it, and the soups each step delivered; `human_seats` says which seats a person played (both in the 2019
+    games; one in a `kitchen-play` game, whose other seat was the partner).
 
     contents uint8 [T, H, W]; agent_pos, agent_dir, agent_inv int32 [T, 2]; actions int64 [T, 2]; delivered int32
     [T]. The grid is the layout's (`jax_env.load_layout(layout)`)."""
@@ -115,6 +116,7 @@ class HumanGame:
     agent_inv: np.ndarray
     actions: np.ndarray
     delivered: np.ndarray
+    human_seats: tuple[bool, bool] = (True, True)
 
     def __len__(self) -> int:
         return len(self.actions)
@@ -239,7 +241,8 @@ def write_dataset(games: Iterable[HumanGame], folder: str | Path) -> dict[tuple[
     for (split, layout), group in grouped.items():
         arrays = {field: np.concatenate([getattr(g, field) for g in group]) for field in STORED}
         np.savez_compressed(folder / f"{split}_{layout}.npz", **arrays, names=np.asarray([g.name for g in group]),
-                            game=np.concatenate([np.full(len(g), i, np.int32) for i, g in enumerate(group)]))
+                            game=np.concatenate([np.full(len(g), i, np.int32) for i, g in enumerate(group)]),
+                            human_seats=np.asarray([g.human_seats for g in group], bool))
     return {key: sum(len(g) for g in group) for key, group in grouped.items()}
 
 
@@ -254,5 +257,6 @@ def load_dataset(folder: str | Path, split: str, layout: str) -> list[HumanGame]
     for index, name in enumerate(arrays["names"]):
         rows = arrays["game"] == index
         games.append(HumanGame(name=str(name), split=split, layout=layout,
+                               human_seats=tuple(bool(seat) for seat in arrays["human_seats"][index]),
                                **{field: arrays[field][rows] for field in STORED}))
     return games

@@ -30,6 +30,7 @@ from trainers.checkpoint import LATEST, model_identity, save_checkpoint
 from trainers.config import TrainConfig
 
 HUMAN_ACTION = ("agents", "human_action")  # the label, kept apart from the actor's own sampled action
+NOT_HUMAN = -1  # the label of a seat no person played (a kitchen-play game's partner): ignored
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,10 +49,10 @@ class ProxySettings:
 
 def human_batch(games: list[HumanGame]) -> TensorDict:
     """Every step of `games` as a batch [N]: both seats' observations (uint8 [N, 2, H, W, 26], the time left
-    counted to each game's own end) and the humans' actions (int64 [N, 2])."""
+    counted to each game's own end) and the humans' actions (int64 [N, 2]; `NOT_HUMAN` where no person played)."""
     observations = [np.asarray(jax.vmap(lambda s, n=len(g): get_obs(s, n))(g.states())) for g in games]
     observation = torch.from_numpy(np.concatenate(observations))
-    action = torch.from_numpy(np.concatenate([g.actions for g in games]))
+    action = torch.from_numpy(np.concatenate([np.where(g.human_seats, g.actions, NOT_HUMAN) for g in games]))
     return TensorDict({OBSERVATION: observation, HUMAN_ACTION: action}, batch_size=[len(action)])
 
 
@@ -76,7 +77,7 @@ def fit_proxy(train: TensorDict, settings: ProxySettings) -> tuple[ActorCritic, 
             batch = train[rows]
             logits = proxy_logits(actor_critic, batch)
             loss = torch.nn.functional.cross_entropy(logits.reshape(-1, 6), batch.get(HUMAN_ACTION).reshape(-1),
-                                                     weight=weights)
+                                                     weight=weights, ignore_index=NOT_HUMAN)
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
@@ -91,13 +92,14 @@ def accuracy(actor_critic: ActorCritic, test: TensorDict, train: TensorDict) -> 
     """On `test`: the proxy's most likely action against the humans' (all labels, and the moves and interactions
     alone, STAY excluded from both sides), with the baselines always-STAY and the train split's most frequent
     move or interaction."""
-    logits = proxy_logits(actor_critic, test)
-    labels = test.get(HUMAN_ACTION)
+    human = test.get(HUMAN_ACTION) != NOT_HUMAN
+    logits, labels = proxy_logits(actor_critic, test)[human], test.get(HUMAN_ACTION)[human]
     moving = labels != STAY
     no_stay = logits.clone()
     no_stay[..., STAY] = -torch.inf
     train_labels = train.get(HUMAN_ACTION)
-    majority = int(torch.bincount(train_labels[train_labels != STAY], minlength=6).argmax())
+    majority = int(torch.bincount(train_labels[(train_labels != STAY) & (train_labels != NOT_HUMAN)], minlength=6)
+                   .argmax())
     return {
         "accuracy": float((logits.argmax(-1) == labels).float().mean()),
         "always_stay": float((labels == STAY).float().mean()),

@@ -2,12 +2,16 @@
 
     kitchen-humans fetch                      # -> data/humans/{train,test}_<layout>.npz, every step checked
     kitchen-humans train                      # -> runs/human_proxy_<layout>/seed0, and a table of how they play
+    kitchen-humans import games/*.jsonl --out data/study --split train   # a study's own kitchen-play games
 
 `fetch` downloads the `overcooked-ai` 1.1.0 source distribution through pip into a cache folder (once), reads the
 two trials pickles from it (pandas: `pip install .[humans]`), converts every game (`jax_env.human_games`), checks
 that each recorded step replays exactly through the JAX env (a mismatch stops with the game and step named), and
 writes one compact file per split and layout: the states before each step and both players' actions. The games of
 the layouts that fit a 7x7 kitchen are also written drawn inside one (`<layout>_in_7x7`), checked the same way.
+
+`import` turns `kitchen-play` records into the same dataset (each replayed and checked; only the person's seat
+is a human label), so that `train --data` fits proxies of a study's own participants.
 
 `train` fits a human proxy per layout on the train split (`trainers.behaviour_cloning`), saves it as a trained team
 that `kitchen-eval` and `kitchen-play` seat, and writes a table of the proxies on the test split: accuracy against
@@ -24,6 +28,8 @@ import sys
 import tarfile
 from pathlib import Path
 from typing import Sequence
+
+import jax
 
 from jax_env.human_games import (
     LAYOUTS,
@@ -106,6 +112,38 @@ def fetch(out: Path, cache: Path, progress: bool = True) -> list[HumanGame]:
     return games
 
 
+def games_from_records(paths: Sequence[str | Path], split: str) -> list[HumanGame]:
+    """`kitchen-play` records -> `HumanGame`s of `split`: each record replayed (and checked, `play.game.replay`),
+    the state before every step kept; the person's seat is the human one. Games on unregistered kitchens (held-out
+    or generated levels, level files) are refused: a proxy is fitted per layout."""
+    import numpy as np
+
+    from jax_env import layout_names
+    from play.game import read_record, recorded_kitchen, replay, take_actions
+
+    games = []
+    for path in paths:
+        header, steps, _ = read_record(path)
+        if header["layout_name"] not in layout_names():
+            raise ValueError(f"{path} was played on {header['layout_name']!r}, not a registered layout: proxies are "
+                             "fitted per layout (the classic, expanded or drawn-inside-7x7 ones)")
+        replay(path)  # every step as recorded, or a ValueError naming it
+        kitchen, tensordict = recorded_kitchen(header)
+        before = []
+        for line in steps:
+            before.append(jax.tree_util.tree_map(lambda leaf: np.asarray(leaf)[0], kitchen.states))
+            tensordict = take_actions(kitchen, tensordict, line["actions"])
+        games.append(HumanGame(
+            name=Path(path).stem, split=split, layout=header["layout_name"],
+            contents=np.stack([s.contents for s in before]), agent_pos=np.stack([s.agent_pos for s in before]),
+            agent_dir=np.stack([s.agent_dir for s in before]), agent_inv=np.stack([s.agent_inv for s in before]),
+            actions=np.asarray([line["actions"] for line in steps], np.int64),
+            delivered=np.asarray([line["deliveries"] for line in steps], np.int32),
+            human_seats=(header["seat"] == 0, header["seat"] == 1),
+        ))  # fmt: skip
+    return games
+
+
 def train(data: Path, runs: Path, layouts: Sequence[str], settings: ProxySettings, episodes: int,
           report: Path | None, game_steps: int = 0) -> str:
     """A proxy per layout, saved under `runs`; returns (and writes to `report`) the table of how they play. Two
@@ -154,6 +192,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     fetching = commands.add_parser("fetch", help="download, convert and check the games; write the dataset")
     fetching.add_argument("--out", type=Path, default=DATA, help=f"dataset folder (default {DATA})")
     fetching.add_argument("--cache", type=Path, default=CACHE, help=f"download folder (default {CACHE})")
+    importing = commands.add_parser("import", help="kitchen-play records into the dataset format")
+    importing.add_argument("records", nargs="+", type=Path, help="kitchen-play game records (.jsonl)")
+    importing.add_argument("--out", type=Path, required=True, help="dataset folder to write")
+    importing.add_argument("--split", default="train", help="the split they form (train or test; default train)")
     training = commands.add_parser("train", help="fit a human proxy per layout; write a table of how they play")
     defaults = ProxySettings()
     training.add_argument("--data", type=Path, default=DATA, help=f"the fetched dataset (default {DATA})")
@@ -171,6 +213,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.command == "fetch":
             fetch(args.out, args.cache)
+        elif args.command == "import":
+            written = write_dataset(games_from_records(args.records, args.split), args.out)
+            for (split, layout), count in sorted(written.items()):
+                print(f"{args.out / f'{split}_{layout}.npz'}: {count:,} steps")
         else:
             names = [field.name for field in dataclasses.fields(ProxySettings)]
             settings = ProxySettings(**{name: getattr(args, name) for name in names})

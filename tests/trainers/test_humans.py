@@ -174,8 +174,8 @@ def test_human_proxies_are_fitted_measured_and_saved_as_teams_that_play(trials, 
     assert main(["fetch", "--cache", str(tmp_path / "cache"), "--out", str(tmp_path / "humans")]) == 0
     report = tmp_path / "proxies.md"
     assert main(["train", "--data", str(tmp_path / "humans"), "--runs", str(tmp_path / "runs"), "--layouts",
-                 "forced_coord", "forced_coord_in_7x7", "--hidden", "32", "--epochs", "40", "--minibatch", "8", "--episodes", "2",
-                 "--game-steps", "30", "--report", str(report)]) == 0
+                 "forced_coord", "forced_coord_in_7x7", "--hidden", "32", "--epochs", "40", "--minibatch", "8",
+                 "--episodes", "2", "--game-steps", "30", "--report", str(report)]) == 0
     rows = [line.split("|")[1:-1] for line in report.read_text().splitlines() if line.startswith("| forced")]
     assert [row[0].strip() for row in rows] == ["forced_coord", "forced_coord_in_7x7"]
     games = load_dataset(tmp_path / "humans", "test", "forced_coord")
@@ -196,3 +196,31 @@ def test_human_proxies_are_fitted_measured_and_saved_as_teams_that_play(trials, 
     # A layout without games is one line.
     assert main(["train", "--data", str(tmp_path / "humans"), "--layouts", "coord_ring"]) == 1
     assert "run `kitchen-humans fetch` first" in capsys.readouterr().err
+
+
+def test_a_studys_own_kitchen_play_games_become_the_same_dataset_with_only_the_person_labelled(tmp_path, capsys):
+    from play.game import SCRIPTED, load_partner
+    from trainers.behaviour_cloning import NOT_HUMAN, human_batch
+
+    keys = [1, 3, 5, 0, 2, 4, 5, 1]
+    for seat in (0, 1):
+        game = Game(load_layout("cramped_room"), load_partner(SCRIPTED), seat, tmp_path / f"seat{seat}.jsonl",
+                    seed=seat, max_steps=len(keys))
+        for key in keys:
+            game.step(key)
+    records = [str(tmp_path / "seat0.jsonl"), str(tmp_path / "seat1.jsonl")]
+    assert main(["import", *records, "--out", str(tmp_path / "study"), "--split", "test"]) == 0
+    assert "test_cramped_room.npz: 16 steps" in capsys.readouterr().out
+    games = load_dataset(tmp_path / "study", "test", "cramped_room")
+    assert [g.human_seats for g in games] == [(True, False), (False, True)]
+    assert games[0].actions[:, 0].tolist() == keys and games[1].actions[:, 1].tolist() == keys
+    labels = human_batch(games).get(("agents", "human_action"))
+    assert labels[:8, 1].eq(NOT_HUMAN).all() and labels[8:, 0].eq(NOT_HUMAN).all()
+    assert labels[:8, 0].tolist() == keys
+    # Played on a kitchen that is no registered layout: refused in one line.
+    header, *rest = (tmp_path / "seat0.jsonl").read_text().splitlines()
+    other = tmp_path / "elsewhere.jsonl"
+    other.write_text("\n".join([header.replace('"layout_name": "cramped_room"', '"layout_name": "heldout_007"'),
+                                *rest]))
+    assert main(["import", str(other), "--out", str(tmp_path / "x")]) == 1
+    assert "not a registered layout" in capsys.readouterr().err
