@@ -253,6 +253,8 @@ def load_dataset(folder: str | Path, split: str, layout: str) -> list[HumanGame]
         raise FileNotFoundError(f"no human games at {path}: run `kitchen-humans fetch` first")
     with np.load(path) as data:
         arrays = {key: data[key] for key in data.files}
+    if missing := {*STORED, "names", "game", "human_seats"} - arrays.keys():
+        raise ValueError(f"{path} lacks {', '.join(sorted(missing))}: written by another version; write it again")
     games = []
     for index, name in enumerate(arrays["names"]):
         rows = arrays["game"] == index

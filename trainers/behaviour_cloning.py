@@ -1,10 +1,11 @@
 """Human proxies: the project's torch policies behaviour-cloned from the 2019 human games, one per classic layout.
 
-A proxy is fitted on the train split's games (both seats, one shared network) by cross-entropy to the humans'
-actions, and measured on the test split: its accuracy against always-STAY, its accuracy on the humans' moves and
+A proxy is fitted on one split's games (both seats, one shared network) by cross-entropy to the humans' actions,
+and measured on the other: its accuracy against always-STAY, its accuracy on the humans' moves and
 interactions (STAY labels left out) against their most frequent one, and the soups two copies of it deliver
 together in games as long as the humans' against what the humans delivered. It is saved as a trained team
-(`runs/human_proxy_<layout>/seed0`), so `kitchen-eval` and `kitchen-play` seat it like any other team.
+(`kitchen-humans train`: `runs/bc_<layout>/seed0` fitted on the train split, `runs/human_proxy_<layout>/seed0` on
+the test split), so `kitchen-eval` and `kitchen-play` seat it like any other team.
 
 `stay_weight` weighs the STAY labels in the loss: humans press no key on 49-72% of the 150 ms ticks, and a proxy
 fitted to that waits where they would have moved (see `kitchen-humans train --help` and BENCHMARKS.md).

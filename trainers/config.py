@@ -347,6 +347,10 @@ class EvalConfig:
     )
     cross: list[list[str]] = option([], "[[cond_a, cond_b], ...] to cross-play")
     partner: bool = option(True, "every team also plays with the scripted cook, a partner outside every population")
+    human_proxies: str = option(
+        "", "a folder of human proxies (`kitchen-humans train`: human_proxy_<layout>/seed0): every team also plays "
+        "with the proxy of each test grid that has one, both seats (e.g. runs; empty: none)"
+    )
 
     # --- where and how long
     layouts: list[str] = option(

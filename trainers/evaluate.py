@@ -44,7 +44,8 @@ from trainers.config import ConfigError, EvalConfig, TrainConfig, config_help, l
 from trainers.figures import draw_figures, draw_heatmap, draw_learning_curve
 from trainers.rollout import play_episodes
 
-SP, XP, CROSS, PARTNER = "SP", "XP", "cross", "partner"
+SP, XP, CROSS, PARTNER, HUMAN = "SP", "XP", "cross", "partner", "human proxy"
+HUMAN_PROXY_RUN = "human_proxy_{grid}/seed0"  # a test grid's human proxy in the `human_proxies` folder
 SCRIPTED_CONDITION = "scripted cook"
 
 
@@ -189,6 +190,43 @@ def make_matchups(population: dict[str, list[Team]], cross: Sequence[Sequence[st
     return teams, matchups
 
 
+def load_human_proxies(folder: str | Path, grids: Sequence[Layout], device: str = "cpu") -> dict[str, Team]:
+    """{grid name: its human proxy} for the test grids that have one in `folder` (`kitchen-humans train`)."""
+    found = {grid.name: Path(folder) / HUMAN_PROXY_RUN.format(grid=grid.name) for grid in grids}
+    proxies = {name: load_team(run, device) for name, run in found.items() if (run / "checkpoints").is_dir()}
+    if not proxies:
+        raise ConfigError(f"human_proxies: {folder} holds no human proxy of a test grid "
+                          f"({', '.join(HUMAN_PROXY_RUN.format(grid=g.name) for g in grids[:3])}, ...): "
+                          "`kitchen-humans train` makes them")
+    return proxies
+
+
+def with_human_proxies(outcomes: Outcomes, proxies: dict[str, Team], rollouts: int, max_steps: int, max_envs: int,
+                       seed: int, device: str) -> Outcomes:
+    """`outcomes` and, on each grid with a proxy, every team of theirs with the proxy in either seat (kind HUMAN)
+    and the proxy with itself (SP): played on that grid only, absent (NaN) on the others."""
+    teams, matchups = list(outcomes.teams), list(outcomes.matchups)
+    grid_names = [grid.name for grid in outcomes.grids]
+    deliveries, visits = [outcomes.deliveries], [outcomes.visits]
+    for grid_name, proxy in proxies.items():
+        g, seat, population = grid_names.index(grid_name), len(teams), range(len(outcomes.teams))
+        extra = [m for team in population for m in (Matchup(team, seat, HUMAN), Matchup(seat, team, HUMAN))]
+        extra.append(Matchup(seat, seat, SP))
+        played = play([*outcomes.teams, proxy], [Matchup(m.seat0 if m.seat0 < seat else len(outcomes.teams),
+                                                         m.seat1 if m.seat1 < seat else len(outcomes.teams), m.kind)
+                                                 for m in extra],
+                      [outcomes.grids[g]], rollouts, max_steps, max_envs, seed, device)
+        on_grid = np.full((len(extra), len(grid_names), rollouts), np.nan, np.float32)
+        on_grid[:, g] = played.deliveries[:, 0]
+        seen = np.zeros((len(extra), *outcomes.visits.shape[1:]), np.float32)
+        seen[:, g] = played.visits[:, 0]
+        teams.append(proxy)
+        matchups += extra
+        deliveries.append(on_grid)
+        visits.append(seen)
+    return Outcomes(teams, matchups, outcomes.grids, np.concatenate(deliveries), np.concatenate(visits))
+
+
 def evaluation_grids(layouts: Sequence[str], num_heldout: int = 100) -> list[Layout]:
     """The given layouts (names or text-grid files), then the first `num_heldout` of the 100 held-out generated
     levels, named heldout_000, heldout_001, ..."""
@@ -293,6 +331,8 @@ def pair_rows(outcomes: Outcomes) -> list[dict]:
     for m, matchup in enumerate(outcomes.matchups):
         first, second = outcomes.teams[matchup.seat0], outcomes.teams[matchup.seat1]
         for g, grid in enumerate(outcomes.grids):
+            if np.isnan(outcomes.deliveries[m, g]).all():  # a human proxy's pair, on another grid than its own
+                continue
             mean, stderr = mean_and_stderr(outcomes.deliveries[m, g])
             rows.append({
                 "agent0": first.name, "agent1": second.name, "condition0": first.condition,
@@ -310,13 +350,14 @@ def at_home(team: Team, grid_name: str) -> bool:
 
 def pair_scores(outcomes: Outcomes, select, grid_names: Sequence[str]) -> np.ndarray:
     """float [n]: for every matchup `select(matchup, team0, team1)` accepts, its mean deliveries over the grids
-    named (pairs are the unit of the paper's error bars)."""
+    named where it played (pairs are the unit of the paper's error bars)."""
     columns = [g for g, grid in enumerate(outcomes.grids) if grid.name in set(grid_names)]
     scores = []
     for m, matchup in enumerate(outcomes.matchups):
         first, second = outcomes.teams[matchup.seat0], outcomes.teams[matchup.seat1]
-        if columns and select(matchup, first, second):
-            scores.append(outcomes.deliveries[m, columns].mean())
+        played = outcomes.deliveries[m, columns]
+        if columns and select(matchup, first, second) and not np.isnan(played).all():
+            scores.append(np.nanmean(played))
     return np.asarray(scores)
 
 
@@ -348,12 +389,19 @@ def summary_rows(outcomes: Outcomes) -> list[dict]:
                 outcomes, lambda m, a, b: m.kind == PARTNER and condition in (a.condition, b.condition), names
             )
             stats[PARTNER] = (*mean_and_stderr(scores), len(scores))
+            scores = pair_scores(
+                outcomes, lambda m, a, b: m.kind == HUMAN and condition in (a.condition, b.condition), names
+            )
+            stats[HUMAN] = (*mean_and_stderr(scores), len(scores))
+            if not any(pairs for _, _, pairs in stats.values()):
+                continue  # a human proxy away from its grid
             rows.append({
                 "condition": condition, "label": team.label, "grids": group,
                 "sp": stats[SP][0], "sp_stderr": stats[SP][1], "sp_pairs": stats[SP][2],
                 "xp": stats[XP][0], "xp_stderr": stats[XP][1], "xp_pairs": stats[XP][2],
                 "gap": stats[SP][0] - stats[XP][0],
                 "partner": stats[PARTNER][0], "partner_stderr": stats[PARTNER][1], "partner_pairs": stats[PARTNER][2],
+                "human": stats[HUMAN][0], "human_stderr": stats[HUMAN][1], "human_pairs": stats[HUMAN][2],
             })  # fmt: skip
     crossed = list(dict.fromkeys(
         tuple(sorted((outcomes.teams[m.seat0].condition, outcomes.teams[m.seat1].condition)))
@@ -371,7 +419,8 @@ def summary_rows(outcomes: Outcomes) -> list[dict]:
             rows.append({"condition": cross_condition(*pair), "label": "cross", "grids": group, "sp": float("nan"),
                          "sp_stderr": float("nan"), "sp_pairs": 0, "xp": mean, "xp_stderr": stderr,
                          "xp_pairs": len(scores), "gap": float("nan"), "partner": float("nan"),
-                         "partner_stderr": float("nan"), "partner_pairs": 0})
+                         "partner_stderr": float("nan"), "partner_pairs": 0, "human": float("nan"),
+                         "human_stderr": float("nan"), "human_pairs": 0})
     return rows
 
 
@@ -381,18 +430,23 @@ def markdown_summary(rows: list[dict], rollouts: int) -> str:
         return "" if not pairs else f"{mean:.2f} ± {stderr:.2f} ({pairs})"
 
     with_partner = any(row["partner_pairs"] for row in rows)
+    with_human = any(row["human_pairs"] for row in rows)
     lines = [
         f"Mean deliveries per episode ({rollouts} rollouts per pair and grid, actions sampled); ± one standard "
         "error over pairs, (number of pairs). Held-out: the mean over the held-out levels."
-        + (" With the scripted cook: the team in either seat, the scripted cook in the other." if with_partner else ""),
+        + (" With the scripted cook: the team in either seat, the scripted cook in the other." if with_partner else "")
+        + (" With the human proxy: the team in either seat, the grid's behaviour-cloned human proxy (test split) in "
+           "the other." if with_human else ""),
         "",
-        "| condition | grids | SP | XP | SP - XP |" + (" with the scripted cook |" if with_partner else ""),
-        "|---|---|---:|---:|---:|" + ("---:|" if with_partner else ""),
+        "| condition | grids | SP | XP | SP - XP |" + (" with the scripted cook |" if with_partner else "")
+        + (" with the human proxy |" if with_human else ""),
+        "|---|---|---:|---:|---:|" + ("---:|" if with_partner else "") + ("---:|" if with_human else ""),
     ]
     for row in rows:
         gap = "" if math.isnan(row["gap"]) or not row["xp_pairs"] else f"{row['gap']:.2f}"
         line = f"| {row['condition']} | {row['grids']} | {cell(row, 'sp')} | {cell(row, 'xp')} | {gap} |"
-        lines.append(line + (f" {cell(row, 'partner')} |" if with_partner else ""))
+        lines.append(line + (f" {cell(row, 'partner')} |" if with_partner else "")
+                     + (f" {cell(row, 'human')} |" if with_human else ""))
     return "\n".join(lines) + "\n"
 
 
@@ -464,6 +518,7 @@ def evaluate(config: EvalConfig) -> Path:
     grids = evaluation_grids(config.layouts, config.heldout)
     partner = scripted_cook_team((*grids[0].shape, 26), config.device) if config.partner else None
     teams, matchups = make_matchups(population, config.cross, partner)
+    proxies = load_human_proxies(config.human_proxies, grids, config.device) if config.human_proxies else {}
     by_name = {grid.name: grid for grid in grids}
     for heatmap in config.heatmaps:
         if heatmap not in by_name:
@@ -477,6 +532,9 @@ def evaluate(config: EvalConfig) -> Path:
 
     outcomes = play(teams, matchups, grids, config.rollouts, config.max_steps, config.max_envs, config.seed,
                     config.device, config.progress)
+    if proxies:
+        outcomes = with_human_proxies(outcomes, proxies, config.rollouts, config.max_steps, config.max_envs,
+                                      config.seed, config.device)
     write_csv(pair_rows(outcomes), out / "pairs.csv")
     summary = summary_rows(outcomes)
     write_csv(summary, out / "summary.csv")

@@ -1,7 +1,8 @@
 """`kitchen-humans`: the 2019 human-human games as a dataset of this project's states and actions.
 
     kitchen-humans fetch                      # -> data/humans/{train,test}_<layout>.npz, every step checked
-    kitchen-humans train                      # -> runs/human_proxy_<layout>/seed0, and a table of how they play
+    kitchen-humans train                      # -> runs/bc_<layout>/seed0 (train split) and a table of how they play
+    kitchen-humans train --fit-on test        # -> runs/human_proxy_<layout>/seed0: the evaluations' human proxies
     kitchen-humans import games/*.jsonl --out data/study --split train   # a study's own kitchen-play games
 
 `fetch` downloads the `overcooked-ai` 1.1.0 source distribution through pip into a cache folder (once), reads the
@@ -13,10 +14,13 @@ the layouts that fit a 7x7 kitchen are also written drawn inside one (`<layout>_
 `import` turns `kitchen-play` records into the same dataset (each replayed and checked; only the person's seat
 is a human label), so that `train --data` fits proxies of a study's own participants.
 
-`train` fits a human proxy per layout on the train split (`trainers.behaviour_cloning`), saves it as a trained team
-that `kitchen-eval` and `kitchen-play` seat, and writes a table of the proxies on the test split: accuracy against
-always-STAY, accuracy on the humans' moves and interactions against their most frequent one, and the soups two
-proxies deliver together in games of the humans' length against the humans' own.
+`train` fits a proxy per layout on one split (`trainers.behaviour_cloning`), saves it as a trained team that
+`kitchen-eval` and `kitchen-play` seat, and writes a table of the proxies measured on the other split: accuracy
+against always-STAY, accuracy on the humans' moves and interactions against their most frequent one, and the soups
+two proxies deliver together in games of the humans' length against the humans' own. As in Carroll et al. (2019),
+the proxies fitted on the train split (`bc_<layout>`) are partners a method may train with, and those fitted on the
+test split (`human_proxy_<layout>`) are the human proxies of evaluations (`kitchen-eval human_proxies=runs`), so
+that no team is tuned to the partner it is measured with.
 """
 
 from __future__ import annotations
@@ -144,20 +148,25 @@ def games_from_records(paths: Sequence[str | Path], split: str) -> list[HumanGam
     return games
 
 
+RUN_NAMES = {"train": "bc_{layout}", "test": "human_proxy_{layout}"}  # by the split a proxy is fitted on
+
+
 def train(data: Path, runs: Path, layouts: Sequence[str], settings: ProxySettings, episodes: int,
-          report: Path | None, game_steps: int = 0) -> str:
+          report: Path | None, game_steps: int = 0, fit_on: str = "train") -> str:
     """A proxy per layout, saved under `runs`; returns (and writes to `report`) the table of how they play. Two
-    proxies play `episodes` games of `game_steps` steps together (0: as long as the humans' test games)."""
+    proxies play `episodes` games of `game_steps` steps together (0: as long as the humans' games of the split it
+    is measured on). `fit_on`: the split fitted on ("train" or "test"); it is measured on the other."""
     import numpy as np
     import torch
 
     torch.set_num_threads(settings.threads)
     rows = []
     for layout in layouts:
-        train_games, test_games = load_dataset(data, "train", layout), load_dataset(data, "test", layout)
+        measure_on = "test" if fit_on == "train" else "train"
+        train_games, test_games = load_dataset(data, fit_on, layout), load_dataset(data, measure_on, layout)
         train_batch, test_batch = human_batch(train_games), human_batch(test_games)
         proxy, _ = fit_proxy(train_batch, settings)
-        run = runs / f"human_proxy_{layout}" / f"seed{settings.seed}"
+        run = runs / RUN_NAMES[fit_on].format(layout=layout) / f"seed{settings.seed}"
         save_proxy(proxy, settings, layout, run)
         scores = accuracy(proxy, test_batch, train_batch)
         steps = game_steps or int(round(np.mean([len(game) for game in test_games])))
@@ -169,12 +178,13 @@ def train(data: Path, runs: Path, layouts: Sequence[str], settings: ProxySetting
                     + (f"{together / humans:.2f} |" if humans else "- |"))
         print(rows[-1], flush=True)
     table = "\n".join([
-        f"Human proxies: {settings.architecture} hidden {settings.hidden}, {settings.epochs} epochs, lr "
-        f"{settings.lr:g}, STAY weight {settings.stay_weight:g}, seed {settings.seed}; two proxies together: "
-        f"{episodes} games per layout (actions sampled), "
-        + (f"{game_steps} steps each." if game_steps else "as long as the humans' test games."),
+        f"Proxies fitted on the {fit_on} split, measured on the {measure_on} split: {settings.architecture} hidden "
+        f"{settings.hidden}, {settings.epochs} epochs, lr {settings.lr:g}, STAY weight {settings.stay_weight:g}, "
+        f"seed {settings.seed}; two proxies together: {episodes} games per layout (actions sampled), "
+        + (f"{game_steps} steps each." if game_steps else f"as long as the humans' {measure_on} games."),
         "",
-        "| layout | steps train / test | accuracy | always STAY | accuracy on moves | their majority | game steps "
+        f"| layout | steps {fit_on} / {measure_on} | accuracy | always STAY | accuracy on moves | their majority "
+        "| game steps "
         "| BC+BC soups | humans' soups | ratio |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
         *rows,
@@ -203,6 +213,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     training.add_argument("--layouts", nargs="+", default=[*LAYOUTS.values(), *PADDED_LAYOUTS],
                           help="layouts to fit (default: the 5 classic ones and those drawn inside a 7x7 kitchen)")
     training.add_argument("--report", type=Path, help="also write the table here")
+    training.add_argument("--fit-on", choices=sorted(RUN_NAMES), default="train",
+                          help="the split to fit (train: runs/bc_<layout>, partners to train with; test: "
+                               "runs/human_proxy_<layout>, the evaluations' human proxies); measured on the other")
     training.add_argument("--episodes", type=int, default=32, help="games of two proxies per layout")
     training.add_argument("--game-steps", type=int, default=0,
                           help="steps of those games (default: as long as the humans' test games)")
@@ -220,7 +233,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             names = [field.name for field in dataclasses.fields(ProxySettings)]
             settings = ProxySettings(**{name: getattr(args, name) for name in names})
-            print(train(args.data, args.runs, args.layouts, settings, args.episodes, args.report, args.game_steps))
+            print(train(args.data, args.runs, args.layouts, settings, args.episodes, args.report, args.game_steps,
+                        args.fit_on))
     except (RuntimeError, ValueError, ImportError, FileNotFoundError) as error:
         print(f"kitchen-humans: error: {error}", file=sys.stderr)
         return 1

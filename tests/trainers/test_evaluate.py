@@ -17,6 +17,7 @@ from trainers.checkpoint import CheckpointError, model_identity, save_checkpoint
 from trainers.config import ConfigError, EvalConfig, TrainConfig, load_config
 from trainers.evaluate import (
     CROSS,
+    HUMAN,
     PARTNER,
     SCRIPTED_CONDITION,
     SP,
@@ -128,6 +129,39 @@ def test_pairs_are_every_ordered_pair_within_a_condition_and_both_orders_across(
     assert sorted(xp) == [(0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1), (3, 4), (4, 3)]
     assert cross == {(a, b) for a in range(3) for b in (3, 4)} | {(b, a) for a in range(3) for b in (3, 4)}
     assert len(matchups) == 9 + 4 + 12
+
+
+def test_every_team_also_plays_with_the_human_proxy_of_each_grid_that_has_one(tmp_path, booth_files):
+    """A grid's human proxy is a team in `human_proxies`/human_proxy_<grid>/seed0 (here the scripted cook, whose
+    pace is known); it plays beside every team on its own grid only, in both seats."""
+    runs = {name: save_scripted_team(tmp_path / f"{name}.pt", name, seed=k) for k, name in enumerate(WORKING)}
+    proxies = tmp_path / "proxies"
+    save_scripted_team(proxies / "human_proxy_two_booths" / "seed0" / "checkpoints" / "latest.pt", "scripted_cooks",
+                       levels=booth_files[0])
+    config = EvalConfig(
+        conditions={"halves": [runs["scripted_cook_seat0"], runs["scripted_cook_seat1"]]}, layouts=booth_files,
+        heldout=0, rollouts=2, out_dir=str(tmp_path / "out"), progress=False, partner=False,
+        human_proxies=str(proxies),
+    ).check()  # fmt: skip
+    out = evaluate(config)
+    with open(out / "pairs.csv") as handle:
+        human = [row for row in csv.DictReader(handle) if row["kind"] == HUMAN]
+    assert {row["grid"] for row in human} == {"two_booths"} and len(human) == 4
+    proxy = "scripted_cooks/seed0"  # a team's name: its config's (`kitchen-humans train`: human_proxy_<layout>)
+    expected = {("halves/seed1", proxy): 14, (proxy, "halves/seed1"): 7, ("halves/seed2", proxy): 7,
+                (proxy, "halves/seed2"): 14}  # a half cook works in its own seat only, the proxy in both
+    assert {(row["agent0"], row["agent1"]): float(row["mean_deliveries"]) for row in human} == expected
+    with open(out / "summary.csv") as handle:
+        summary = {(row["condition"], row["grids"]): row for row in csv.DictReader(handle)}
+    assert float(summary["halves", "two_booths"]["human"]) == 10.5
+    assert int(summary["halves", "one_booth"]["human_pairs"]) == 0
+    assert float(summary["scripted_cooks", "two_booths"]["sp"]) == 14  # the proxy with itself, on its grid
+    assert ("scripted_cooks", "one_booth") not in summary  # and away from its grid: no row
+    assert "| with the human proxy |" in (out / "eval.md").read_text()
+    with pytest.raises(ConfigError, match="holds no human proxy of a test grid"):
+        evaluate(EvalConfig(conditions={"halves": [runs["scripted_cook_seat0"]]}, layouts=booth_files[1:],
+                            heldout=0, rollouts=1, out_dir=str(tmp_path / "out2"), progress=False,
+                            human_proxies=str(proxies)).check())
 
 
 def _save_model_team(path, architecture, seed, hidden=8, share_params=True):

@@ -186,13 +186,19 @@ def test_human_proxies_are_fitted_measured_and_saved_as_teams_that_play(trials, 
         assert moving > majority  # the cooks' moves are a function of what they see: the proxy learned some
         assert float(row[7]) >= 0 and float(row[8]) == pytest.approx(np.mean([g.deliveries for g in games]))
     # Saved as trained teams: evaluation and kitchen-play load them like any run.
-    team = load_team(tmp_path / "runs" / "human_proxy_forced_coord_in_7x7" / "seed0")
+    team = load_team(tmp_path / "runs" / "bc_forced_coord_in_7x7" / "seed0")  # fitted on the train split
     assert team.obs_shape == (7, 7, 26) and team.config.levels == "forced_coord_in_7x7"
     game = Game(load_layout("forced_coord_in_7x7"), Partner(team.name, team.actor_critic, team.obs_shape), 0,
                 tmp_path / "game.jsonl", max_steps=5)
     while not game.over:
         game.step(4)
     assert replay(tmp_path / "game.jsonl")["steps"] == 5
+    # Fitted on the test split: the evaluations' human proxy, measured on the train split.
+    assert main(["train", "--data", str(tmp_path / "humans"), "--runs", str(tmp_path / "runs"), "--layouts",
+                 "forced_coord", "--hidden", "8", "--epochs", "1", "--episodes", "1", "--game-steps", "5",
+                 "--fit-on", "test"]) == 0
+    assert "fitted on the test split, measured on the train split" in capsys.readouterr().out
+    assert load_team(tmp_path / "runs" / "human_proxy_forced_coord" / "seed0").config.levels == "forced_coord"
     # A layout without games is one line.
     assert main(["train", "--data", str(tmp_path / "humans"), "--layouts", "coord_ring"]) == 1
     assert "run `kitchen-humans fetch` first" in capsys.readouterr().err
