@@ -9,7 +9,9 @@ A protocol file names the conditions (a trainer config each, or a config and the
 applied after the shared ones), the overrides they share, the seeds trained together per condition (`teams`),
 the families compared (an IK condition and the SK conditions of the same architecture and learner, which it
 cross-plays; `learner` says how they learn, `paper` whose of the paper's figures apply), further pairs to
-cross-play (`cross`), and the evaluation's sizes.
+cross-play (`cross`), and the evaluation's sizes; `evaluation: {human_proxies: true}` also seats a human proxy
+(behaviour-cloned from the 2019 human games' test split, `kitchen-humans`) beside every team on the classic
+layouts drawn inside a 7x7 kitchen, which join the test grids.
 Training writes `<out>/runs/<condition>/seed<k>`; a condition already trained is skipped and one that stopped
 part-way is resumed, so an interrupted reproduction continues where it stopped. Extra `key=value` arguments
 override every condition (e.g. `total_steps=1e5` for a smoke run). The evaluation (`kitchen-eval`'s code) goes to
@@ -29,9 +31,11 @@ from pathlib import Path
 import torch
 import yaml
 
-from jax_env import EXPANDED_LAYOUTS
+from jax_env import EXPANDED_LAYOUTS, PADDED_LAYOUTS
 from trainers.config import EvalConfig, load_config
-from trainers.evaluate import SCRIPTED_CONDITION, cross_condition, evaluate
+from trainers.evaluate import HUMAN_PROXY_RUN, SCRIPTED_CONDITION, cross_condition, evaluate
+from trainers.humans import CACHE, fetch
+from trainers.humans import train as train_proxies
 from trainers.ippo import RunStopped, team_configs, train_or_resume
 from trainers.machine import machine_name
 
@@ -135,6 +139,20 @@ def cross_pairs(summary: dict, pairs: list[list[str]]) -> list[str]:
     return rows
 
 
+def human_proxies(out: Path) -> Path:
+    """The test split's human proxy of every classic layout drawn inside a 7x7 kitchen, in `out`/runs (fetched and
+    fitted the first time: `kitchen-humans fetch`, then `kitchen-humans train --fit-on test`)."""
+    from trainers.behaviour_cloning import ProxySettings
+
+    runs = out / "runs"
+    missing = [g for g in PADDED_LAYOUTS if not (runs / HUMAN_PROXY_RUN.format(grid=g) / "checkpoints").is_dir()]
+    if missing:
+        if not (out / "data").is_dir():
+            fetch(out / "data", CACHE, progress=False)
+        train_proxies(out / "data", runs, missing, ProxySettings(), 32, out / "proxies.md", fit_on="test")
+    return runs
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("protocol", help="a protocol file (configs/protocols/reduced.yaml or paper.yaml)")
@@ -170,11 +188,13 @@ def main(argv=None) -> int:
                   **{key: getattr(args, key) for key in ("rollouts", "heldout") if getattr(args, key) is not None}}
     shared = load_config(entries[next(iter(conditions))][0], overrides)  # what every condition shares: budget, device
     device = shared.device
+    proxies = human_proxies(out / "humans") if evaluation.get("human_proxies") else None
     eval_config = EvalConfig(
         conditions={name: str(out / "runs" / name / "seed*") for name in conditions},
         cross=[*([ik, name] for ik, sk, _, _ in families.values() for name in sk.values()),
                *protocol.get("cross", [])],
-        layouts=list(EXPANDED_LAYOUTS), heldout=evaluation["heldout"],
+        layouts=[*EXPANDED_LAYOUTS, *(PADDED_LAYOUTS if proxies else [])], heldout=evaluation["heldout"],
+        human_proxies=str(proxies or ""),
         rollouts=evaluation["rollouts"], max_steps=evaluation.get("max_steps", 256),
         heatmaps=evaluation.get("heatmaps", []), device=device,
         out_dir=str(out / "eval"), progress=False,
@@ -212,7 +232,12 @@ def main(argv=None) -> int:
         + " (training from the runs' logs: collection and updates; evaluation: its wall time).",
         f"- **Evaluation:** the 5 expanded layouts and {evaluation['heldout']} held-out levels, "
         f"{evaluation['rollouts']} rollouts per pair and grid; the scripted cook "
-        f"(`torch_kitchen/scripted.py`) beside every team; \"{SCRIPTED_CONDITION}\" is its own self-play.",
+        f"(`torch_kitchen/scripted.py`) beside every team; \"{SCRIPTED_CONDITION}\" is its own self-play."
+        + (f" The classic layouts that fit a 7x7 kitchen, drawn inside one ({', '.join(PADDED_LAYOUTS)}), with "
+           "each one's human proxy beside every team (behaviour-cloned from the 2019 human games' test split, so no "
+           "team is tuned to it; how the proxies play: "
+           f"`{out / 'humans' / 'proxies.md'}`); \"human_proxy_<layout>\" is two proxies together."
+           if proxies else ""),
         "",
         "## The paper's claims, here",
         "",

@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import yaml
+from scripted_cook import save_scripted_team
 from tiny import script_module
 
 from trainers.config import load_config
@@ -14,7 +15,13 @@ TINY = ["hidden=8", "num_envs=4", "rollout_steps=16", "max_steps=16", "total_ste
         "minibatches=2", "checkpoint_every=1", "eval_episodes=0", "progress=false", "loggers=[csv]"]
 
 
-def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp_path):
+def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp_path, monkeypatch):
+    def scripted_proxy(out):  # a stand-in for the human proxies (fetching and fitting them is kitchen-humans' test)
+        save_scripted_team(out / "runs" / "human_proxy_cramped_room_in_7x7" / "seed0" / "checkpoints" / "latest.pt",
+                           "scripted_cooks", levels="cramped_room_in_7x7", shape=(7, 7))
+        return out / "runs"
+
+    monkeypatch.setattr(reproduce, "human_proxies", scripted_proxy)
     protocol = {
         "teams": 2, "overrides": TINY,
         "conditions": {"ik": str(ROOT / "configs/ippo/mlp_ik.yaml"),
@@ -24,7 +31,7 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
         "families": {"MLP": {"ik": "ik", "sk": ["sk_cramped"]},
                      "MLP guided": {"ik": "ik", "sk": ["guided_sk"], "learner": "guided", "paper": "MLP"}},
         "cross": [["sk_cramped", "guided_sk"]],
-        "evaluation": {"heldout": 1, "rollouts": 1, "max_steps": 16},
+        "evaluation": {"heldout": 1, "rollouts": 1, "max_steps": 16, "human_proxies": True},
     }  # fmt: skip
     path = tmp_path / "protocol.yaml"
     path.write_text(yaml.safe_dump(protocol))
@@ -45,6 +52,7 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     assert "- **guided_sk** adds `regime=sk_cramped_room hidden=4`." in report
     assert "| sk_cramped | guided_sk | cramped_room_7x7 |" in report  # the added pair beside its sides' own XP
     assert "SK scores 0 on generated levels" in report and "with the scripted cook" in report
+    assert "| with the human proxy |" in report and "| ik | cramped_room_in_7x7 |" in report
     assert "128 env steps per team (2 updates of 4 kitchens x 16 steps), 2 teams" in report
     assert (tmp_path / "docs" / "results").is_dir() and "![" in report
     summary = reproduce.read_summary(out / "eval" / "summary.csv")
