@@ -38,11 +38,13 @@ main: setup
 	fi
 
 # The browser test of kitchen-play drives Debian's Chromium: installed here where apt can, skipped (saying so) elsewhere.
+# The suite runs on TEST_WORKERS processes (pytest-xdist), each test file on one of them, torch on one thread each.
+TEST_WORKERS ?= 2
 test: setup
 	@command -v chromium >/dev/null || ! command -v apt-get >/dev/null || \
 		(apt-get install -y -q chromium || (apt-get update -q && apt-get install -y -q chromium)) >/dev/null 2>&1 || \
 		echo "no Chromium could be installed: the browser test will be skipped"
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=10
 
 lint: setup
 	$(BIN)/ruff check .

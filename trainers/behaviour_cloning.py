@@ -43,7 +43,7 @@ class ProxySettings:
     epochs: int = 30
     lr: float = 1e-3
     minibatch: int = 256
-    stay_weight: float = 0.3
+    stay_weight: float = 0.1
     seed: int = 0
     threads: int = 1  # torch threads
 

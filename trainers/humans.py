@@ -160,7 +160,7 @@ def train(data: Path, runs: Path, layouts: Sequence[str], settings: ProxySetting
     import torch
 
     torch.set_num_threads(settings.threads)
-    rows = []
+    rows, ratios = [], []
     for layout in layouts:
         measure_on = "test" if fit_on == "train" else "train"
         train_games, test_games = load_dataset(data, fit_on, layout), load_dataset(data, measure_on, layout)
@@ -172,6 +172,7 @@ def train(data: Path, runs: Path, layouts: Sequence[str], settings: ProxySetting
         steps = game_steps or int(round(np.mean([len(game) for game in test_games])))
         together = deliveries_together(proxy, layout, steps, episodes, settings.seed)
         humans = float(np.mean([game.deliveries for game in test_games]))
+        ratios += [together / humans] if humans else []
         rows.append(f"| {layout} | {len(train_batch):,} / {len(test_batch):,} | {scores['accuracy']:.3f} | "
                     f"{scores['always_stay']:.3f} | {scores['moving_accuracy']:.3f} | "
                     f"{scores['moving_majority']:.3f} | {steps} | {together:.2f} | {humans:.2f} | "
@@ -188,6 +189,9 @@ def train(data: Path, runs: Path, layouts: Sequence[str], settings: ProxySetting
         "| BC+BC soups | humans' soups | ratio |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
         *rows,
+        "",
+        f"Two proxies together deliver {np.mean(ratios) if ratios else float('nan'):.2f} of what the humans did, "
+        f"on average over the {len(ratios)} layouts.",
     ]) + "\n"  # fmt: skip
     if report is not None:
         report.parent.mkdir(parents=True, exist_ok=True)

@@ -74,7 +74,7 @@ def scripted_game(layout_name: str, steps: int, worker: int, seed: int = 0) -> p
     terrain_rows = str(["".join(SYMBOL[kind] for kind in row) for row in np.asarray(layout.grid)])
     rows = []
     for t in range(steps):
-        observation = torch.from_numpy(np.asarray(kitchen.get_obs(state)))
+        observation = torch.from_numpy(np.array(kitchen.get_obs(state)))
         actions = torch.multinomial(cook(observation).softmax(-1), 1, generator=generator)[:, 0].tolist()
         after, reward, _, _ = kitchen.step_env(state, np.asarray(actions))
         rows.append({
