@@ -60,6 +60,7 @@ from trainers.ippo import (
     start_fresh,
     with_model_transforms,
 )
+from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.rollout import finished_episode_deliveries, make_collector
 
 TEACHER_PROBS = ("agents", "teacher_probs")  # the scripted cook's action distribution in the visited state
@@ -281,8 +282,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("config", nargs="?", help="a YAML config (configs/...); omit it with --resume")
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     parser.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its latest round")
+    add_plugin_option(parser)
     args = parser.parse_args(argv)
     try:
+        import_plugins(args.plugins)
         if args.resume:
             overrides = [item for item in [args.config, *args.overrides] if item]
             saved = Path(args.resume) / "config.yaml"
@@ -293,7 +296,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.config is None:
                 raise ConfigError("give a config file (e.g. configs/ippo/ego_mlp_ik.yaml) or --resume RUN_DIR")
             distill(load_config(args.config, args.overrides))
-    except (ConfigError, CheckpointError, ValueError) as error:
+    except (ConfigError, CheckpointError, ValueError, PluginError) as error:
         print(f"kitchen-distill: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

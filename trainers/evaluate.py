@@ -42,6 +42,7 @@ from torch_kitchen.scripted import SCRIPTED_COOK, scripted_actor_critic
 from trainers.checkpoint import CheckpointError, load_checkpoint
 from trainers.config import ConfigError, EvalConfig, TrainConfig, config_help, load_config, save_config
 from trainers.figures import draw_figures, draw_heatmap, draw_learning_curve
+from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.rollout import play_episodes
 
 SP, XP, CROSS, PARTNER, HUMAN = "SP", "XP", "cross", "partner", "human proxy"
@@ -595,10 +596,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("config", help="an evaluation config (configs/eval/...)")
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
+    add_plugin_option(parser)
     args = parser.parse_args(argv)
     try:
+        import_plugins(args.plugins)
         evaluate(load_config(args.config, args.overrides, schema=EvalConfig))
-    except (ConfigError, CheckpointError, ValueError) as error:
+    except (ConfigError, CheckpointError, ValueError, PluginError) as error:
         print(f"kitchen-eval: error: {error}", file=sys.stderr)
         return 2
     return 0

@@ -66,6 +66,7 @@ from trainers.checkpoint import (
 )
 from trainers.config import PLANNER_START, ConfigError, TrainConfig, config_help, load_config, save_config
 from trainers.machine import usable_cores
+from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.rollout import finished_episode_deliveries, make_collector
 
 ACTION, LOG_PROB, VALUE = ("agents", "action"), ("agents", "action_log_prob"), ("agents", "state_value")
@@ -948,6 +949,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="train on level files the solvability checker calls unsolvable (with a warning)")
     parser.add_argument("--eval-on-stop", action="store_true",
                         help="evaluate the team even when the run is stopped before total_steps")
+    add_plugin_option(parser)
     return parser
 
 
@@ -979,6 +981,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     stopped = None
     try:
+        import_plugins(args.plugins)
         configs, runs = config_of(args)
         runs = runs or [config.run_path for config in configs]
         try:
@@ -992,7 +995,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             for run in runs:
                 report_trained_team(run)
-    except (ConfigError, CheckpointError, ValueError) as error:
+    except (ConfigError, CheckpointError, ValueError, PluginError) as error:
         print(f"kitchen-train: error: {error}", file=sys.stderr)
         return 2
     except TrainingDiverged as error:

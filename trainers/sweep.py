@@ -41,6 +41,7 @@ from contextlib import contextmanager
 
 from trainers.config import ConfigError, TrainConfig, config_help, group_choices, group_values, load_config, unknown_key
 from trainers.ippo import team_configs, train_or_resume
+from trainers.plugins import PluginError, add_plugin_option, import_plugins
 
 PRIMARY = "kitchen_sweep"  # the name of the sweep's base config in Hydra's ConfigStore
 REGIME = "regime"  # the config group of the paper's regimes
@@ -55,6 +56,7 @@ def regimes() -> dict[str, dict]:
 
 def run_point(cfg) -> list[str]:
     """One point of the grid (a Hydra task): trains, resumes or skips its run; returns its run directories."""
+    import_plugins()  # a job in a process of its own imports the sweep's plugins too
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import OmegaConf
 
@@ -161,6 +163,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("config", help="a YAML config (configs/...)")
     parser.add_argument("overrides", nargs="*", help="key=a,b,c sweeps and key=value overrides; hydra.* settings")
+    add_plugin_option(parser)
     args = parser.parse_args(argv)
     try:
         import hydra  # noqa: F401
@@ -168,8 +171,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("kitchen-sweep: error: sweeps need the sweep extra: pip install .[sweep]", file=sys.stderr)
         return 2
     try:
+        import_plugins(args.plugins)  # and again in every job (run_point), from the environment
         sweep(args.config, args.overrides)
-    except ConfigError as error:
+    except (ConfigError, PluginError) as error:
         print(f"kitchen-sweep: error: {error}", file=sys.stderr)
         return 2
     return 0
