@@ -42,6 +42,7 @@ from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv  # noqa: E4
 
 from jax_env import DELIVERY_REWARD, NUM_ACTIONS, GeneratorConfig, Overcooked, ShapingWeights, State  # noqa: E402
 from jax_env.env import Levels  # noqa: E402
+from torch_kitchen.keys import ACTION  # noqa: E402
 
 
 def jax_device_for(device: torch.device) -> jax.Device:
@@ -284,7 +285,7 @@ class KitchenEnv(EnvBase):
         return actions.numpy() if actions.device.type == "cpu" else jax.dlpack.from_dlpack(actions)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        actions = self._actions_to_jax(tensordict.get(("agents", "action")))
+        actions = self._actions_to_jax(tensordict.get(ACTION))
         self._states, self._deliveries, out = self._programs.step(self._states, self._deliveries, actions)
         self._episode_steps += 1
         return self._to_tensordict(out, with_reward=True)

@@ -71,13 +71,12 @@ from torchrl.modules import LSTMModule, ProbabilisticActor
 from jax_env import NUM_ACTIONS
 from torch_kitchen.egocentric import EgocentricLinear
 from torch_kitchen.graph import build_graph, num_nodes
+from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, OBSERVATION, PARTNER_LOGITS, PARTNER_PREDICTION, VALUE
 from torch_kitchen.partner import CONTEXT_ACTION, CONTEXT_OBSERVATION, NO_ACTION, PartnerContext
 from torch_kitchen.sparse_linear import ObservationLinear
 from torch_kitchen.torchrl_internals import MultiAgentNet
 
 N_AGENTS = 2
-OBSERVATION, LOGITS, ACTION = ("agents", "observation"), ("agents", "logits"), ("agents", "action")
-LOG_PROB, VALUE = ("agents", "action_log_prob"), ("agents", "state_value")
 GAT_HEADS, GAT_FEATURES = 4, 8  # per head; concatenated -> 32 features per node
 
 ARCHITECTURES = ("mlp", "mlp_lstm", "gnn", "gnn_lstm", "ego_mlp")
@@ -293,7 +292,7 @@ def make_network(
     embedding, memory = ("agents", f"{net}_embedding"), ("agents", f"{net}_memory")
     modules = [
         TensorDictModule(ObservationEncoder(encoder, obs_shape, hidden, share_params),
-                         in_keys=[("agents", "observation")], out_keys=[embedding])
+                         in_keys=[OBSERVATION], out_keys=[embedding])
     ]
     selected = [out_key]
     if recurrent:
@@ -312,13 +311,13 @@ def sampling_actor(policy: TensorDictModuleBase) -> ProbabilisticActor:
     """A `ProbabilisticActor` sampling ("agents", "action") and its log-prob from `policy`'s ("agents", "logits")."""
     return ProbabilisticActor(
         policy,
-        in_keys={"logits": ("agents", "logits")},
-        out_keys=[("agents", "action")],
+        in_keys={"logits": LOGITS},
+        out_keys=[ACTION],
         distribution_class=torch.distributions.Categorical,
         # Validating the logits reads them back on the host at every call; NaN losses are caught once per update.
         distribution_kwargs={"validate_args": False},
         return_log_prob=True,
-        log_prob_key=("agents", "action_log_prob"),
+        log_prob_key=LOG_PROB,
         # The protocol samples actions in training and in evaluation alike.
         default_interaction_type=InteractionType.RANDOM,
     )
@@ -389,7 +388,6 @@ def plain_network(network: TensorDictSequential) -> nn.Sequential:
 
 # ------------------------------------------------------------------------------------- E3T partner model
 E3T_CONTEXT = 5  # (observation, partner action) pairs the partner predictor reads
-PARTNER_LOGITS, PARTNER_PREDICTION = ("agents", "partner_logits"), ("agents", "partner_prediction")
 
 
 def make_predictor_head(hidden: int, length: int) -> nn.Sequential:
@@ -446,7 +444,7 @@ class PartnerPredictor(TensorDictModuleBase):
         step. Equal to `forward` step by step (tested), with one encoding per observation.
         """
         context_obs, actions = batch.get(CONTEXT_OBSERVATION), batch.get(CONTEXT_ACTION)  # [B, T, 2, k, ...]
-        observation = batch.get(("agents", "observation"))  # [B, T, 2, H, W, C]
+        observation = batch.get(OBSERVATION)  # [B, T, 2, H, W, C]
         steps = observation.shape[1]
         before = self.encoder(context_obs[:, 0].movedim(-5, -4))  # [B, k, 2, h]: steps -k .. -1
         codes = torch.cat([before, self.encoder(observation)], dim=1)  # [B, k + T, 2, h]
@@ -527,8 +525,8 @@ def build_builtin(architecture: str, obs_shape: tuple[int, int, int], hidden: in
     encoder, recurrent = architecture.removesuffix("_lstm"), architecture.endswith("_lstm")
     common = {"encoder": encoder, "obs_shape": tuple(obs_shape), "hidden": hidden, "recurrent": recurrent,
               "share_params": share_params}
-    policy = make_network("actor", out_key=("agents", "logits"), out_features=NUM_ACTIONS, out_gain=0.01, **common)
-    critic = make_network("critic", out_key=("agents", "state_value"), out_features=1, out_gain=1.0, **common)
+    policy = make_network("actor", out_key=LOGITS, out_features=NUM_ACTIONS, out_gain=0.01, **common)
+    critic = make_network("critic", out_key=VALUE, out_features=1, out_gain=1.0, **common)
     acting = None if recurrent else ActingPass(plain_network(policy), plain_network(critic))
     return ActorCritic(actor=sampling_actor(policy), critic=critic, recurrent=recurrent, acting=acting)
 
@@ -539,9 +537,9 @@ def build_e3t(encoder: str, obs_shape: tuple[int, int, int], hidden: int, share_
     common = {"encoder": encoder, "obs_shape": tuple(obs_shape), "hidden": hidden, "recurrent": False,
               "share_params": share_params}
     predictor = PartnerPredictor(encoder, obs_shape, hidden, share_params)
-    policy = make_network("actor", out_key=("agents", "logits"), out_features=NUM_ACTIONS, out_gain=0.01,
+    policy = make_network("actor", out_key=LOGITS, out_features=NUM_ACTIONS, out_gain=0.01,
                           extra_inputs=[(PARTNER_PREDICTION, NUM_ACTIONS)], **common)
-    critic = make_network("critic", out_key=("agents", "state_value"), out_features=1, out_gain=1.0, **common)
+    critic = make_network("critic", out_key=VALUE, out_features=1, out_gain=1.0, **common)
     return ActorCritic(actor=sampling_actor(TensorDictSequential(predictor, policy)), critic=critic, recurrent=False)
 
 

@@ -26,10 +26,9 @@ from torchrl.envs import InitTracker, Transform
 from torchrl.modules import ProbabilisticActor
 
 from jax_env import NUM_ACTIONS
+from torch_kitchen.keys import LOGITS, OBSERVATION
 from torch_kitchen.models import N_AGENTS, agent_state_primer, partner_context_length, recurrent_states, sampling_actor
 from torch_kitchen.partner import PartnerContext
-
-OBSERVATION, LOGITS = ("agents", "observation"), ("agents", "logits")
 
 
 class SeatedPolicy(TensorDictModuleBase):

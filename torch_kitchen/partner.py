@@ -30,12 +30,9 @@ from torchrl.data import Bounded, Categorical, Composite
 from torchrl.envs import Transform
 
 from jax_env import NUM_ACTIONS
+from torch_kitchen.keys import ACTION, CONTEXT_ACTION, CONTEXT_OBSERVATION, LOG_PROB, LOGITS, MIXED, OBSERVATION
 
 NO_ACTION = NUM_ACTIONS  # the context's padding token: one more than the real actions
-CONTEXT_OBSERVATION, CONTEXT_ACTION = ("agents", "context_observation"), ("agents", "context_action")
-MIXED = ("agents", "mixed")
-OBSERVATION, ACTION = ("agents", "observation"), ("agents", "action")
-LOGITS, LOG_PROB = ("agents", "logits"), ("agents", "action_log_prob")
 
 
 def _reset_rows(tensordict: TensorDictBase, batch_size: torch.Size, device) -> torch.Tensor:

@@ -26,6 +26,7 @@ from torch import nn
 
 from jax_env import INTERACT, NUM_ACTIONS, STAY, Channel
 from jax_env.state import DIR_VECTORS
+from torch_kitchen.keys import LOGITS, OBSERVATION, VALUE
 from torch_kitchen.models import ActorCritic, register_architecture, sampling_actor
 
 UNREACHABLE = 1e4  # a distance longer than any path in a kitchen
@@ -187,10 +188,10 @@ class ScriptedCook(nn.Module):
 
 def scripted_actor_critic() -> ActorCritic:
     """Both seats the scripted cook; its "critic" says 0 everywhere (it learns nothing)."""
-    policy = TensorDictModule(ScriptedCook(), in_keys=[("agents", "observation")], out_keys=[("agents", "logits")])
+    policy = TensorDictModule(ScriptedCook(), in_keys=[OBSERVATION], out_keys=[LOGITS])
     critic = TensorDictModule(
         lambda observation: torch.zeros(*observation.shape[:-3], 1, device=observation.device),
-        in_keys=[("agents", "observation")], out_keys=[("agents", "state_value")],
+        in_keys=[OBSERVATION], out_keys=[VALUE],
     )  # fmt: skip
     return ActorCritic(actor=sampling_actor(policy), critic=critic, recurrent=False)
 

@@ -38,6 +38,7 @@ from tqdm import tqdm
 
 from torch_kitchen.cpu_kernels import accelerate_cpu
 from torch_kitchen.env import KitchenEnv, with_transforms
+from torch_kitchen.keys import ACTION, ADVANTAGE, LOG_PROB, VALUE, VALUE_TARGET
 from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.teams import (
     RandomStream,
@@ -69,8 +70,6 @@ from trainers.machine import usable_cores
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.rollout import finished_episode_deliveries, make_collector
 
-ACTION, LOG_PROB, VALUE = ("agents", "action"), ("agents", "action_log_prob"), ("agents", "state_value")
-ADVANTAGE, VALUE_TARGET = ("agents", "advantage"), ("agents", "value_target")
 REWARD, SHAPED_REWARD = ("next", "agents", "reward"), ("next", "agents", "shaped_reward")
 TRAIN_REWARD = ("next", "agents", "train_reward")  # sparse + shaping weight x shaped: the reward optimised
 

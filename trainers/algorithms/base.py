@@ -35,10 +35,9 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import Transform
 from torchrl.objectives import ClipPPOLoss
 
+from torch_kitchen.keys import ADVANTAGE
 from torch_kitchen.models import ActorCritic
 from trainers.config import TrainConfig
-
-ADVANTAGE = ("agents", "advantage")
 
 
 def standardize_advantage(minibatch: TensorDictBase) -> None:

@@ -19,12 +19,12 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import Transform
 from torchrl.objectives import ClipPPOLoss
 
+from torch_kitchen.keys import ACTION, ADVANTAGE
 from torch_kitchen.models import ActorCritic, split_partner_predictor
 from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
 from trainers.algorithms.base import Algorithm
 from trainers.config import ConfigError, TrainConfig
 
-ACTION, ADVANTAGE = ("agents", "action"), ("agents", "advantage")
 EGO = ("agents", "ego")  # bool [B, T, 2]: the transitions PPO learns from
 
 
