@@ -2,6 +2,7 @@
 
 from pathlib import Path
 
+import pytest
 import yaml
 from scripted_cook import save_scripted_team
 from tiny import script_module
@@ -15,6 +16,7 @@ TINY = ["hidden=8", "num_envs=4", "rollout_steps=16", "max_steps=16", "total_ste
         "minibatches=2", "checkpoint_every=1", "eval_episodes=0", "progress=false", "loggers=[csv]"]
 
 
+@pytest.mark.slow
 def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp_path, monkeypatch):
     def scripted_proxy(out):  # a stand-in for the human proxies (fetching and fitting them is kitchen-humans' test)
         save_scripted_team(out / "runs" / "human_proxy_cramped_room_in_7x7" / "seed0" / "checkpoints" / "latest.pt",

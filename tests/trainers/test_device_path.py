@@ -1,6 +1,7 @@
 """The trainer's device path, checked on a CPU: what a GPU would run compiles whole, recompiles nothing across
 updates, and makes the host wait for nothing inside a collection step or a minibatch."""
 
+import pytest
 import torch
 import torch._dynamo
 from tensordict.nn import set_interaction_type
@@ -89,6 +90,7 @@ def test_a_collection_step_and_a_minibatch_make_the_host_wait_for_nothing(tmp_pa
     assert update.launches > 0 and update.syncs == 0 and update.host_tensors == 0, update.summary()
 
 
+@pytest.mark.slow
 def test_the_teams_stacked_step_compiles_to_the_eager_one_and_launches_fewer_kernels_than_two_teams(tmp_path):
     """Three teams' minibatch step as one (`stacked_update`, the GPU's way), eager and compiled, moves every team's
     weights as the other does; eager, it launches fewer kernels than two teams' steps one after another."""

@@ -435,6 +435,7 @@ def test_help_lists_every_config_key_and_hyperparameters_reach_tensorboard(tmp_p
     assert events.PluginTagToContent("hparams")
 
 
+@pytest.mark.slow
 def test_a_compiled_acting_policy_takes_the_same_actions_and_learns_the_same(tmp_path):
     """torch.compile'd collection: the same sampled actions (so the same returns), log-probabilities equal to
     float32 rounding (fused kernels), hence the same losses to 1e-5."""

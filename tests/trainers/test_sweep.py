@@ -105,6 +105,7 @@ def submitit_task(folder: Path) -> int | None:
 
 
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="finds the submitit task through /proc")
+@pytest.mark.slow
 def test_a_preempted_submitit_job_is_requeued_and_resumes_from_its_checkpoint(tmp_path):
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason="needs hydra-submitit-launcher (sweep extra)")
     sweep = kitchen_sweep(tmp_path, "seed=0", "total_steps=4800", "hydra/launcher=submitit_local", *TINY)
