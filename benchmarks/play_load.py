@@ -1,10 +1,10 @@
 """How many real-time games of `kitchen-play` one CPU core holds: the server's work per tick, then games at once.
 
 Per partner (an MLP and a GNN team of the paper's width, hidden 256; untrained weights time the same): the
-latency of one tick of one game (`play.game.Game.step`: the partner's forward pass, the kitchen's step, the record
-line), its median and 95th percentile, and the games one core could tick every `--tick-ms` from that; then that
-many games (and more) at once, each a WebSocket client of a real `kitchen-play` server in this process (one event
-loop, torch on one thread), reporting the mean and the 95th percentile of the interval between a game's ticks
+latency of one tick of one game (`trainers.play.game.Game.step`: the partner's forward pass, the kitchen's step,
+the record line), its median and 95th percentile, and the games one core could tick every `--tick-ms` from that;
+then that many games (and more) at once, each a WebSocket client of a real `kitchen-play` server in this process
+(one event loop, torch on one thread), reporting the mean and the 95th percentile of the interval between a game's ticks
 against the target. Then a study's load (`--games`, 40 by default): that many whole real-time games with the MLP
 team at once, each client sending a key on every state it gets: the time to create each game, the gaps between a
 game's states (p50, p90, p99, max), how far behind schedule games end, and the server process's resident memory
@@ -29,12 +29,12 @@ from pathlib import Path
 import torch
 
 from jax_env import load_layout
-from play.game import Game, Partner
-from play.server import create_app
 from torch_kitchen.models import make_actor_critic
 from trainers.checkpoint import model_identity, save_checkpoint
 from trainers.config import TrainConfig
 from trainers.machine import machine_name
+from trainers.play.game import Game, Partner
+from trainers.play.server import create_app
 
 KITCHEN = "cramped_room_7x7"
 

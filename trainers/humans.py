@@ -117,13 +117,13 @@ def fetch(out: Path, cache: Path, progress: bool = True) -> list[HumanGame]:
 
 
 def games_from_records(paths: Sequence[str | Path], split: str) -> list[HumanGame]:
-    """`kitchen-play` records -> `HumanGame`s of `split`: each record replayed (and checked, `play.game.replay`),
+    """`kitchen-play` records -> `HumanGame`s of `split`: each record replayed (checked, `trainers.play.game.replay`),
     the state before every step kept; the person's seat is the human one. Games on unregistered kitchens (held-out
     or generated levels, level files) are refused: a proxy is fitted per layout."""
     import numpy as np
 
     from jax_env import layout_names
-    from play.game import read_record, recorded_kitchen, replay, take_actions
+    from trainers.play.game import read_record, recorded_kitchen, replay, take_actions
 
     games = []
     for path in paths:

@@ -28,10 +28,10 @@ from jax_env.human_games import (  # noqa: E402
 )
 from jax_env.layouts import POT  # noqa: E402
 from jax_env.state import DIR_VECTORS, DISH, ONION, PLATE, POT_EMPTY, POT_FULL  # noqa: E402
-from play.game import Game, Partner, replay  # noqa: E402
 from torch_kitchen.scripted import ScriptedCook  # noqa: E402
 from trainers.evaluate import load_team  # noqa: E402
 from trainers.humans import main  # noqa: E402
+from trainers.play.game import Game, Partner, replay  # noqa: E402
 
 SYMBOL = {kind: symbol for symbol, kind in TERRAIN.items() if symbol not in "12"}
 NAMES = {ONION: "onion", PLATE: "dish", DISH: "soup"}
@@ -205,8 +205,8 @@ def test_human_proxies_are_fitted_measured_and_saved_as_teams_that_play(trials, 
 
 
 def test_a_studys_own_kitchen_play_games_become_the_same_dataset_with_only_the_person_labelled(tmp_path, capsys):
-    from play.game import SCRIPTED, load_partner
     from trainers.behaviour_cloning import NOT_HUMAN, human_batch
+    from trainers.play.game import SCRIPTED, load_partner
 
     keys = [1, 3, 5, 0, 2, 4, 5, 1]
     for seat in (0, 1):

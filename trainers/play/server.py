@@ -8,7 +8,7 @@ The lobby (`/`) lists the partners and the kitchens; `POST /api/games` checks a 
 partner that cannot be loaded or cannot play that kitchen's size are refused with the reason) and makes the game;
 the page then plays it over the WebSocket `/ws/games/<id>`. In real time the server ticks every `tick_ms` and the
 person's latest key applies to the next tick (STAY if none); in turns mode the kitchen steps when the person acts.
-Each game has its own kitchen, partner and record (`play.game`); any message other than an action (malformed,
+Each game has its own kitchen, partner and record (`trainers.play.game`); any message other than an action (malformed,
 too long, binary) is answered with a one-line error and logged, and the game goes on; a closed tab ends its game
 with the record complete, as does a turns-mode game left without an action for `--idle-s` seconds ("idle") and
 every game when the server stops (SIGTERM or SIGINT). Game ids are random keys, games nobody connects to expire,
@@ -47,9 +47,9 @@ from jax_env import (
     load_layout,
 )
 from jax_env.generator import sample_training_level
-from play.game import ACTIONS, RANDOM, SCRIPTED, Game, load_partner, replay
 from trainers.checkpoint import CheckpointError
 from trainers.evaluate import evaluation_grids
+from trainers.play.game import ACTIONS, RANDOM, SCRIPTED, Game, load_partner, replay
 
 try:
     from fastapi import FastAPI, HTTPException, WebSocket, WebSocketDisconnect

@@ -10,11 +10,11 @@ pytest.importorskip("fastapi", reason="kitchen-play needs the play extra: pip in
 from fastapi import WebSocketDisconnect  # noqa: E402
 from fastapi.testclient import TestClient  # noqa: E402
 
-from play.game import RANDOM, SCRIPTED, load_dataset, read_record, replay  # noqa: E402
-from play.server import create_app, main  # noqa: E402
 from torch_kitchen.models import make_actor_critic  # noqa: E402
 from trainers.checkpoint import model_identity, save_checkpoint  # noqa: E402
 from trainers.config import TrainConfig  # noqa: E402
+from trainers.play.game import RANDOM, SCRIPTED, load_dataset, read_record, replay  # noqa: E402
+from trainers.play.server import create_app, main  # noqa: E402
 
 
 @pytest.fixture()
@@ -206,8 +206,8 @@ def test_sigterm_stops_the_server_with_a_waiting_turns_game_and_its_record_close
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
     records = tmp_path / "games"
-    server = subprocess.Popen([sys.executable, "-m", "play.server", "--port", str(port), "--records", str(records)],
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    command = [sys.executable, "-m", "trainers.play.server", "--port", str(port), "--records", str(records)]
+    server = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         for _ in range(600):
             try:

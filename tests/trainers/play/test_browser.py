@@ -17,10 +17,10 @@ import torch  # noqa: E402
 import uvicorn  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 
-from play.game import read_record, replay  # noqa: E402
-from play.server import create_app  # noqa: E402
 from torch_kitchen.models import OBSERVATION  # noqa: E402
 from trainers.behaviour_cloning import HUMAN_ACTION, ProxySettings, fit_proxy, save_proxy  # noqa: E402
+from trainers.play.game import read_record, replay  # noqa: E402
+from trainers.play.server import create_app  # noqa: E402
 
 PROXY_KITCHEN = "cramped_room_in_7x7"  # a classic layout drawn inside a 7x7 kitchen, where human proxies play
 
