@@ -234,7 +234,7 @@ def start_fresh(run: Path) -> None:
         shutil.rmtree(run / logs, ignore_errors=True)
 
 
-def restore(team: Team) -> dict:
+def restore(team: TrainingRun) -> dict:
     """Loads `team`'s latest checkpoint into its parts (networks, optimizer, its kitchens) and its algorithm, and
     sets its counters; returns the checkpoint (for its RNG states)."""
     state = load_checkpoint(team.checkpoint_path, map_location=team.config.device)
@@ -295,9 +295,10 @@ class TeamKitchens:
 
 
 @dataclasses.dataclass
-class Team:
-    """One trained team: its config and run directory, networks, algorithm, loss and optimizer, random stream,
-    counters and loggers. A run trains one team, or several in one batch of kitchens (`train_teams`)."""
+class TrainingRun:
+    """One seed's run as it trains: its config and run directory, the team's networks, algorithm, loss and
+    optimizer, random stream, counters and loggers. A process trains one, or several in one batch of kitchens
+    (`train_teams`); a finished run's team is loaded for play as a `trainers.evaluate.Team`."""
 
     config: TrainConfig
     run: Path
@@ -339,7 +340,7 @@ def team_configs(config: TrainConfig) -> list[TrainConfig]:
 
 
 def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
-               actor_critic: ActorCritic | None = None) -> Team:
+               actor_critic: ActorCritic | None = None) -> TrainingRun:
     """Team `index` of the batch: networks (from `config.architecture` unless given), algorithm, loss and
     optimizer, all built in the team's own random stream, seeded with its seed."""
     stream = RandomStream(config.seed, config.device)
@@ -363,7 +364,7 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
         else:
             # Fused: one kernel for all parameters instead of a few per tensor (3x faster on a CPU at hidden 256).
             optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps, fused=True)
-    team = Team(
+    team = TrainingRun(
         config=config, run=run, stream=stream, actor_critic=actor_critic, algorithm=algorithm, policy=policy,
         loss_module=loss_module, optimizer=optimizer, parameters=parameters,
         identity=model_identity(config.architecture, obs_shape, config.hidden, config.share_params),
@@ -392,7 +393,7 @@ def compile_step(step: Callable[[TensorDictBase], dict[str, torch.Tensor]],
     return run
 
 
-def start_from(team: Team) -> None:
+def start_from(team: TrainingRun) -> None:
     """Loads into `team` the actor's and critic's weights that its `init_from` names (nothing to load from scratch):
     a run's latest checkpoint, or the scripted cook distilled first into the team's run folder. CheckpointError if
     that model is not the team's."""
@@ -416,7 +417,7 @@ def acts_stacked(config: TrainConfig, policies: Sequence[TensorDictModuleBase]) 
     return torch.device(config.device).type == "cuda" and stackable_acting(policies) is not None
 
 
-def learns_stacked(config: TrainConfig, teams: Sequence[Team]) -> bool:
+def learns_stacked(config: TrainConfig, teams: Sequence[TrainingRun]) -> bool:
     """Whether the teams' minibatch steps run as one (`stacked_update`): on a GPU, where several teams learn and
     their model and algorithm allow it (feed-forward with shared parameters, `Algorithm.stackable`); on a CPU each
     team learns on its own, with its sparse first layer, on threads where `parallel_teams`."""
@@ -425,7 +426,7 @@ def learns_stacked(config: TrainConfig, teams: Sequence[Team]) -> bool:
     return torch.device(config.device).type == "cuda" and len(teams) > 1 and stackable
 
 
-def stacked_update(teams: Sequence[Team]) -> Callable[[TensorDictBase], dict[str, torch.Tensor]]:
+def stacked_update(teams: Sequence[TrainingRun]) -> Callable[[TensorDictBase], dict[str, torch.Tensor]]:
     """The teams' minibatch step as one computation: `stacked_step` over their `StackedLoss`, compiled with
     `compile_update` (on a GPU, replayed as CUDA graphs)."""
     loss = StackedLoss([team.loss_module for team in teams], teams[0].algorithm.process_minibatch)
@@ -433,7 +434,7 @@ def stacked_update(teams: Sequence[Team]) -> Callable[[TensorDictBase], dict[str
     return compile_step(step, teams[0].config.device) if teams[0].config.compile_update else step
 
 
-def algorithm_transforms(teams: list[Team]) -> list[Transform]:
+def algorithm_transforms(teams: list[TrainingRun]) -> list[Transform]:
     """The env transforms of the teams' algorithms: each team's own, on its rows, where there are several."""
     if len(teams) == 1:
         return teams[0].algorithm.env_transforms()
@@ -441,7 +442,7 @@ def algorithm_transforms(teams: list[Team]) -> list[Transform]:
     return [TeamTransform(transforms, teams[0].config.num_envs) for transforms in zip(*per_team)]
 
 
-def start_update(team: Team, batch: TensorDictBase) -> list[tuple[torch.Tensor, ...]]:
+def start_update(team: TrainingRun, batch: TensorDictBase) -> list[tuple[torch.Tensor, ...]]:
     """The first part of an update of `team` on its batch [num_envs, rollout_steps], run in the team's random
     stream, one team after another: the counters, the learning rate, the training reward and GAE, the
     algorithm's batch hook, and the minibatch orders of every epoch (the update's only random draws)."""
@@ -470,7 +471,7 @@ def select_kitchens(batch: TensorDictBase, kitchens: torch.Tensor) -> TensorDict
                        batch_size=torch.Size([len(kitchens), *batch.batch_size[1:]]))
 
 
-def shard_gradients(team: Team, shard: TensorDictBase) -> tuple[dict[str, torch.Tensor], list]:
+def shard_gradients(team: TrainingRun, shard: TensorDictBase) -> tuple[dict[str, torch.Tensor], list]:
     """The losses of one shard of a minibatch and the gradient of their total for each of the team's parameters
     (None where a parameter does not take part)."""
     losses = {**team.loss_module(shard), **team.algorithm.auxiliary_losses(shard)}
@@ -491,7 +492,8 @@ def gradient_for(parameter: torch.nn.Parameter, gradients: list[torch.Tensor | N
     return gradient if gradient.stride() == parameter.stride() else torch.empty_like(parameter).copy_(gradient)
 
 
-def minibatch_step(team: Team, minibatch: TensorDictBase, pool: ThreadPoolExecutor | None) -> dict[str, torch.Tensor]:
+def minibatch_step(team: TrainingRun, minibatch: TensorDictBase,
+                   pool: ThreadPoolExecutor | None) -> dict[str, torch.Tensor]:
     """One PPO step on a minibatch: the mean of its shards' losses and gradients (`minibatch_shards` equal parts
     by kitchen, on `pool`'s threads at once where given; one after the other gives the same numbers), clipped
     and applied; returns the losses. Reads nothing back from the device: whether the losses were finite is the
@@ -508,7 +510,7 @@ def minibatch_step(team: Team, minibatch: TensorDictBase, pool: ThreadPoolExecut
     return losses
 
 
-def ppo_step(team: Team, minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
+def ppo_step(team: TrainingRun, minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
     """`minibatch_step` as one function for `torch.compile` (`compile_update`; no shards): the loss, its backward,
     the clipping and the Adam step, with nothing read back on the host; returns the losses."""
     losses = {**team.loss_module(minibatch), **team.algorithm.auxiliary_losses(minibatch)}
@@ -519,7 +521,7 @@ def ppo_step(team: Team, minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
     return losses
 
 
-def apply_gradients(team: Team) -> torch.Tensor:
+def apply_gradients(team: TrainingRun) -> torch.Tensor:
     """The Adam step on the gradients held by the team's parameters, clipped to `max_grad_norm`; returns their norm
     before clipping. A non-finite gradient is zeroed first: a diverged minibatch must leave the weights finite until
     the update's end undoes it (`learn`), since NaN weights would make the next minibatch's sampling fail (or assert
@@ -536,7 +538,7 @@ class RestorePoint:
     """A team's weights and optimizer state as they were, copied on their device: an update whose loss diverged
     is undone from it, so that the update's minibatches need not stop to ask whether each loss was finite."""
 
-    def __init__(self, team: Team):
+    def __init__(self, team: TrainingRun):
         self.team = team
         self.weights = [parameter.detach().clone() for parameter in team.parameters]
         self.optimizer = copy.deepcopy(team.optimizer.state_dict())
@@ -547,7 +549,7 @@ class RestorePoint:
         self.team.optimizer.load_state_dict(self.optimizer)
 
 
-def learn(team: Team, batch: TensorDictBase, orders: list[tuple[torch.Tensor, ...]],
+def learn(team: TrainingRun, batch: TensorDictBase, orders: list[tuple[torch.Tensor, ...]],
           pool: ThreadPoolExecutor | None = None) -> dict[str, float]:
     """The PPO epochs of an update over minibatches of whole kitchen sequences, in `orders` (`start_update`),
     each minibatch's shards on `pool`'s threads where given; returns the update's metrics (`finish_update`). Draws
@@ -565,7 +567,7 @@ def learn(team: Team, batch: TensorDictBase, orders: list[tuple[torch.Tensor, ..
     return finish_update(team, batch, stats, restore_point)
 
 
-def learn_stacked(teams: Sequence[Team], step: Callable[[TensorDictBase], dict[str, torch.Tensor]],
+def learn_stacked(teams: Sequence[TrainingRun], step: Callable[[TensorDictBase], dict[str, torch.Tensor]],
                   batches: Sequence[TensorDictBase],
                   orders: Sequence[list[tuple[torch.Tensor, ...]]]) -> list[list[dict[str, torch.Tensor]]]:
     """The PPO epochs of K teams' updates as one: each minibatch of all teams (team k's kitchens in its own order),
@@ -582,7 +584,8 @@ def learn_stacked(teams: Sequence[Team], step: Callable[[TensorDictBase], dict[s
     return stats
 
 
-def stacked_step(teams: Sequence[Team], loss: StackedLoss, minibatches: TensorDictBase) -> dict[str, torch.Tensor]:
+def stacked_step(teams: Sequence[TrainingRun], loss: StackedLoss,
+                 minibatches: TensorDictBase) -> dict[str, torch.Tensor]:
     """`ppo_step` of K teams at once on their minibatches [K, ...]: one loss (`StackedLoss`, the algorithm's
     `process_minibatch` included) and one backward to the teams' stacked parameters, each team's gradient zeroed
     where not finite and clipped to its own norm there (`clip_per_team`), then each team's Adam step; returns the
@@ -615,7 +618,7 @@ def clip_per_team(gradients: list[torch.Tensor], max_norm: float) -> torch.Tenso
     return norms
 
 
-def finish_update(team: Team, batch: TensorDictBase, stats: list[dict[str, torch.Tensor]],
+def finish_update(team: TrainingRun, batch: TensorDictBase, stats: list[dict[str, torch.Tensor]],
                   restore_point: RestorePoint) -> dict[str, float]:
     """The end of `team`'s update, after its minibatches' `stats` (losses on the device): raises TrainingDiverged if
     a loss was NaN or infinite, with the team put back to `restore_point`; else the algorithm's `after_update`, and
@@ -651,7 +654,7 @@ def finish_update(team: Team, batch: TensorDictBase, stats: list[dict[str, torch
     return metrics
 
 
-def learn_teams(teams: Sequence[Team], batches: Sequence[TensorDictBase], orders: Sequence[list],
+def learn_teams(teams: Sequence[TrainingRun], batches: Sequence[TensorDictBase], orders: Sequence[list],
                 pool: ThreadPoolExecutor | None,
                 stacked: Callable[[TensorDictBase], dict] | None = None) -> list[tuple[dict[str, float], float]]:
     """Every team's `learn` on its batch, on `pool`'s threads at once (None: one after the other; a single team
