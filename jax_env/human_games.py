@@ -200,18 +200,26 @@ def check_replay(game: HumanGame, recorded_after: dict[str, np.ndarray]) -> None
     that does not start where the step before it ended. `recorded_after` may stop a step short (a game whose state
     after its last step is not known)."""
     replayed, delivered = replay_steps(game)
-    for t in range(len(recorded_after["contents"])):
-        for field in FIELDS:
-            if not np.array_equal(replayed[field][t], recorded_after[field][t]):
-                raise ValueError(f"{game.name}: step {t} replays to {field} {replayed[field][t].tolist()}, the "
-                                 f"record has {recorded_after[field][t].tolist()}")
-        if delivered[t] != game.delivered[t]:
-            raise ValueError(f"{game.name}: step {t} replays to {delivered[t]} soups delivered, the record has "
-                             f"{game.delivered[t]}")
-        if t + 1 < len(game):
-            for field in FIELDS:
-                if not np.array_equal(getattr(game, field)[t + 1], recorded_after[field][t]):
-                    raise ValueError(f"{game.name}: step {t + 1} does not start where step {t} ended ({field})")
+    known = len(recorded_after["contents"])
+
+    def differs(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # bool [steps]: any element differs
+        return (a != b).reshape(len(a), -1).any(axis=1)
+
+    problems = []  # (step, message) of the first step each check fails at
+    for field in FIELDS:
+        after = recorded_after[field]
+        if (bad := np.flatnonzero(differs(replayed[field][:known], after))).size:
+            t = int(bad[0])
+            problems.append((t, f"step {t} replays to {field} {replayed[field][t].tolist()}, the record has "
+                                f"{after[t].tolist()}"))
+        if (bad := np.flatnonzero(differs(getattr(game, field)[1:], after[: len(game) - 1]))).size:
+            t = int(bad[0])
+            problems.append((t + 1, f"step {t + 1} does not start where step {t} ended ({field})"))
+    if (bad := np.flatnonzero(delivered[:known] != game.delivered[:known])).size:
+        t = int(bad[0])
+        problems.append((t, f"step {t} replays to {delivered[t]} soups delivered, the record has {game.delivered[t]}"))
+    if problems:
+        raise ValueError(f"{game.name}: {min(problems, key=lambda problem: problem[0])[1]}")
 
 
 def padded_game(game: HumanGame) -> HumanGame:

@@ -199,7 +199,8 @@ class KitchenEnv(EnvBase):
             raise ValueError("pin_levels needs a list of levels (or 'heldout'); the Infinite Kitchen generates them")
         self.pinned_levels = np.tile(np.arange(team_size) % kitchen.num_levels, self.teams) if pin_levels else None
         self._programs = kitchen_programs(kitchen, num_envs, self.teams, pin_levels)
-        self._start_states = kitchen.start_states
+        # On the env's device once: an argument of the compiled resets, not a copy per reset.
+        self._start_states = jax.device_put(kitchen.start_states, self._jax_device)
         self._states = None  # the JAX kitchens, batched
         self._deliveries = None  # int32 [B]: soups delivered this episode
         self._last_obs = None  # the JAX array behind the last observation handed out (zero-copy checks)

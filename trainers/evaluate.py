@@ -209,20 +209,24 @@ def with_human_proxies(outcomes: Outcomes, proxies: dict[str, Team], rollouts: i
     teams, matchups = list(outcomes.teams), list(outcomes.matchups)
     grid_names = [grid.name for grid in outcomes.grids]
     deliveries, visits = [outcomes.deliveries], [outcomes.visits]
+    population = len(outcomes.teams)  # the proxy's seat among the teams its grid is played with
+    with_proxy = [m for team in range(population) for m in (Matchup(team, population, HUMAN),
+                                                           Matchup(population, team, HUMAN))]
+    with_proxy.append(Matchup(population, population, SP))
     for grid_name, proxy in proxies.items():
-        g, seat, population = grid_names.index(grid_name), len(teams), range(len(outcomes.teams))
-        extra = [m for team in population for m in (Matchup(team, seat, HUMAN), Matchup(seat, team, HUMAN))]
-        extra.append(Matchup(seat, seat, SP))
-        played = play([*outcomes.teams, proxy], [Matchup(m.seat0 if m.seat0 < seat else len(outcomes.teams),
-                                                         m.seat1 if m.seat1 < seat else len(outcomes.teams), m.kind)
-                                                 for m in extra],
-                      [outcomes.grids[g]], rollouts, max_steps, max_envs, seed, device)
-        on_grid = np.full((len(extra), len(grid_names), rollouts), np.nan, np.float32)
+        g = grid_names.index(grid_name)
+        played = play([*outcomes.teams, proxy], with_proxy, [outcomes.grids[g]], rollouts, max_steps, max_envs,
+                      seed, device)
+        on_grid = np.full((len(with_proxy), len(grid_names), rollouts), np.nan, np.float32)
         on_grid[:, g] = played.deliveries[:, 0]
-        seen = np.zeros((len(extra), *outcomes.visits.shape[1:]), np.float32)
+        seen = np.zeros((len(with_proxy), *outcomes.visits.shape[1:]), np.float32)
         seen[:, g] = played.visits[:, 0]
+
+        def seat(index: int, proxy_seat: int = len(teams)) -> int:  # its seat among all the teams
+            return proxy_seat if index == population else index
+
+        matchups += [Matchup(seat(m.seat0), seat(m.seat1), m.kind) for m in with_proxy]
         teams.append(proxy)
-        matchups += extra
         deliveries.append(on_grid)
         visits.append(seen)
     return Outcomes(teams, matchups, outcomes.grids, np.concatenate(deliveries), np.concatenate(visits))

@@ -33,8 +33,6 @@ import tarfile
 from pathlib import Path
 from typing import Sequence
 
-import jax
-
 from jax_env.human_games import (
     LAYOUTS,
     SOURCE,
@@ -117,26 +115,23 @@ def fetch(out: Path, cache: Path, progress: bool = True) -> list[HumanGame]:
 
 
 def games_from_records(paths: Sequence[str | Path], split: str) -> list[HumanGame]:
-    """`kitchen-play` records -> `HumanGame`s of `split`: each record replayed (checked, `trainers.play.game.replay`),
+    """`kitchen-play` records -> `HumanGame`s of `split`: each record replayed once and checked (`replayed_states`),
     the state before every step kept; the person's seat is the human one. Games on unregistered kitchens (held-out
     or generated levels, level files) are refused: a proxy is fitted per layout."""
     import numpy as np
 
     from jax_env import layout_names
-    from trainers.play.game import read_record, recorded_kitchen, replay, take_actions
+    from trainers.play.game import replayed_states
 
     games = []
     for path in paths:
-        header, steps, _ = read_record(path)
+        header, steps, end, states = replayed_states(path)  # every step as recorded, or a ValueError naming it
         if header["layout_name"] not in layout_names():
             raise ValueError(f"{path} was played on {header['layout_name']!r}, not a registered layout: proxies are "
                              "fitted per layout (the classic, expanded or drawn-inside-7x7 ones)")
-        replay(path)  # every step as recorded, or a ValueError naming it
-        kitchen, tensordict = recorded_kitchen(header)
-        before = []
-        for line in steps:
-            before.append(jax.tree_util.tree_map(lambda leaf: np.asarray(leaf)[0], kitchen.states))
-            tensordict = take_actions(kitchen, tensordict, line["actions"])
+        if end is None:
+            raise ValueError(f"{path}: the game never ended (no end line): the record is cut")
+        before = states[:-1]
         games.append(HumanGame(
             name=Path(path).stem, split=split, layout=header["layout_name"],
             contents=np.stack([s.contents for s in before]), agent_pos=np.stack([s.agent_pos for s in before]),

@@ -30,7 +30,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-from jax_env import EAST, INTERACT, NORTH, NUM_ACTIONS, SOUTH, STAY, WEST, Layout, parse_layout
+from jax_env import EAST, INTERACT, NORTH, NUM_ACTIONS, SOUTH, STAY, WEST, Layout, State, parse_layout
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.models import ActorCritic, sampling_actor
 from torch_kitchen.scripted import scripted_actor_critic
@@ -231,28 +231,39 @@ def take_actions(kitchen: KitchenEnv, tensordict: TensorDictBase, actions: list[
     return step_mdp(kitchen.step(tensordict))
 
 
-def replay(path: str | Path, gif: str | Path | None = None) -> dict:
-    """Replays a record through the JAX env: every step's positions and score must match. Returns a summary;
-    raises ValueError at the first step that differs, and for a game that never ended (no end line: the record
-    was cut, or its server killed). `gif`: also write the game as an animated GIF."""
+def replayed_states(path: str | Path) -> tuple[dict, list[dict], dict | None, list[State]]:
+    """(header, step lines, end line or None, states): a record's game rebuilt through the JAX env, every step's
+    positions and score checked (a ValueError at the first step that differs). `states` holds the state before
+    each step and the last one after it, unbatched, as NumPy arrays."""
     header, steps, end = read_record(path)
-    if end is None:
-        raise ValueError(f"{path}: the game never ended (no end line after {len(steps)} steps): the record is cut")
     kitchen, td = recorded_kitchen(header)
-    frames = [jax.tree_util.tree_map(lambda leaf: leaf[0], kitchen.states)]
-    score = 0
+
+    def current() -> State:
+        return jax.tree_util.tree_map(lambda leaf: np.asarray(leaf)[0], kitchen.states)
+
+    states, score = [current()], 0
     for line in steps:
         td = take_actions(kitchen, td, line["actions"])
         score += int(td["deliveries"][0, 0])
         if agent_cells(kitchen) != line["positions"] or score != line["score"]:
             raise ValueError(f"{path}: step {line['t']} differs: recorded positions {line['positions']} score "
                              f"{line['score']}, replayed {agent_cells(kitchen)} score {score}")
-        frames.append(jax.tree_util.tree_map(lambda leaf: leaf[0], kitchen.states))
+        states.append(current())
+    return header, steps, end, states
+
+
+def replay(path: str | Path, gif: str | Path | None = None) -> dict:
+    """Replays a record through the JAX env (`replayed_states`): every step's positions and score must match.
+    Returns a summary; raises ValueError at the first step that differs, and for a game that never ended (no end
+    line: the record was cut, or its server killed). `gif`: also write the game as an animated GIF."""
+    _, steps, end, states = replayed_states(path)
+    if end is None:
+        raise ValueError(f"{path}: the game never ended (no end line after {len(steps)} steps): the record is cut")
     if gif is not None:
         from jax_env.render import write_gif
 
-        write_gif(frames, str(gif))
-    return {"steps": len(steps), "score": score, "ended": end["reason"] if end else None}
+        write_gif(states, str(gif))
+    return {"steps": len(steps), "score": steps[-1]["score"] if steps else 0, "ended": end["reason"]}
 
 
 def load_dataset(paths) -> dict[str, list]:
