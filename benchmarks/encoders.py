@@ -21,8 +21,8 @@ import numpy as np
 
 from trainers.config import load_config
 from trainers.figures import read_scalar
-from trainers.ippo import train_or_resume
 from trainers.machine import machine_name
+from trainers.train_command import train_or_resume
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "ippo" / "mlp_ik.yaml"

@@ -22,21 +22,13 @@ from jax_ppo import SETTINGS, setting_overrides  # with the test extra
 from torch_kitchen.onednn_linear import device_path
 from torch_kitchen.op_audit import OpAudit
 from torch_kitchen.teams import TeamPolicy, team_rows
+from trainers.advantages import compute_advantages, shaping_weight_at
 from trainers.config import load_config
-from trainers.ippo import (
-    build_team,
-    compute_advantages,
-    make_env,
-    minibatch_step,
-    select_kitchens,
-    shaping_weight_at,
-    stacked_update,
-    start_update,
-    team_configs,
-    with_model_transforms,
-)
 from trainers.machine import machine_name
-from trainers.rollout import make_collector
+from trainers.ppo import start_update
+from trainers.rollout import make_collector, select_kitchens
+from trainers.runtime import minibatch_step, stacked_update
+from trainers.training_run import build_team, make_env, team_configs, with_model_transforms
 
 
 def audit_training(setting: str, teams: int, device: str, steps: int = 8, stack: bool = False

@@ -1,8 +1,8 @@
 """Where a training batch's time goes on a device: collection, advantages and update, each as wall time on the
 host against the device's busy time (the summed time of the kernels it launched), under `torch.profiler`.
 
-Runs `trainers.ippo.train_teams` on a setting of `benchmarks/jax_ppo.py` and labels its three phases from outside
-(the collector's batches, `start_update`, which holds GAE, and `learn_teams`), so the trainer runs as it always
+Runs `trainers.ppo.train_teams` on a setting of `benchmarks/jax_ppo.py` and labels its three phases from outside
+(the collector's batches, `start_update`, which holds GAE, and `UpdateRunner.update`), so the trainer runs as it always
 does. Where busy time is far below wall time, the host (Python, launches, syncs) is what the phase waits on. The
 first update compiles and is left out. On a CPU the device columns are empty.
 
@@ -20,7 +20,9 @@ import torch
 from jax_ppo import SETTINGS, setting_overrides  # with the test extra
 from torch.profiler import ProfilerActivity, profile, record_function
 
-import trainers.ippo
+import trainers.ppo
+import trainers.runtime
+import trainers.training_run
 from trainers.config import load_config
 from trainers.machine import machine_name
 
@@ -59,13 +61,13 @@ class LabelledCollector:
 
 def phase_seconds(setting: str, updates: int, device: str, overrides: list[str]) -> dict[str, list[float]]:
     """Per phase: [wall seconds, device busy seconds], summed over updates 2..`updates` (all teams)."""
-    make_collector = trainers.ippo.make_collector
-    patched = {
-        "make_collector": lambda *args, **kwargs: LabelledCollector(make_collector(*args, **kwargs)),
-        "start_update": labelled(trainers.ippo.start_update, "advantages"),
-        "learn_teams": labelled(trainers.ippo.learn_teams, "update"),
+    make_collector = trainers.ppo.make_collector
+    patched = {  # (where, name): the labelled stand-in
+        (trainers.ppo, "make_collector"): lambda *args, **kwargs: LabelledCollector(make_collector(*args, **kwargs)),
+        (trainers.ppo, "start_update"): labelled(trainers.ppo.start_update, "advantages"),
+        (trainers.runtime.UpdateRunner, "update"): labelled(trainers.runtime.UpdateRunner.update, "update"),
     }
-    originals = {name: getattr(trainers.ippo, name) for name in patched}
+    originals = {target: getattr(*target) for target in patched}
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.startswith("cuda") else [])
     frames = load_config(None, [*setting_overrides(setting), *overrides]).frames_per_batch  # per team
     totals = defaultdict(lambda: [0.0, 0.0])
@@ -74,13 +76,13 @@ def phase_seconds(setting: str, updates: int, device: str, overrides: list[str])
                                     f"device={device}", f"run_dir={run_dir}", "progress=false", "eval_episodes=0",
                                     "checkpoint_every=1000", "threads=1", *overrides])
         try:
-            for name, function in patched.items():
-                setattr(trainers.ippo, name, function)
+            for (where, name), function in patched.items():
+                setattr(where, name, function)
             with profile(activities=activities) as profiler:
-                trainers.ippo.train_teams(trainers.ippo.team_configs(config))
+                trainers.ppo.train_teams(trainers.training_run.team_configs(config))
         finally:
-            for name, function in originals.items():
-                setattr(trainers.ippo, name, function)
+            for (where, name), function in originals.items():
+                setattr(where, name, function)
     first_update = {"collection": 1, "advantages": config.teams, "update": 1}  # its ranges, left out
     seen = defaultdict(int)
     for event in sorted(profiler.events(), key=lambda event: event.time_range.start):

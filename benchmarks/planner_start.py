@@ -28,8 +28,8 @@ import numpy as np
 from trainers.config import EvalConfig, load_config
 from trainers.distill import distill
 from trainers.evaluate import evaluate
-from trainers.ippo import train
 from trainers.machine import machine_name
+from trainers.ppo import train
 
 ROOT = Path(__file__).resolve().parents[1]
 LEARNERS = ("scratch", "planner")

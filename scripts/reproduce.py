@@ -36,8 +36,10 @@ from trainers.config import EvalConfig, load_config
 from trainers.evaluate import HUMAN_PROXY_RUN, SCRIPTED_CONDITION, cross_condition, evaluate
 from trainers.humans import CACHE, fetch
 from trainers.humans import train as train_proxies
-from trainers.ippo import RunStopped, team_configs, train_or_resume
 from trainers.machine import machine_name
+from trainers.resume import RunStopped
+from trainers.train_command import train_or_resume
+from trainers.training_run import team_configs
 
 HELDOUT = "held-out"
 PAPER_STEPS = 2e9  # env steps per team in the paper

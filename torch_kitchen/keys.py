@@ -20,6 +20,7 @@ VALUE = (AGENTS, "state_value")
 # Training (`trainers`)
 ADVANTAGE = (AGENTS, "advantage")
 VALUE_TARGET = (AGENTS, "value_target")
+TRAIN_REWARD = (AGENTS, "train_reward")  # sparse + shaping weight x shaped: the reward optimised
 
 # E3T's partner modelling (`torch_kitchen.partner`, `torch_kitchen.models.PartnerPredictor`)
 CONTEXT_OBSERVATION = (AGENTS, "context_observation")

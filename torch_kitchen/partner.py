@@ -1,6 +1,6 @@
 """The partner side of E3T (Yan et al., 2023): a context of the partner's recent actions, and a mixed partner.
 
-Three pieces, used by `trainers/ippo.py` when `algorithm: e3t`:
+Three pieces, used by the PPO core (`trainers/ppo.py`) when `algorithm: e3t`:
 
 `PartnerContext(k)` (an env transform; every E3T model needs it, in training and evaluation) carries for each
 agent i the last k (observation of agent i, action of agent 1 - i) pairs, oldest first:

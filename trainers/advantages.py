@@ -1,4 +1,4 @@
-"""Generalised advantage estimation without a Python loop over time.
+"""The training reward and its generalised advantage estimates, without a Python loop over time.
 
 GAE is the linear recurrence A_t = delta_t + c_t * A_{t+1} run backwards over the T steps of a batch, with
 delta_t = r_t + gamma * (1 - terminated_t) * V_{t+1} - V_t and c_t = gamma * lambda * (1 - done_t). TorchRL's
@@ -8,12 +8,17 @@ step holds its recurrence unrolled over the next 2^k steps, so ceil(log2 T) roun
 operations (8 rounds for T = 256) give every A_t at once, with no host synchronisation and static shapes (a
 compiled graph or a CUDA graph takes it whole). Episodes that end mid-batch cut the recurrence through c_t = 0.
 The sums run in another order than the sequential loop's, so the results agree with TorchRL's to float32 rounding
-(`tests/trainers/test_advantages.py`).
+(`tests/trainers/test_advantages.py`). `compute_advantages` writes a batch's training reward (the sparse
+reward plus the annealed shaping), advantages and value targets.
 """
 
 from __future__ import annotations
 
 import torch
+from tensordict import TensorDictBase
+
+from torch_kitchen.keys import ADVANTAGE, REWARD, SHAPED_REWARD, TRAIN_REWARD, VALUE, VALUE_TARGET
+from trainers.config import TrainConfig
 
 
 def _shifted(values: torch.Tensor, offset: int, dim: int) -> torch.Tensor:
@@ -56,3 +61,33 @@ def generalized_advantages(
     delta = reward + gamma * (~terminated).to(value.dtype) * next_value - value
     advantage = reverse_linear_scan(delta, gamma * lmbda * (~done).to(value.dtype), time_dim)
     return advantage, advantage + value
+
+
+def shaping_weight_at(config: TrainConfig, env_steps: int) -> float:
+    """The weight of the shaped reward in the training reward after `env_steps`: annealed linearly to 0 over
+    `shaping_anneal_steps` (0: constant)."""
+    if config.shaping_anneal_steps <= 0:
+        return config.shaping_weight
+    return config.shaping_weight * max(0.0, 1.0 - env_steps / config.shaping_anneal_steps)
+
+
+def compute_advantages(batch: TensorDictBase, critic, config: TrainConfig, shaping_weight: float) -> None:
+    """Writes the training reward (`TRAIN_REWARD`: sparse + `shaping_weight` x shaped), GAE advantages and value
+    targets into `batch` ([B, T], agents [B, T, 2]); the env's own rewards stay as they were.
+
+    Values come from the collection pass (the policy runs the critic), so recurrent critics see the hidden
+    state they had while acting; only the step after the batch needs a new critic call. The time limit ends
+    an episode as a terminal state, as in the paper's JaxMARL code: no bootstrap across it.
+    """
+    reward = batch.get(("next", *REWARD)) + shaping_weight * batch.get(("next", *SHAPED_REWARD))
+    batch.set(("next", *TRAIN_REWARD), reward)
+    done = batch.get(("next", "done")).unsqueeze(-2).expand_as(reward)  # [B, T, 1] -> [B, T, 2, 1]
+    value = batch.get(VALUE)
+    with torch.no_grad():
+        after = critic(batch["next"][:, -1].clone()).get(VALUE)
+    next_value = torch.cat([value[:, 1:], after.unsqueeze(1)], dim=1)
+    advantage, target = generalized_advantages(
+        config.gamma, config.gae_lambda, value, next_value, reward, done, done, time_dim=1
+    )
+    batch.set(ADVANTAGE, advantage)
+    batch.set(VALUE_TARGET, target)

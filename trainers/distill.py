@@ -35,9 +35,11 @@ from tqdm import tqdm
 
 from jax_env import NUM_ACTIONS
 from torch_kitchen.cpu_kernels import accelerate_cpu
+from torch_kitchen.keys import VALUE_TARGET
 from torch_kitchen.models import ACTION, LOGITS, OBSERVATION, VALUE, ActorCritic, make_actor_critic
 from torch_kitchen.scripted import ScriptedCook
 from torch_kitchen.symmetry import symmetries_of, transform_action_probs, transform_observation
+from trainers.advantages import compute_advantages, shaping_weight_at
 from trainers.checkpoint import (
     LATEST,
     CheckpointError,
@@ -49,19 +51,11 @@ from trainers.checkpoint import (
     save_checkpoint,
 )
 from trainers.config import ConfigError, TrainConfig, config_help, load_config, save_config
-from trainers.ippo import (
-    VALUE_TARGET,
-    TeamKitchens,
-    compute_advantages,
-    make_env,
-    make_loggers,
-    select_kitchens,
-    shaping_weight_at,
-    start_fresh,
-    with_model_transforms,
-)
+from trainers.loggers import make_loggers
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
-from trainers.rollout import finished_episode_deliveries, make_collector
+from trainers.resume import start_fresh
+from trainers.rollout import finished_episode_deliveries, make_collector, select_kitchens
+from trainers.training_run import TeamKitchens, make_env, with_model_transforms
 
 TEACHER_PROBS = ("agents", "teacher_probs")  # the scripted cook's action distribution in the visited state
 DATA = "dagger"  # the run's folder of every round's labelled batch

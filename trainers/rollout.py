@@ -72,3 +72,10 @@ def play_episodes(env: EnvBase, policy, max_steps: int, max_frames: int = 1 << 1
     finally:
         collector.shutdown()
     return EpisodeOutcomes(deliveries, visits)
+
+
+def select_kitchens(batch: TensorDictBase, kitchens: torch.Tensor) -> TensorDictBase:
+    """batch[kitchens], the rows of those kitchens, gathered by `index_select`: indexing with a tensor gathers the
+    uint8 observations element by element, 9x slower."""
+    return batch.apply(lambda value: value.index_select(0, kitchens),
+                       batch_size=torch.Size([len(kitchens), *batch.batch_size[1:]]))

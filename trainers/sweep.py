@@ -40,8 +40,9 @@ from collections.abc import Sequence
 from contextlib import contextmanager
 
 from trainers.config import ConfigError, TrainConfig, config_help, group_choices, group_values, load_config, unknown_key
-from trainers.ippo import team_configs, train_or_resume
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
+from trainers.train_command import train_or_resume
+from trainers.training_run import team_configs
 
 PRIMARY = "kitchen_sweep"  # the name of the sweep's base config in Hydra's ConfigStore
 REGIME = "regime"  # the config group of the paper's regimes

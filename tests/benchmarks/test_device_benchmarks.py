@@ -13,13 +13,14 @@ TINY_SHAPE = ["num_envs=4", "rollout_steps=8", "hidden=8", "minibatches=2", "epo
 
 
 def test_the_phases_of_every_timed_update_are_labelled_and_leave_the_trainer_as_it_was():
-    originals = {name: getattr(phases.trainers.ippo, name) for name in ("make_collector", "start_update",
-                                                                       "learn_teams")}
+    targets = [(phases.trainers.ppo, "make_collector"), (phases.trainers.ppo, "start_update"),
+               (phases.trainers.runtime.UpdateRunner, "update")]
+    originals = {target: getattr(*target) for target in targets}
     totals = phases.phase_seconds("jaxmarl", updates=3, device="cpu", overrides=TINY_SHAPE)
     assert set(totals) == set(phases.PHASES)
     for phase, (wall, busy) in totals.items():
         assert wall > 0 and busy == 0, phase  # a CPU has no device timeline
-    assert all(getattr(phases.trainers.ippo, name) is function for name, function in originals.items())
+    assert all(getattr(*target) is function for target, function in originals.items())
 
 
 def test_gae_launches_fall_from_one_loop_step_per_time_step_to_a_scan_of_log_steps():

@@ -1,5 +1,5 @@
 """The pure-JAX reference PPO (`benchmarks/jax_ppo.py`) runs, is seeded, and computes what our trainer computes:
-the same GAE as `trainers.ippo.compute_advantages`, and the same losses, gradients and Adam steps as our
+the same GAE as `trainers.advantages.compute_advantages`, and the same losses, gradients and Adam steps as our
 ClipPPOLoss loop on the same weights and minibatch."""
 
 import importlib.util
@@ -14,19 +14,11 @@ import torch
 from tensordict import TensorDict
 from tiny import TINY
 
+from torch_kitchen.keys import ADVANTAGE, LOG_PROB, VALUE, VALUE_TARGET
 from torch_kitchen.models import make_actor_critic
+from trainers.advantages import compute_advantages, shaping_weight_at
 from trainers.config import load_config
-from trainers.ippo import (
-    ADVANTAGE,
-    LOG_PROB,
-    VALUE,
-    VALUE_TARGET,
-    compute_advantages,
-    make_algorithm,
-    make_loss,
-    shaping_weight_at,
-    total_loss,
-)
+from trainers.training_run import make_algorithm, make_loss, total_loss
 
 # benchmarks/ is a folder of scripts, not a package: load the module from its file.
 _spec = importlib.util.spec_from_file_location(

@@ -79,7 +79,7 @@ def test_kitchen_eval_refuses_a_crafted_checkpoint(tmp_path, capsys):
 
 
 def test_kitchen_train_resume_refuses_a_crafted_checkpoint(tmp_path, capsys):
-    from trainers.ippo import main
+    from trainers.train_command import main
 
     marker = tmp_path / "marker"
     run = tmp_path / "run"
@@ -201,7 +201,7 @@ def test_rng_states_cover_cuda(monkeypatch):
 
 
 def test_a_trained_e3t_run_checkpoints_only_tensors_and_plain_values(tmp_path):
-    from trainers.ippo import train
+    from trainers.ppo import train
 
     e3t = [*TINY, f"run_dir={tmp_path}", "algorithm=e3t", "architecture=e3t_mlp", "partner_policy=copy"]
     run = train(load_config(None, [*e3t, "total_steps=64"]))

@@ -363,7 +363,7 @@ def cli_cases(tmp_path: Path) -> list[tuple[list[str], str]]:
 
 
 def test_every_bad_value_gets_one_line_and_exit_2_before_any_work(tmp_path, capsys):
-    from trainers.ippo import main
+    from trainers.train_command import main
 
     runs = tmp_path / "runs"
     for arguments, start in cli_cases(tmp_path):
@@ -377,7 +377,7 @@ def test_every_bad_value_gets_one_line_and_exit_2_before_any_work(tmp_path, caps
 
 @pytest.mark.parametrize("text, start", [("base: 5\n", "base"), ("5: 3\n", "5")])
 def test_bad_yaml_files_get_one_line_and_exit_2(tmp_path, capsys, text, start):
-    from trainers.ippo import main
+    from trainers.train_command import main
 
     path = tmp_path / "bad.yaml"
     path.write_text(text)
@@ -387,7 +387,7 @@ def test_bad_yaml_files_get_one_line_and_exit_2(tmp_path, capsys, text, start):
 
 
 def test_an_unsolvable_level_trains_with_allow_unsolvable_and_a_warning(tmp_path, capsys):
-    from trainers.ippo import main
+    from trainers.train_command import main
 
     walled = tmp_path / "walled_pot.txt"
     walled.write_text(WALLED_POT)

@@ -5,15 +5,17 @@ import pytest
 import torch
 import torch._dynamo
 from tensordict.nn import set_interaction_type
-from test_ippo import team_and_minibatch, tiny_config
+from test_ppo import team_and_minibatch, tiny_config
 from torch._dynamo.utils import counters
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import set_recurrent_mode
 
 from torch_kitchen.onednn_linear import device_path
 from torch_kitchen.op_audit import OpAudit
-from trainers.ippo import build_team, make_env, minibatch_step, train
+from trainers.ppo import train
 from trainers.rollout import make_collector
+from trainers.runtime import minibatch_step
+from trainers.training_run import build_team, make_env
 
 
 def test_the_loss_forward_and_the_acting_pass_compile_without_a_graph_break(tmp_path):
@@ -94,7 +96,7 @@ def test_a_collection_step_and_a_minibatch_make_the_host_wait_for_nothing(tmp_pa
 def test_the_teams_stacked_step_compiles_to_the_eager_one_and_launches_fewer_kernels_than_two_teams(tmp_path):
     """Three teams' minibatch step as one (`stacked_update`, the GPU's way), eager and compiled, moves every team's
     weights as the other does; eager, it launches fewer kernels than two teams' steps one after another."""
-    from trainers.ippo import stacked_update
+    from trainers.runtime import stacked_update
 
     def teams_and_minibatches(name, *overrides):
         return zip(*[team_and_minibatch(tiny_config(tmp_path / name / str(seed), f"seed={seed}", *overrides),

@@ -3,14 +3,14 @@
 import pytest
 import torch
 from tensordict import TensorDict
-from test_ippo import MAIN_CONFIG, read_metrics, tiny_config
+from test_ppo import MAIN_CONFIG, read_metrics, tiny_config
 from tiny import TINY
 
 from torch_kitchen.scripted import ScriptedCook
 from trainers.checkpoint import load_checkpoint
 from trainers.distill import DATA, TEACHER_PROBS, distill, main
-from trainers.ippo import main as train_main
-from trainers.ippo import train
+from trainers.ppo import train
+from trainers.train_command import main as train_main
 
 ROUNDS = ["distill_rounds=3", "distill_epochs=1"]
 

@@ -7,8 +7,8 @@ import pytest
 from tiny import TINY
 
 from trainers.evaluate import main as eval_main
-from trainers.ippo import main as train_main
 from trainers.plugins import PLUGINS_VARIABLE, import_plugins
+from trainers.train_command import main as train_main
 
 ROOT = Path(__file__).resolve().parents[2]
 PLUGIN = '''

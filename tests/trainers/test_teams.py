@@ -6,14 +6,17 @@ import time
 
 import pytest
 import torch
-from test_ippo import MAIN_CONFIG, read_metrics, tiny_config
+from test_ppo import MAIN_CONFIG, read_metrics, tiny_config
 from tiny import TINY
 
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.teams import RandomStream
 from trainers.checkpoint import load_checkpoint
 from trainers.config import ConfigError
-from trainers.ippo import ShardPool, learning_pool, main, team_configs, train, train_teams
+from trainers.ppo import train, train_teams
+from trainers.runtime import ShardPool, learning_pool
+from trainers.train_command import main
+from trainers.training_run import team_configs
 
 
 def assert_same_run(team_run, single_run):
@@ -115,7 +118,7 @@ def test_a_random_stream_is_its_own_and_leaves_the_global_one_alone():
 
 
 def test_teams_learn_at_once_on_as_many_threads_as_the_cores_allow(tmp_path, monkeypatch):
-    monkeypatch.setattr("trainers.ippo.usable_cores", lambda: 4)
+    monkeypatch.setattr("trainers.runtime.usable_cores", lambda: 4)
 
     def workers(*overrides, teams=6):
         pool = learning_pool(tiny_config(tmp_path, *overrides), teams)
@@ -128,7 +131,7 @@ def test_teams_learn_at_once_on_as_many_threads_as_the_cores_allow(tmp_path, mon
 
 
 def test_a_team_alone_runs_its_shards_on_a_shard_pool(tmp_path, monkeypatch):
-    monkeypatch.setattr("trainers.ippo.usable_cores", lambda: 4)
+    monkeypatch.setattr("trainers.runtime.usable_cores", lambda: 4)
     pool = learning_pool(tiny_config(tmp_path, "minibatch_shards=2"), 1)
     assert isinstance(pool, ShardPool) and pool._max_workers == 2
     assert learning_pool(tiny_config(tmp_path), 1) is None  # one shard: nothing to run at once
@@ -167,7 +170,7 @@ def test_stacked_teams_act_as_the_teams_one_after_another_at_one_teams_launches(
     from torch_kitchen.onednn_linear import device_path
     from torch_kitchen.op_audit import OpAudit
     from torch_kitchen.teams import TeamPolicy
-    from trainers.ippo import build_team, make_env
+    from trainers.training_run import build_team, make_env
 
     config = tiny_config(tmp_path, f"architecture={architecture}", "levels=infinite", "teams=3")
     configs = team_configs(config)
@@ -212,13 +215,13 @@ def test_teams_trained_the_gpus_way_learn_what_they_learn_one_after_another(tmp_
     stream, and learn as one vmapped loss with each team's own clipping and Adam step. The kitchens end where they
     do one team after another (the same actions at every step), every team logs its own losses, and the weights
     agree to float rounding, which Adam's first steps amplify where a gradient is near zero (up to 2e-4 here)."""
-    import trainers.ippo
+    import trainers.runtime
 
     overrides = ["levels=infinite", "teams=2", "shaping_weight=1"]
     apart = tiny_config(tmp_path / "apart", *overrides)
     train_teams(team_configs(apart))
-    monkeypatch.setattr(trainers.ippo, "acts_stacked", lambda config, policies: True)
-    monkeypatch.setattr(trainers.ippo, "learns_stacked", lambda config, teams: True)
+    monkeypatch.setattr(trainers.runtime, "acts_stacked", lambda config, policies: True)
+    monkeypatch.setattr(trainers.runtime, "learns_stacked", lambda config, teams: True)
     stacked = tiny_config(tmp_path / "stacked", *overrides)
     train_teams(team_configs(stacked))
     for seed in (0, 1):
@@ -238,11 +241,11 @@ def test_teams_trained_the_gpus_way_learn_what_they_learn_one_after_another(tmp_
 def test_a_stacked_loss_gives_each_team_its_own_losses_and_gradients(tmp_path, architecture):
     """One vmapped computation over three teams' stacked parameters: each team's loss terms and metrics, and the
     gradient of the teams' summed losses on each team's weights, are those of its own loss on its own minibatch."""
-    from test_ippo import team_and_minibatch
+    from test_ppo import team_and_minibatch
     from torchrl.modules import set_recurrent_mode
 
     from torch_kitchen.teams import StackedLoss
-    from trainers.ippo import total_loss
+    from trainers.training_run import total_loss
 
     teams, minibatches = zip(*[team_and_minibatch(tiny_config(tmp_path / str(seed), f"seed={seed}",
                                                               f"architecture={architecture}"), tmp_path / str(seed))
@@ -274,7 +277,8 @@ def test_a_stacked_loss_gives_each_team_its_own_losses_and_gradients(tmp_path, a
     (["minibatch_shards=2"], False),
 ])
 def test_teams_learn_as_one_where_the_gpu_model_and_algorithm_allow(tmp_path, overrides, stacks):
-    from trainers.ippo import build_team, learns_stacked, make_env
+    from trainers.runtime import learns_stacked
+    from trainers.training_run import build_team, make_env
 
     configs = team_configs(tiny_config(tmp_path, "teams=2", *overrides))
     kitchen = make_env(configs[0], num_envs=2 * configs[0].num_envs, seed=[c.seed for c in configs])
@@ -286,7 +290,7 @@ def test_teams_learn_as_one_where_the_gpu_model_and_algorithm_allow(tmp_path, ov
 
 def _stacked_team_policy(tmp_path, architecture, compile_mode=None):
     from torch_kitchen.teams import TeamPolicy
-    from trainers.ippo import build_team, make_env
+    from trainers.training_run import build_team, make_env
 
     config = tiny_config(tmp_path, f"architecture={architecture}", "levels=infinite", "teams=2")
     configs = team_configs(config)
@@ -343,7 +347,7 @@ def test_a_collector_keeps_every_step_of_stacked_networks_whose_outputs_share_on
 
 
 def test_clipping_per_team_on_stacked_gradients_is_clip_grad_norm_of_each_team():
-    from trainers.ippo import clip_per_team
+    from trainers.runtime import clip_per_team
 
     torch.manual_seed(0)
     stacked = [torch.randn(3, 4, 5), torch.randn(3, 5) * 0.01, torch.randn(3, 2)]

@@ -1,4 +1,4 @@
-"""What an algorithm is to the PPO core of `trainers.ippo`: an object with named hooks, each a no-op by default.
+"""What an algorithm is to the PPO core of `trainers.ppo`: an object with named hooks, each a no-op by default.
 
 The core collects batches, computes GAE, runs the minibatch epochs of TorchRL's `ClipPPOLoss`, logs and
 checkpoints; it knows no algorithm by name. An algorithm changes the loop only through these hooks, called in

@@ -18,28 +18,24 @@ from tiny import TINY
 from torchrl.envs.utils import set_exploration_type
 from torchrl.modules import set_recurrent_mode
 
-import trainers.ippo
+import trainers.ppo
+import trainers.rollout
+import trainers.training_run
 from jax_env import EXPANDED_LAYOUTS
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
+from trainers.advantages import compute_advantages
 from trainers.algorithms import ALGORITHMS, IPPO, register_algorithm
 from trainers.algorithms.e3t import EGO, normalize_ego_advantage
 from trainers.checkpoint import load_checkpoint
 from trainers.config import TrainConfig, load_config
 from trainers.evaluate import load_team
 from trainers.figures import read_scalar
-from trainers.ippo import (
-    build_team,
-    compute_advantages,
-    main,
-    make_algorithm,
-    make_env,
-    make_loss,
-    minibatch_step,
-    train,
-    with_model_transforms,
-)
+from trainers.ppo import train
 from trainers.rollout import make_collector
+from trainers.runtime import minibatch_step
+from trainers.train_command import main
+from trainers.training_run import build_team, make_algorithm, make_env, make_loss, with_model_transforms
 
 MAIN_CONFIG = str(Path(__file__).resolve().parents[2] / "configs" / "main.yaml")
 TIMING = {"steps_per_second", "collect_seconds", "update_seconds"}
@@ -285,8 +281,8 @@ def test_e3t_through_the_entry_point_teaches_the_predictor_keeps_a_slow_copy_and
 # ------------------------------------------------------------------------------------- stops that tell the truth
 def test_sigterm_stops_the_entry_point_with_143_after_a_checkpoint_and_no_evaluation(tmp_path):
     """The real command in a process of its own, stopped as a scheduler or `kill` would stop it."""
-    argv = [sys.executable, "-m", "trainers.ippo", MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "total_steps=1e6",
-            "checkpoint_every=1", "eval_episodes=2"]
+    argv = [sys.executable, "-m", "trainers.train_command", MAIN_CONFIG, *TINY, f"run_dir={tmp_path}",
+            "total_steps=1e6", "checkpoint_every=1", "eval_episodes=2"]
     process = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[2])
     run = tmp_path / "main" / "seed0"
     deadline = time.monotonic() + 120
@@ -302,7 +298,7 @@ def test_sigterm_stops_the_entry_point_with_143_after_a_checkpoint_and_no_evalua
 
 def signal_at_update(monkeypatch, update, signum):
     """Makes the trainer receive `signum` while it computes the advantages of `update`."""
-    real, calls = trainers.ippo.compute_advantages, []
+    real, calls = trainers.ppo.compute_advantages, []
 
     def compute_advantages(*args, **kwargs):
         calls.append(None)
@@ -310,7 +306,7 @@ def signal_at_update(monkeypatch, update, signum):
             signal.raise_signal(signum)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(trainers.ippo, "compute_advantages", compute_advantages)
+    monkeypatch.setattr(trainers.ppo, "compute_advantages", compute_advantages)
 
 
 def test_ctrl_c_exits_130_after_checkpointing_the_update_and_evaluates_only_when_asked(tmp_path, monkeypatch, capsys):
@@ -349,7 +345,7 @@ def test_a_run_killed_before_its_first_checkpoint_starts_clean_when_run_again(tm
 
 
 def test_a_nan_loss_stops_the_run_with_a_clear_error_and_the_last_good_weights(tmp_path, monkeypatch, capsys):
-    real, calls = trainers.ippo.compute_advantages, []
+    real, calls = trainers.ppo.compute_advantages, []
 
     def nan_advantages_at_update_2(batch, *args, **kwargs):
         real(batch, *args, **kwargs)
@@ -358,14 +354,14 @@ def test_a_nan_loss_stops_the_run_with_a_clear_error_and_the_last_good_weights(t
             batch.set(("agents", "advantage"), torch.full_like(batch.get(("agents", "advantage")), float("nan")))
 
     saved = []  # every checkpoint's weights and optimizer state, as written
-    real_save = trainers.ippo.save_checkpoint
+    real_save = trainers.training_run.save_checkpoint
 
     def keeping_a_copy(path, state):
         saved.append(copy.deepcopy({key: state[key] for key in ("actor", "critic", "optimizer")}))
         real_save(path, state)
 
-    monkeypatch.setattr(trainers.ippo, "compute_advantages", nan_advantages_at_update_2)
-    monkeypatch.setattr(trainers.ippo, "save_checkpoint", keeping_a_copy)
+    monkeypatch.setattr(trainers.ppo, "compute_advantages", nan_advantages_at_update_2)
+    monkeypatch.setattr(trainers.training_run, "save_checkpoint", keeping_a_copy)
     argv = [MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "total_steps=256", "checkpoint_every=1"]
     assert main(argv) == 1
     err = capsys.readouterr().err
@@ -458,7 +454,7 @@ def test_minibatches_are_the_rows_of_their_kitchens():
         "done": torch.rand(6, 4, 1) < 0.5,
     }, batch_size=[6, 4])
     kitchens = torch.tensor([4, 0, 5])
-    minibatch = trainers.ippo.select_kitchens(batch, kitchens)
+    minibatch = trainers.rollout.select_kitchens(batch, kitchens)
     assert minibatch.batch_size == (3, 4)
     assert (minibatch == batch[kitchens]).all()
 
@@ -485,7 +481,7 @@ def test_a_minibatch_step_moves_the_weights_as_backward_clipping_and_plain_adam_
     assert [p.shape for p in parameters] == [p.shape for p in team.parameters]
     optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps, foreach=False)
     with set_recurrent_mode(True):
-        trainers.ippo.total_loss(reference(minibatch)).backward()
+        trainers.training_run.total_loss(reference(minibatch)).backward()
         minibatch_step(team, minibatch, pool=None)
     torch.nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
     optimizer.step()

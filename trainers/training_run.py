@@ -1,0 +1,262 @@
+"""A seed's run as it trains (`TrainingRun`): its kitchens, networks, algorithm, TorchRL loss and optimizer,
+built in the team's own random stream, and what it does with a minibatch's losses: their gradients, the clipped
+Adam step, and the restore point an update that diverged goes back to. The PPO loop (`trainers.ppo`) drives
+the runs; `trainers.runtime` decides how several of them share the machine."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictSequential
+from torchrl.envs import Transform
+from torchrl.objectives import ClipPPOLoss
+from torchrl.record.loggers import Logger
+
+from torch_kitchen.cpu_kernels import accelerate_cpu
+from torch_kitchen.env import KitchenEnv, with_transforms
+from torch_kitchen.keys import ACTION, ADVANTAGE, LOG_PROB, VALUE, VALUE_TARGET
+from torch_kitchen.models import ActorCritic, make_actor_critic
+from torch_kitchen.teams import RandomStream, TeamTransform
+from torch_kitchen.torchrl_internals import entropy_without_host_check, hold_value_clip_on_host
+from trainers.algorithms import ALGORITHMS, Algorithm
+from trainers.checkpoint import LATEST, capture_rng_states, model_identity, save_checkpoint
+from trainers.config import ConfigError, TrainConfig
+
+
+def make_env(config: TrainConfig, num_envs: int | None = None, levels=None,
+             seed: int | Sequence[int] | None = None) -> KitchenEnv:
+    """The `KitchenEnv` of a config (evaluation passes its own batch, levels and seed; several teams their seeds)."""
+    return KitchenEnv(
+        num_envs=num_envs or config.num_envs,
+        levels=config.levels if levels is None else levels,
+        max_steps=config.max_steps,
+        device=config.device,
+        seed=config.seed if seed is None else seed,
+    )
+
+
+def with_model_transforms(env: KitchenEnv, actor_critic: ActorCritic, *extra: Transform):
+    """`env` plus the transforms the model needs (episode-start flags and recurrent state for LSTMs, the partner
+    context for E3T models), then `extra` ones (an algorithm's)."""
+    return with_transforms(env, [*actor_critic.env_transforms(), *extra])
+
+
+def make_algorithm(config: TrainConfig, actor_critic: ActorCritic) -> Algorithm:
+    """The registered algorithm `config.algorithm`, checked against the model."""
+    algorithm = ALGORITHMS[config.algorithm](config, actor_critic)
+    algorithm.check()
+    return algorithm
+
+
+def make_loss(config: TrainConfig, actor_critic: ActorCritic, algorithm: Algorithm) -> ClipPPOLoss:
+    """TorchRL's clipped PPO loss on the ("agents", ...) keys with the protocol's coefficients, as the algorithm
+    configures it. The algorithm's `process_minibatch` standardises the advantages (by default pooled over the
+    whole minibatch) before the minibatch is split into shards, so the loss leaves them as they are."""
+    loss = ClipPPOLoss(
+        algorithm.loss_actor(),
+        actor_critic.critic,
+        clip_epsilon=config.clip_epsilon,
+        entropy_coeff=config.entropy_coef,
+        critic_coeff=config.value_coef,
+        loss_critic_type="l2",
+        normalize_advantage=False,
+        clip_value=True,
+        functional=False,  # PPO keeps no target networks: the modules run as they are
+    )
+    loss.set_keys(action=ACTION, sample_log_prob=LOG_PROB, value=VALUE, advantage=ADVANTAGE, value_target=VALUE_TARGET)
+    hold_value_clip_on_host(loss)
+    entropy_without_host_check(loss)
+    algorithm.configure_loss(loss)
+    return loss
+
+
+def total_loss(losses: dict[str, torch.Tensor]) -> torch.Tensor:
+    """The sum of the "loss_*" terms (TorchRL's convention: each already weighted by its coefficient)."""
+    return sum(value for key, value in losses.items() if key.startswith("loss_"))
+
+
+
+class TeamKitchens:
+    """A team's rows of the shared `KitchenEnv`, checkpointed as `env.state_dict()` of a run of its own."""
+
+    def __init__(self, env: KitchenEnv, team: int):
+        self.env, self.team = env, team
+
+    def state_dict(self) -> dict:
+        return {"_extra_state": self.env.team_state(self.team)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.env.load_team_state(self.team, state["_extra_state"])
+
+
+@dataclasses.dataclass
+class TrainingRun:
+    """One seed's run as it trains: its config and run directory, the team's networks, algorithm, loss and
+    optimizer, random stream, counters and loggers. A process trains one, or several in one batch of kitchens
+    (`train_teams`); a finished run's team is loaded for play as a `trainers.evaluate.Team`."""
+
+    config: TrainConfig
+    run: Path
+    stream: RandomStream
+    actor_critic: ActorCritic
+    algorithm: Algorithm
+    policy: TensorDictSequential  # acts while collecting: the actor, the algorithm's modules, the critic
+    loss_module: ClipPPOLoss
+    optimizer: torch.optim.Optimizer
+    parameters: list[torch.nn.Parameter]
+    identity: dict
+    parts: dict  # what its checkpoint holds, by name: anything with state_dict() / load_state_dict()
+    update: int = 0
+    env_steps: int = 0
+    loggers: list[Logger] = dataclasses.field(default_factory=list)
+    compiled_step: Callable | None = None  # its minibatch step compiled (`trainers.runtime`, `compile_update`)
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.run / "checkpoints" / LATEST
+
+    def set_learning_rate(self, lr: float) -> None:
+        """The optimizer's learning rate for the next update: with `compile_update` a tensor the compiled step
+        reads (also after resuming a run saved without it), so that annealing changes a value, not the graph."""
+        for group in self.optimizer.param_groups:
+            if self.config.compile_update:
+                if not isinstance(group["lr"], torch.Tensor):
+                    group["lr"] = torch.tensor(lr, device=self.config.device)
+                group["lr"].fill_(lr)
+            else:
+                group["lr"] = lr
+
+    def checkpoint(self) -> None:
+        with self.stream.active():
+            rng = capture_rng_states()
+        save_checkpoint(self.checkpoint_path, {
+            "config": self.config.to_dict(),
+            "model": self.identity,
+            **{name: part.state_dict() for name, part in self.parts.items()},
+            "algorithm": self.algorithm.state_dict(),
+            "update": self.update,
+            "env_steps": self.env_steps,
+            "rng": rng,
+        })  # fmt: skip
+
+
+def team_configs(config: TrainConfig) -> list[TrainConfig]:
+    """The configs of the `config.teams` teams of a config: seeds seed .. seed + teams - 1, each a run of its own."""
+    return [dataclasses.replace(config, seed=config.seed + team, teams=1) for team in range(config.teams)]
+
+
+def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
+               actor_critic: ActorCritic | None = None) -> TrainingRun:
+    """Team `index` of the batch: networks (from `config.architecture` unless given), algorithm, loss and
+    optimizer, all built in the team's own random stream, seeded with its seed."""
+    stream = RandomStream(config.seed, config.device)
+    obs_shape = kitchen.kitchen.obs_shape
+    with stream.active():
+        if actor_critic is None:
+            actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
+            if torch.device(config.device).type == "cpu":
+                accelerate_cpu(actor_critic.actor, actor_critic.critic)
+        actor, critic = actor_critic.actor.to(config.device), actor_critic.critic.to(config.device)
+        algorithm = make_algorithm(config, actor_critic)
+        # The critic runs while acting: its values feed GAE.
+        policy = actor_critic.acting_policy(*algorithm.acting_modules())
+        loss_module = make_loss(config, actor_critic, algorithm)
+        parameters = [*loss_module.parameters(), *algorithm.parameters()]
+        if config.compile_update:
+            # The learning rate a tensor, so that annealing it changes a value rather than the compiled graph; on a
+            # GPU, Adam keeps its step counts on the device, as a CUDA graph needs.
+            optimizer = torch.optim.Adam(parameters, lr=torch.tensor(config.lr, device=config.device),
+                                         eps=config.adam_eps, capturable=torch.device(config.device).type == "cuda")
+        else:
+            # Fused: one kernel for all parameters instead of a few per tensor (3x faster on a CPU at hidden 256).
+            optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps, fused=True)
+    team = TrainingRun(
+        config=config, run=run, stream=stream, actor_critic=actor_critic, algorithm=algorithm, policy=policy,
+        loss_module=loss_module, optimizer=optimizer, parameters=parameters,
+        identity=model_identity(config.architecture, obs_shape, config.hidden, config.share_params),
+        parts={"actor": actor, "critic": critic, "optimizer": optimizer, "env": TeamKitchens(kitchen, index)},
+    )  # fmt: skip
+    return team
+
+
+def algorithm_transforms(teams: list[TrainingRun]) -> list[Transform]:
+    """The env transforms of the teams' algorithms: each team's own, on its rows, where there are several."""
+    if len(teams) == 1:
+        return teams[0].algorithm.env_transforms()
+    per_team = [team.algorithm.env_transforms() for team in teams]
+    return [TeamTransform(transforms, teams[0].config.num_envs) for transforms in zip(*per_team)]
+
+
+def shard_gradients(team: TrainingRun, shard: TensorDictBase) -> tuple[dict[str, torch.Tensor], list]:
+    """The losses of one shard of a minibatch and the gradient of their total for each of the team's parameters
+    (None where a parameter does not take part)."""
+    losses = {**team.loss_module(shard), **team.algorithm.auxiliary_losses(shard)}
+    gradients = torch.autograd.grad(total_loss(losses), team.parameters, allow_unused=True)
+    return losses, list(gradients)
+
+
+def mean_over_shards(values: list[torch.Tensor]) -> torch.Tensor:
+    return values[0] if len(values) == 1 else torch.stack(values).mean(0)
+
+
+def gradient_for(parameter: torch.nn.Parameter, gradients: list[torch.Tensor | None]) -> torch.Tensor | None:
+    """The mean of the shards' gradients of `parameter`, laid out in memory as the parameter is: fused Adam reads
+    a parameter and its gradient element by element in memory order (backward() would lay it out so too)."""
+    if gradients[0] is None:
+        return None
+    gradient = mean_over_shards(gradients)
+    return gradient if gradient.stride() == parameter.stride() else torch.empty_like(parameter).copy_(gradient)
+
+
+def apply_gradients(team: TrainingRun) -> torch.Tensor:
+    """The Adam step on the gradients held by the team's parameters, clipped to `max_grad_norm`; returns their norm
+    before clipping. A non-finite gradient is zeroed first: a diverged minibatch must leave the weights finite until
+    the update's end undoes it (`learn`), since NaN weights would make the next minibatch's sampling fail (or assert
+    on a GPU) before the check could say why."""
+    for parameter in team.parameters:
+        if parameter.grad is not None:
+            parameter.grad.nan_to_num_(0.0, 0.0, 0.0)
+    grad_norm = torch.nn.utils.clip_grad_norm_(team.parameters, team.config.max_grad_norm)
+    team.optimizer.step()
+    return grad_norm
+
+
+class RestorePoint:
+    """A team's weights and optimizer state as they were, copied on their device: an update whose loss diverged
+    is undone from it, so that the update's minibatches need not stop to ask whether each loss was finite."""
+
+    def __init__(self, team: TrainingRun):
+        self.team = team
+        self.weights = [parameter.detach().clone() for parameter in team.parameters]
+        self.optimizer = copy.deepcopy(team.optimizer.state_dict())
+
+    def restore(self) -> None:
+        with torch.no_grad():
+            torch._foreach_copy_([parameter.data for parameter in self.team.parameters], self.weights)
+        self.team.optimizer.load_state_dict(self.optimizer)
+
+
+def check_teams(configs: Sequence[TrainConfig]) -> None:
+    """Teams trained in one batch share every setting but the seed; each is checked as a run of its own."""
+    for config in configs:
+        config.check()
+        config.check_run_location()
+        if config.teams != 1:
+            raise ConfigError(f"teams={config.teams}: a team's own config has teams=1 (see `team_configs`)")
+    for config in configs[1:]:
+        differ = [field.name for field in dataclasses.fields(TrainConfig)
+                  if field.name != "seed" and getattr(config, field.name) != getattr(configs[0], field.name)]
+        if differ:
+            raise ConfigError(
+                f"teams trained together share every setting but the seed; seed {config.seed} differs from seed "
+                f"{configs[0].seed} in {', '.join(differ)}"
+            )
+    seeds = [config.seed for config in configs]
+    if len(set(seeds)) < len(seeds):
+        raise ConfigError(f"teams trained together need different seeds, got {seeds}")
+
