@@ -14,7 +14,8 @@ the layouts that fit a 7x7 kitchen are also written drawn inside one (`<layout>_
 `import` turns `kitchen-play` records into the same dataset (each replayed and checked; only the person's seat
 is a human label), so that `train --data` fits proxies of a study's own participants.
 
-`train` fits a proxy per layout on one split (`trainers.behaviour_cloning`), saves it as a trained team that
+`train` fits a proxy per layout on one split (`trainers.behaviour_cloning`; `--candidates` fits, the one kept
+whose two copies deliver closest to that split's humans), saves it as a trained team that
 `kitchen-eval` and `kitchen-play` seat, and writes a table of the proxies measured on the other split: accuracy
 against always-STAY, accuracy on the humans' moves and interactions against their most frequent one, and the soups
 two proxies deliver together in games of the humans' length against the humans' own. As in Carroll et al. (2019),
@@ -48,8 +49,8 @@ from jax_env.layouts import PADDED_LAYOUTS, PADDED_SIZE
 from trainers.behaviour_cloning import (
     ProxySettings,
     accuracy,
+    choose_proxy,
     deliveries_together,
-    fit_proxy,
     human_batch,
     save_proxy,
 )
@@ -160,29 +161,37 @@ def train(data: Path, runs: Path, layouts: Sequence[str], settings: ProxySetting
         measure_on = "test" if fit_on == "train" else "train"
         train_games, test_games = load_dataset(data, fit_on, layout), load_dataset(data, measure_on, layout)
         train_batch, test_batch = human_batch(train_games), human_batch(test_games)
-        proxy, _ = fit_proxy(train_batch, settings)
+        fitted_humans = float(np.mean([game.deliveries for game in train_games]))
+        fitted_steps = game_steps or int(round(np.mean([len(game) for game in train_games])))
+        chosen = choose_proxy(train_batch, layout, settings, fitted_steps, fitted_humans, episodes)
+        proxy = chosen.actor_critic
         run = runs / RUN_NAMES[fit_on].format(layout=layout) / f"seed{settings.seed}"
-        save_proxy(proxy, settings, layout, run)
+        save_proxy(proxy, dataclasses.replace(settings, seed=chosen.seed), layout, run)
         scores = accuracy(proxy, test_batch, train_batch)
         steps = game_steps or int(round(np.mean([len(game) for game in test_games])))
         together = deliveries_together(proxy, layout, steps, episodes, settings.seed)
         humans = float(np.mean([game.deliveries for game in test_games]))
         ratios += [together / humans] if humans else []
+        candidates = " ".join(f"{chosen.soups[seed]:.1f}" for seed in sorted(chosen.soups))
         rows.append(f"| {layout} | {len(train_batch):,} / {len(test_batch):,} | {scores['accuracy']:.3f} | "
                     f"{scores['always_stay']:.3f} | {scores['moving_accuracy']:.3f} | "
                     f"{scores['moving_majority']:.3f} | {steps} | {together:.2f} | {humans:.2f} | "
-                    + (f"{together / humans:.2f} |" if humans else "- |"))
+                    + (f"{together / humans:.2f} |" if humans else "- |")
+                    + f" {chosen.seed} | {candidates} / {fitted_humans:.2f} |")
         print(rows[-1], flush=True)
     table = "\n".join([
         f"Proxies fitted on the {fit_on} split, measured on the {measure_on} split: {settings.architecture} hidden "
-        f"{settings.hidden}, {settings.epochs} epochs, lr {settings.lr:g}, STAY weight {settings.stay_weight:g}, "
-        f"seed {settings.seed}; two proxies together: {episodes} games per layout (actions sampled), "
+        f"{settings.hidden}, {settings.epochs} epochs, lr {settings.lr:g}, STAY weight {settings.stay_weight:g}; "
+        f"per layout {settings.candidates} fits (seeds {settings.seed} to {settings.seed + settings.candidates - 1}), "
+        f"the one kept whose two copies deliver closest to the {fit_on} split's humans ({episodes} games of their "
+        f"length; \"candidates\": each fit's soups / the humans'); two proxies together: {episodes} other games per "
+        "layout (actions sampled), "
         + (f"{game_steps} steps each." if game_steps else f"as long as the humans' {measure_on} games."),
         "",
         f"| layout | steps {fit_on} / {measure_on} | accuracy | always STAY | accuracy on moves | their majority "
         "| game steps "
-        "| BC+BC soups | humans' soups | ratio |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        f"| BC+BC soups | humans' soups | ratio | seed kept | candidates on the {fit_on} split |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
         *rows,
         "",
         f"Two proxies together deliver {np.mean(ratios) if ratios else float('nan'):.2f} of what the humans did, "

@@ -175,7 +175,7 @@ def test_human_proxies_are_fitted_measured_and_saved_as_teams_that_play(trials, 
     report = tmp_path / "proxies.md"
     assert main(["train", "--data", str(tmp_path / "humans"), "--runs", str(tmp_path / "runs"), "--layouts",
                  "forced_coord", "forced_coord_in_7x7", "--hidden", "32", "--epochs", "40", "--minibatch", "8",
-                 "--episodes", "2", "--game-steps", "30", "--report", str(report)]) == 0
+                 "--episodes", "2", "--game-steps", "30", "--candidates", "2", "--report", str(report)]) == 0
     rows = [line.split("|")[1:-1] for line in report.read_text().splitlines() if line.startswith("| forced")]
     assert [row[0].strip() for row in rows] == ["forced_coord", "forced_coord_in_7x7"]
     games = load_dataset(tmp_path / "humans", "test", "forced_coord")
@@ -185,9 +185,14 @@ def test_human_proxies_are_fitted_measured_and_saved_as_teams_that_play(trials, 
         assert always_stay == pytest.approx(stays, abs=1e-3)
         assert moving > majority  # the cooks' moves are a function of what they see: the proxy learned some
         assert float(row[7]) >= 0 and float(row[8]) == pytest.approx(np.mean([g.deliveries for g in games]))
+        kept, (candidates, humans) = int(row[10]), row[11].split(" / ")
+        assert kept in (0, 1) and len(candidates.split()) == 2  # the kept fit of two, each fit's soups shown
+        assert float(humans) == pytest.approx(np.mean([g.deliveries for g in load_dataset(tmp_path / "humans",
+                                                                                           "train", "forced_coord")]))
     # Saved as trained teams: evaluation and kitchen-play load them like any run.
     team = load_team(tmp_path / "runs" / "bc_forced_coord_in_7x7" / "seed0")  # fitted on the train split
     assert team.obs_shape == (7, 7, 26) and team.config.levels == "forced_coord_in_7x7"
+    assert team.config.seed == int(rows[1][10])  # the fit kept, in the run of the base seed
     game = Game(load_layout("forced_coord_in_7x7"), Partner(team.name, team.actor_critic, team.obs_shape), 0,
                 tmp_path / "game.jsonl", max_steps=5)
     while not game.over:
@@ -199,7 +204,9 @@ def test_human_proxies_are_fitted_measured_and_saved_as_teams_that_play(trials, 
                  "--fit-on", "test"]) == 0
     assert "fitted on the test split, measured on the train split" in capsys.readouterr().out
     assert load_team(tmp_path / "runs" / "human_proxy_forced_coord" / "seed0").config.levels == "forced_coord"
-    # A layout without games is one line.
+    # Settings no fit can use, and a layout without games, are one line.
+    assert main(["train", "--data", str(tmp_path / "humans"), "--layouts", "forced_coord", "--candidates", "0"]) == 1
+    assert "candidates must be at least 1, got 0" in capsys.readouterr().err
     assert main(["train", "--data", str(tmp_path / "humans"), "--layouts", "coord_ring"]) == 1
     assert "run `kitchen-humans fetch` first" in capsys.readouterr().err
 
@@ -230,3 +237,18 @@ def test_a_studys_own_kitchen_play_games_become_the_same_dataset_with_only_the_p
                                 *rest]))
     assert main(["import", str(other), "--out", str(tmp_path / "x")]) == 1
     assert "not a registered layout" in capsys.readouterr().err
+
+
+def test_the_proxy_kept_is_the_candidate_that_delivers_closest_to_the_humans(monkeypatch):
+    import trainers.behaviour_cloning as cloning
+
+    soups = {3: 30.0, 4: 11.0, 5: 0.0, 6: 9.0}  # by seed; the humans delivered 10
+    monkeypatch.setattr(cloning, "fit_proxy", lambda batch, settings: (f"proxy {settings.seed}", []))
+    games = []
+    monkeypatch.setattr(cloning, "deliveries_together",
+                        lambda proxy, layout, steps, episodes, seed: games.append(seed) or soups[int(proxy[6:])])
+    chosen = cloning.choose_proxy(None, "cramped_room", cloning.ProxySettings(seed=3, candidates=4), 100, 10.0, 8)
+    # 11 is nearer 10 than 9 is by ratio (1.1 against 1/1.11); the most soups (30) or none (0) is not chosen.
+    assert (chosen.actor_critic, chosen.seed, chosen.soups) == ("proxy 4", 4, soups)
+    assert games == [cloning.SELECTION_GAMES + seed for seed in range(3, 7)]  # apart from the measured games
+    assert cloning.humanlike_distance(10, 10) == 0 and cloning.humanlike_distance(0, 0) == 0
