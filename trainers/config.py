@@ -38,7 +38,6 @@ class ConfigError(ValueError):
 
 
 LOGGERS = ("tensorboard", "csv", "wandb", "mlflow", "trackio")  # TorchRL's `get_logger` backends
-PARTNER_POLICIES = ("ego", "copy")
 PLANNER_START = "scripted_cook"  # init_from: start from the scripted cook, distilled into the run's folder
 GENERATED_LEVELS = ("infinite", "heldout")  # `levels` values that name generated levels rather than layouts
 # torch takes 64-bit seeds, but JAX (32-bit by default) keeps only a seed's low 32 bits: 2**32 + 5 would replay 5.
@@ -185,22 +184,6 @@ class TrainConfig:
         return self.num_envs // self.minibatches
 
     @property
-    def shards_per_minibatch(self) -> int:
-        """`minibatch_shards`, or where it is 0 the number that pays: two threads' worth of arithmetic in a
-        minibatch costs more than a second pass of the loss's Python on a CPU from hidden 128 up (1.2-1.4x the
-        steps/s at 32 x 256; 0.8x at hidden 64, 16 x 128: BENCHMARKS.md). It depends on the config alone, so a team
-        gets the same numbers alone and beside other teams."""
-        if self.minibatch_shards:
-            return self.minibatch_shards
-        if self.compile_update:  # one compiled step per minibatch
-            return 1
-        from trainers.algorithms import ALGORITHMS  # the registry imports this module
-
-        pays = (torch.device(self.device).type == "cpu" and self.hidden >= 128 and self.kitchens_per_minibatch % 2 == 0
-                and ALGORITHMS[self.algorithm].shardable)
-        return 2 if pays else 1
-
-    @property
     def planned_steps(self) -> int:
         """The env steps the run trains for: `num_updates` whole updates (at least total_steps)."""
         return self.num_updates * self.frames_per_batch
@@ -220,7 +203,8 @@ class TrainConfig:
 
     def check(self) -> TrainConfig:
         """Refuses values no run can use, before any work starts. Touches neither the file system nor the levels:
-        the trainer also calls `check_run_location` and `check_levels`."""
+        the trainer also calls `check_run_location` and `check_levels`; nor the algorithm's own settings, which
+        it checks (`trainers.algorithms.check_algorithm`: the registry is the algorithms' own)."""
         _check_types(self)
         _check_name(self.name)
         _check_seed(self.seed)
@@ -229,14 +213,14 @@ class TrainConfig:
         _at_least(self, [*counts, "checkpoint_every", "threads", "teams", *distilling], 1)
         if self.seed + self.teams - 1 > MAX_SEED:
             raise ConfigError(f"teams={self.teams} from seed={self.seed} go past the largest seed, {MAX_SEED}")
-        weights = ["entropy_coef", "value_coef", "predictor_coef", "shaping_weight"]
+        weights = ["entropy_coef", "value_coef", "shaping_weight"]
         _at_least(self, ["eval_episodes", "shaping_anneal_steps", "parallel_teams", "minibatch_shards", *weights], 0)
         if sorted(self.distill_move_order) != sorted("NSEW"):
             raise ConfigError(f"distill_move_order must be a permutation of NSEW, got {self.distill_move_order!r}")
         for name in ("lr", "adam_eps", "clip_epsilon", "max_grad_norm", "distill_lr"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be greater than 0, got {getattr(self, name)}")
-        for name in ("gamma", "gae_lambda", "partner_epsilon", "partner_copy_rate", "distill_teacher_decay"):
+        for name in ("gamma", "gae_lambda", "distill_teacher_decay"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
         if not 0 <= self.eval_heldout <= NUM_HELDOUT_GENERATED:
@@ -250,19 +234,11 @@ class TrainConfig:
             for level in self.levels:
                 if level in GENERATED_LEVELS:  # jax_env.Overcooked reads them only as the whole of `levels`
                     raise ConfigError(f"levels={level} stands alone: it cannot be one entry of a list {self.levels}")
-        from trainers.algorithms import ALGORITHMS  # the registry imports this module
-
-        if self.algorithm not in ALGORITHMS:
-            raise ConfigError(f"algorithm must be one of {', '.join(ALGORITHMS)}, got {self.algorithm!r}")
         for logger in self.loggers:
             if logger not in LOGGERS:
                 raise ConfigError(f"loggers holds {logger!r}; the TorchRL loggers are {', '.join(LOGGERS)}")
         if len(set(self.loggers)) < len(self.loggers):
             raise ConfigError(f"loggers names a logger twice: {self.loggers}")
-        if self.partner_policy not in PARTNER_POLICIES:
-            raise ConfigError(
-                f"partner_policy must be one of {', '.join(PARTNER_POLICIES)}, got {self.partner_policy!r}"
-            )
         if self.num_envs % self.minibatches:
             raise ConfigError(
                 f"minibatches ({self.minibatches}) must divide num_envs ({self.num_envs}): minibatches are whole "
@@ -276,11 +252,6 @@ class TrainConfig:
                 raise ConfigError(
                     f"minibatch_shards ({self.minibatch_shards}) must divide the {self.kitchens_per_minibatch} "
                     "kitchens of a minibatch (num_envs / minibatches): shards are equal parts"
-                )
-            if not ALGORITHMS[self.algorithm].shardable:
-                raise ConfigError(
-                    f"algorithm={self.algorithm} averages its losses over some of a minibatch's transitions, "
-                    f"which shards split unevenly: set minibatch_shards=1 (got {self.minibatch_shards})"
                 )
         check_device(self.device)
         return self

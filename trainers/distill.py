@@ -40,6 +40,7 @@ from torch_kitchen.models import ACTION, LOGITS, OBSERVATION, VALUE, ActorCritic
 from torch_kitchen.scripted import ScriptedCook
 from torch_kitchen.symmetry import symmetries_of, transform_action_probs, transform_observation
 from trainers.advantages import compute_advantages, shaping_weight_at
+from trainers.algorithms import check_algorithm
 from trainers.checkpoint import (
     LATEST,
     CheckpointError,
@@ -168,6 +169,7 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
     metrics)`: called after every round's checkpoint; returning True stops the run there. Raises ConfigError or
     CheckpointError before any work."""
     config.check()
+    check_algorithm(config)
     config.check_run_location()
     if config.teams != 1:
         raise ConfigError("kitchen-distill distils one team; run it once per seed")

@@ -19,6 +19,7 @@ from torchrl.envs.utils import set_exploration_type
 from torchrl.modules import set_recurrent_mode
 
 from torch_kitchen.teams import StackedLoss, TeamPolicy, stackable_acting
+from trainers.algorithms import ALGORITHMS
 from trainers.config import TrainConfig
 from trainers.machine import usable_cores
 from trainers.resume import TrainingDiverged
@@ -40,6 +41,20 @@ Finish = Callable  # trainers.ppo.finish_update: (team, batch, minibatch losses,
 def use_threads(config: TrainConfig) -> None:
     """Torch's CPU threads for this process (`threads`), set before anything is built."""
     torch.set_num_threads(config.threads)
+
+
+def minibatch_shards(config: TrainConfig) -> int:
+    """The parts a team's minibatch is split into (`minibatch_shards`, or where it is 0 the number that pays: two
+    threads' worth of arithmetic in a minibatch costs more than a second pass of the loss's Python on a CPU from
+    hidden 128 up: 1.2-1.4x the steps/s at 32 x 256, 0.8x at hidden 64, 16 x 128; BENCHMARKS.md). It depends on
+    the config alone, so a team gets the same numbers alone and beside other teams."""
+    if config.minibatch_shards:
+        return config.minibatch_shards
+    if config.compile_update:  # one compiled step per minibatch
+        return 1
+    pays = (torch.device(config.device).type == "cpu" and config.hidden >= 128
+            and config.kitchens_per_minibatch % 2 == 0 and ALGORITHMS[config.algorithm].shardable)
+    return 2 if pays else 1
 
 
 def acting_policy(config: TrainConfig, teams: Sequence[TrainingRun]) -> TeamPolicy:
@@ -85,7 +100,7 @@ def learns_stacked(config: TrainConfig, teams: Sequence[TrainingRun]) -> bool:
     their model and algorithm allow it (feed-forward with shared parameters, `Algorithm.stackable`); on a CPU each
     team learns on its own, with its sparse first layer, on threads where `parallel_teams`."""
     stackable = (config.share_params and not teams[0].actor_critic.recurrent and teams[0].algorithm.stackable
-                 and config.shards_per_minibatch == 1)
+                 and minibatch_shards(config) == 1)
     return torch.device(config.device).type == "cuda" and len(teams) > 1 and stackable
 
 
@@ -105,7 +120,7 @@ def minibatch_step(team: TrainingRun, minibatch: TensorDictBase,
     caller's to check (`learn`, once per update)."""
     if team.compiled_step is not None:
         return team.compiled_step(minibatch)
-    shards = minibatch.chunk(team.config.shards_per_minibatch, dim=0)
+    shards = minibatch.chunk(minibatch_shards(team.config), dim=0)
     run = pool.map if pool is not None and len(shards) > 1 else map
     shard_losses, gradients_by_shard = zip(*run(functools.partial(shard_gradients, team), shards))
     losses = {key: mean_over_shards([losses[key] for losses in shard_losses]) for key in shard_losses[0]}
@@ -211,7 +226,7 @@ def learning_pool(config: TrainConfig, num_teams: int) -> ThreadPoolExecutor | N
     `threads` torch threads each), or on which a single team's minibatch shards run (`minibatch_shards`, a
     `ShardPool`); None for one after the other."""
     workers = config.parallel_teams or max(1, usable_cores() // config.threads)
-    workers = min(workers, num_teams if num_teams > 1 else config.shards_per_minibatch)
+    workers = min(workers, num_teams if num_teams > 1 else minibatch_shards(config))
     if workers < 2:
         return None
     return ThreadPoolExecutor(workers, thread_name_prefix="team") if num_teams > 1 else ShardPool(workers)

@@ -39,6 +39,7 @@ import sys
 from collections.abc import Sequence
 from contextlib import contextmanager
 
+from trainers.algorithms import check_algorithm
 from trainers.config import ConfigError, TrainConfig, config_help, group_choices, group_values, load_config, unknown_key
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.train_command import train_or_resume
@@ -109,7 +110,7 @@ def grid_values(config_path: str, overrides: Sequence[str]) -> dict[str, list[st
     first = {key: options[0] for key, options in values.items()}
     for key, options in values.items():  # each value beside the first value of every other key
         for value in options:
-            load_config(config_path, point_overrides({**first, key: value}))
+            check_algorithm(load_config(config_path, point_overrides({**first, key: value})))
     return values
 
 
@@ -141,6 +142,7 @@ def sweep(config_path: str, overrides: Sequence[str]) -> None:
     grid = grid_values(config_path, ours)
     fixed = {key: values[0] for key, values in grid.items() if len(values) == 1}
     single = load_config(config_path, point_overrides(fixed))
+    check_algorithm(single)
     swept_name = len(grid.get("name", [])) > 1 or "${" in single.name
     named = "." if swept_name else single.name  # Hydra's files beside the runs when the name varies
     not_named = sorted({"seed", *fixed})  # run directories name the keys that vary, but the seed

@@ -23,7 +23,7 @@ from torch_kitchen.keys import ACTION, ADVANTAGE, LOG_PROB, VALUE, VALUE_TARGET
 from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.teams import RandomStream, TeamTransform
 from torch_kitchen.torchrl_internals import entropy_without_host_check, hold_value_clip_on_host
-from trainers.algorithms import ALGORITHMS, Algorithm
+from trainers.algorithms import ALGORITHMS, Algorithm, check_algorithm
 from trainers.checkpoint import LATEST, capture_rng_states, model_identity, save_checkpoint
 from trainers.config import ConfigError, TrainConfig
 
@@ -245,6 +245,7 @@ def check_teams(configs: Sequence[TrainConfig]) -> None:
     """Teams trained in one batch share every setting but the seed; each is checked as a run of its own."""
     for config in configs:
         config.check()
+        check_algorithm(config)
         config.check_run_location()
         if config.teams != 1:
             raise ConfigError(f"teams={config.teams}: a team's own config has teams=1 (see `team_configs`)")

@@ -6,7 +6,9 @@ import pytest
 import yaml
 from tiny import script_module
 
+from trainers.algorithms import check_algorithm
 from trainers.config import PLANNER_START, ConfigError, EvalConfig, TrainConfig, load_config
+from trainers.runtime import minibatch_shards
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 # configs/eval: kitchen-eval's configs; configs/protocols: scripts/reproduce.py's (conditions, not one trainer config)
@@ -168,14 +170,14 @@ def test_broken_files_say_what_is_wrong(tmp_path):
 
 def test_minibatch_shards_default_to_two_where_they_pay_and_never_for_e3t():
     def shards(*overrides):
-        return load_config(None, list(overrides)).shards_per_minibatch
+        return minibatch_shards(load_config(None, list(overrides)))
 
     assert shards() == 2  # the paper's IK setting: hidden 256 on a CPU
     assert shards("hidden=128") == 2 and shards("hidden=64") == 1  # small networks: the loss's Python dominates
     assert shards("num_envs=4", "minibatches=4") == 1  # one kitchen per minibatch cannot be split
     assert shards("algorithm=e3t", "architecture=e3t_mlp") == 1  # its losses are means over the ego's transitions
     assert shards("hidden=64", "minibatch_shards=4") == 4  # asked for: as asked
-    assert dataclasses.replace(load_config(None), device="cuda").shards_per_minibatch == 1  # no second pass on a GPU
+    assert minibatch_shards(dataclasses.replace(load_config(None), device="cuda")) == 1  # no second pass on a GPU
     uneven = r"^algorithm=e3t averages its losses over some of a minibatch's transitions, which shards split unevenly"
     with pytest.raises(ConfigError, match=uneven + r": set minibatch_shards=1 \(got 2\)$"):
-        load_config(None, ["algorithm=e3t", "architecture=e3t_mlp", "minibatch_shards=2"])
+        check_algorithm(load_config(None, ["algorithm=e3t", "architecture=e3t_mlp", "minibatch_shards=2"]))

@@ -10,6 +10,7 @@ import torch
 from tiny import TINY
 
 from jax_env import get_layout, save_layout
+from trainers.algorithms import check_algorithm
 from trainers.config import (
     ConfigError,
     EvalConfig,
@@ -26,7 +27,7 @@ OPEN_POT = "WWPWW\nOA  W\nB  AW\nWWXWW\nWWWWW\n"
 ALLOWED_DEVICES = r"use device=cpu, device=cuda or device=cuda:<index>"
 COUNTS = ("max_steps num_envs rollout_steps total_steps hidden epochs minibatches checkpoint_every threads "
           "distill_rounds distill_kitchens distill_epochs distill_minibatch").split()
-NON_NEGATIVE = ("eval_episodes shaping_anneal_steps entropy_coef value_coef predictor_coef shaping_weight "
+NON_NEGATIVE = ("eval_episodes shaping_anneal_steps entropy_coef value_coef shaping_weight "
                 "minibatch_shards").split()
 
 
@@ -41,8 +42,6 @@ NON_NEGATIVE = ("eval_episodes shaping_anneal_steps entropy_coef value_coef pred
         ("max_grad_norm=0", r"^max_grad_norm must be greater than 0, got 0.0$"),
         ("gamma=5", r"^gamma must lie in \[0, 1\], got 5.0$"),
         ("gae_lambda=-3", r"^gae_lambda must lie in \[0, 1\], got -3.0$"),
-        ("partner_epsilon=1.5", r"^partner_epsilon must lie in \[0, 1\], got 1.5$"),
-        ("partner_copy_rate=-0.1", r"^partner_copy_rate must lie in \[0, 1\], got -0.1$"),
         ("lr=nan", r"^lr must be a finite number, got nan$"),
         ("gamma=.inf", r"^gamma must be a finite number, got inf$"),
         ("seed=-1", r"^seed must be an integer in \[0, 4294967295\] .*, got -1$"),
@@ -61,8 +60,6 @@ NON_NEGATIVE = ("eval_episodes shaping_anneal_steps entropy_coef value_coef pred
         ("name=''", r"^name='' must be a relative path inside run_dir"),
         ("levels=[infinite, cramped_room_7x7]", r"^levels=infinite stands alone: it cannot be one entry of a list"),
         ("levels=[]", r"^levels is empty"),
-        ("algorithm=ppo", r"^algorithm must be one of ippo, e3t, got 'ppo'$"),
-        ("partner_policy=slow", r"^partner_policy must be one of ego, copy, got 'slow'$"),
         ("distill_move_order=NSE", r"^distill_move_order must be a permutation of NSEW, got 'NSE'$"),
         ("minibatch_shards=3", r"^minibatch_shards \(3\) must divide the 8 kitchens of a minibatch"),
     ],
@@ -70,6 +67,24 @@ NON_NEGATIVE = ("eval_episodes shaping_anneal_steps entropy_coef value_coef pred
 def test_bad_overrides_are_refused_before_any_work(override, message):
     with pytest.raises(ConfigError, match=message):
         load_config(None, [override])
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (["algorithm=ppo"], r"^algorithm must be one of ippo, e3t, got 'ppo'$"),
+        (["algorithm=e3t", "partner_epsilon=1.5"], r"^partner_epsilon must lie in \[0, 1\], got 1.5$"),
+        (["algorithm=e3t", "partner_copy_rate=-0.1"], r"^partner_copy_rate must lie in \[0, 1\], got -0.1$"),
+        (["algorithm=e3t", "partner_policy=slow"], r"^partner_policy must be one of ego, copy, got 'slow'$"),
+        (["algorithm=e3t", "predictor_coef=-1"], r"^predictor_coef must be at least 0, got -1.0$"),
+    ],
+)
+def test_an_algorithms_own_settings_are_refused_by_the_algorithm_before_any_work(overrides, message):
+    config = load_config(None, overrides)  # the algorithm's keys are the algorithm's to check
+    with pytest.raises(ConfigError, match=message):
+        check_algorithm(config)
+    if "algorithm=e3t" in overrides:  # ignored by an algorithm that does not read them
+        check_algorithm(dataclasses.replace(config, algorithm="ippo"))
 
 
 @pytest.mark.parametrize(

@@ -26,7 +26,8 @@ from torch_kitchen.models import make_actor_critic
 from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
 from trainers.advantages import compute_advantages
 from trainers.algorithms import ALGORITHMS, IPPO, register_algorithm
-from trainers.algorithms.e3t import EGO, normalize_ego_advantage
+from trainers.algorithms.base import standardize_advantage
+from trainers.algorithms.e3t import EGO
 from trainers.checkpoint import load_checkpoint
 from trainers.config import TrainConfig, load_config
 from trainers.evaluate import load_team
@@ -168,7 +169,8 @@ def test_bad_runs_and_checkpoints_get_a_clear_message(tmp_path, capsys):
     assert "algorithm=e3t needs a model with a partner predictor, and 'ego_mlp' has none" in capsys.readouterr().err
     assert main([MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "architecture=e3t_mlp"]) == 2
     assert "'e3t_mlp' carries E3T's partner predictor, which only algorithm=e3t trains" in capsys.readouterr().err
-    assert main([MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "partner_policy=past"]) == 2
+    assert main([MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "algorithm=e3t", "architecture=e3t_mlp",
+                 "partner_policy=past"]) == 2
     assert "partner_policy must be one of ego, copy, got 'past'" in capsys.readouterr().err
 
     assert main([MAIN_CONFIG, "lrr=0.1"]) == 2
@@ -230,7 +232,7 @@ def test_e3t_ppo_learns_from_the_ego_transitions_only(tmp_path):
 
     def losses(data):
         data = data.clone()
-        normalize_ego_advantage(data)
+        standardize_advantage(data, where=data.get(EGO))
         return loss_module(data).select("loss_objective", "loss_critic", "loss_entropy").detach()
 
     before = losses(batch)
@@ -519,3 +521,18 @@ def test_a_minibatch_in_shards_has_the_losses_and_gradient_of_the_whole_on_threa
     for name in sequential_losses:  # on threads at once: the same numbers, bit for bit
         assert torch.equal(threaded_losses[name], sequential_losses[name]), name
     assert all(torch.equal(a, b) for a, b in zip(threaded, sequential))
+
+
+def test_one_standardiser_pools_every_transition_or_those_asked_for_without_reading_the_host():
+    advantage = torch.tensor([[[1.0], [5.0]], [[3.0], [100.0]], [[2.0], [-7.0]]])  # [T=3, 2 agents, 1]
+    pooled = TensorDict({("agents", "advantage"): advantage.clone()}, [3])
+    standardize_advantage(pooled)
+    torch.testing.assert_close(pooled.get(("agents", "advantage")), (advantage - advantage.mean()) / advantage.std())
+    ego = torch.tensor([[True, False], [True, False], [True, False]])  # the first agent's transitions only
+    masked = TensorDict({("agents", "advantage"): advantage.clone()}, [3])
+    standardize_advantage(masked, where=ego)
+    first = advantage[:, 0]
+    torch.testing.assert_close(masked.get(("agents", "advantage")), (advantage - first.mean()) / first.std())
+    alone = TensorDict({("agents", "advantage"): advantage.clone()}, [3])
+    standardize_advantage(alone, where=torch.tensor([[True, False], [False, False], [False, False]]))
+    torch.testing.assert_close(alone.get(("agents", "advantage")), advantage - 1.0)  # one transition: scale 1

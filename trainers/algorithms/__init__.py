@@ -3,8 +3,8 @@
     ippo   independent PPO in self-play (`trainers.algorithms.ippo`)
     e3t    E3T's mixed partner and partner predictor (`trainers.algorithms.e3t`)
 
-Add one by subclassing `Algorithm` (its docstring lists the hooks) and calling `register_algorithm(name, cls)`
-before the config is checked; `examples/` and the README show how.
+Add one by subclassing `Algorithm` (its docstring lists the hooks; `check_config` checks the settings it reads)
+and calling `register_algorithm(name, cls)` before the config is checked; `examples/` and the README show how.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ from __future__ import annotations
 from trainers.algorithms.base import Algorithm
 from trainers.algorithms.e3t import E3T
 from trainers.algorithms.ippo import IPPO
+from trainers.config import ConfigError, TrainConfig
 
 ALGORITHMS: dict[str, type[Algorithm]] = {"ippo": IPPO, "e3t": E3T}
 
@@ -25,4 +26,12 @@ def register_algorithm(name: str, algorithm: type[Algorithm]) -> None:
     ALGORITHMS[name] = algorithm
 
 
-__all__ = ["ALGORITHMS", "Algorithm", "E3T", "IPPO", "register_algorithm"]
+def check_algorithm(config: TrainConfig) -> None:
+    """Refuses, with one line (ConfigError), an algorithm that is not registered and settings its class cannot
+    train with (`Algorithm.check_config`): what every command that trains checks beside `config.check()`."""
+    if config.algorithm not in ALGORITHMS:
+        raise ConfigError(f"algorithm must be one of {', '.join(ALGORITHMS)}, got {config.algorithm!r}")
+    ALGORITHMS[config.algorithm].check_config(config)
+
+
+__all__ = ["ALGORITHMS", "Algorithm", "E3T", "IPPO", "check_algorithm", "register_algorithm"]

@@ -4,7 +4,9 @@ The core collects batches, computes GAE, runs the minibatch epochs of TorchRL's 
 checkpoints; it knows no algorithm by name. An algorithm changes the loop only through these hooks, called in
 this order (all but `process_minibatch`, which standardises the advantages, do nothing by default):
 
-    set-up        check()                 refuse a model the algorithm cannot train (ConfigError)
+    set-up        check_config(config)    refuse settings the algorithm cannot train with (ConfigError; a classmethod,
+                                          run by `check_algorithm` before anything is built)
+                  check()                 refuse a model the algorithm cannot train (ConfigError)
                   env_transforms()        transforms appended to the env after the model's own
                   acting_modules()        policy modules run after the actor while collecting
                   loss_actor()            the actor that ClipPPOLoss differentiates
@@ -37,15 +39,24 @@ from torchrl.objectives import ClipPPOLoss
 
 from torch_kitchen.keys import ADVANTAGE
 from torch_kitchen.models import ActorCritic
-from trainers.config import TrainConfig
+from trainers.config import ConfigError, TrainConfig
 
 
-def standardize_advantage(minibatch: TensorDictBase) -> None:
-    """Standardises the advantages over the whole minibatch, pooled over kitchens, steps and agents, as
-    ClipPPOLoss's `normalize_advantage` does; done here, the loss's shards share the minibatch's statistics."""
+def standardize_advantage(minibatch: TensorDictBase, where: torch.Tensor | None = None) -> None:
+    """Standardises the advantages, as ClipPPOLoss's `normalize_advantage` does (the unbiased deviation, at least
+    float resolution), with the mean and deviation of the transitions `where` is True ([..., 2], e.g. E3T's ego
+    ones) or, by default, of all of them, pooled over kitchens, steps and agents. Done before the loss, the
+    minibatch's shards share its statistics. Reads nothing back to the host; a single transition keeps scale 1."""
     advantage = minibatch.get(ADVANTAGE)
-    scale = advantage.std().clamp_min(torch.finfo(torch.float).resolution)
-    minibatch.set(ADVANTAGE, (advantage - advantage.mean()) / scale)
+    if where is None:
+        mean, deviation = advantage.mean(), advantage.std()
+    else:
+        weight = where.unsqueeze(-1).to(advantage.dtype)
+        count = weight.sum()
+        mean = (advantage * weight).sum() / count
+        deviation = (((advantage - mean) ** 2 * weight).sum() / (count - 1)).sqrt()
+    scale = deviation.nan_to_num(1.0, 1.0, 1.0).clamp_min(torch.finfo(torch.float).resolution)
+    minibatch.set(ADVANTAGE, (advantage - mean) / scale)
 
 
 class Algorithm:
@@ -62,6 +73,16 @@ class Algorithm:
     def __init__(self, config: TrainConfig, actor_critic: ActorCritic):
         self.config = config
         self.actor_critic = actor_critic
+
+    @classmethod
+    def check_config(cls, config: TrainConfig) -> None:
+        """Refuses, with one line (ConfigError), settings this algorithm cannot train with, before anything is
+        built: here minibatch shards where the class is not `shardable`; a subclass checks its own keys too."""
+        if config.minibatch_shards > 1 and not cls.shardable:
+            raise ConfigError(
+                f"algorithm={config.algorithm} averages its losses over some of a minibatch's transitions, which "
+                f"shards split unevenly: set minibatch_shards=1 (got {config.minibatch_shards})"
+            )
 
     # ---------------------------------------------------------------- set-up
     def check(self) -> None:

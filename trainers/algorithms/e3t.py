@@ -3,9 +3,9 @@
 In every episode one agent per kitchen, drawn by `PartnerSeats`, is the mixed partner: it acts from
 (1 - eps) * pi + eps * uniform (`PartnerMixture`), pi the ego's own policy or, with `partner_policy: copy`, a
 slow copy of it that follows the ego by `partner_copy_rate` after every update. PPO learns from the ego's
-transitions only (TorchRL's `loss_mask_key`), with advantages standardised over those. The actor's
-`PartnerPredictor` (models e3t_mlp, e3t_gnn) is trained by cross-entropy against the partner's actual actions;
-the PPO loss differentiates the policy without it, reading the prediction stored while acting, so its
+transitions only (TorchRL's `loss_mask_key`), with advantages standardised over those (`standardize_advantage`).
+The actor's `PartnerPredictor` (models e3t_mlp, e3t_gnn) is trained by cross-entropy against the partner's actual
+actions; the PPO loss differentiates the policy without it, reading the prediction stored while acting, so its
 probability ratios compare the policy on the very inputs it acted on.
 """
 
@@ -19,22 +19,14 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import Transform
 from torchrl.objectives import ClipPPOLoss
 
-from torch_kitchen.keys import ACTION, ADVANTAGE
+from torch_kitchen.keys import ACTION
 from torch_kitchen.models import ActorCritic, split_partner_predictor
 from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
-from trainers.algorithms.base import Algorithm
+from trainers.algorithms.base import Algorithm, standardize_advantage
 from trainers.config import ConfigError, TrainConfig
 
 EGO = ("agents", "ego")  # bool [B, T, 2]: the transitions PPO learns from
-
-
-def normalize_ego_advantage(minibatch: TensorDictBase) -> None:
-    """Standardises the advantages with the mean and deviation of the ego's transitions (IPPO's loss pools all
-    of a minibatch's; here the mixed partner's would skew them)."""
-    advantage, ego = minibatch.get(ADVANTAGE), minibatch.get(EGO).unsqueeze(-1)
-    mean = advantage[ego].mean()
-    std = advantage[ego].std(correction=0).clamp_min(1e-4) if ego.sum() > 1 else advantage.new_ones(())
-    minibatch.set(ADVANTAGE, (advantage - mean) / std)
+PARTNER_POLICIES = ("ego", "copy")  # pi of the mixed partner: the policy itself, or a slow copy of it
 
 
 def partner_prediction_loss(predictor, minibatch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
@@ -52,6 +44,19 @@ class E3T(Algorithm):
     # Its PPO terms average over the ego's transitions only, which equal shards of a minibatch split unevenly.
     shardable = False
     stackable = False  # its partner predictor and the seats are each team's own
+
+    @classmethod
+    def check_config(cls, config: TrainConfig) -> None:
+        super().check_config(config)
+        if config.partner_policy not in PARTNER_POLICIES:
+            raise ConfigError(
+                f"partner_policy must be one of {', '.join(PARTNER_POLICIES)}, got {config.partner_policy!r}"
+            )
+        for name in ("partner_epsilon", "partner_copy_rate"):
+            if not 0.0 <= getattr(config, name) <= 1.0:
+                raise ConfigError(f"{name} must lie in [0, 1], got {getattr(config, name)}")
+        if not config.predictor_coef >= 0:
+            raise ConfigError(f"predictor_coef must be at least 0, got {config.predictor_coef}")
 
     def __init__(self, config: TrainConfig, actor_critic: ActorCritic):
         super().__init__(config, actor_critic)
@@ -87,7 +92,7 @@ class E3T(Algorithm):
         batch.set(EGO, ~batch.get(MIXED))
 
     def process_minibatch(self, minibatch: TensorDictBase) -> None:
-        normalize_ego_advantage(minibatch)
+        standardize_advantage(minibatch, where=minibatch.get(EGO))  # the mixed partner's would skew them
 
     def auxiliary_losses(self, minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss, accuracy = partner_prediction_loss(self.predictor, minibatch)

@@ -10,8 +10,8 @@ Record (one file per game): a header line {"type": "header", "version", "layout"
 "seed", "max_steps", "seat", "partner", "checkpoint", "checkpoint_sha256", "tick_ms", "mode", "started"}; then
 per step {"type": "step", "t", "actions": [a0, a1], "reward", "deliveries", "score", "positions": [[x, y], [x,
 y]], "ms"}; then {"type": "end", "reason", "score", "steps"}. `replay(path)` rebuilds the game through the JAX
-env from the header and the recorded actions and checks every step's positions and score; `load_dataset`
-turns records into observations and actions per seat for behaviour cloning.
+env from the header and the recorded actions and checks every step's positions and score; `kitchen-humans
+import` (`trainers.humans.games_from_records`) turns records into the human-games dataset for behaviour cloning.
 """
 
 from __future__ import annotations
@@ -264,22 +264,3 @@ def replay(path: str | Path, gif: str | Path | None = None) -> dict:
 
         write_gif(states, str(gif))
     return {"steps": len(steps), "score": steps[-1]["score"] if steps else 0, "ended": end["reason"]}
-
-
-def load_dataset(paths) -> dict[str, list]:
-    """Records -> {"observation": [uint8 [T, 2, H, W, 26] per game], "action": [int64 [T, 2] per game],
-    "human_seat": [int per game]}: each step's observation of both seats and the actions taken from it."""
-    data = {"observation": [], "action": [], "human_seat": []}
-    for path in paths:
-        header, steps, _ = read_record(path)
-        kitchen, td = recorded_kitchen(header)
-        observations = []
-        for line in steps:
-            observations.append(td["agents", "observation"][0])
-            td = take_actions(kitchen, td, line["actions"])
-        height, width = kitchen.kitchen.obs_shape[:2]
-        empty = torch.empty(0, 2, height, width, kitchen.kitchen.obs_shape[2], dtype=torch.uint8)
-        data["observation"].append(torch.stack(observations) if observations else empty)
-        data["action"].append(torch.tensor([line["actions"] for line in steps], dtype=torch.int64).reshape(-1, 2))
-        data["human_seat"].append(header["seat"])
-    return data

@@ -4,16 +4,18 @@ import json
 from pathlib import Path
 
 import pytest
-import torch
 
 pytest.importorskip("fastapi", reason="kitchen-play needs the play extra: pip install .[play]")
 from fastapi import WebSocketDisconnect  # noqa: E402
 from fastapi.testclient import TestClient  # noqa: E402
 
+from torch_kitchen.keys import OBSERVATION  # noqa: E402
 from torch_kitchen.models import make_actor_critic  # noqa: E402
+from trainers.behaviour_cloning import human_batch  # noqa: E402
 from trainers.checkpoint import model_identity, save_checkpoint  # noqa: E402
 from trainers.config import TrainConfig  # noqa: E402
-from trainers.play.game import RANDOM, SCRIPTED, load_dataset, read_record, replay  # noqa: E402
+from trainers.humans import games_from_records  # noqa: E402
+from trainers.play.game import RANDOM, SCRIPTED, read_record, replay  # noqa: E402
 from trainers.play.server import create_app, main  # noqa: E402
 
 
@@ -172,9 +174,10 @@ def test_a_finished_game_replays_through_the_command_and_loads_as_a_dataset(clie
         error = capsys.readouterr().err
         assert message in error and error.count("\n") == 1, error
 
-    data = load_dataset([game["record"]])
-    assert data["observation"][0].shape == (30, 2, 7, 7, 26) and data["human_seat"] == [0]
-    assert torch.equal(data["action"][0], torch.tensor([s["actions"] for s in steps]))
+    # The record is a human game like the 2019 ones: both seats' observations, the person's seat labelled.
+    [recorded] = games_from_records([game["record"]], "train")
+    assert human_batch([recorded]).get(OBSERVATION).shape == (30, 2, 7, 7, 26) and recorded.human_seats == (True, False)
+    assert recorded.actions.tolist() == [s["actions"] for s in steps]
 
 
 def test_bad_server_options_and_a_busy_port_get_one_line_before_any_address_is_printed(capsys):
