@@ -153,13 +153,12 @@ def choose_proxy(train: TensorDict, layout: str, settings: ProxySettings, steps:
     """Fits `settings.candidates` proxies to `train` (seeds `settings.seed` on) and keeps the one whose two copies,
     in `episodes` games of `steps` steps on `layout`, deliver closest to `humans` (`humanlike_distance`; the
     earlier seed on a tie). Its games are drawn apart from those the proxy is measured with afterwards."""
-    best, soups = None, {}
+    proxies, soups = {}, {}
     for seed in range(settings.seed, settings.seed + settings.candidates):
-        proxy, _ = fit_proxy(train, dataclasses.replace(settings, seed=seed))
-        soups[seed] = deliveries_together(proxy, layout, steps, episodes, seed=SELECTION_GAMES + seed)
-        if best is None or humanlike_distance(soups[seed], humans) < humanlike_distance(soups[best[1]], humans):
-            best = (proxy, seed)
-    return Chosen(best[0], best[1], soups)
+        proxies[seed], _ = fit_proxy(train, dataclasses.replace(settings, seed=seed))
+        soups[seed] = deliveries_together(proxies[seed], layout, steps, episodes, seed=SELECTION_GAMES + seed)
+    kept = min(soups, key=lambda seed: humanlike_distance(soups[seed], humans))  # the first of equals
+    return Chosen(proxies[kept], kept, soups)
 
 
 def save_proxy(actor_critic: ActorCritic, settings: ProxySettings, layout: str, run: Path) -> Path:

@@ -13,6 +13,7 @@ carries a one-line meaning, which `config_help` lists for `--help`.
 
 from __future__ import annotations
 
+import argparse
 import copy
 import dataclasses
 import difflib
@@ -396,6 +397,18 @@ def check_device(device: str) -> None:
         )
 
 
+def train_config_parser(prog: str, description: str) -> argparse.ArgumentParser:
+    """The command line of a command that reads a training config: a YAML file (omitted with --resume) and
+    key=value overrides, every key with its meaning under --help (`config_help`)."""
+    parser = argparse.ArgumentParser(
+        prog=prog, description=f"{description} Overrides: any config key as key=value (e.g. seed=3 total_steps=2e6).",
+        epilog=config_help(TrainConfig), formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("config", nargs="?", help="a YAML config (configs/...); omit it with --resume")
+    parser.add_argument("overrides", nargs="*", help="key=value config overrides")
+    return parser
+
+
 def config_help(schema: type) -> str:
     """Every key of `schema` with its type, default and meaning, in groups: an argparse epilog (to be shown with
     `argparse.RawDescriptionHelpFormatter`, which keeps its lines)."""
@@ -687,5 +700,6 @@ __all__ = [
     "option",
     "parse_overrides",
     "save_config",
+    "train_config_parser",
     "unknown_key",
 ]

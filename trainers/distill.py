@@ -19,7 +19,6 @@ team, and `init_from` starts IPPO from it. Any architecture distils (recurrent o
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import itertools
 import sys
@@ -51,7 +50,7 @@ from trainers.checkpoint import (
     restore_rng_states,
     save_checkpoint,
 )
-from trainers.config import ConfigError, TrainConfig, config_help, load_config, save_config
+from trainers.config import ConfigError, TrainConfig, load_config, save_config, train_config_parser
 from trainers.loggers import make_loggers
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.resume import start_fresh
@@ -268,15 +267,8 @@ def distill_start(config: TrainConfig, run: Path) -> Path:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="kitchen-distill",
-        description="Distil the scripted cook into a team's networks by DAgger over its kitchens (a planner-guided "
-                    "start for kitchen-train's init_from). Overrides: any config key as key=value.",
-        epilog=config_help(TrainConfig),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    parser.add_argument("config", nargs="?", help="a YAML config (configs/...); omit it with --resume")
-    parser.add_argument("overrides", nargs="*", help="key=value config overrides")
+    parser = train_config_parser("kitchen-distill", "Distil the scripted cook into a team's networks by DAgger over "
+                                 "its kitchens (a planner-guided start for kitchen-train's init_from).")
     parser.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its latest round")
     add_plugin_option(parser)
     args = parser.parse_args(argv)

@@ -221,11 +221,8 @@ def with_human_proxies(outcomes: Outcomes, proxies: dict[str, Team], rollouts: i
         on_grid[:, g] = played.deliveries[:, 0]
         seen = np.zeros((len(with_proxy), *outcomes.visits.shape[1:]), np.float32)
         seen[:, g] = played.visits[:, 0]
-
-        def seat(index: int, proxy_seat: int = len(teams)) -> int:  # its seat among all the teams
-            return proxy_seat if index == population else index
-
-        matchups += [Matchup(seat(m.seat0), seat(m.seat1), m.kind) for m in with_proxy]
+        seat = {population: len(teams)}  # the proxy's seat among all the teams; the others keep theirs
+        matchups += [Matchup(seat.get(m.seat0, m.seat0), seat.get(m.seat1, m.seat1), m.kind) for m in with_proxy]
         teams.append(proxy)
         deliveries.append(on_grid)
         visits.append(seen)

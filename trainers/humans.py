@@ -126,12 +126,10 @@ def games_from_records(paths: Sequence[str | Path], split: str) -> list[HumanGam
 
     games = []
     for path in paths:
-        header, steps, end, states = replayed_states(path)  # every step as recorded, or a ValueError naming it
+        header, steps, _, states = replayed_states(path)  # every step as recorded, or a ValueError naming it
         if header["layout_name"] not in layout_names():
             raise ValueError(f"{path} was played on {header['layout_name']!r}, not a registered layout: proxies are "
                              "fitted per layout (the classic, expanded or drawn-inside-7x7 ones)")
-        if end is None:
-            raise ValueError(f"{path}: the game never ended (no end line): the record is cut")
         before = states[:-1]
         games.append(HumanGame(
             name=Path(path).stem, split=split, layout=header["layout_name"],
@@ -145,6 +143,15 @@ def games_from_records(paths: Sequence[str | Path], split: str) -> list[HumanGam
 
 
 RUN_NAMES = {"train": "bc_{layout}", "test": "human_proxy_{layout}"}  # by the split a proxy is fitted on
+
+
+def what_humans_did(games: Sequence[HumanGame], game_steps: int = 0) -> tuple[float, int]:
+    """The soups the humans of `games` delivered on average, and the steps of the games two proxies play to compare
+    with them: `game_steps`, or as long as those games on average."""
+    import numpy as np
+
+    soups = float(np.mean([game.deliveries for game in games]))
+    return soups, game_steps or int(round(np.mean([len(game) for game in games])))
 
 
 def train(data: Path, runs: Path, layouts: Sequence[str], settings: ProxySettings, episodes: int,
@@ -161,16 +168,14 @@ def train(data: Path, runs: Path, layouts: Sequence[str], settings: ProxySetting
         measure_on = "test" if fit_on == "train" else "train"
         train_games, test_games = load_dataset(data, fit_on, layout), load_dataset(data, measure_on, layout)
         train_batch, test_batch = human_batch(train_games), human_batch(test_games)
-        fitted_humans = float(np.mean([game.deliveries for game in train_games]))
-        fitted_steps = game_steps or int(round(np.mean([len(game) for game in train_games])))
+        fitted_humans, fitted_steps = what_humans_did(train_games, game_steps)
         chosen = choose_proxy(train_batch, layout, settings, fitted_steps, fitted_humans, episodes)
         proxy = chosen.actor_critic
         run = runs / RUN_NAMES[fit_on].format(layout=layout) / f"seed{settings.seed}"
         save_proxy(proxy, dataclasses.replace(settings, seed=chosen.seed), layout, run)
         scores = accuracy(proxy, test_batch, train_batch)
-        steps = game_steps or int(round(np.mean([len(game) for game in test_games])))
+        humans, steps = what_humans_did(test_games, game_steps)
         together = deliveries_together(proxy, layout, steps, episodes, settings.seed)
-        humans = float(np.mean([game.deliveries for game in test_games]))
         ratios += [together / humans] if humans else []
         candidates = " ".join(f"{chosen.soups[seed]:.1f}" for seed in sorted(chosen.soups))
         rows.append(f"| {layout} | {len(train_batch):,} / {len(test_batch):,} | {scores['accuracy']:.3f} | "

@@ -108,9 +108,9 @@ def grid_values(config_path: str, overrides: Sequence[str]) -> dict[str, list[st
         if choice not in regimes():
             raise ConfigError(f"unknown regime {choice!r}; the regimes: {', '.join(regimes())}")
     first = {key: options[0] for key, options in values.items()}
-    for key, options in values.items():  # each value beside the first value of every other key
-        for value in options:
-            check_algorithm(load_config(config_path, point_overrides({**first, key: value})))
+    points = [first, *({**first, key: value} for key, options in values.items() for value in options[1:])]
+    for point in points:  # the first point, and each other value beside the first value of every other key
+        check_algorithm(load_config(config_path, point_overrides(point)))
     return values
 
 
@@ -142,7 +142,6 @@ def sweep(config_path: str, overrides: Sequence[str]) -> None:
     grid = grid_values(config_path, ours)
     fixed = {key: values[0] for key, values in grid.items() if len(values) == 1}
     single = load_config(config_path, point_overrides(fixed))
-    check_algorithm(single)
     swept_name = len(grid.get("name", [])) > 1 or "${" in single.name
     named = "." if swept_name else single.name  # Hydra's files beside the runs when the name varies
     not_named = sorted({"seed", *fixed})  # run directories name the keys that vary, but the seed

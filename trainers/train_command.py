@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from trainers.checkpoint import LATEST, CheckpointError
-from trainers.config import ConfigError, TrainConfig, config_help, load_config
+from trainers.config import ConfigError, TrainConfig, load_config, train_config_parser
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.ppo import train_teams
 from trainers.resume import RunStopped, TrainingDiverged
@@ -38,15 +38,8 @@ def train_or_resume(configs: Sequence[TrainConfig]) -> list[Path]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="kitchen-train",
-        description="Train a team with IPPO or E3T (TorchRL) on Single or Infinite Kitchen levels. Overrides: any "
-                    "config key as key=value, e.g. seed=3 levels=cramped_room_7x7 total_steps=2e6.",
-        epilog=config_help(TrainConfig),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    parser.add_argument("config", nargs="?", help="a YAML config (configs/...); omit it with --resume")
-    parser.add_argument("overrides", nargs="*", help="key=value config overrides")
+    parser = train_config_parser("kitchen-train", "Train a team with IPPO or E3T (TorchRL) on Single or Infinite "
+                                 "Kitchen levels.")
     parser.add_argument("--resume", metavar="RUN_DIR", nargs="+",
                         help="continue the run in RUN_DIR from its latest checkpoint; several run directories (the "
                              "teams of a condition, e.g. runs/NAME/seed*) continue together in one batch; key=value "

@@ -231,11 +231,14 @@ def take_actions(kitchen: KitchenEnv, tensordict: TensorDictBase, actions: list[
     return step_mdp(kitchen.step(tensordict))
 
 
-def replayed_states(path: str | Path) -> tuple[dict, list[dict], dict | None, list[State]]:
-    """(header, step lines, end line or None, states): a record's game rebuilt through the JAX env, every step's
-    positions and score checked (a ValueError at the first step that differs). `states` holds the state before
-    each step and the last one after it, unbatched, as NumPy arrays."""
+def replayed_states(path: str | Path) -> tuple[dict, list[dict], dict, list[State]]:
+    """(header, step lines, end line, states): a record's game rebuilt through the JAX env, every step's positions
+    and score checked (a ValueError at the first step that differs, or for a game that never ended: no end line, the
+    record was cut or its server killed). `states` holds the state before each step and the last one after it,
+    unbatched, as NumPy arrays."""
     header, steps, end = read_record(path)
+    if end is None:
+        raise ValueError(f"{path}: the game never ended (no end line after {len(steps)} steps): the record is cut")
     kitchen, td = recorded_kitchen(header)
 
     def current() -> State:
@@ -254,11 +257,9 @@ def replayed_states(path: str | Path) -> tuple[dict, list[dict], dict | None, li
 
 def replay(path: str | Path, gif: str | Path | None = None) -> dict:
     """Replays a record through the JAX env (`replayed_states`): every step's positions and score must match.
-    Returns a summary; raises ValueError at the first step that differs, and for a game that never ended (no end
-    line: the record was cut, or its server killed). `gif`: also write the game as an animated GIF."""
+    Returns a summary; raises ValueError at the first step that differs, and for a game that never ended.
+    `gif`: also write the game as an animated GIF."""
     _, steps, end, states = replayed_states(path)
-    if end is None:
-        raise ValueError(f"{path}: the game never ended (no end line after {len(steps)} steps): the record is cut")
     if gif is not None:
         from jax_env.render import write_gif
 
