@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup main test lint bench
+.PHONY: setup main test lint bench gpu-offline
 
 # DEVICE=cuda: the CUDA builds of torch and JAX, and the main job on the GPU (`make main DEVICE=cuda`).
 DEVICE ?= cpu
@@ -45,6 +45,17 @@ test: setup
 		(apt-get install -y -q chromium || (apt-get update -q && apt-get install -y -q chromium)) >/dev/null 2>&1 || \
 		echo "no Chromium could be installed: the browser test will be skipped"
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=10
+
+# .whl/ for benchmarks/gpu_checks.sh on a GPU machine without a package index: TorchRL's wheels from WHEELS, and
+# copies of the pure-Python packages such a machine may lack, taken from this set-up without their compiled parts
+# (each has a pure-Python fallback). Name .whl in the device run's carried paths.
+WHEELS ?= ../shared/gpu
+OFFLINE_PACKAGES := omegaconf antlr4 yaml hydra hydra_plugins tqdm flax optax absl msgpack rich attr markdown_it mdurl pygments
+gpu-offline: setup
+	rm -rf .whl && mkdir -p .whl/site && cp $(WHEELS)/*.whl .whl/
+	site=$$($(BIN)/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])'); \
+		for package in $(OFFLINE_PACKAGES); do cp -r $$site/$$package .whl/site/; done
+	find .whl/site \( -name '*.so' -o -name __pycache__ \) -prune -exec rm -rf {} +
 
 lint: setup
 	$(BIN)/ruff check .

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Every GPU check and benchmark in one call, on a machine with CUDA torch and JAX (outputs under $OUT, or
-# benchmarks/results/gpu). Without a package index, TorchRL's wheels come from .whl/ (see the developers' notes).
+# benchmarks/results/gpu). Without a package index, TorchRL's wheels come from .whl/ (`make gpu-offline`).
 # The steps run in order of what they tell, each within its own timeout, and a step is skipped (saying so) once
 # less than its timeout is left of BUDGET_S seconds (default 540: one call of a 10-minute limit, with set-up).
 set -uo pipefail
@@ -12,6 +12,13 @@ if ! python -c "import torchrl" 2>/dev/null; then
     export PYTHONPATH=/tmp/site:$PWD
 fi
 export PYTHONPATH=${PYTHONPATH:-$PWD}
+# Pure-Python packages a bare machine may lack (the config loader's OmegaConf, the reference's Flax and Optax):
+# copies of the set-up's, last on the path (`make gpu-offline`).
+[[ -d .whl/site ]] && export PYTHONPATH=$PYTHONPATH:$PWD/.whl/site
+# A missing package stops the call here, before any device time goes on steps that cannot start.
+if ! python -W ignore -c "import torchrl, flax, optax, trainers.ppo, torch_kitchen.env"; then
+    echo "gpu_checks: the imports above fail (make gpu-offline, then carry .whl)"; exit 1
+fi
 
 # step FILE TIMEOUT COMMAND...: runs COMMAND with TIMEOUT seconds, appending its output (warnings dropped) to FILE.
 step() {

@@ -98,7 +98,7 @@ def start_update(team: TrainingRun, batch: TensorDictBase) -> list[tuple[torch.T
     compute_advantages(batch, team.actor_critic.critic, config, shaping_weight_at(config, team.env_steps))
     team.algorithm.process_batch(batch)
     # Drawn where the batch is: a GPU's minibatches then need nothing from the host.
-    return [torch.randperm(config.num_envs, device=batch.device).chunk(config.minibatches)
+    return [torch.randperm(config.num_envs, device=config.device).chunk(config.minibatches)
             for _ in range(config.epochs)]
 
 
