@@ -34,7 +34,7 @@ main: setup
 	if [ -f $(MAIN_RUN)/checkpoints/latest.pt ]; then \
 		$(BIN)/kitchen-train --resume $(MAIN_RUN); \
 	else \
-		$(BIN)/kitchen-train configs/main.yaml device=$(DEVICE); \
+		$(BIN)/kitchen-train configs/main.yaml runtime.device=$(DEVICE); \
 	fi
 
 # The browser test of kitchen-play drives Debian's Chromium: installed here where apt can, skipped (saying so) elsewhere.

@@ -46,8 +46,8 @@ def main(argv=None) -> None:
     torch.set_num_threads(1)
 
     envs = [f"num_envs={args.envs}"] if args.envs else []
-    config = load_config(None, [*setting_overrides(args.setting), *envs, "total_steps=1e6", "threads=1",
-                                f"device={args.device}"])
+    config = load_config(None, [*setting_overrides(args.setting), *envs, "total_steps=1e6", "runtime.threads=1",
+                                f"runtime.device={args.device}"])
     kitchen = make_env(config, seed=[config.seed])
     team = build_team(config, tempfile.mkdtemp(), kitchen, 0)
     env = with_model_transforms(kitchen, team.actor_critic)

@@ -370,16 +370,16 @@ def run_reference(config: TrainConfig | Sequence[str], seed: int | None = None, 
     """Compiles the run of `config` (a TrainConfig or its `key=value` overrides), then runs it timed.
 
     Returns (env steps per second of the compiled run, compilation excluded, the median of `repeats` runs of the
-    same program; metrics name -> [num_updates]). Runs on the JAX device matching `config.device`; `seed`
-    defaults to `config.seed`. With `config.teams` = K > 1 one timed run trains seeds seed .. seed + K - 1 one
+    same program; metrics name -> [num_updates]). Runs on the JAX device matching `config.runtime.device`; `seed`
+    defaults to `config.seed`. With `config.runtime.teams` = K > 1 one timed run trains seeds seed .. seed + K - 1 one
     after the other through the same compiled program (steps/s count every team's; metrics are the last team's):
     on the CPU, vmapping the run over the seeds as PureJaxRL does hung inside XLA at the paper's shape.
     """
     if not isinstance(config, TrainConfig):
         config = load_config(None, list(config))
-    device = jax_device_for(torch.device(config.device))
+    device = jax_device_for(torch.device(config.runtime.device))
     first = config.seed if seed is None else seed
-    keys = [jax.device_put(jax.random.PRNGKey(first + team), device) for team in range(config.teams)]
+    keys = [jax.device_put(jax.random.PRNGKey(first + team), device) for team in range(config.runtime.teams)]
     seconds = []
     with jax.default_device(device):
         compiled = jax.jit(make_train(config)).lower(keys[0]).compile()
@@ -388,7 +388,7 @@ def run_reference(config: TrainConfig | Sequence[str], seed: int | None = None, 
             for key in keys:
                 metrics = jax.block_until_ready(compiled(key))
             seconds.append(time.perf_counter() - start)
-    steps_per_second = config.teams * config.planned_steps / float(np.median(seconds))
+    steps_per_second = config.runtime.teams * config.planned_steps / float(np.median(seconds))
     return steps_per_second, {key: np.asarray(value) for key, value in metrics.items()}
 
 

@@ -37,8 +37,8 @@ def audit_training(setting: str, teams: int, device: str, steps: int = 8, stack:
     advantages of the first team's part of it, and one minibatch update, on the setting's shape with `teams` teams:
     the first team's, or with `stack` every team's as one (acting and learning stacked, as on a GPU)."""
     with tempfile.TemporaryDirectory() as run_dir:
-        config = load_config(None, [*setting_overrides(setting), f"teams={teams}", f"rollout_steps={steps}",
-                                    f"device={device}", f"run_dir={run_dir}", "progress=false"])
+        config = load_config(None, [*setting_overrides(setting), f"runtime.teams={teams}", f"rollout_steps={steps}",
+                                    f"runtime.device={device}", f"run_dir={run_dir}", "progress=false"])
         configs = team_configs(config)
         lead = configs[0]
         kitchen = make_env(lead, num_envs=teams * lead.num_envs, seed=[c.seed for c in configs])

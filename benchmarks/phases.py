@@ -73,8 +73,9 @@ def phase_seconds(setting: str, updates: int, device: str, overrides: list[str])
     totals = defaultdict(lambda: [0.0, 0.0])
     with tempfile.TemporaryDirectory() as run_dir:
         config = load_config(None, [*setting_overrides(setting), f"total_steps={updates * frames}",
-                                    f"device={device}", f"run_dir={run_dir}", "progress=false", "eval_episodes=0",
-                                    "checkpoint_every=1000", "threads=1", *overrides])
+                                    f"runtime.device={device}", f"run_dir={run_dir}", "progress=false",
+                                    "eval_episodes=0",
+                                    "checkpoint_every=1000", "runtime.threads=1", *overrides])
         try:
             for (where, name), function in patched.items():
                 setattr(where, name, function)
@@ -83,7 +84,7 @@ def phase_seconds(setting: str, updates: int, device: str, overrides: list[str])
         finally:
             for (where, name), function in originals.items():
                 setattr(where, name, function)
-    first_update = {"collection": 1, "advantages": config.teams, "update": 1}  # its ranges, left out
+    first_update = {"collection": 1, "advantages": config.runtime.teams, "update": 1}  # its ranges, left out
     seen = defaultdict(int)
     for event in sorted(profiler.events(), key=lambda event: event.time_range.start):
         if event.name in PHASES:

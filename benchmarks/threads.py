@@ -36,8 +36,9 @@ def steps_per_second(threads: int, parallel_teams: int, shards: int, args: argpa
     with tempfile.TemporaryDirectory() as run_dir:
         config = load_config(None, [
             f"architecture={args.architecture}", f"num_envs={args.envs}", f"rollout_steps={args.rollout_steps}",
-            f"total_steps={args.updates * args.envs * args.rollout_steps}", f"threads={threads}",
-            f"teams={args.teams}", f"parallel_teams={parallel_teams}", f"minibatch_shards={shards}",
+            f"total_steps={args.updates * args.envs * args.rollout_steps}", f"runtime.threads={threads}",
+            f"runtime.teams={args.teams}", f"runtime.parallel_teams={parallel_teams}",
+            f"runtime.minibatch_shards={shards}",
             f"run_dir={run_dir}",
             "progress=false", "eval_episodes=0", "checkpoint_every=1000", "loggers=[csv]",
         ])  # fmt: skip

@@ -47,8 +47,8 @@ def throughput(architecture: str, num_envs: int, rollout_steps: int, updates: in
                 f"num_envs={num_envs}",
                 f"rollout_steps={rollout_steps}",
                 f"total_steps={updates * num_envs * rollout_steps}",
-                f"device={device}",
-                f"threads={threads}",
+                f"runtime.device={device}",
+                f"runtime.threads={threads}",
                 f"run_dir={run_dir}",
                 "progress=false",
                 "eval_episodes=0",
@@ -79,8 +79,8 @@ def learning_check(target: float, budget: int, threads: int, device: str, seed: 
                 "shaping_weight=1.0",
                 "shaping_anneal_steps=2.5e6",
                 f"total_steps={budget}",
-                f"threads={threads}",
-                f"device={device}",
+                f"runtime.threads={threads}",
+                f"runtime.device={device}",
                 f"seed={seed}",
                 f"run_dir={run_dir}",
                 "progress=false",
@@ -124,11 +124,12 @@ def reference(setting: str, updates: int, device: str, threads: int, compile_pol
     """
     from jax_ppo import SETTINGS, check_supported, run_reference, setting_overrides  # with the test extra
 
-    overrides = [*setting_overrides(setting), f"compile_policy={compile_policy}", f"compile_update={compile_update}"]
+    overrides = [*setting_overrides(setting), f"runtime.compile_policy={compile_policy}",
+                 f"runtime.compile_update={compile_update}"]
     num_envs, rollout_steps = SETTINGS[setting]["num_envs"], SETTINGS[setting]["rollout_steps"]
     ours = throughput("mlp", num_envs, rollout_steps, updates, device, threads, overrides=overrides)
-    config = load_config(None, [*overrides, f"total_steps={updates * num_envs * rollout_steps}", f"device={device}",
-                                f"threads={threads}"])
+    config = load_config(None, [*overrides, f"total_steps={updates * num_envs * rollout_steps}",
+                                f"runtime.device={device}", f"runtime.threads={threads}"])
     print(f"setting {setting}: {' '.join(overrides)}")
     try:
         check_supported(config)
@@ -151,8 +152,8 @@ def profile(setting: str, updates: int, threads: int, rows: int, device: str = "
     frames = SETTINGS[setting]["num_envs"] * SETTINGS[setting]["rollout_steps"]
     seconds = {}
     with tempfile.TemporaryDirectory() as run_dir:
-        overrides = [f"total_steps={updates * frames}", f"threads={threads}", f"device={device}", f"run_dir={run_dir}",
-                     "progress=false", "eval_episodes=0", "checkpoint_every=1000"]
+        overrides = [f"total_steps={updates * frames}", f"runtime.threads={threads}", f"runtime.device={device}",
+                     f"run_dir={run_dir}", "progress=false", "eval_episodes=0", "checkpoint_every=1000"]
         config = load_config(None, [*setting_overrides(setting), *overrides])
         profiler = cProfile.Profile()
         profiler.enable()
@@ -173,7 +174,7 @@ def parity(setting: str, budget: int, rows: int, threads: int, seed: int) -> Non
     import numpy as np
     from jax_ppo import pooled_deliveries, run_reference, setting_overrides
 
-    overrides = [*setting_overrides(setting), f"total_steps={budget}", f"threads={threads}", f"seed={seed}"]
+    overrides = [*setting_overrides(setting), f"total_steps={budget}", f"runtime.threads={threads}", f"seed={seed}"]
     ours = []  # (env steps, mean deliveries of the episodes that ended in the update, or None)
     with tempfile.TemporaryDirectory() as run_dir:
         config = load_config(None, [*overrides, f"run_dir={run_dir}", "progress=false", "eval_episodes=0",

@@ -63,7 +63,7 @@ def condition_entry(entry: str | dict) -> tuple[str, list[str]]:
 
 def train_condition(name: str, path: str, overrides: list[str], teams: int, runs: Path) -> None:
     """Trains (or resumes, or skips) one condition's teams together."""
-    config = load_config(path, [*overrides, f"name={name}", f"teams={teams}", f"run_dir={runs}"])
+    config = load_config(path, [*overrides, f"name={name}", f"runtime.teams={teams}", f"run_dir={runs}"])
     train_or_resume(team_configs(config))
 
 
@@ -189,7 +189,7 @@ def main(argv=None) -> int:
     evaluation = {**protocol.get("evaluation", {}),
                   **{key: getattr(args, key) for key in ("rollouts", "heldout") if getattr(args, key) is not None}}
     shared = load_config(entries[next(iter(conditions))][0], overrides)  # what every condition shares: budget, device
-    device = shared.device
+    device = shared.runtime.device
     proxies = human_proxies(out / "humans") if evaluation.get("human_proxies") else None
     eval_config = EvalConfig(
         conditions={name: str(out / "runs" / name / "seed*") for name in conditions},

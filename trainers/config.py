@@ -49,25 +49,23 @@ def option(default, help: str, group: str | None = None):
     """A config field with its one-line meaning (`help`, listed by `config_help`); a list or dict default is copied
     for every instance. `group` starts a new group of keys in `config_help`."""
     metadata = {"help": help} if group is None else {"help": help, "group": group}
-    if isinstance(default, list | dict):
+    if isinstance(default, list | dict) or dataclasses.is_dataclass(default):
         return dataclasses.field(default_factory=lambda: copy.deepcopy(default), metadata=metadata)
     return dataclasses.field(default=default, metadata=metadata)
 
 
 @dataclass
-class TrainConfig:
-    """Everything a self-play run (IPPO or E3T) depends on. Defaults: the paper's Infinite Kitchen setting, an MLP."""
+class RuntimeConfig:
+    """The run options of a training run: how it uses the machine, not what it learns. A fixed seed learns the same
+    under any of them (up to float rounding where a key says so, and on another device), so they are not part of a
+    run's identity: a checkpoint leaves them out (`TrainConfig.identity`), and a run resumes under others."""
 
-    # --- run
-    name: str = option("ippo_mlp_ik", "the run directory is {run_dir}/{name}/seed{seed}", group="run")
-    run_dir: str = option("runs", "the folder that holds the runs")
-    seed: int = option(0, "seeds torch, the levels and the resets; the 6 teams of a condition are seeds 0..5")
+    device: str = option("cpu", '"cpu" or "cuda[:i]"; the env and the networks share it')
+    threads: int = option(1, "torch CPU threads (1 is fastest for small networks on a shared CPU)")
     teams: int = option(
         1, "train seeds seed .. seed+teams-1 at once, one batch of teams x num_envs kitchens; each team writes "
            "its own run directory, as a run of its own would"
     )
-    device: str = option("cpu", '"cpu" or "cuda[:i]"; the env and the networks share it')
-    threads: int = option(1, "torch CPU threads (1 is fastest for small networks on a shared CPU)")
     parallel_teams: int = option(
         0, "teams whose PPO updates run at once (or a team's minibatch shards), each on a thread of its own with "
            "`threads` torch threads (0: as many as the CPU cores allow); the results are those of one at a time"
@@ -86,8 +84,21 @@ class TrainConfig:
                "as one function; on a GPU its graphs replay as CUDA graphs; equal to eager up to float rounding"
     )
 
+
+@dataclass
+class TrainConfig:
+    """Everything a self-play run (IPPO or E3T) depends on. Defaults: the paper's Infinite Kitchen setting, an MLP."""
+
+    # --- run
+    name: str = option("ippo_mlp_ik", "the run directory is {run_dir}/{name}/seed{seed}", group="run")
+    run_dir: str = option("runs", "the folder that holds the runs")
+    seed: int = option(0, "seeds torch, the levels and the resets; the 6 teams of a condition are seeds 0..5")
     algorithm: str = option(
         "ippo", '"ippo" (self-play), "e3t" (mixed partner + partner model; e3t_* architectures), or a registered one'
+    )
+    algorithm_config: dict[str, typing.Any] = option(
+        {}, "the algorithm's own settings (algorithm_config.<key>, each algorithm's listed below; empty: its "
+            "defaults, which a run's saved config spells out)"
     )
 
     # --- environment
@@ -121,14 +132,6 @@ class TrainConfig:
     max_grad_norm: float = option(0.5, "gradients are clipped to this global norm")
     shaping_weight: float = option(0.0, "weight of the shaped reward added to the sparse one (0: sparse only)")
     shaping_anneal_steps: int = option(0, "anneal shaping_weight linearly to 0 over this many env steps (0: constant)")
-
-    # --- E3T (algorithm: e3t)
-    partner_epsilon: float = option(
-        0.3, "the mixed partner acts from (1 - eps) * pi + eps * uniform", group="E3T (algorithm: e3t)"
-    )
-    partner_policy: str = option("ego", 'pi of the mixed partner: "ego" (the policy itself) or "copy" (a slow copy)')
-    partner_copy_rate: float = option(0.01, '"copy": after every update, copy += rate * (ego - copy)')
-    predictor_coef: float = option(1.0, "weight of the partner predictor's cross-entropy in the loss")
 
     # --- planner-guided start (kitchen-distill, then init_from)
     init_from: str = option(
@@ -167,6 +170,12 @@ class TrainConfig:
     eval_heldout: int = option(5, "held-out generated levels in that table, beside the 5 expanded classics")
     gif: bool = option(True, "a GIF of the trained team on the first evaluation grid")
 
+    # --- run options
+    runtime: RuntimeConfig = option(
+        RuntimeConfig(), "how the run uses the machine, not what it learns: a run resumes under other run options, "
+                         "and its checkpoints do not hold them", group="runtime"
+    )
+
     @property
     def run_path(self) -> Path:
         return Path(self.run_dir) / self.name / f"seed{self.seed}"
@@ -202,20 +211,22 @@ class TrainConfig:
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
+    def identity(self) -> dict:
+        """What the run is, without how it ran (`runtime`): what its checkpoints hold."""
+        return {key: value for key, value in self.to_dict().items() if key != "runtime"}
+
     def check(self) -> TrainConfig:
         """Refuses values no run can use, before any work starts. Touches neither the file system nor the levels:
         the trainer also calls `check_run_location` and `check_levels`; nor the algorithm's own settings, which
         it checks (`trainers.algorithms.check_algorithm`: the registry is the algorithms' own)."""
-        _check_types(self)
+        check_types(self)
         _check_name(self.name)
         _check_seed(self.seed)
         counts = ["max_steps", "num_envs", "rollout_steps", "total_steps", "hidden", "epochs", "minibatches"]
         distilling = ["distill_rounds", "distill_kitchens", "distill_epochs", "distill_minibatch"]
-        _at_least(self, [*counts, "checkpoint_every", "threads", "teams", *distilling], 1)
-        if self.seed + self.teams - 1 > MAX_SEED:
-            raise ConfigError(f"teams={self.teams} from seed={self.seed} go past the largest seed, {MAX_SEED}")
+        _at_least(self, [*counts, "checkpoint_every", *distilling], 1)
         weights = ["entropy_coef", "value_coef", "shaping_weight"]
-        _at_least(self, ["eval_episodes", "shaping_anneal_steps", "parallel_teams", "minibatch_shards", *weights], 0)
+        _at_least(self, ["eval_episodes", "shaping_anneal_steps", *weights], 0)
         if sorted(self.distill_move_order) != sorted("NSEW"):
             raise ConfigError(f"distill_move_order must be a permutation of NSEW, got {self.distill_move_order!r}")
         for name in ("lr", "adam_eps", "clip_epsilon", "max_grad_norm", "distill_lr"):
@@ -245,17 +256,26 @@ class TrainConfig:
                 f"minibatches ({self.minibatches}) must divide num_envs ({self.num_envs}): minibatches are whole "
                 "kitchens' sequences"
             )
-        if self.compile_update and self.minibatch_shards > 1:
-            raise ConfigError(f"compile_update compiles a whole minibatch's step: minibatch_shards="
-                              f"{self.minibatch_shards} splits it; set minibatch_shards=1 (or 0)")
-        if self.minibatch_shards > 1:
-            if self.kitchens_per_minibatch % self.minibatch_shards:
-                raise ConfigError(
-                    f"minibatch_shards ({self.minibatch_shards}) must divide the {self.kitchens_per_minibatch} "
-                    "kitchens of a minibatch (num_envs / minibatches): shards are equal parts"
-                )
-        check_device(self.device)
+        self.check_runtime()
         return self
+
+    def check_runtime(self) -> None:
+        """Refuses run options no run can use (`runtime`), some of them with this run's shape."""
+        runtime = self.runtime
+        _at_least(runtime, ["threads", "teams"], 1, "runtime.")
+        _at_least(runtime, ["parallel_teams", "minibatch_shards"], 0, "runtime.")
+        if self.seed + runtime.teams - 1 > MAX_SEED:
+            raise ConfigError(f"runtime.teams={runtime.teams} from seed={self.seed} go past the largest seed, "
+                              f"{MAX_SEED}")
+        if runtime.compile_update and runtime.minibatch_shards > 1:
+            raise ConfigError(f"runtime.compile_update compiles a whole minibatch's step: runtime.minibatch_shards="
+                              f"{runtime.minibatch_shards} splits it; set runtime.minibatch_shards=1 (or 0)")
+        if runtime.minibatch_shards > 1 and self.kitchens_per_minibatch % runtime.minibatch_shards:
+            raise ConfigError(
+                f"runtime.minibatch_shards ({runtime.minibatch_shards}) must divide the {self.kitchens_per_minibatch} "
+                "kitchens of a minibatch (num_envs / minibatches): shards are equal parts"
+            )
+        check_device(runtime.device, "runtime.device")
 
     def check_run_location(self) -> None:
         """Refuses a run directory that cannot be made because a file stands where a folder must be. It looks at
@@ -348,7 +368,7 @@ class EvalConfig:
 
     def check(self) -> EvalConfig:
         """Refuses values no evaluation can use, before any work starts."""
-        _check_types(self)
+        check_types(self)
         _check_seed(self.seed)
         _at_least(self, ["rollouts", "max_steps", "max_envs", "threads"], 1)
         if not 0 <= self.heldout <= NUM_HELDOUT_GENERATED:
@@ -370,56 +390,55 @@ class EvalConfig:
         return self
 
 
-def check_device(device: str) -> None:
-    """Refuses a device other than the CPU or a CUDA GPU that both torch and JAX see on this machine."""
-    allowed = "use device=cpu, device=cuda or device=cuda:<index>"
+def check_device(device: str, key: str = "device") -> None:
+    """Refuses a device other than the CPU or a CUDA GPU that both torch and JAX see on this machine; `key` is the
+    config key that names it."""
+    allowed = f"use {key}=cpu, {key}=cuda or {key}=cuda:<index>"
     try:
         parsed = torch.device(device)
     except (RuntimeError, TypeError, ValueError):
-        raise ConfigError(f"device={device} is not a device: {allowed}") from None
+        raise ConfigError(f"{key}={device} is not a device: {allowed}") from None
     if parsed.type == "cpu" and not parsed.index:
         return
     if parsed.type != "cuda":
-        raise ConfigError(f"device={device} is not supported: {allowed}")
+        raise ConfigError(f"{key}={device} is not supported: {allowed}")
     if not torch.cuda.is_available():
-        raise ConfigError(f"device={device}, but torch sees no CUDA GPU on this machine: use device=cpu")
+        raise ConfigError(f"{key}={device}, but torch sees no CUDA GPU on this machine: use {key}=cpu")
     index, count = parsed.index or 0, torch.cuda.device_count()
     if index >= count:
-        raise ConfigError(f"device={device}, but torch sees {count} CUDA GPU(s) here: use cuda:0 to cuda:{count - 1}")
+        raise ConfigError(f"{key}={device}, but torch sees {count} CUDA GPU(s) here: use cuda:0 to cuda:{count - 1}")
     try:  # the env runs in JAX on the same GPU (torch_kitchen.env.jax_device_for)
         jax_gpus = len(jax.devices("gpu"))
     except RuntimeError:
         jax_gpus = 0
     if index >= jax_gpus:
         raise ConfigError(
-            f"device={device}, but JAX sees {jax_gpus} GPU(s) here (backend: {jax.default_backend()}): install a CUDA "
-            'build of JAX matching the driver (pip install -U "jax[cuda12]") or use device=cpu'
+            f"{key}={device}, but JAX sees {jax_gpus} GPU(s) here (backend: {jax.default_backend()}): install a CUDA "
+            f'build of JAX matching the driver (pip install -U "jax[cuda12]") or use {key}=cpu'
         )
 
 
-def train_config_parser(prog: str, description: str) -> argparse.ArgumentParser:
+def train_config_parser(prog: str, description: str, sections: dict[str, type] | None = None
+                        ) -> argparse.ArgumentParser:
     """The command line of a command that reads a training config: a YAML file (omitted with --resume) and
-    key=value overrides, every key with its meaning under --help (`config_help`)."""
+    key=value overrides, every key with its meaning under --help (`config_help`, with the algorithms' `sections`)."""
     parser = argparse.ArgumentParser(
-        prog=prog, description=f"{description} Overrides: any config key as key=value (e.g. seed=3 total_steps=2e6).",
-        epilog=config_help(TrainConfig), formatter_class=argparse.RawDescriptionHelpFormatter,
+        prog=prog, description=f"{description} Overrides: any config key as key=value (e.g. seed=3 total_steps=2e6 "
+                               "runtime.threads=2).",
+        epilog=config_help(TrainConfig, sections), formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("config", nargs="?", help="a YAML config (configs/...); omit it with --resume")
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     return parser
 
 
-def config_help(schema: type) -> str:
-    """Every key of `schema` with its type, default and meaning, in groups: an argparse epilog (to be shown with
+def config_help(schema: type, sections: dict[str, type] | None = None) -> str:
+    """Every key of `schema` with its type, default and meaning, in groups, then the keys of each algorithm's own
+    settings (`sections`: algorithm name -> its settings' dataclass): an argparse epilog (to be shown with
     `argparse.RawDescriptionHelpFormatter`, which keeps its lines)."""
-    hints = typing.get_type_hints(schema)
-    lines = ["config keys (in the YAML file, or as key=value overrides):"]
-    for field in dataclasses.fields(schema):
-        if "group" in field.metadata:
-            lines += ["", f"  {field.metadata['group']}:"]
-        default = field.default_factory() if field.default is dataclasses.MISSING else field.default
-        lines.append(f"    {field.name}: {_type_name(hints[field.name])} = {_yaml_scalar(default)}")
-        lines.append(f"        {field.metadata['help']}")
+    lines = ["config keys (in the YAML file, or as key=value overrides):", *_key_lines(schema)]
+    for name, settings in (sections or {}).items():
+        lines += ["", f"  algorithm_config (algorithm: {name}):", *_key_lines(settings, "algorithm_config.")]
     if schema is TrainConfig:
         lines += ["", "config groups (in a file's `defaults:` list, or as group=choice, which replaces the file's):"]
         for group, meaning in GROUPS.items():
@@ -427,26 +446,46 @@ def config_help(schema: type) -> str:
     return "\n".join(lines)
 
 
+def _key_lines(schema: type, prefix: str = "") -> list[str]:
+    """The help lines of `schema`'s keys, named with `prefix`; a section's keys as `section.key`, under its group."""
+    hints, lines = typing.get_type_hints(schema), []
+    for field in dataclasses.fields(schema):
+        if "group" in field.metadata:
+            lines += ["", f"  {prefix}{field.metadata['group']}:"]
+        if dataclasses.is_dataclass(hints[field.name]):
+            lines += [f"    {prefix}{field.name}: a section of the keys below", f"        {field.metadata['help']}",
+                      *_key_lines(hints[field.name], f"{prefix}{field.name}.")]
+            continue
+        default = field.default_factory() if field.default is dataclasses.MISSING else field.default
+        lines.append(f"    {prefix}{field.name}: {_type_name(hints[field.name])} = {_yaml_scalar(default)}")
+        lines.append(f"        {field.metadata['help']}")
+    return lines
+
+
 def _yaml_scalar(value) -> str:
     """A value as one line of YAML, as it would be written in an override."""
     return yaml.safe_dump(value, default_flow_style=True, width=math.inf).removesuffix("\n...\n").strip()
 
 
-def _check_types(config: TrainConfig | EvalConfig) -> None:
-    """Refuses a field whose value does not fit its type (a config built in Python skips `_merge`)."""
+def check_types(config, prefix: str = "") -> None:
+    """Refuses a field of the dataclass `config` whose value does not fit its type (a config built in Python skips
+    `_merge`), its sections' fields too; a field is named with `prefix` (its section's, e.g. "runtime.")."""
     hints = typing.get_type_hints(type(config))
     for field in dataclasses.fields(config):
         value, expected = getattr(config, field.name), hints[field.name]
-        if not _matches(value, expected):
-            raise ConfigError(f"{field.name} must be {_type_name(expected)}, got {value!r}")
-        if expected is float and not math.isfinite(value):  # YAML reads .inf and .nan, float() reads "nan"
-            raise ConfigError(f"{field.name} must be a finite number, got {value}")
+        if dataclasses.is_dataclass(expected) and isinstance(value, expected):
+            check_types(value, f"{prefix}{field.name}.")
+        elif not _matches(value, expected):
+            raise ConfigError(f"{prefix}{field.name} must be {_type_name(expected)}, got {value!r}")
+        elif expected is float and not math.isfinite(value):  # YAML reads .inf and .nan, float() reads "nan"
+            raise ConfigError(f"{prefix}{field.name} must be a finite number, got {value}")
 
 
-def _at_least(config: TrainConfig | EvalConfig, names: list[str], low: int) -> None:
+def _at_least(config, names: list[str], low: int, prefix: str = "") -> None:
+    """Refuses a field of `names` below `low`, named with `prefix` (its section's, e.g. "runtime.")."""
     for name in names:
         if not getattr(config, name) >= low:
-            raise ConfigError(f"{name} must be at least {low}, got {getattr(config, name)}")
+            raise ConfigError(f"{prefix}{name} must be at least {low}, got {getattr(config, name)}")
 
 
 def _check_seed(seed: int) -> None:
@@ -473,6 +512,8 @@ def _fields(schema: type) -> list[str]:
 def _matches(value, expected) -> bool:
     """Whether a YAML value fits a field type built from str, int, float, bool, list, dict and `|`."""
     origin, args = typing.get_origin(expected), typing.get_args(expected)
+    if expected is typing.Any:
+        return True
     if origin in (typing.Union, types.UnionType):
         return any(_matches(value, arg) for arg in args)
     if origin is list:
@@ -489,19 +530,34 @@ def _matches(value, expected) -> bool:
 
 
 def _type_name(expected) -> str:
+    if expected is typing.Any:
+        return "any value"
     if typing.get_origin(expected) is None:
         return expected.__name__
     return str(expected).replace("typing.", "")
 
 
+def config_keys(schema: type) -> list[str]:
+    """The keys of `schema`, a section's as `section.key` (`runtime.device`)."""
+    hints = typing.get_type_hints(schema)
+    return [key for field in dataclasses.fields(schema)
+            for key in ([f"{field.name}.{inner}" for inner in config_keys(hints[field.name])]
+                        if dataclasses.is_dataclass(hints[field.name]) else [field.name])]
+
+
+def is_config_key(schema: type, key: str) -> bool:
+    """Whether `key` names a key of `schema`: one of `config_keys`, or any `algorithm_config.<key>` (the
+    algorithm checks its own)."""
+    return key in config_keys(schema) or (key.startswith("algorithm_config.") and "algorithm_config" in
+                                          typing.get_type_hints(schema))
+
+
 def unknown_key(schema: type, key: str, source: str) -> ConfigError:
-    hint = difflib.get_close_matches(key, _fields(schema), n=1)
+    keys = config_keys(schema)
+    moved = [known for known in keys if known.endswith(f".{key}")]
+    hint = moved or difflib.get_close_matches(key, keys, n=1)
     did_you_mean = f" (did you mean {hint[0]!r}?)" if hint else ""
-    return ConfigError(f"unknown config key {key!r} in {source}{did_you_mean}; valid keys: {_key_list(schema)}")
-
-
-def _key_list(schema: type) -> str:
-    return ", ".join(_fields(schema))
+    return ConfigError(f"unknown config key {key!r} in {source}{did_you_mean}; valid keys: {', '.join(keys)}")
 
 
 # ------------------------------------------------------------------------------- merging, on OmegaConf
@@ -511,10 +567,12 @@ def _is_union(expected) -> bool:
 
 def _omegaconf_type(expected):
     """A field type as OmegaConf can hold it: it types no unions (`levels: str | list[str]`), so those are Any
-    there and `_merge` checks them."""
+    there and `_merge` checks them; a section is its own structured config."""
     origin, args = typing.get_origin(expected), typing.get_args(expected)
     if _is_union(expected):
         return typing.Any
+    if dataclasses.is_dataclass(expected):
+        return _structured(expected)
     if origin is list:
         return list[_omegaconf_type(args[0])]
     if origin is dict:
@@ -527,20 +585,33 @@ def _structured(schema: type) -> type:
     """`schema` as a dataclass OmegaConf can type: the same fields and defaults, unions as Any."""
     hints = typing.get_type_hints(schema)
     fields = [(field.name, _omegaconf_type(hints[field.name]),
+               dataclasses.field(default_factory=_structured(hints[field.name]))  # a section: its own defaults
+               if dataclasses.is_dataclass(hints[field.name]) else
                dataclasses.field(default=field.default, default_factory=field.default_factory))
               for field in dataclasses.fields(schema)]  # fmt: skip
     return dataclasses.make_dataclass(schema.__name__, fields)
 
 
-def _merge(schema: type, merged: DictConfig, values: dict, source: str) -> DictConfig:
-    """`values` (from `source`: a file, the command line, a saved run) merged over `merged` by OmegaConf, which
-    converts what it can (e.g. "1e-3" to a float); a ConfigError names the key, its type and the source."""
-    hints = typing.get_type_hints(schema)
-    layer = {}
+def _merges_by_key(expected) -> bool:
+    """Whether a later layer's mapping for a field of this type merges into the earlier one key by key (a section:
+    `runtime`, `algorithm_config`), rather than replacing it as any other value (e.g. EvalConfig's `conditions`)."""
+    return dataclasses.is_dataclass(expected) or expected == dict[str, typing.Any]
+
+
+def _checked_layer(schema: type, values: dict, source: str, prefix: str = "", root: type | None = None) -> dict:
+    """`values` from `source` with every key known to `schema` (a section's keys named `prefix`key) and every value
+    of a type OmegaConf would not catch refused with one line, and what YAML reads otherwise made readable."""
+    hints, layer = typing.get_type_hints(schema), {}
     for key, value in values.items():
         if key not in hints:
-            raise unknown_key(schema, key, source)
+            raise unknown_key(root or schema, f"{prefix}{key}", source)
         expected = hints[key]
+        if dataclasses.is_dataclass(expected):
+            if not isinstance(value, dict):
+                raise ConfigError(f"{prefix}{key} in {source} must be a mapping of its keys "
+                                  f"({', '.join(_fields(expected))}), got {value!r}")
+            layer[key] = _checked_layer(expected, value, source, f"{prefix}{key}.", root or schema)
+            continue
         if expected is str and value is None:  # `key=` on the command line: the empty string
             value = ""
         if expected is int and isinstance(value, str | float) and not isinstance(value, bool):
@@ -548,21 +619,85 @@ def _merge(schema: type, merged: DictConfig, values: dict, source: str) -> DictC
                 value = int(float(value)) if float(value).is_integer() else value
             except ValueError:
                 pass
-        strict = _is_union(expected) or expected is bool or isinstance(value, bool)  # OmegaConf reads 3 as True
+        # OmegaConf reads 3 as True, and a scalar for a mapping as an error of its own wording
+        strict = (_is_union(expected) or expected is bool or isinstance(value, bool)
+                  or typing.get_origin(expected) is dict)
         if strict and not _matches(value, expected):
-            raise ConfigError(f"{key} in {source} must be {_type_name(expected)}, got {value!r}")
+            raise ConfigError(f"{prefix}{key} in {source} must be {_type_name(expected)}, got {value!r}")
         layer[key] = value
+    return layer
+
+
+def _merge(schema: type, merged: DictConfig, values: dict, source: str, prefix: str = "") -> DictConfig:
+    """`values` (from `source`: a file, the command line, a saved run) merged over `merged` by OmegaConf, which
+    converts what it can (e.g. "1e-3" to a float); a ConfigError names the key (after `prefix`, that of the section
+    `schema` is), its type and the source."""
+    hints, layer = typing.get_type_hints(schema), _checked_layer(schema, values, source, prefix)
     try:
         merged = merged.copy()
         for key, value in layer.items():
-            if isinstance(value, dict):
+            if isinstance(value, dict) and not _merges_by_key(hints[key]):
                 merged[key] = {}  # a later layer replaces a mapping, as it replaces any value, instead of merging
         return OmegaConf.merge(merged, layer)
     except OmegaConfBaseException as error:
-        key = str(getattr(error, "full_key", "") or "").split(".")[0] or next(iter(layer))
-        raise ConfigError(
-            f"{key} in {source} must be {_type_name(hints.get(key, object))}, got {layer.get(key)!r}"
-        ) from None
+        key = str(getattr(error, "full_key", "") or "") or next(iter(layer))
+        expected, value = _at_path(hints, layer, key)
+        raise ConfigError(f"{prefix}{key} in {source} must be {_type_name(expected)}, got {value!r}") from None
+
+
+def _at_path(hints: dict, layer: dict, key: str) -> tuple[type, object]:
+    """The type and the layer's value of the (dotted) `key`."""
+    head, _, rest = key.partition(".")
+    expected, value = hints.get(head, object), layer.get(head)
+    if rest and dataclasses.is_dataclass(expected) and isinstance(value, dict):
+        return _at_path(typing.get_type_hints(expected), value, rest)
+    return expected, value
+
+
+def _build(schema: type, values: dict):
+    """The dataclass `schema` from merged plain values, its sections built as their own dataclasses."""
+    hints = typing.get_type_hints(schema)
+    return schema(**{key: _build(hints[key], value) if dataclasses.is_dataclass(hints[key]) else value
+                     for key, value in values.items()})
+
+
+def settings_from(schema: type, values: dict, prefix: str, owner: str):
+    """The settings of `owner` (e.g. an algorithm) in the dataclass `schema`, from a plain mapping (`values`, its
+    section of the config, whose keys are named `prefix`key): the defaults with `values` merged over them and
+    converted as every config key is; a key `schema` lacks is refused naming the ones it has."""
+    known = _fields(schema)
+    for key in values:
+        if key not in known:
+            hint = difflib.get_close_matches(str(key), known, n=1)
+            raise ConfigError(
+                f"{prefix}{key} is not a setting of {owner}" + (f" (did you mean {prefix}{hint[0]}?)" if hint else "")
+                + (f"; its settings: {', '.join(known)}" if known else ", which has no settings of its own")
+            )
+    merged = _merge(schema, OmegaConf.structured(_structured(schema)), values, "the config", prefix)
+    settings = _build(schema, OmegaConf.to_container(merged))
+    check_types(settings, prefix)
+    return settings
+
+
+# Keys that had no section before `runtime` and `algorithm_config` did, as saved runs and older files hold them.
+RUN_OPTIONS = tuple(field.name for field in dataclasses.fields(RuntimeConfig))
+E3T_SETTINGS = ("partner_epsilon", "partner_policy", "partner_copy_rate", "predictor_coef")
+
+
+def sectioned(values: dict, schema: type = TrainConfig) -> dict:
+    """A training config's values written before the run options and the algorithm's settings had sections, put in
+    them: the run options under `runtime`, E3T's under `algorithm_config` where the values train E3T (others
+    ignored them, and a config saved by any run held them all). Other schemas' values are returned as they are."""
+    if schema is not TrainConfig or not any(key in values for key in (*RUN_OPTIONS, *E3T_SETTINGS)):
+        return values
+    values = dict(values)
+    runtime = {key: values.pop(key) for key in RUN_OPTIONS if key in values}
+    settings = {key: values.pop(key) for key in E3T_SETTINGS if key in values}
+    if runtime:
+        values["runtime"] = {**runtime, **(values.get("runtime") or {})}
+    if settings and values.get("algorithm", "e3t") == "e3t":
+        values["algorithm_config"] = {**settings, **(values.get("algorithm_config") or {})}
+    return values
 
 
 CONFIG_ROOT = Path(__file__).resolve().parent.parent / "configs"  # the shipped configs, and the config groups
@@ -618,7 +753,8 @@ def _read_yaml(schema: type, path: Path, seen: tuple[Path, ...] = ()) -> list[La
     for key in values:
         if not isinstance(key, str):
             raise ConfigError(
-                f"the key {key!r} in {path} is not a config key (keys are names): valid keys: {_key_list(schema)}"
+                f"the key {key!r} in {path} is not a config key (keys are names): valid keys: "
+                f"{', '.join(config_keys(schema))}"
             )
     defaults = values.pop("defaults", [])
     if "base" in values:
@@ -638,22 +774,28 @@ def _read_yaml(schema: type, path: Path, seen: tuple[Path, ...] = ()) -> list[La
         else:
             raise ConfigError(f"defaults in {path}: {item!r} is neither a config file (relative to this one) nor a "
                               f"group choice ({', '.join(f'{group}: <choice>' for group in GROUPS)})")
-    return [*layers, Layer(values, str(path))]
+    return [*layers, Layer(sectioned(values, schema), str(path))]
 
 
 def parse_overrides(overrides: list[str], schema: type = TrainConfig) -> dict:
-    """`["lr=1e-3", "levels=[a, b]"]` -> {key: value}, each value read by OmegaConf's dotlist grammar (YAML)."""
+    """`["lr=1e-3", "levels=[a, b]", "runtime.threads=2"]` -> {key: value} (a section's keys nested under it), each
+    value read by OmegaConf's dotlist grammar (YAML)."""
     parsed = {}
     for item in overrides:
-        key, sep, _ = item.partition("=")
-        if not sep or not key.strip():
+        key, sep, raw = (part.strip() for part in item.partition("="))
+        if not sep or not key:
             raise ConfigError(f"override {item!r} must look like key=value (e.g. seed=3)")
-        if key.strip() not in _fields(schema):
-            raise unknown_key(schema, key.strip(), "the command line")
+        if not is_config_key(schema, key):
+            raise unknown_key(schema, key, "the command line")
         try:
-            parsed.update(OmegaConf.to_container(OmegaConf.from_dotlist([item.strip()])))
+            value = OmegaConf.to_container(OmegaConf.from_dotlist([f"value={raw}"]))["value"]
         except OmegaConfBaseException:
-            parsed[key.strip()] = item.partition("=")[2]
+            value = raw
+        *sections, name = key.split(".")
+        inner = parsed
+        for section in sections:
+            inner = inner.setdefault(section, {})
+        inner[name] = value
     return parsed
 
 
@@ -671,7 +813,7 @@ def load_config(
     overrides, merged in that order by OmegaConf."""
     choices = {item.partition("=")[0].strip(): item.partition("=")[2].strip() for item in overrides
                if schema is TrainConfig and item.partition("=")[0].strip() in GROUPS}
-    layers = [Layer(base or {}, "the saved run config")]
+    layers = [Layer(sectioned(base or {}, schema), "the saved run config")]
     if path is not None:
         layers += [layer for layer in _read_yaml(schema, Path(path)) if layer.group not in choices]
     for group, choice in choices.items():
@@ -681,7 +823,7 @@ def load_config(
     merged = OmegaConf.structured(_structured(schema))
     for layer in layers:
         merged = _merge(schema, merged, layer.values, layer.source)
-    return schema(**OmegaConf.to_container(merged)).check()
+    return _build(schema, OmegaConf.to_container(merged)).check()
 
 
 def save_config(config: TrainConfig | EvalConfig, path: str | Path) -> None:
@@ -693,13 +835,18 @@ __all__ = [
     "EvalConfig",
     "TrainConfig",
     "check_device",
+    "check_types",
     "config_help",
+    "config_keys",
     "group_choices",
     "group_values",
+    "is_config_key",
     "load_config",
     "option",
     "parse_overrides",
     "save_config",
+    "sectioned",
+    "settings_from",
     "train_config_parser",
     "unknown_key",
 ]

@@ -39,7 +39,7 @@ from torch_kitchen.models import ACTION, LOGITS, OBSERVATION, VALUE, ActorCritic
 from torch_kitchen.scripted import ScriptedCook
 from torch_kitchen.symmetry import symmetries_of, transform_action_probs, transform_observation
 from trainers.advantages import compute_advantages, shaping_weight_at
-from trainers.algorithms import check_algorithm
+from trainers.algorithms import algorithm_settings, check_algorithm
 from trainers.checkpoint import (
     LATEST,
     CheckpointError,
@@ -167,14 +167,13 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
     docstring); returns the run directory. `resume`: continue the run from its last round. `on_round(round,
     metrics)`: called after every round's checkpoint; returning True stops the run there. Raises ConfigError or
     CheckpointError before any work."""
-    config.check()
-    check_algorithm(config)
+    config = check_algorithm(config.check())
     config.check_run_location()
-    if config.teams != 1:
+    if config.runtime.teams != 1:
         raise ConfigError("kitchen-distill distils one team; run it once per seed")
     for warning in config.check_levels():
         print(f"kitchen-distill: warning: {warning}", file=sys.stderr)
-    torch.set_num_threads(config.threads)
+    torch.set_num_threads(config.runtime.threads)
     torch.manual_seed(config.seed)
     run = Path(run or config.run_path)
     checkpoint = run / "checkpoints" / LATEST
@@ -185,10 +184,10 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
     kitchen = make_env(config, num_envs=config.distill_kitchens)
     obs_shape = kitchen.kitchen.obs_shape
     actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
-    if torch.device(config.device).type == "cpu":
+    if torch.device(config.runtime.device).type == "cpu":
         accelerate_cpu(actor_critic.actor, actor_critic.critic)
-    actor_critic.actor.to(config.device)
-    actor_critic.critic.to(config.device)
+    actor_critic.actor.to(config.runtime.device)
+    actor_critic.critic.to(config.runtime.device)
     parameters = [*actor_critic.actor.parameters(), *actor_critic.critic.parameters()]
     optimizer = torch.optim.Adam(parameters, lr=config.distill_lr, eps=config.adam_eps)
     identity = model_identity(config.architecture, obs_shape, config.hidden, config.share_params)
@@ -198,7 +197,7 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
 
     done_rounds, env_steps, rng = 0, 0, None
     if resume:
-        state = load_checkpoint(checkpoint, map_location=config.device)
+        state = load_checkpoint(checkpoint, map_location=config.runtime.device)
         check_identity(state, identity)
         for name, part in parts.items():
             part.load_state_dict(state[name])
@@ -231,7 +230,7 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
             for group in optimizer.param_groups:
                 group["lr"] = learning_rate(config, round_)
             # Every round's data, from the memory-mapped files to the networks' device.
-            every_round = torch.cat(data).to(config.device)
+            every_round = torch.cat(data).to(config.runtime.device)
             metrics = fit(actor_critic, optimizer, every_round,
                           batch.select(*actor_critic.critic.in_keys, VALUE_TARGET, strict=False), config)
             metrics["distill/teacher_share"] = policy.teacher_share
@@ -268,7 +267,8 @@ def distill_start(config: TrainConfig, run: Path) -> Path:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = train_config_parser("kitchen-distill", "Distil the scripted cook into a team's networks by DAgger over "
-                                 "its kitchens (a planner-guided start for kitchen-train's init_from).")
+                                 "its kitchens (a planner-guided start for kitchen-train's init_from).",
+                                 algorithm_settings())
     parser.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its latest round")
     add_plugin_option(parser)
     args = parser.parse_args(argv)

@@ -40,7 +40,7 @@ from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.pairing import make_seated_actor
 from torch_kitchen.scripted import SCRIPTED_COOK, scripted_actor_critic
 from trainers.checkpoint import CheckpointError, load_checkpoint
-from trainers.config import ConfigError, EvalConfig, TrainConfig, config_help, load_config, save_config
+from trainers.config import ConfigError, EvalConfig, RuntimeConfig, TrainConfig, config_help, load_config, save_config
 from trainers.figures import draw_figures, draw_heatmap, draw_learning_curve
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.rollout import play_episodes
@@ -98,7 +98,7 @@ def load_team(checkpoint: str | Path, device: str = "cpu", condition: str = "") 
     state = load_checkpoint(checkpoint, map_location=device)
     where = state["path"]
     try:
-        config = load_config(base=state["config"], overrides=[f"device={device}"])
+        config = load_config(base=state["config"], overrides=[f"runtime.device={device}"])
     except ConfigError as error:
         raise CheckpointError(f"{where} was saved with a config this version cannot read ({error})") from None
     model = state["model"]
@@ -130,7 +130,7 @@ def load_team(checkpoint: str | Path, device: str = "cpu", condition: str = "") 
 
 def scripted_cook_team(obs_shape: tuple[int, int, int], device: str = "cpu") -> Team:
     """The scripted cook as a team (both seats), for kitchens of `obs_shape`; at home on every grid."""
-    config = TrainConfig(name="scripted_cook", architecture=SCRIPTED_COOK, device=device)
+    config = TrainConfig(name="scripted_cook", architecture=SCRIPTED_COOK, runtime=RuntimeConfig(device=device))
     return Team("scripted cook", SCRIPTED_CONDITION, config, scripted_actor_critic(), tuple(obs_shape), "(scripted)")
 
 
@@ -477,7 +477,7 @@ def visit_shares(outcomes: Outcomes, grid_name: str) -> list[tuple[str, str, np.
 # -------------------------------------------------------------------------------------------------- GIFs
 def record_gif(seat0: Team, seat1: Team, grid: Layout | str, path: Path, max_steps: int = 256, seed: int = 0) -> Path:
     """One episode of agent 0 of `seat0` with agent 1 of `seat1` on `grid`, rendered as an animated GIF."""
-    kitchen = KitchenEnv(1, levels=grid, max_steps=max_steps, device=seat0.config.device, seed=seed)
+    kitchen = KitchenEnv(1, levels=grid, max_steps=max_steps, device=seat0.config.runtime.device, seed=seed)
     teams = [seat0] if seat0 is seat1 else [seat0, seat1]
     actor = make_seated_actor([team.actor_critic.actor for team in teams])
     seated = actor.module[0].seat(torch.tensor([[0, len(teams) - 1]], device=kitchen.device))
@@ -571,7 +571,7 @@ def report_trained_team(run: str | Path, episodes: int | None = None, num_heldou
         heldout=num_heldout,
         rollouts=episodes or config.eval_episodes,
         max_steps=config.max_steps,
-        seed=config.seed, device=config.device, threads=config.threads, progress=False,
+        seed=config.seed, device=config.runtime.device, threads=config.runtime.threads, progress=False,
         out_dir=str(run),
     ).check())  # fmt: skip
     if not team.fully_trained:

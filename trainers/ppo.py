@@ -98,7 +98,7 @@ def start_update(team: TrainingRun, batch: TensorDictBase) -> list[tuple[torch.T
     compute_advantages(batch, team.actor_critic.critic, config, shaping_weight_at(config, team.env_steps))
     team.algorithm.process_batch(batch)
     # Drawn where the batch is: a GPU's minibatches then need nothing from the host.
-    return [torch.randperm(config.num_envs, device=config.device).chunk(config.minibatches)
+    return [torch.randperm(config.num_envs, device=config.runtime.device).chunk(config.minibatches)
             for _ in range(config.epochs)]
 
 
@@ -166,7 +166,7 @@ def start_from(team: TrainingRun) -> None:
         return
     if team.config.init_from == PLANNER_START:
         distill_start(team.config, start)
-    state = load_checkpoint(start, map_location=team.config.device)
+    state = load_checkpoint(start, map_location=team.config.runtime.device)
     check_identity(state, team.identity)
     team.parts["actor"].load_state_dict(state["actor"])
     team.parts["critic"].load_state_dict(state["critic"])
@@ -220,13 +220,14 @@ def train(
     `config.architecture`). `resume`: continue the run from its latest checkpoint. `on_update(update,
     metrics)`: called after every update; returning True stops the run after a checkpoint. `run`: the run
     directory (default `config.run_path`). `allow_unsolvable`: train on level files the checker calls
-    unsolvable (with a warning) instead of refusing them. `config.teams > 1`: use `train_teams`.
+    unsolvable (with a warning) instead of refusing them. `runtime.teams > 1`: use `train_teams`.
 
     Raises ConfigError for a config no run can use (before any work), RunStopped after a signal (with a
     checkpoint), TrainingDiverged when a loss is NaN or infinite (with a checkpoint of the last good state).
     """
-    if config.teams != 1:
-        raise ConfigError(f"teams={config.teams}: train several teams with train_teams(team_configs(config))")
+    if config.runtime.teams != 1:
+        raise ConfigError(f"runtime.teams={config.runtime.teams}: train several teams with "
+                          "train_teams(team_configs(config))")
     runs = None if run is None else [run]
     return train_teams([config], runs, resume, on_update, allow_unsolvable, actor_critic)[0]
 
@@ -245,7 +246,7 @@ def train_teams(
     which must be at the same update. `on_update(update, metrics)` is called for every team; `actor_critic` only
     for a single team. Raises as `train` does.
     """
-    check_teams(configs)
+    configs = check_teams(configs)
     lead, num_teams = configs[0], len(configs)
     for warning in lead.check_levels(allow_unsolvable):
         print(f"kitchen-train: warning: {warning}", file=sys.stderr)

@@ -35,7 +35,7 @@ def start_fresh(run: Path) -> None:
 def restore(team: TrainingRun) -> dict:
     """Loads `team`'s latest checkpoint into its parts (networks, optimizer, its kitchens) and its algorithm, and
     sets its counters; returns the checkpoint (for its RNG states)."""
-    state = load_checkpoint(team.checkpoint_path, map_location=team.config.device)
+    state = load_checkpoint(team.checkpoint_path, map_location=team.config.runtime.device)
     check_identity(state, team.identity)
     for name, part in team.parts.items():
         part.load_state_dict(state[name])

@@ -40,7 +40,7 @@ Finish = Callable  # trainers.ppo.finish_update: (team, batch, minibatch losses,
 
 def use_threads(config: TrainConfig) -> None:
     """Torch's CPU threads for this process (`threads`), set before anything is built."""
-    torch.set_num_threads(config.threads)
+    torch.set_num_threads(config.runtime.threads)
 
 
 def minibatch_shards(config: TrainConfig) -> int:
@@ -48,11 +48,11 @@ def minibatch_shards(config: TrainConfig) -> int:
     threads' worth of arithmetic in a minibatch costs more than a second pass of the loss's Python on a CPU from
     hidden 128 up: 1.2-1.4x the steps/s at 32 x 256, 0.8x at hidden 64, 16 x 128; BENCHMARKS.md). It depends on
     the config alone, so a team gets the same numbers alone and beside other teams."""
-    if config.minibatch_shards:
-        return config.minibatch_shards
-    if config.compile_update:  # one compiled step per minibatch
+    if config.runtime.minibatch_shards:
+        return config.runtime.minibatch_shards
+    if config.runtime.compile_update:  # one compiled step per minibatch
         return 1
-    pays = (torch.device(config.device).type == "cpu" and config.hidden >= 128
+    pays = (torch.device(config.runtime.device).type == "cpu" and config.hidden >= 128
             and config.kitchens_per_minibatch % 2 == 0 and ALGORITHMS[config.algorithm].shardable)
     return 2 if pays else 1
 
@@ -64,9 +64,9 @@ def acting_policy(config: TrainConfig, teams: Sequence[TrainingRun]) -> TeamPoli
     policies = [team.policy for team in teams]
     streams = [team.stream for team in teams]
     if acts_stacked(config, policies):
-        compile_mode = "reduce-overhead" if config.compile_policy else None
+        compile_mode = "reduce-overhead" if config.runtime.compile_policy else None
         return TeamPolicy(policies, streams, config.num_envs, True, compile_mode)
-    policies = [torch.compile(policy) if config.compile_policy else policy for policy in policies]
+    policies = [torch.compile(policy) if config.runtime.compile_policy else policy for policy in policies]
     return TeamPolicy(policies, streams, config.num_envs)
 
 
@@ -92,7 +92,7 @@ def acts_stacked(config: TrainConfig, policies: Sequence[TensorDictModuleBase]) 
     """Whether the teams act as one stacked network (`TeamPolicy`'s `stack`): on a GPU, where the policies allow
     it, a team's kernel launches for all of them; on a CPU they act one after another, each with its sparse first
     layer."""
-    return torch.device(config.device).type == "cuda" and stackable_acting(policies) is not None
+    return torch.device(config.runtime.device).type == "cuda" and stackable_acting(policies) is not None
 
 
 def learns_stacked(config: TrainConfig, teams: Sequence[TrainingRun]) -> bool:
@@ -101,7 +101,7 @@ def learns_stacked(config: TrainConfig, teams: Sequence[TrainingRun]) -> bool:
     team learns on its own, with its sparse first layer, on threads where `parallel_teams`."""
     stackable = (config.share_params and not teams[0].actor_critic.recurrent and teams[0].algorithm.stackable
                  and minibatch_shards(config) == 1)
-    return torch.device(config.device).type == "cuda" and len(teams) > 1 and stackable
+    return torch.device(config.runtime.device).type == "cuda" and len(teams) > 1 and stackable
 
 
 def stacked_update(teams: Sequence[TrainingRun]) -> Callable[[TensorDictBase], dict[str, torch.Tensor]]:
@@ -109,7 +109,7 @@ def stacked_update(teams: Sequence[TrainingRun]) -> Callable[[TensorDictBase], d
     `compile_update` (on a GPU, replayed as CUDA graphs)."""
     loss = StackedLoss([team.loss_module for team in teams], teams[0].algorithm.process_minibatch)
     step = functools.partial(stacked_step, teams, loss)
-    return compile_step(step, teams[0].config.device) if teams[0].config.compile_update else step
+    return compile_step(step, teams[0].config.runtime.device) if teams[0].config.runtime.compile_update else step
 
 
 def minibatch_step(team: TrainingRun, minibatch: TensorDictBase,
@@ -225,7 +225,7 @@ def learning_pool(config: TrainConfig, num_teams: int) -> ThreadPoolExecutor | N
     """The threads on which the teams learn at once (`parallel_teams`; 0: as many as the CPU cores allow with
     `threads` torch threads each), or on which a single team's minibatch shards run (`minibatch_shards`, a
     `ShardPool`); None for one after the other."""
-    workers = config.parallel_teams or max(1, usable_cores() // config.threads)
+    workers = config.runtime.parallel_teams or max(1, usable_cores() // config.runtime.threads)
     workers = min(workers, num_teams if num_teams > 1 else minibatch_shards(config))
     if workers < 2:
         return None
@@ -242,9 +242,9 @@ class UpdateRunner:
     def __init__(self, config: TrainConfig, teams: Sequence[TrainingRun], learn: Learn, finish: Finish):
         self.config, self.teams, self.learn, self.finish = config, list(teams), learn, finish
         self.stacked = stacked_update(teams) if learns_stacked(config, teams) else None
-        if config.compile_update and self.stacked is None:
+        if config.runtime.compile_update and self.stacked is None:
             for team in teams:
-                team.compiled_step = compile_step(functools.partial(ppo_step, team), config.device)
+                team.compiled_step = compile_step(functools.partial(ppo_step, team), config.runtime.device)
         self.pool: ThreadPoolExecutor | None = None
 
     def __enter__(self) -> UpdateRunner:

@@ -39,8 +39,17 @@ import sys
 from collections.abc import Sequence
 from contextlib import contextmanager
 
-from trainers.algorithms import check_algorithm
-from trainers.config import ConfigError, TrainConfig, config_help, group_choices, group_values, load_config, unknown_key
+from trainers.algorithms import algorithm_settings, check_algorithm
+from trainers.config import (
+    ConfigError,
+    TrainConfig,
+    config_help,
+    group_choices,
+    group_values,
+    is_config_key,
+    load_config,
+    unknown_key,
+)
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.train_command import train_or_resume
 from trainers.training_run import team_configs
@@ -98,7 +107,7 @@ def grid_values(config_path: str, overrides: Sequence[str]) -> dict[str, list[st
         except OverrideParseException as error:
             raise ConfigError(f"cannot read the override {item!r}: {error}") from None
         key = override.key_or_group
-        if key not in TrainConfig.__dataclass_fields__ and key != REGIME:
+        if not is_config_key(TrainConfig, key) and key != REGIME:
             raise unknown_key(TrainConfig, key, "the command line")
         if override.is_sweep_override():
             values[key] = list(override.sweep_string_iterator())
@@ -161,7 +170,8 @@ def sweep(config_path: str, overrides: Sequence[str]) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     import argparse
 
-    parser = argparse.ArgumentParser(prog="kitchen-sweep", description=__doc__, epilog=config_help(TrainConfig),
+    parser = argparse.ArgumentParser(prog="kitchen-sweep", description=__doc__,
+                                     epilog=config_help(TrainConfig, algorithm_settings()),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("config", help="a YAML config (configs/...)")
     parser.add_argument("overrides", nargs="*", help="key=a,b,c sweeps and key=value overrides; hydra.* settings")

@@ -17,6 +17,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from trainers.algorithms import algorithm_settings
 from trainers.checkpoint import LATEST, CheckpointError
 from trainers.config import ConfigError, TrainConfig, load_config, train_config_parser
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
@@ -39,7 +40,7 @@ def train_or_resume(configs: Sequence[TrainConfig]) -> list[Path]:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = train_config_parser("kitchen-train", "Train a team with IPPO or E3T (TorchRL) on Single or Infinite "
-                                 "Kitchen levels.")
+                                 "Kitchen levels.", algorithm_settings())
     parser.add_argument("--resume", metavar="RUN_DIR", nargs="+",
                         help="continue the run in RUN_DIR from its latest checkpoint; several run directories (the "
                              "teams of a condition, e.g. runs/NAME/seed*) continue together in one batch; key=value "
@@ -60,8 +61,9 @@ def config_of(args: argparse.Namespace) -> tuple[list[TrainConfig], list[Path] |
         arguments = [*args.resume, *([args.config] if args.config else []), *args.overrides]
         runs = [Path(item) for item in arguments if "=" not in item]
         overrides = [item for item in arguments if "=" in item]
-        if any(item.startswith("teams=") for item in overrides):
-            raise ConfigError("teams= starts new teams; resume several runs together by naming their directories")
+        if any(item.startswith("runtime.teams=") for item in overrides):
+            raise ConfigError("runtime.teams= starts new teams; resume several runs together by naming their "
+                              "directories")
         configs = []
         for run in runs:
             saved = run / "config.yaml"

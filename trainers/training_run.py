@@ -35,7 +35,7 @@ def make_env(config: TrainConfig, num_envs: int | None = None, levels=None,
         num_envs=num_envs or config.num_envs,
         levels=config.levels if levels is None else levels,
         max_steps=config.max_steps,
-        device=config.device,
+        device=config.runtime.device,
         seed=config.seed if seed is None else seed,
     )
 
@@ -124,9 +124,9 @@ class TrainingRun:
         """The optimizer's learning rate for the next update: with `compile_update` a tensor the compiled step
         reads (also after resuming a run saved without it), so that annealing changes a value, not the graph."""
         for group in self.optimizer.param_groups:
-            if self.config.compile_update:
+            if self.config.runtime.compile_update:
                 if not isinstance(group["lr"], torch.Tensor):
-                    group["lr"] = torch.tensor(lr, device=self.config.device)
+                    group["lr"] = torch.tensor(lr, device=self.config.runtime.device)
                 group["lr"].fill_(lr)
             else:
                 group["lr"] = lr
@@ -135,7 +135,7 @@ class TrainingRun:
         with self.stream.active():
             rng = capture_rng_states()
         save_checkpoint(self.checkpoint_path, {
-            "config": self.config.to_dict(),
+            "config": self.config.identity(),
             "model": self.identity,
             **{name: part.state_dict() for name, part in self.parts.items()},
             "algorithm": self.algorithm.state_dict(),
@@ -146,32 +146,34 @@ class TrainingRun:
 
 
 def team_configs(config: TrainConfig) -> list[TrainConfig]:
-    """The configs of the `config.teams` teams of a config: seeds seed .. seed + teams - 1, each a run of its own."""
-    return [dataclasses.replace(config, seed=config.seed + team, teams=1) for team in range(config.teams)]
+    """The configs of the `runtime.teams` teams of a config: seeds seed .. seed + teams - 1, each a run of its own."""
+    alone = dataclasses.replace(config.runtime, teams=1)
+    return [dataclasses.replace(config, seed=config.seed + team, runtime=alone) for team in range(config.runtime.teams)]
 
 
 def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
                actor_critic: ActorCritic | None = None) -> TrainingRun:
     """Team `index` of the batch: networks (from `config.architecture` unless given), algorithm, loss and
     optimizer, all built in the team's own random stream, seeded with its seed."""
-    stream = RandomStream(config.seed, config.device)
+    stream = RandomStream(config.seed, config.runtime.device)
     obs_shape = kitchen.kitchen.obs_shape
     with stream.active():
         if actor_critic is None:
             actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
-            if torch.device(config.device).type == "cpu":
+            if torch.device(config.runtime.device).type == "cpu":
                 accelerate_cpu(actor_critic.actor, actor_critic.critic)
-        actor, critic = actor_critic.actor.to(config.device), actor_critic.critic.to(config.device)
+        actor, critic = actor_critic.actor.to(config.runtime.device), actor_critic.critic.to(config.runtime.device)
         algorithm = make_algorithm(config, actor_critic)
         # The critic runs while acting: its values feed GAE.
         policy = actor_critic.acting_policy(*algorithm.acting_modules())
         loss_module = make_loss(config, actor_critic, algorithm)
         parameters = [*loss_module.parameters(), *algorithm.parameters()]
-        if config.compile_update:
+        if config.runtime.compile_update:
             # The learning rate a tensor, so that annealing it changes a value rather than the compiled graph; on a
             # GPU, Adam keeps its step counts on the device, as a CUDA graph needs.
-            optimizer = torch.optim.Adam(parameters, lr=torch.tensor(config.lr, device=config.device),
-                                         eps=config.adam_eps, capturable=torch.device(config.device).type == "cuda")
+            device = config.runtime.device
+            optimizer = torch.optim.Adam(parameters, lr=torch.tensor(config.lr, device=device),
+                                         eps=config.adam_eps, capturable=torch.device(device).type == "cuda")
         else:
             # Fused: one kernel for all parameters instead of a few per tensor (3x faster on a CPU at hidden 256).
             optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps, fused=True)
@@ -241,14 +243,15 @@ class RestorePoint:
         self.team.optimizer.load_state_dict(self.optimizer)
 
 
-def check_teams(configs: Sequence[TrainConfig]) -> None:
-    """Teams trained in one batch share every setting but the seed; each is checked as a run of its own."""
+def check_teams(configs: Sequence[TrainConfig]) -> list[TrainConfig]:
+    """Teams trained in one batch share every setting but the seed; each is checked as a run of its own. Returns
+    their configs with the algorithm's settings spelled out (`check_algorithm`)."""
+    configs = [check_algorithm(config.check()) for config in configs]
     for config in configs:
-        config.check()
-        check_algorithm(config)
         config.check_run_location()
-        if config.teams != 1:
-            raise ConfigError(f"teams={config.teams}: a team's own config has teams=1 (see `team_configs`)")
+        if config.runtime.teams != 1:
+            raise ConfigError(f"runtime.teams={config.runtime.teams}: a team's own config has runtime.teams=1 "
+                              "(see `team_configs`)")
     for config in configs[1:]:
         differ = [field.name for field in dataclasses.fields(TrainConfig)
                   if field.name != "seed" and getattr(config, field.name) != getattr(configs[0], field.name)]
@@ -260,4 +263,5 @@ def check_teams(configs: Sequence[TrainConfig]) -> None:
     seeds = [config.seed for config in configs]
     if len(set(seeds)) < len(seeds):
         raise ConfigError(f"teams trained together need different seeds, got {seeds}")
+    return configs
 

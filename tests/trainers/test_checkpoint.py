@@ -203,7 +203,8 @@ def test_rng_states_cover_cuda(monkeypatch):
 def test_a_trained_e3t_run_checkpoints_only_tensors_and_plain_values(tmp_path):
     from trainers.ppo import train
 
-    e3t = [*TINY, f"run_dir={tmp_path}", "algorithm=e3t", "architecture=e3t_mlp", "partner_policy=copy"]
+    e3t = [*TINY, f"run_dir={tmp_path}", "algorithm=e3t", "architecture=e3t_mlp",
+           "algorithm_config.partner_policy=copy"]
     run = train(load_config(None, [*e3t, "total_steps=64"]))
     saved = torch.load(run / "checkpoints" / "latest.pt", weights_only=True)
     assert saved["format"] == FORMAT and saved["update"] == 1

@@ -7,7 +7,7 @@ import yaml
 from tiny import script_module
 
 from trainers.algorithms import check_algorithm
-from trainers.config import PLANNER_START, ConfigError, EvalConfig, TrainConfig, load_config
+from trainers.config import PLANNER_START, ConfigError, EvalConfig, RuntimeConfig, TrainConfig, load_config, sectioned
 from trainers.runtime import minibatch_shards
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
@@ -33,13 +33,20 @@ def test_every_shipped_config_loads():
 
 
 def test_every_shipped_config_resolves_to_the_values_recorded_before_configs_moved_to_omegaconf():
-    # data/config_values.json: every config's values as the loader before OmegaConf resolved them (same keys).
+    # data/config_values.json: every config's values as the loader before OmegaConf resolved them (flat keys, before
+    # `runtime` and `algorithm_config` had sections: `sectioned` puts them there, as for a saved run).
     recorded = json.loads((Path(__file__).parent / "data" / "config_values.json").read_text())
     root = CONFIG_DIR.parent
     assert set(recorded) == {str(path.relative_to(root)) for path in [*CONFIGS, *EVAL_CONFIGS]}
     for name, values in recorded.items():
         schema = EvalConfig if name.startswith("configs/eval/") else TrainConfig
-        assert dataclasses.asdict(load_config(root / name, schema=schema)) == values, name
+        expected = sectioned(values, schema)
+        if schema is TrainConfig:
+            expected.setdefault("algorithm_config", {})
+        assert dataclasses.asdict(load_config(root / name, schema=schema)) == expected, name
+        if schema is TrainConfig:
+            assert set(expected["runtime"]) == {field.name for field in dataclasses.fields(RuntimeConfig)}, name
+            assert len(expected["algorithm_config"]) == (4 if values["algorithm"] == "e3t" else 0), name
 
 
 @pytest.mark.parametrize("regime", ["ik", "sk_cramped_room", "sk_counter_circuit"])
@@ -71,10 +78,10 @@ def test_every_protocol_names_configs_that_load_with_its_overrides():
     for path in PROTOCOLS:
         protocol = yaml.safe_load(path.read_text())
         assert protocol["teams"] >= 3, path
-        overrides = [o for o in protocol["overrides"] if not o.startswith("device=")]  # checked where it runs
+        overrides = [o for o in protocol["overrides"] if not o.startswith("runtime.device=")]  # checked where it runs
         for name, entry in protocol["conditions"].items():
             train, own = script_module("reproduce").condition_entry(entry)
-            config = load_config(CONFIG_DIR.parent / train, [*overrides, f"teams={protocol['teams']}", *own])
+            config = load_config(CONFIG_DIR.parent / train, [*overrides, f"runtime.teams={protocol['teams']}", *own])
             assert config.name == name or own, (path, name)  # a shipped config under its own name, or one varied
             if config.init_from == PLANNER_START:
                 assert config.distill_rounds > 0 and config.total_steps == load_config(
@@ -120,7 +127,9 @@ def test_e3t_configs_follow_the_protocol_on_top_of_ippo(encoder):
     ik = load_config(CONFIG_DIR / f"e3t/{encoder}_ik.yaml")
     assert (ik.algorithm, ik.architecture, ik.levels, ik.hidden, ik.share_params) == (
         "e3t", f"e3t_{encoder}", "infinite", 256, True)
-    assert (ik.partner_epsilon, ik.partner_policy, ik.num_envs, ik.rollout_steps) == (0.3, "ego", 32, 256)
+    settings = ik.algorithm_config
+    assert (settings["partner_epsilon"], settings["partner_policy"]) == (0.3, "ego")
+    assert (ik.num_envs, ik.rollout_steps) == (32, 256)
     for layout in ["cramped_room", "asymm_advantages", "coord_ring", "forced_coord", "counter_circuit"]:
         sk = load_config(CONFIG_DIR / f"e3t/{encoder}_sk_{layout}.yaml")
         assert (sk.algorithm, sk.levels, sk.hidden, sk.share_params) == ("e3t", f"{layout}_7x7", 128, False)
@@ -176,8 +185,24 @@ def test_minibatch_shards_default_to_two_where_they_pay_and_never_for_e3t():
     assert shards("hidden=128") == 2 and shards("hidden=64") == 1  # small networks: the loss's Python dominates
     assert shards("num_envs=4", "minibatches=4") == 1  # one kitchen per minibatch cannot be split
     assert shards("algorithm=e3t", "architecture=e3t_mlp") == 1  # its losses are means over the ego's transitions
-    assert shards("hidden=64", "minibatch_shards=4") == 4  # asked for: as asked
-    assert minibatch_shards(dataclasses.replace(load_config(None), device="cuda")) == 1  # no second pass on a GPU
+    assert shards("hidden=64", "runtime.minibatch_shards=4") == 4  # asked for: as asked
+    on_gpu = load_config(None)
+    on_gpu.runtime.device = "cuda"  # set after the check, which looks for a GPU
+    assert minibatch_shards(on_gpu) == 1  # no second pass on a GPU
     uneven = r"^algorithm=e3t averages its losses over some of a minibatch's transitions, which shards split unevenly"
-    with pytest.raises(ConfigError, match=uneven + r": set minibatch_shards=1 \(got 2\)$"):
-        check_algorithm(load_config(None, ["algorithm=e3t", "architecture=e3t_mlp", "minibatch_shards=2"]))
+    with pytest.raises(ConfigError, match=uneven + r": set runtime.minibatch_shards=1 \(got 2\)$"):
+        check_algorithm(load_config(None, ["algorithm=e3t", "architecture=e3t_mlp", "runtime.minibatch_shards=2"]))
+
+
+def test_a_run_saved_before_runtime_and_algorithm_config_had_sections_loads_into_them(tmp_path):
+    recorded = json.loads((Path(__file__).parent / "data" / "config_values.json").read_text())
+    e3t = {**recorded["configs/e3t/mlp_ik.yaml"], "threads": 2, "teams": 3, "partner_epsilon": 0.5}
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(e3t))  # a saved run's config.yaml, flat keys
+    for config in (load_config(tmp_path / "config.yaml"), load_config(base=e3t)):  # or a checkpoint's config
+        assert (config.runtime.threads, config.runtime.teams) == (2, 3)
+        assert config.algorithm_config == {"partner_epsilon": 0.5, "partner_policy": "ego",
+                                           "partner_copy_rate": 0.01, "predictor_coef": 1.0}
+        assert check_algorithm(config) == config
+    ippo = load_config(base=recorded["configs/ippo/mlp_ik.yaml"])  # E3T's keys, which IPPO ignored, are dropped
+    assert ippo.algorithm_config == {} and check_algorithm(ippo).algorithm_config == {}
+    assert ippo == load_config(CONFIG_DIR / "ippo" / "mlp_ik.yaml")

@@ -10,10 +10,12 @@ import torch
 from tiny import TINY
 
 from jax_env import get_layout, save_layout
-from trainers.algorithms import check_algorithm
+from trainers.algorithms import algorithm_settings, check_algorithm
+from trainers.algorithms.e3t import E3TSettings
 from trainers.config import (
     ConfigError,
     EvalConfig,
+    RuntimeConfig,
     TrainConfig,
     check_device,
     config_help,
@@ -25,10 +27,11 @@ from trainers.config import (
 WALLED_POT = "WWWWW\nOA  W\nB  AW\nWWXWW\nWPWWW\n"
 OPEN_POT = "WWPWW\nOA  W\nB  AW\nWWXWW\nWWWWW\n"
 ALLOWED_DEVICES = r"use device=cpu, device=cuda or device=cuda:<index>"
-COUNTS = ("max_steps num_envs rollout_steps total_steps hidden epochs minibatches checkpoint_every threads "
-          "distill_rounds distill_kitchens distill_epochs distill_minibatch").split()
+RUNTIME_DEVICES = r"use runtime.device=cpu, runtime.device=cuda or runtime.device=cuda:<index>"
+COUNTS = ("max_steps num_envs rollout_steps total_steps hidden epochs minibatches checkpoint_every runtime.threads "
+          "runtime.teams distill_rounds distill_kitchens distill_epochs distill_minibatch").split()
 NON_NEGATIVE = ("eval_episodes shaping_anneal_steps entropy_coef value_coef shaping_weight "
-                "minibatch_shards").split()
+                "runtime.minibatch_shards runtime.parallel_teams").split()
 
 
 @pytest.mark.parametrize(
@@ -49,10 +52,16 @@ NON_NEGATIVE = ("eval_episodes shaping_anneal_steps entropy_coef value_coef shap
         (f"seed={2**63}", rf"^seed must be an integer in \[0, 4294967295\] .*, got {2**63}$"),
         ("eval_heldout=200", r"^eval_heldout must be between 0 and 100 \(the held-out levels\), got 200$"),
         ("eval_heldout=-1", r"^eval_heldout must be between 0 and 100"),
-        ("device=tpu", rf"^device=tpu is not a device: {ALLOWED_DEVICES}$"),
-        ("device=garbage", rf"^device=garbage is not a device: {ALLOWED_DEVICES}$"),
-        ("device=meta", rf"^device=meta is not supported: {ALLOWED_DEVICES}$"),
-        ("device=cpu:1", rf"^device=cpu:1 is not supported: {ALLOWED_DEVICES}$"),
+        ("runtime.device=tpu", rf"^runtime.device=tpu is not a device: {RUNTIME_DEVICES}$"),
+        ("runtime.device=garbage", rf"^runtime.device=garbage is not a device: {RUNTIME_DEVICES}$"),
+        ("runtime.device=meta", rf"^runtime.device=meta is not supported: {RUNTIME_DEVICES}$"),
+        ("runtime.device=cpu:1", rf"^runtime.device=cpu:1 is not supported: {RUNTIME_DEVICES}$"),
+        ("threads=2", r"^unknown config key 'threads' in the command line \(did you mean 'runtime.threads'\?\)"),
+        ("partner_epsilon=0.5", r"^unknown config key 'partner_epsilon' in the command line"),
+        ("runtime.thread=2", r"^unknown config key 'runtime.thread' .*\(did you mean 'runtime.threads'\?\)"),
+        ("runtime.threads=x", r"^runtime.threads in the command line must be int, got 'x'$"),
+        ("runtime.compile_update=3", r"^runtime.compile_update in the command line must be bool, got 3$"),
+        ("algorithm_config=3", r"^algorithm_config in the command line must be dict\[str, Any\], got 3$"),
         ("name=../..", r"^name='../..' must be a relative path inside run_dir, without '..'"),
         ("name=a/../../b", r"^name='a/../../b' must be a relative path inside run_dir"),
         ("name=/tmp/elsewhere", r"^name='/tmp/elsewhere' must be a relative path inside run_dir"),
@@ -61,7 +70,7 @@ NON_NEGATIVE = ("eval_episodes shaping_anneal_steps entropy_coef value_coef shap
         ("levels=[infinite, cramped_room_7x7]", r"^levels=infinite stands alone: it cannot be one entry of a list"),
         ("levels=[]", r"^levels is empty"),
         ("distill_move_order=NSE", r"^distill_move_order must be a permutation of NSEW, got 'NSE'$"),
-        ("minibatch_shards=3", r"^minibatch_shards \(3\) must divide the 8 kitchens of a minibatch"),
+        ("runtime.minibatch_shards=3", r"^runtime.minibatch_shards \(3\) must divide the 8 kitchens of a minibatch"),
     ],
 )
 def test_bad_overrides_are_refused_before_any_work(override, message):
@@ -73,18 +82,30 @@ def test_bad_overrides_are_refused_before_any_work(override, message):
     "overrides, message",
     [
         (["algorithm=ppo"], r"^algorithm must be one of ippo, e3t, got 'ppo'$"),
-        (["algorithm=e3t", "partner_epsilon=1.5"], r"^partner_epsilon must lie in \[0, 1\], got 1.5$"),
-        (["algorithm=e3t", "partner_copy_rate=-0.1"], r"^partner_copy_rate must lie in \[0, 1\], got -0.1$"),
-        (["algorithm=e3t", "partner_policy=slow"], r"^partner_policy must be one of ego, copy, got 'slow'$"),
-        (["algorithm=e3t", "predictor_coef=-1"], r"^predictor_coef must be at least 0, got -1.0$"),
+        (["algorithm=e3t", "algorithm_config.partner_epsilon=1.5"],
+         r"^algorithm_config.partner_epsilon must lie in \[0, 1\], got 1.5$"),
+        (["algorithm=e3t", "algorithm_config.partner_copy_rate=-0.1"],
+         r"^algorithm_config.partner_copy_rate must lie in \[0, 1\], got -0.1$"),
+        (["algorithm=e3t", "algorithm_config.partner_policy=slow"],
+         r"^algorithm_config.partner_policy must be one of ego, copy, got 'slow'$"),
+        (["algorithm=e3t", "algorithm_config.predictor_coef=-1"],
+         r"^algorithm_config.predictor_coef must be at least 0, got -1.0$"),
+        (["algorithm=e3t", "algorithm_config.partner_epsilom=0.5"],
+         r"^algorithm_config.partner_epsilom is not a setting of algorithm=e3t \(did you mean "
+         r"algorithm_config.partner_epsilon\?\); its settings: partner_epsilon, partner_policy, "),
+        (["algorithm=e3t", "algorithm_config.partner_epsilon=often"],
+         r"^algorithm_config.partner_epsilon in the config must be float, got 'often'$"),
     ],
 )
 def test_an_algorithms_own_settings_are_refused_by_the_algorithm_before_any_work(overrides, message):
     config = load_config(None, overrides)  # the algorithm's keys are the algorithm's to check
     with pytest.raises(ConfigError, match=message):
         check_algorithm(config)
-    if "algorithm=e3t" in overrides:  # ignored by an algorithm that does not read them
-        check_algorithm(dataclasses.replace(config, algorithm="ippo"))
+    if "algorithm=e3t" in overrides:  # not another algorithm's: refused by name
+        key = overrides[1].partition("=")[0]
+        with pytest.raises(ConfigError, match=rf"^{key} is not a setting of algorithm=ippo, which has no settings of "
+                                              "its own$"):
+            check_algorithm(dataclasses.replace(config, algorithm="ippo"))
 
 
 @pytest.mark.parametrize(
@@ -99,7 +120,8 @@ def test_an_algorithms_own_settings_are_refused_by_the_algorithm_before_any_work
         ({"levels": ("a", "b")}, r"^levels must be str \| list\[str\], got \('a', 'b'\)$"),
         ({"levels": ["a", 3]}, r"^levels must be str \| list\[str\], got \['a', 3\]$"),
         ({"name": Path("run")}, r"^name must be str, got PosixPath\('run'\)$"),
-        ({"device": None}, r"^device must be str, got None$"),
+        ({"runtime": RuntimeConfig(device=None)}, r"^runtime.device must be str, got None$"),
+        ({"runtime": RuntimeConfig(threads=0)}, r"^runtime.threads must be at least 1, got 0$"),
         ({"gamma": 5}, r"^gamma must lie in \[0, 1\], got 5$"),
         ({"clip_epsilon": -1.0}, r"^clip_epsilon must be greater than 0, got -1.0$"),
         ({"checkpoint_every": 0}, r"^checkpoint_every must be at least 1, got 0$"),
@@ -115,7 +137,7 @@ def test_configs_built_in_python_are_checked_too(kwargs, message):
 def test_values_at_the_edges_are_accepted():
     config = load_config(None, [
         "seed=4294967295", "eval_heldout=100", "gamma=1", "gae_lambda=0", "lr=1", "shaping_weight=0",
-        "eval_episodes=0", "name=ablation/mlp", "device=cpu:0",
+        "eval_episodes=0", "name=ablation/mlp", "runtime.device=cpu:0",
     ])  # fmt: skip
     assert (config.seed, config.lr, config.gamma) == (2**32 - 1, 1.0, 1.0)
     assert config.run_path == Path("runs/ablation/mlp/seed4294967295")
@@ -165,10 +187,10 @@ def test_bad_eval_overrides_are_refused(override, message):
 def test_cuda_is_refused_where_this_machine_has_no_such_gpu(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     for device in ("cuda", "cuda:0"):
-        message = rf"^device={device}, but torch sees no CUDA GPU on this machine: use device=cpu$"
-        with pytest.raises(ConfigError, match=message):
-            load_config(None, [f"device={device}"])
-        with pytest.raises(ConfigError, match=message):
+        message = rf"device={device}, but torch sees no CUDA GPU on this machine: use (runtime\.)?device=cpu$"
+        with pytest.raises(ConfigError, match=rf"^runtime\.{message}"):
+            load_config(None, [f"runtime.device={device}"])
+        with pytest.raises(ConfigError, match=rf"^{message}"):
             EvalConfig(device=device).check()
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
@@ -185,7 +207,7 @@ def test_cuda_is_refused_where_this_machine_has_no_such_gpu(monkeypatch):
     monkeypatch.setattr(jax, "devices", lambda backend=None: ["gpu0", "gpu1"])
     check_device("cuda:1")
     check_device("cuda")
-    assert TrainConfig(device="cuda:1").check().device == "cuda:1"
+    assert TrainConfig(runtime=RuntimeConfig(device="cuda:1")).check().runtime.device == "cuda:1"
 
 
 @pytest.mark.parametrize(
@@ -199,7 +221,10 @@ def test_cuda_is_refused_where_this_machine_has_no_such_gpu(monkeypatch):
         ("seed: 1\ntrue: 3\n", r"^the key True in .*bad\.yaml is not a config key"),
         ("seed: -4\n", r"^seed must be an integer in \[0, 4294967295\]"),
         ("gamma: 5\n", r"^gamma must lie in \[0, 1\], got 5.0$"),
-        ("device: tpu\n", r"^device=tpu is not a device"),
+        ("runtime:\n  device: tpu\n", r"^runtime.device=tpu is not a device"),
+        ("device: tpu\n", r"^runtime.device=tpu is not a device"),  # a file from before the section: read into it
+        ("runtime: 4\n", r"^runtime in .*bad\.yaml must be a mapping of its keys \(device, threads, "),
+        ("runtime:\n  speed: 2\n", r"^unknown config key 'runtime.speed' in .*bad\.yaml"),
         ("num_env: 8\n", r"^unknown config key 'num_env' in .*bad\.yaml \(did you mean 'num_envs'\?\)"),
         ("defaults: base.yaml\n", r"^defaults in .*bad\.yaml must be a list of files and choices"),
         ("defaults: [layout: ik]\n", r"^defaults in .*bad\.yaml: \{'layout': 'ik'\} is neither a config file .*nor a "
@@ -321,19 +346,22 @@ def test_updates_round_up_and_say_so():
 
 
 def test_config_help_lists_every_key_with_type_default_and_meaning():
-    for schema in (TrainConfig, EvalConfig):
-        text = config_help(schema)
+    for schema, prefix in ((TrainConfig, ""), (EvalConfig, ""), (RuntimeConfig, "runtime."), (E3TSettings, "")):
+        text = config_help(TrainConfig, {"e3t": E3TSettings}) if schema is not EvalConfig else config_help(schema)
+        prefix = "algorithm_config." if schema is E3TSettings else prefix
         for field in dataclasses.fields(schema):
             assert field.metadata["help"], field.name
-            assert f"\n    {field.name}: " in text, field.name
+            assert f"\n    {prefix}{field.name}: " in text, field.name
             assert f"\n        {field.metadata['help']}\n" in text + "\n", field.name
-    text = config_help(TrainConfig)
+    text = config_help(TrainConfig, algorithm_settings())
     assert "    total_steps: int = 20000000\n        env steps over the run" in text
     assert "    levels: str | list[str] = infinite\n" in text and "    share_params: bool = true\n" in text
+    assert "    runtime.threads: int = 1\n" in text and "    algorithm_config.partner_policy: str = ego\n" in text
     groups = [line.strip() for line in text.splitlines() if line.startswith("  ") and not line.startswith("   ")]
-    assert groups == ["run:", "environment:", "model:", "PPO:", "E3T (algorithm: e3t):",
+    assert groups == ["run:", "environment:", "model:", "PPO:",
                       "planner-guided start (kitchen-distill, then init_from):",
-                      "logging, checkpoints, final evaluation:"]  # fmt: skip
+                      "logging, checkpoints, final evaluation:", "runtime:",
+                      "algorithm_config (algorithm: e3t):"]  # fmt: skip
     assert "    layouts: list[str] = [cramped_room_7x7, " in config_help(EvalConfig)
 
     # As an epilog, argparse keeps its lines.
@@ -359,8 +387,9 @@ def cli_cases(tmp_path: Path) -> list[tuple[list[str], str]]:
     walled.write_text(WALLED_POT)
     cases = [
         (["checkpoint_every=0"], "checkpoint_every must be at least 1"),
-        (["device=tpu"], "device=tpu is not a device"),
-        (["threads=0"], "threads must be at least 1"),
+        (["runtime.device=tpu"], "runtime.device=tpu is not a device"),
+        (["runtime.threads=0"], "runtime.threads must be at least 1"),
+        (["threads=2"], "unknown config key 'threads' in the command line (did you mean 'runtime.threads'?)"),
         ([f"seed={2**63}"], "seed must be an integer in [0, 4294967295]"),
         (["gamma=5"], "gamma must lie in [0, 1]"),
         (["gae_lambda=-3"], "gae_lambda must lie in [0, 1]"),
@@ -373,7 +402,8 @@ def cli_cases(tmp_path: Path) -> list[tuple[list[str], str]]:
         (["algorithm=mappo"], "algorithm must be one of ippo, e3t"),
     ]
     if not torch.cuda.is_available():
-        cases.append((["device=cuda"], "device=cuda, but torch sees no CUDA GPU on this machine: use device=cpu"))
+        cases.append((["runtime.device=cuda"],
+                      "runtime.device=cuda, but torch sees no CUDA GPU on this machine: use runtime.device=cpu"))
     return cases
 
 

@@ -30,7 +30,8 @@ def test_the_loss_forward_and_the_acting_pass_compile_without_a_graph_break(tmp_
 
 def test_a_compiled_minibatch_step_is_the_eager_one_to_float_rounding(tmp_path):
     eager, minibatch = team_and_minibatch(tiny_config(tmp_path / "eager"), tmp_path / "eager")
-    compiled, _ = team_and_minibatch(tiny_config(tmp_path / "compiled", "compile_update=true"), tmp_path / "compiled")
+    compiled_config = tiny_config(tmp_path / "compiled", "runtime.compile_update=true")
+    compiled, _ = team_and_minibatch(compiled_config, tmp_path / "compiled")
     for mine, theirs in zip(compiled.parameters, eager.parameters):
         assert torch.equal(mine, theirs)  # the same seed builds the same weights
     with device_path(), set_recurrent_mode(True), set_exploration_type(ExplorationType.RANDOM):
@@ -49,7 +50,7 @@ def test_a_compiled_minibatch_step_is_the_eager_one_to_float_rounding(tmp_path):
 def test_compiled_training_recompiles_nothing_as_the_learning_rate_and_shaping_anneal(tmp_path):
     """Graph breaks only where torch itself puts them (backward(), inside the optimizer's step); the annealed
     learning rate is a tensor and the shaping weight acts outside the step, so no update after the first compiles."""
-    config = tiny_config(tmp_path, "compile_update=true", "anneal_lr=true", "shaping_weight=1",
+    config = tiny_config(tmp_path, "runtime.compile_update=true", "anneal_lr=true", "shaping_weight=1",
                          "shaping_anneal_steps=200", updates=4)
     torch._dynamo.reset()
     counters.clear()
@@ -103,7 +104,7 @@ def test_the_teams_stacked_step_compiles_to_the_eager_one_and_launches_fewer_ker
                                         tmp_path / name / str(seed)) for seed in range(3)])
 
     eager_teams, minibatches = teams_and_minibatches("eager")
-    compiled_teams, _ = teams_and_minibatches("compiled", "compile_update=true")
+    compiled_teams, _ = teams_and_minibatches("compiled", "runtime.compile_update=true")
     apart_teams, _ = teams_and_minibatches("apart")
     minibatches = torch.stack(minibatches)
     torch._dynamo.reset()
@@ -132,7 +133,7 @@ def test_a_run_resumed_with_the_compiled_update_recompiles_nothing_either(tmp_pa
     """A checkpoint saved without `compile_update` holds the learning rate as a number: resumed with it, the rate
     becomes a tensor again, so annealing it still changes a value rather than the graph."""
     train(tiny_config(tmp_path, "anneal_lr=true", updates=1))
-    resumed = tiny_config(tmp_path, "anneal_lr=true", "compile_update=true", updates=4)
+    resumed = tiny_config(tmp_path, "anneal_lr=true", "runtime.compile_update=true", updates=4)
     torch._dynamo.reset()
     counters.clear()
     graphs = []

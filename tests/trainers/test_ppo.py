@@ -25,7 +25,7 @@ from jax_env import EXPANDED_LAYOUTS
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
 from trainers.advantages import compute_advantages
-from trainers.algorithms import ALGORITHMS, IPPO, register_algorithm
+from trainers.algorithms import ALGORITHMS, E3T, IPPO, register_algorithm
 from trainers.algorithms.base import standardize_advantage
 from trainers.algorithms.e3t import EGO
 from trainers.checkpoint import load_checkpoint
@@ -123,7 +123,7 @@ def test_every_architecture_trains_and_reloads(tmp_path, architecture, share_par
 @pytest.mark.parametrize("architecture, algorithm", [("mlp", "ippo"), ("mlp_lstm", "ippo"), ("e3t_mlp", "e3t")])
 def test_a_crashed_run_resumes_from_its_checkpoint_with_the_same_metrics(tmp_path, architecture, algorithm):
     common = (f"architecture={architecture}", f"algorithm={algorithm}", "checkpoint_every=2", "shaping_weight=1",
-              "shaping_anneal_steps=256", *(["partner_policy=copy"] if algorithm == "e3t" else []))
+              "shaping_anneal_steps=256", *(["algorithm_config.partner_policy=copy"] if algorithm == "e3t" else []))
     whole = train(tiny_config(tmp_path / "whole", *common, updates=4))
 
     def crash_at_update_3(update, metrics):
@@ -134,7 +134,11 @@ def test_a_crashed_run_resumes_from_its_checkpoint_with_the_same_metrics(tmp_pat
     with pytest.raises(RuntimeError, match="killed"):
         train(crashed_config, on_update=crash_at_update_3)
     assert load_checkpoint(crashed_config.run_path)["update"] == 2
-    assert main(["--resume", str(crashed_config.run_path)]) == 0
+    assert main(["--resume", str(crashed_config.run_path), "runtime.threads=2"]) == 0  # under other run options
+    assert load_config(crashed_config.run_path / "config.yaml").runtime.threads == 2
+    identities = load_checkpoint(crashed_config.run_path)["config"], load_checkpoint(whole)["config"]
+    assert "runtime" not in identities[0] and identities[0]["algorithm_config"] == identities[1]["algorithm_config"]
+    assert {**identities[0], "run_dir": None} == {**identities[1], "run_dir": None}  # one run, whichever runtime
 
     expected, resumed = read_metrics(whole), read_metrics(crashed_config.run_path)
     assert expected.keys() == resumed.keys() and "losses/policy" in expected
@@ -170,7 +174,7 @@ def test_bad_runs_and_checkpoints_get_a_clear_message(tmp_path, capsys):
     assert main([MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "architecture=e3t_mlp"]) == 2
     assert "'e3t_mlp' carries E3T's partner predictor, which only algorithm=e3t trains" in capsys.readouterr().err
     assert main([MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "algorithm=e3t", "architecture=e3t_mlp",
-                 "partner_policy=past"]) == 2
+                 "algorithm_config.partner_policy=past"]) == 2
     assert "partner_policy must be one of ego, copy, got 'past'" in capsys.readouterr().err
 
     assert main([MAIN_CONFIG, "lrr=0.1"]) == 2
@@ -212,7 +216,8 @@ def test_ppo_updates_lower_the_loss_on_a_fixed_batch(tmp_path, architecture):
 def e3t_batch(config, actor_critic):
     """One collected E3T batch with its advantages, as the trainer sees it before the PPO epochs."""
     env = with_model_transforms(make_env(config), actor_critic, PartnerSeats(config.seed))
-    policy = TensorDictSequential(actor_critic.actor, PartnerMixture(config.partner_epsilon), actor_critic.critic)
+    epsilon = E3T.settings_of(config).partner_epsilon
+    policy = TensorDictSequential(actor_critic.actor, PartnerMixture(epsilon), actor_critic.critic)
     frames = config.num_envs * config.max_steps
     collector = make_collector(env, policy, frames, frames)
     batch = next(iter(collector)).clone()
@@ -224,7 +229,7 @@ def e3t_batch(config, actor_critic):
 
 def test_e3t_ppo_learns_from_the_ego_transitions_only(tmp_path):
     torch.manual_seed(0)
-    config = tiny_config(tmp_path, "algorithm=e3t", "architecture=e3t_mlp", "partner_epsilon=0.5")
+    config = tiny_config(tmp_path, "algorithm=e3t", "architecture=e3t_mlp", "algorithm_config.partner_epsilon=0.5")
     actor_critic = make_actor_critic("e3t_mlp", (7, 7, 26), hidden=16, share_params=True)
     batch = e3t_batch(config, actor_critic)
     assert (batch.get(EGO).sum(-1) == 1).all()
@@ -256,8 +261,9 @@ def test_e3t_ppo_learns_from_the_ego_transitions_only(tmp_path):
 
 def test_e3t_through_the_entry_point_teaches_the_predictor_keeps_a_slow_copy_and_evaluates(tmp_path):
     config_file = str(Path(__file__).resolve().parents[2] / "configs" / "e3t" / "mlp_ik.yaml")
-    argv = [config_file, *TINY, f"run_dir={tmp_path}", "hidden=16", "total_steps=192", "partner_policy=copy",
-            "partner_copy_rate=0.5", "eval_episodes=1", "eval_heldout=1"]
+    argv = [config_file, *TINY, f"run_dir={tmp_path}", "hidden=16", "total_steps=192",
+            "algorithm_config.partner_policy=copy",
+            "algorithm_config.partner_copy_rate=0.5", "eval_episodes=1", "eval_heldout=1"]
     assert main(argv) == 0
     run = tmp_path / "e3t_mlp_ik" / "seed0"
     metrics = read_metrics(run)
@@ -439,7 +445,8 @@ def test_a_compiled_acting_policy_takes_the_same_actions_and_learns_the_same(tmp
     float32 rounding (fused kernels), hence the same losses to 1e-5."""
     metrics = {}
     for compiled in ("false", "true"):
-        run = train(tiny_config(tmp_path / compiled, "shaping_weight=1", f"compile_policy={compiled}", updates=2))
+        config = tiny_config(tmp_path / compiled, "shaping_weight=1", f"runtime.compile_policy={compiled}", updates=2)
+        run = train(config)
         metrics[compiled] = read_metrics(run)
     assert metrics["false"].keys() == metrics["true"].keys()
     for name in ("charts/episode_return", "charts/shaped_return", "charts/episode_deliveries"):
@@ -502,7 +509,7 @@ def test_a_minibatch_in_shards_has_the_losses_and_gradient_of_the_whole_on_threa
     team.optimizer.step = lambda: None  # the gradient is what is compared
 
     def step(shards, pool=None):
-        team.config = dataclasses.replace(config, minibatch_shards=shards)
+        team.config = dataclasses.replace(config, runtime=dataclasses.replace(config.runtime, minibatch_shards=shards))
         # As `learn_teams` does: the losses' own mode settings, interleaved on threads, then agree, and the
         # process's mode is left as it was.
         with set_recurrent_mode(True), set_exploration_type(team.loss_module.deterministic_sampling_mode):

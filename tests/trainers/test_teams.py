@@ -27,22 +27,22 @@ def assert_same_run(team_run, single_run):
         torch.testing.assert_close(team[part], single[part], rtol=0, atol=0, msg=lambda m: f"{part}: {m}")
     assert torch.equal(team["rng"]["torch"], single["rng"]["torch"])
     assert (team["update"], team["env_steps"]) == (single["update"], single["env_steps"])
-    scheduling = {"run_dir": None, "parallel_teams": None}  # where the run was written, and how teams took turns
-    assert {**team["config"], **scheduling} == {**single["config"], **scheduling}
+    assert "runtime" not in team["config"]  # how the teams took turns is not the run's
+    assert {**team["config"], "run_dir": None} == {**single["config"], "run_dir": None}  # but where it was written
     assert read_metrics(team_run) == read_metrics(single_run)
 
 
 @pytest.mark.parametrize("overrides", [
     ["levels=infinite"],  # levels drawn per episode from each team's key
     ["architecture=mlp_lstm", "share_params=false"],  # recurrent state and stacked per-agent networks
-    ["algorithm=e3t", "architecture=e3t_mlp", "partner_policy=copy"],  # partner seats drawn per team
+    ["algorithm=e3t", "architecture=e3t_mlp", "algorithm_config.partner_policy=copy"],  # partner seats drawn per team
     # Alone, a team's minibatch shards run on threads at once; beside other teams, one after the other.
-    ["architecture=mlp_lstm", "share_params=false", "minibatch_shards=2"],
+    ["architecture=mlp_lstm", "share_params=false", "runtime.minibatch_shards=2"],
 ], ids=["ippo-infinite", "lstm", "e3t", "shards"])
 def test_each_team_of_a_multi_team_run_is_the_run_of_its_seed_alone(tmp_path, overrides):
     # Two teams learn at once on threads, the third after them: each as it would alone (whose shards, if any,
     # run on two threads at once).
-    config = tiny_config(tmp_path / "teams", "teams=3", "seed=5", "parallel_teams=2", *overrides)
+    config = tiny_config(tmp_path / "teams", "runtime.teams=3", "seed=5", "runtime.parallel_teams=2", *overrides)
     runs = train_teams(team_configs(config))
     assert [run.name for run in runs] == ["seed5", "seed6", "seed7"]
     for run, seed in zip(runs, (5, 6, 7)):
@@ -50,7 +50,7 @@ def test_each_team_of_a_multi_team_run_is_the_run_of_its_seed_alone(tmp_path, ov
 
 
 def test_a_team_of_a_multi_team_run_resumes_alone_and_teams_resume_together(tmp_path):
-    assert main([*tiny_args(tmp_path / "teams"), "teams=2", "total_steps=64"]) == 0
+    assert main([*tiny_args(tmp_path / "teams"), "runtime.teams=2", "total_steps=64"]) == 0
     team0, team1 = tmp_path / "teams" / "main" / "seed0", tmp_path / "teams" / "main" / "seed1"
     assert main(["--resume", str(team1), "total_steps=128"]) == 0  # alone, as a run of its own
     assert main(["--resume", str(team0), str(team1), "total_steps=128"]) == 2  # now at different updates
@@ -69,16 +69,16 @@ def tiny_args(run_dir):
 
 
 def test_teams_trained_together_share_every_setting_but_the_seed(tmp_path):
-    first, second = team_configs(tiny_config(tmp_path, "teams=2"))
+    first, second = team_configs(tiny_config(tmp_path, "runtime.teams=2"))
     second.lr = 1e-3
     with pytest.raises(ConfigError, match="seed 1 differs from seed 0 in lr"):
         train_teams([first, second])
     with pytest.raises(ConfigError, match="train_teams"):
-        train(tiny_config(tmp_path, "teams=2"))
+        train(tiny_config(tmp_path, "runtime.teams=2"))
     with pytest.raises(ConfigError, match="teams must be at least 1"):
-        tiny_config(tmp_path, "teams=0")
+        tiny_config(tmp_path, "runtime.teams=0")
     with pytest.raises(ConfigError, match="go past the largest seed"):
-        tiny_config(tmp_path, "teams=2", f"seed={2**32 - 1}")
+        tiny_config(tmp_path, "runtime.teams=2", f"seed={2**32 - 1}")
 
 
 def observations(env: KitchenEnv, actions: torch.Tensor) -> torch.Tensor:
@@ -125,17 +125,18 @@ def test_teams_learn_at_once_on_as_many_threads_as_the_cores_allow(tmp_path, mon
         return 1 if pool is None else pool._max_workers
 
     assert workers() == 4  # threads=1: one team per core
-    assert workers("threads=2") == 2 and workers("threads=4") == 1  # each team's torch threads take cores too
+    # each team's torch threads take cores too
+    assert workers("runtime.threads=2") == 2 and workers("runtime.threads=4") == 1
     assert workers(teams=3) == 3 and workers(teams=1) == 1
-    assert workers("parallel_teams=1") == 1 and workers("parallel_teams=6") == 6  # asked for: as asked
+    assert workers("runtime.parallel_teams=1") == 1 and workers("runtime.parallel_teams=6") == 6  # asked for: as asked
 
 
 def test_a_team_alone_runs_its_shards_on_a_shard_pool(tmp_path, monkeypatch):
     monkeypatch.setattr("trainers.runtime.usable_cores", lambda: 4)
-    pool = learning_pool(tiny_config(tmp_path, "minibatch_shards=2"), 1)
+    pool = learning_pool(tiny_config(tmp_path, "runtime.minibatch_shards=2"), 1)
     assert isinstance(pool, ShardPool) and pool._max_workers == 2
     assert learning_pool(tiny_config(tmp_path), 1) is None  # one shard: nothing to run at once
-    assert not isinstance(learning_pool(tiny_config(tmp_path, "minibatch_shards=2"), 3), ShardPool)
+    assert not isinstance(learning_pool(tiny_config(tmp_path, "runtime.minibatch_shards=2"), 3), ShardPool)
 
 
 def test_a_shard_pool_runs_the_shards_the_faster_way_and_times_the_other_now_and_then():
@@ -172,7 +173,7 @@ def test_stacked_teams_act_as_the_teams_one_after_another_at_one_teams_launches(
     from torch_kitchen.teams import TeamPolicy
     from trainers.training_run import build_team, make_env
 
-    config = tiny_config(tmp_path, f"architecture={architecture}", "levels=infinite", "teams=3")
+    config = tiny_config(tmp_path, f"architecture={architecture}", "levels=infinite", "runtime.teams=3")
     configs = team_configs(config)
     kitchen = make_env(configs[0], num_envs=3 * config.num_envs, seed=[c.seed for c in configs])
     teams = [build_team(c, tmp_path / str(c.seed), kitchen, k) for k, c in enumerate(configs)]
@@ -217,7 +218,7 @@ def test_teams_trained_the_gpus_way_learn_what_they_learn_one_after_another(tmp_
     agree to float rounding, which Adam's first steps amplify where a gradient is near zero (up to 2e-4 here)."""
     import trainers.runtime
 
-    overrides = ["levels=infinite", "teams=2", "shaping_weight=1"]
+    overrides = ["levels=infinite", "runtime.teams=2", "shaping_weight=1"]
     apart = tiny_config(tmp_path / "apart", *overrides)
     train_teams(team_configs(apart))
     monkeypatch.setattr(trainers.runtime, "acts_stacked", lambda config, policies: True)
@@ -270,20 +271,22 @@ def test_a_stacked_loss_gives_each_team_its_own_losses_and_gradients(tmp_path, a
 @pytest.mark.parametrize(("overrides", "stacks"), [
     ([], True),
     (["architecture=gnn"], True),
-    (["device=cpu"], False),  # a CPU's teams learn each on its own, with its sparse first layer
+    (["runtime.device=cpu"], False),  # a CPU's teams learn each on its own, with its sparse first layer
     (["architecture=mlp_lstm"], False),  # TorchRL's LSTM branches on its input's values
     (["share_params=false"], False),  # per-agent networks are vmapped by TorchRL already
     (["algorithm=e3t", "architecture=e3t_mlp"], False),  # each team's partner predictor and seats
-    (["minibatch_shards=2"], False),
+    (["runtime.minibatch_shards=2"], False),
 ])
 def test_teams_learn_as_one_where_the_gpu_model_and_algorithm_allow(tmp_path, overrides, stacks):
     from trainers.runtime import learns_stacked
     from trainers.training_run import build_team, make_env
 
-    configs = team_configs(tiny_config(tmp_path, "teams=2", *overrides))
+    configs = team_configs(tiny_config(tmp_path, "runtime.teams=2", *overrides))
     kitchen = make_env(configs[0], num_envs=2 * configs[0].num_envs, seed=[c.seed for c in configs])
     teams = [build_team(c, tmp_path / str(c.seed), kitchen, k) for k, c in enumerate(configs)]
-    on_gpu = configs[0] if "device=cpu" in overrides else dataclasses.replace(configs[0], device="cuda")
+    on_gpu = configs[0]
+    if "runtime.device=cpu" not in overrides:
+        on_gpu = dataclasses.replace(on_gpu, runtime=dataclasses.replace(on_gpu.runtime, device="cuda"))
     assert learns_stacked(on_gpu, teams) is stacks
     assert learns_stacked(on_gpu, teams[:1]) is False  # one team alone
 
@@ -292,7 +295,7 @@ def _stacked_team_policy(tmp_path, architecture, compile_mode=None):
     from torch_kitchen.teams import TeamPolicy
     from trainers.training_run import build_team, make_env
 
-    config = tiny_config(tmp_path, f"architecture={architecture}", "levels=infinite", "teams=2")
+    config = tiny_config(tmp_path, f"architecture={architecture}", "levels=infinite", "runtime.teams=2")
     configs = team_configs(config)
     kitchen = make_env(configs[0], num_envs=2 * config.num_envs, seed=[c.seed for c in configs])
     teams = [build_team(c, tmp_path / str(c.seed), kitchen, k) for k, c in enumerate(configs)]

@@ -9,6 +9,8 @@ and calling `register_algorithm(name, cls)` before the config is checked; `examp
 
 from __future__ import annotations
 
+import dataclasses
+
 from trainers.algorithms.base import Algorithm
 from trainers.algorithms.e3t import E3T
 from trainers.algorithms.ippo import IPPO
@@ -26,12 +28,21 @@ def register_algorithm(name: str, algorithm: type[Algorithm]) -> None:
     ALGORITHMS[name] = algorithm
 
 
-def check_algorithm(config: TrainConfig) -> None:
+def check_algorithm(config: TrainConfig) -> TrainConfig:
     """Refuses, with one line (ConfigError), an algorithm that is not registered and settings its class cannot
-    train with (`Algorithm.check_config`): what every command that trains checks beside `config.check()`."""
+    train with (`Algorithm.check_config`): what every command that trains checks beside `config.check()`. Returns
+    the config with the algorithm's settings spelled out (its defaults where a key was not given), as a run saves it."""
     if config.algorithm not in ALGORITHMS:
         raise ConfigError(f"algorithm must be one of {', '.join(ALGORITHMS)}, got {config.algorithm!r}")
-    ALGORITHMS[config.algorithm].check_config(config)
+    algorithm = ALGORITHMS[config.algorithm]
+    algorithm.check_config(config)
+    return dataclasses.replace(config, algorithm_config=dataclasses.asdict(algorithm.settings_of(config)))
 
 
-__all__ = ["ALGORITHMS", "Algorithm", "E3T", "IPPO", "check_algorithm", "register_algorithm"]
+def algorithm_settings() -> dict[str, type]:
+    """Each registered algorithm's settings dataclass, by name, for those that have settings (for `--help`)."""
+    return {name: algorithm.Settings for name, algorithm in ALGORITHMS.items()
+            if dataclasses.fields(algorithm.Settings)}
+
+
+__all__ = ["ALGORITHMS", "Algorithm", "E3T", "IPPO", "algorithm_settings", "check_algorithm", "register_algorithm"]

@@ -5,7 +5,9 @@ checkpoints; it knows no algorithm by name. An algorithm changes the loop only t
 this order (all but `process_minibatch`, which standardises the advantages, do nothing by default):
 
     set-up        check_config(config)    refuse settings the algorithm cannot train with (ConfigError; a classmethod,
-                                          run by `check_algorithm` before anything is built)
+                                          run by `check_algorithm` before anything is built); its own settings,
+                                          the `algorithm_config` section, are a dataclass of its own (`Settings`),
+                                          read as `self.settings`
                   check()                 refuse a model the algorithm cannot train (ConfigError)
                   env_transforms()        transforms appended to the env after the model's own
                   acting_modules()        policy modules run after the actor while collecting
@@ -31,6 +33,9 @@ or change a process-wide mode.
 
 from __future__ import annotations
 
+import dataclasses
+from typing import ClassVar
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
@@ -39,7 +44,7 @@ from torchrl.objectives import ClipPPOLoss
 
 from torch_kitchen.keys import ADVANTAGE
 from torch_kitchen.models import ActorCritic
-from trainers.config import ConfigError, TrainConfig
+from trainers.config import ConfigError, TrainConfig, settings_from
 
 
 def standardize_advantage(minibatch: TensorDictBase, where: torch.Tensor | None = None) -> None:
@@ -59,8 +64,17 @@ def standardize_advantage(minibatch: TensorDictBase, where: torch.Tensor | None 
     minibatch.set(ADVANTAGE, (advantage - mean) / scale)
 
 
+@dataclasses.dataclass
+class NoSettings:
+    """The settings of an algorithm that has none of its own: its `algorithm_config` stays empty."""
+
+
 class Algorithm:
     """Plain independent PPO (see the module docstring for the hooks and their order)."""
+
+    # Its own settings, the config's `algorithm_config` section: a dataclass of `trainers.config.option` fields,
+    # with a `check()` where some values cannot train (ConfigError naming `algorithm_config.<key>`).
+    Settings: ClassVar[type] = NoSettings
 
     # The PPO loss and every auxiliary loss are plain means over the minibatch's transitions, so the mean of
     # equal shards' gradients is the minibatch's gradient (`minibatch_shards`).
@@ -72,16 +86,28 @@ class Algorithm:
 
     def __init__(self, config: TrainConfig, actor_critic: ActorCritic):
         self.config = config
+        self.settings = self.settings_of(config)
         self.actor_critic = actor_critic
+
+    @classmethod
+    def settings_of(cls, config: TrainConfig):
+        """Its `Settings` from the config's `algorithm_config` (the defaults where a key is not given), checked."""
+        settings = settings_from(cls.Settings, config.algorithm_config, "algorithm_config.",
+                                 f"algorithm={config.algorithm}")
+        if hasattr(settings, "check"):
+            settings.check()
+        return settings
 
     @classmethod
     def check_config(cls, config: TrainConfig) -> None:
         """Refuses, with one line (ConfigError), settings this algorithm cannot train with, before anything is
-        built: here minibatch shards where the class is not `shardable`; a subclass checks its own keys too."""
-        if config.minibatch_shards > 1 and not cls.shardable:
+        built: its own (`settings_of`), and minibatch shards where the class is not `shardable`."""
+        cls.settings_of(config)
+        shards = config.runtime.minibatch_shards
+        if shards > 1 and not cls.shardable:
             raise ConfigError(
                 f"algorithm={config.algorithm} averages its losses over some of a minibatch's transitions, which "
-                f"shards split unevenly: set minibatch_shards=1 (got {config.minibatch_shards})"
+                f"shards split unevenly: set runtime.minibatch_shards=1 (got {shards})"
             )
 
     # ---------------------------------------------------------------- set-up

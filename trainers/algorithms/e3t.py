@@ -12,6 +12,7 @@ probability ratios compare the policy on the very inputs it acted on.
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
@@ -23,7 +24,7 @@ from torch_kitchen.keys import ACTION
 from torch_kitchen.models import ActorCritic, split_partner_predictor
 from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
 from trainers.algorithms.base import Algorithm, standardize_advantage
-from trainers.config import ConfigError, TrainConfig
+from trainers.config import ConfigError, TrainConfig, option
 
 EGO = ("agents", "ego")  # bool [B, T, 2]: the transitions PPO learns from
 PARTNER_POLICIES = ("ego", "copy")  # pi of the mixed partner: the policy itself, or a slow copy of it
@@ -40,23 +41,31 @@ def partner_prediction_loss(predictor, minibatch: TensorDictBase) -> tuple[torch
     return loss, accuracy.detach()
 
 
+@dataclass
+class E3TSettings:
+    """E3T's settings: `algorithm_config` of a config with `algorithm: e3t`."""
+
+    partner_epsilon: float = option(0.3, "the mixed partner acts from (1 - eps) * pi + eps * uniform")
+    partner_policy: str = option("ego", 'pi of the mixed partner: "ego" (the policy itself) or "copy" (a slow copy)')
+    partner_copy_rate: float = option(0.01, '"copy": after every update, copy += rate * (ego - copy)')
+    predictor_coef: float = option(1.0, "weight of the partner predictor's cross-entropy in the loss")
+
+    def check(self) -> None:
+        if self.partner_policy not in PARTNER_POLICIES:
+            raise ConfigError(f"algorithm_config.partner_policy must be one of {', '.join(PARTNER_POLICIES)}, "
+                              f"got {self.partner_policy!r}")
+        for name in ("partner_epsilon", "partner_copy_rate"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"algorithm_config.{name} must lie in [0, 1], got {getattr(self, name)}")
+        if not self.predictor_coef >= 0:
+            raise ConfigError(f"algorithm_config.predictor_coef must be at least 0, got {self.predictor_coef}")
+
+
 class E3T(Algorithm):
+    Settings = E3TSettings
     # Its PPO terms average over the ego's transitions only, which equal shards of a minibatch split unevenly.
     shardable = False
     stackable = False  # its partner predictor and the seats are each team's own
-
-    @classmethod
-    def check_config(cls, config: TrainConfig) -> None:
-        super().check_config(config)
-        if config.partner_policy not in PARTNER_POLICIES:
-            raise ConfigError(
-                f"partner_policy must be one of {', '.join(PARTNER_POLICIES)}, got {config.partner_policy!r}"
-            )
-        for name in ("partner_epsilon", "partner_copy_rate"):
-            if not 0.0 <= getattr(config, name) <= 1.0:
-                raise ConfigError(f"{name} must lie in [0, 1], got {getattr(config, name)}")
-        if not config.predictor_coef >= 0:
-            raise ConfigError(f"predictor_coef must be at least 0, got {config.predictor_coef}")
 
     def __init__(self, config: TrainConfig, actor_critic: ActorCritic):
         super().__init__(config, actor_critic)
@@ -70,14 +79,14 @@ class E3T(Algorithm):
         self.seats = PartnerSeats(config.seed)
         # The slow copy acts for the mixed partner with `partner_policy: copy`; None: the ego's own policy.
         self.partner = None
-        if config.partner_policy == "copy":
+        if self.settings.partner_policy == "copy":
             self.partner = copy.deepcopy(actor_critic.actor).requires_grad_(False)
 
     def env_transforms(self) -> list[Transform]:
         return [self.seats]
 
     def acting_modules(self) -> list[TensorDictModuleBase]:
-        return [PartnerMixture(self.config.partner_epsilon, self.partner)]
+        return [PartnerMixture(self.settings.partner_epsilon, self.partner)]
 
     def loss_actor(self) -> TensorDictModuleBase:
         return self.policy
@@ -96,13 +105,13 @@ class E3T(Algorithm):
 
     def auxiliary_losses(self, minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
         loss, accuracy = partner_prediction_loss(self.predictor, minibatch)
-        return {"loss_partner_prediction": self.config.predictor_coef * loss, "partner_accuracy": accuracy}
+        return {"loss_partner_prediction": self.settings.predictor_coef * loss, "partner_accuracy": accuracy}
 
     def after_update(self) -> None:
         if self.partner is not None:
             with torch.no_grad():
                 for slow, ego in zip(self.partner.parameters(), self.actor_critic.actor.parameters()):
-                    slow.lerp_(ego, self.config.partner_copy_rate)
+                    slow.lerp_(ego, self.settings.partner_copy_rate)
 
     def state_dict(self) -> dict:
         state = {"partner_seats": self.seats.state_dict()}
