@@ -70,7 +70,7 @@ SETTINGS = {
     },
 }  # fmt: skip
 # The paper's protocol: 6 teams (seeds) of the IK shape in one process.
-SETTINGS["protocol"] = {**SETTINGS["ik"], "teams": 6}
+SETTINGS["protocol"] = {**SETTINGS["ik"], "runtime.teams": 6}
 SETTINGS["protocol_gnn"] = {**SETTINGS["protocol"], "architecture": "gnn"}  # ours only: the yardstick has no GNN
 
 # Torch's `clip_grad_norm_` divides by norm + 1e-6 (optax's `clip_by_global_norm` does not add it).

@@ -1,14 +1,18 @@
 """Experiment configs: one dataclass, YAML files that mirror it, and `key=value` overrides on top.
 
-Two schemas: `TrainConfig` (a training run) and `EvalConfig` (an evaluation of trained teams). A YAML file may
-list `defaults:` whose values it overrides, as in Hydra: files relative to itself (the common part of a family)
-and config group choices (`regime: ik`, configs/regime/ik.yaml), which the command line may replace
-(`regime=sk_coord_ring`). The layers (defaults, a saved run's values, the file's defaults, the file, the command
-line's group choices, its overrides) are merged and
-converted by OmegaConf over structured configs built from the dataclasses (`kitchen-sweep` hands the same values
-to Hydra). Unknown keys and ill-typed values are refused with the list of valid keys; `check()` refuses values
-no run can use before any work starts, with one line (a `ConfigError`) that says what to change. Every field
-carries a one-line meaning, which `config_help` lists for `--help`.
+Two schemas: `TrainConfig` (a training run) and `EvalConfig` (an evaluation of trained teams). A training config
+has two sections: `runtime` (`RuntimeConfig`: how the run uses the machine, not part of what the run is) and
+`algorithm_config` (the algorithm's own settings, which its class reads into a dataclass of its own,
+`trainers.algorithms.Algorithm.Settings`); their keys are `runtime.threads`, `algorithm_config.partner_epsilon`
+on the command line, and files and saved runs from before the sections had their keys at the top (`sectioned`
+puts them in). A YAML file may list `defaults:` whose values it overrides, as in Hydra: files relative to itself
+(the common part of a family) and config group choices (`regime: ik`, configs/regime/ik.yaml), which the command
+line may replace (`regime=sk_coord_ring`). The layers (defaults, a saved run's values, the file's defaults, the
+file, the command line's group choices, its overrides) are merged and converted by OmegaConf over structured
+configs built from the dataclasses (`kitchen-sweep` hands the same values to Hydra). Unknown keys and ill-typed
+values are refused with the list of valid keys; `check()` refuses values no run can use before any work starts,
+with one line (a `ConfigError`) that says what to change. Every field carries a one-line meaning, which
+`config_help` lists for `--help`.
 """
 
 from __future__ import annotations

@@ -178,3 +178,10 @@ def test_loss_gradients_and_adam_steps_equal_our_trainers(share_params):
     assert float(norm) > config.max_grad_norm  # the clip acted
     assert_trees_close(params, {"actor": flax_params(actor_critic.actor), "critic": flax_params(actor_critic.critic)},
                        rtol=1e-4, atol=1e-6)
+
+
+def test_every_benchmark_setting_is_a_config_both_trainers_load():
+    for setting in jax_ppo.SETTINGS:
+        config = load_config(None, jax_ppo.setting_overrides(setting))
+        assert config.num_envs == jax_ppo.SETTINGS[setting]["num_envs"], setting
+    assert load_config(None, jax_ppo.setting_overrides("protocol")).runtime.teams == 6
