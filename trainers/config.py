@@ -223,7 +223,7 @@ class TrainConfig:
         """Refuses values no run can use, before any work starts. Touches neither the file system nor the levels:
         the trainer also calls `check_run_location` and `check_levels`; nor the algorithm's own settings, which
         it checks (`trainers.algorithms.check_algorithm`: the registry is the algorithms' own)."""
-        check_types(self)
+        _check_types(self)
         _check_name(self.name)
         _check_seed(self.seed)
         counts = ["max_steps", "num_envs", "rollout_steps", "total_steps", "hidden", "epochs", "minibatches"]
@@ -372,7 +372,7 @@ class EvalConfig:
 
     def check(self) -> EvalConfig:
         """Refuses values no evaluation can use, before any work starts."""
-        check_types(self)
+        _check_types(self)
         _check_seed(self.seed)
         _at_least(self, ["rollouts", "max_steps", "max_envs", "threads"], 1)
         if not 0 <= self.heldout <= NUM_HELDOUT_GENERATED:
@@ -471,14 +471,14 @@ def _yaml_scalar(value) -> str:
     return yaml.safe_dump(value, default_flow_style=True, width=math.inf).removesuffix("\n...\n").strip()
 
 
-def check_types(config, prefix: str = "") -> None:
+def _check_types(config, prefix: str = "") -> None:
     """Refuses a field of the dataclass `config` whose value does not fit its type (a config built in Python skips
     `_merge`), its sections' fields too; a field is named with `prefix` (its section's, e.g. "runtime.")."""
     hints = typing.get_type_hints(type(config))
     for field in dataclasses.fields(config):
         value, expected = getattr(config, field.name), hints[field.name]
         if dataclasses.is_dataclass(expected) and isinstance(value, expected):
-            check_types(value, f"{prefix}{field.name}.")
+            _check_types(value, f"{prefix}{field.name}.")
         elif not _matches(value, expected):
             raise ConfigError(f"{prefix}{field.name} must be {_type_name(expected)}, got {value!r}")
         elif expected is float and not math.isfinite(value):  # YAML reads .inf and .nan, float() reads "nan"
@@ -679,7 +679,7 @@ def settings_from(schema: type, values: dict, prefix: str, owner: str):
             )
     merged = _merge(schema, OmegaConf.structured(_structured(schema)), values, "the config", prefix)
     settings = _build(schema, OmegaConf.to_container(merged))
-    check_types(settings, prefix)
+    _check_types(settings, prefix)
     return settings
 
 
@@ -839,7 +839,6 @@ __all__ = [
     "EvalConfig",
     "TrainConfig",
     "check_device",
-    "check_types",
     "config_help",
     "config_keys",
     "group_choices",

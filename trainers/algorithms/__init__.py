@@ -3,7 +3,7 @@
     ippo   independent PPO in self-play (`trainers.algorithms.ippo`)
     e3t    E3T's mixed partner and partner predictor (`trainers.algorithms.e3t`)
 
-Add one by subclassing `Algorithm` (its docstring lists the hooks; `check_config` checks the settings it reads)
+Add one by subclassing `Algorithm` (its docstring lists the hooks; its `Settings` dataclass holds its own settings)
 and calling `register_algorithm(name, cls)` before the config is checked; `examples/` and the README show how.
 """
 
@@ -30,13 +30,15 @@ def register_algorithm(name: str, algorithm: type[Algorithm]) -> None:
 
 def check_algorithm(config: TrainConfig) -> TrainConfig:
     """Refuses, with one line (ConfigError), an algorithm that is not registered and settings its class cannot
-    train with (`Algorithm.check_config`): what every command that trains checks beside `config.check()`. Returns
-    the config with the algorithm's settings spelled out (its defaults where a key was not given), as a run saves it."""
+    train with (`Algorithm.settings_of`, `Algorithm.check_config`): what every command that trains checks beside
+    `config.check()`. Returns the config with the algorithm's settings spelled out (its defaults where a key was
+    not given), as a run saves it."""
     if config.algorithm not in ALGORITHMS:
         raise ConfigError(f"algorithm must be one of {', '.join(ALGORITHMS)}, got {config.algorithm!r}")
     algorithm = ALGORITHMS[config.algorithm]
+    settings = algorithm.settings_of(config)  # its own settings, checked
     algorithm.check_config(config)
-    return dataclasses.replace(config, algorithm_config=dataclasses.asdict(algorithm.settings_of(config)))
+    return dataclasses.replace(config, algorithm_config=dataclasses.asdict(settings))
 
 
 def algorithm_settings() -> dict[str, type]:

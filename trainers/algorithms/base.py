@@ -6,8 +6,8 @@ this order (all but `process_minibatch`, which standardises the advantages, do n
 
     set-up        check_config(config)    refuse settings the algorithm cannot train with (ConfigError; a classmethod,
                                           run by `check_algorithm` before anything is built); its own settings,
-                                          the `algorithm_config` section, are a dataclass of its own (`Settings`),
-                                          read as `self.settings`
+                                          the `algorithm_config` section, are a dataclass of its own (`Settings`,
+                                          checked by its `check()`), read as `self.settings`
                   check()                 refuse a model the algorithm cannot train (ConfigError)
                   env_transforms()        transforms appended to the env after the model's own
                   acting_modules()        policy modules run after the actor while collecting
@@ -100,9 +100,9 @@ class Algorithm:
 
     @classmethod
     def check_config(cls, config: TrainConfig) -> None:
-        """Refuses, with one line (ConfigError), settings this algorithm cannot train with, before anything is
-        built: its own (`settings_of`), and minibatch shards where the class is not `shardable`."""
-        cls.settings_of(config)
+        """Refuses, with one line (ConfigError), settings of the whole config this algorithm cannot train with,
+        before anything is built: here minibatch shards where the class is not `shardable` (its own settings are
+        checked by `settings_of`)."""
         shards = config.runtime.minibatch_shards
         if shards > 1 and not cls.shardable:
             raise ConfigError(
