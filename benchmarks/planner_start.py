@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from trainers.config import EvalConfig, load_config
+from trainers.config import DeviceConfig, EvalConfig, load_config
 from trainers.distill import distill
 from trainers.evaluate import evaluate
 from trainers.machine import machine_name
@@ -77,7 +77,8 @@ def evaluate_snapshots(snapshots: dict[str, list[dict]], args) -> list[dict]:
     out = args.runs / "eval"
     max_steps = load_config(args.config, args.overrides).max_steps  # episodes as long as the training ones
     evaluate(EvalConfig(conditions=conditions, layouts=[], heldout=args.heldout, rollouts=args.rollouts,
-                        max_steps=max_steps, progress=False, out_dir=str(out), threads=args.threads).check())
+                        max_steps=max_steps, progress=False, out_dir=str(out),
+                        runtime=DeviceConfig(threads=args.threads)).check())
     kinds = defaultdict(list)
     with open(out / "pairs.csv") as handle:
         for row in csv.DictReader(handle):

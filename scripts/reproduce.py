@@ -32,7 +32,7 @@ import torch
 import yaml
 
 from jax_env import EXPANDED_LAYOUTS, PADDED_LAYOUTS
-from trainers.config import EvalConfig, load_config
+from trainers.config import DeviceConfig, EvalConfig, load_config
 from trainers.evaluate import HUMAN_PROXY_RUN, SCRIPTED_CONDITION, cross_condition, evaluate
 from trainers.humans import CACHE, fetch
 from trainers.humans import train as train_proxies
@@ -198,7 +198,7 @@ def main(argv=None) -> int:
         layouts=[*EXPANDED_LAYOUTS, *(PADDED_LAYOUTS if proxies else [])], heldout=evaluation["heldout"],
         human_proxies=str(proxies or ""),
         rollouts=evaluation["rollouts"], max_steps=evaluation.get("max_steps", 256),
-        heatmaps=evaluation.get("heatmaps", []), device=device,
+        heatmaps=evaluation.get("heatmaps", []), runtime=DeviceConfig(device=device),
         out_dir=str(out / "eval"), progress=False,
     ).check()  # fmt: skip
     evaluated = time.perf_counter()

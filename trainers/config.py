@@ -59,13 +59,19 @@ def option(default, help: str, group: str | None = None):
 
 
 @dataclass
-class RuntimeConfig:
+class DeviceConfig:
+    """Where a command runs: the `runtime` section of every command (an evaluation's whole section)."""
+
+    device: str = option("cpu", '"cpu" or "cuda[:i]"; the env and the networks share it')
+    threads: int = option(1, "torch CPU threads (1 is fastest for small networks on a shared CPU)")
+
+
+@dataclass
+class RuntimeConfig(DeviceConfig):
     """The run options of a training run: how it uses the machine, not what it learns. A fixed seed learns the same
     under any of them (up to float rounding where a key says so, and on another device), so they are not part of a
     run's identity: a checkpoint leaves them out (`TrainConfig.identity`), and a run resumes under others."""
 
-    device: str = option("cpu", '"cpu" or "cuda[:i]"; the env and the networks share it')
-    threads: int = option(1, "torch CPU threads (1 is fastest for small networks on a shared CPU)")
     teams: int = option(
         1, "train seeds seed .. seed+teams-1 at once, one batch of teams x num_envs kitchens; each team writes "
            "its own run directory, as a run of its own would"
@@ -361,9 +367,8 @@ class EvalConfig:
         8192, "kitchens stepped together (pairs x rollouts x grids are cut into batches of this)", group="execution"
     )
     seed: int = option(0, "the same seed gives the same numbers")
-    device: str = option("cpu", '"cpu" or "cuda[:i]"')
-    threads: int = option(1, "torch CPU threads")
     progress: bool = option(True, "a progress bar")
+    runtime: DeviceConfig = option(DeviceConfig(), "where it runs: the same numbers on any threads", group="runtime")
 
     # --- outputs
     out_dir: str = option("results/eval", "the folder of the tables, figures and GIFs", group="outputs")
@@ -374,7 +379,8 @@ class EvalConfig:
         """Refuses values no evaluation can use, before any work starts."""
         _check_types(self)
         _check_seed(self.seed)
-        _at_least(self, ["rollouts", "max_steps", "max_envs", "threads"], 1)
+        _at_least(self, ["rollouts", "max_steps", "max_envs"], 1)
+        _at_least(self.runtime, ["threads"], 1, "runtime.")
         if not 0 <= self.heldout <= NUM_HELDOUT_GENERATED:
             raise ConfigError(
                 f"heldout must be between 0 and {NUM_HELDOUT_GENERATED} (the held-out levels), got {self.heldout}"
@@ -390,7 +396,7 @@ class EvalConfig:
                         f"cross names the condition {name!r}, which is not among the conditions: "
                         f"{', '.join(self.conditions) or '(none)'}"
                     )
-        check_device(self.device)
+        check_device(self.runtime.device, "runtime.device")
         return self
 
 
@@ -684,19 +690,22 @@ def settings_from(schema: type, values: dict, prefix: str, owner: str):
 
 
 # Keys that had no section before `runtime` and `algorithm_config` did, as saved runs and older files hold them.
-RUN_OPTIONS = tuple(field.name for field in dataclasses.fields(RuntimeConfig))
+RUN_OPTIONS = {schema: tuple(field.name for field in dataclasses.fields(section))
+               for schema, section in ((TrainConfig, RuntimeConfig), (EvalConfig, DeviceConfig))}
 E3T_SETTINGS = ("partner_epsilon", "partner_policy", "partner_copy_rate", "predictor_coef")
 
 
 def sectioned(values: dict, schema: type = TrainConfig) -> dict:
-    """A training config's values written before the run options and the algorithm's settings had sections, put in
-    them: the run options under `runtime`, E3T's under `algorithm_config` where the values train E3T (others
-    ignored them, and a config saved by any run held them all). Other schemas' values are returned as they are."""
-    if schema is not TrainConfig or not any(key in values for key in (*RUN_OPTIONS, *E3T_SETTINGS)):
+    """A config's values written before the run options and the algorithm's settings had sections, put in them: the
+    run options under `runtime` (an evaluation's device and threads too), E3T's under `algorithm_config` where the
+    values train E3T (others ignored them, and a config saved by any run held them all)."""
+    run_options = RUN_OPTIONS.get(schema, ())
+    settings_keys = E3T_SETTINGS if schema is TrainConfig else ()
+    if not any(key in values for key in (*run_options, *settings_keys)):
         return values
     values = dict(values)
-    runtime = {key: values.pop(key) for key in RUN_OPTIONS if key in values}
-    settings = {key: values.pop(key) for key in E3T_SETTINGS if key in values}
+    runtime = {key: values.pop(key) for key in run_options if key in values}
+    settings = {key: values.pop(key) for key in settings_keys if key in values}
     if runtime:
         values["runtime"] = {**runtime, **(values.get("runtime") or {})}
     if settings and values.get("algorithm", "e3t") == "e3t":
@@ -836,6 +845,7 @@ def save_config(config: TrainConfig | EvalConfig, path: str | Path) -> None:
 
 __all__ = [
     "ConfigError",
+    "DeviceConfig",
     "EvalConfig",
     "TrainConfig",
     "check_device",

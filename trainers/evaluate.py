@@ -40,7 +40,16 @@ from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.pairing import make_seated_actor
 from torch_kitchen.scripted import SCRIPTED_COOK, scripted_actor_critic
 from trainers.checkpoint import CheckpointError, load_checkpoint
-from trainers.config import ConfigError, EvalConfig, RuntimeConfig, TrainConfig, config_help, load_config, save_config
+from trainers.config import (
+    ConfigError,
+    DeviceConfig,
+    EvalConfig,
+    RuntimeConfig,
+    TrainConfig,
+    config_help,
+    load_config,
+    save_config,
+)
 from trainers.figures import draw_figures, draw_heatmap, draw_learning_curve
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.rollout import play_episodes
@@ -513,14 +522,15 @@ def parse_gif_request(request: str, teams: list[Team], grids: dict[str, Layout])
 # --------------------------------------------------------------------------------------------- the whole job
 def evaluate(config: EvalConfig) -> Path:
     """Loads the population, plays every matchup, writes tables, figures and GIFs to `config.out_dir`."""
-    torch.set_num_threads(config.threads)
+    device = config.runtime.device
+    torch.set_num_threads(config.runtime.threads)
     if not config.conditions:
         raise ConfigError("no conditions to evaluate: give conditions: {name: run_dir_or_glob, ...}")
-    population = load_population(config.conditions, config.device)
+    population = load_population(config.conditions, device)
     grids = evaluation_grids(config.layouts, config.heldout)
-    partner = scripted_cook_team((*grids[0].shape, 26), config.device) if config.partner else None
+    partner = scripted_cook_team((*grids[0].shape, 26), device) if config.partner else None
     teams, matchups = make_matchups(population, config.cross, partner)
-    proxies = load_human_proxies(config.human_proxies, grids, config.device) if config.human_proxies else {}
+    proxies = load_human_proxies(config.human_proxies, grids, device) if config.human_proxies else {}
     by_name = {grid.name: grid for grid in grids}
     for heatmap in config.heatmaps:
         if heatmap not in by_name:
@@ -533,10 +543,10 @@ def evaluate(config: EvalConfig) -> Path:
           f"{len(matchups) * len(grids) * config.rollouts:,} episodes")
 
     outcomes = play(teams, matchups, grids, config.rollouts, config.max_steps, config.max_envs, config.seed,
-                    config.device, config.progress)
+                    device, config.progress)
     if proxies:
         outcomes = with_human_proxies(outcomes, proxies, config.rollouts, config.max_steps, config.max_envs,
-                                      config.seed, config.device)
+                                      config.seed, device)
     write_csv(pair_rows(outcomes), out / "pairs.csv")
     summary = summary_rows(outcomes)
     write_csv(summary, out / "summary.csv")
@@ -571,7 +581,7 @@ def report_trained_team(run: str | Path, episodes: int | None = None, num_heldou
         heldout=num_heldout,
         rollouts=episodes or config.eval_episodes,
         max_steps=config.max_steps,
-        seed=config.seed, device=config.runtime.device, threads=config.runtime.threads, progress=False,
+        seed=config.seed, runtime=DeviceConfig(config.runtime.device, config.runtime.threads), progress=False,
         out_dir=str(run),
     ).check())  # fmt: skip
     if not team.fully_trained:

@@ -14,6 +14,7 @@ from trainers.algorithms import algorithm_settings, check_algorithm
 from trainers.algorithms.e3t import E3TSettings
 from trainers.config import (
     ConfigError,
+    DeviceConfig,
     EvalConfig,
     RuntimeConfig,
     TrainConfig,
@@ -26,7 +27,6 @@ from trainers.config import (
 # A 5x5 kitchen whose only pot is walled in: no team can ever cook. The same kitchen with the pot in reach.
 WALLED_POT = "WWWWW\nOA  W\nB  AW\nWWXWW\nWPWWW\n"
 OPEN_POT = "WWPWW\nOA  W\nB  AW\nWWXWW\nWWWWW\n"
-ALLOWED_DEVICES = r"use device=cpu, device=cuda or device=cuda:<index>"
 RUNTIME_DEVICES = r"use runtime.device=cpu, runtime.device=cuda or runtime.device=cuda:<index>"
 COUNTS = ("max_steps num_envs rollout_steps total_steps hidden epochs minibatches checkpoint_every runtime.threads "
           "runtime.teams distill_rounds distill_kitchens distill_epochs distill_minibatch").split()
@@ -150,11 +150,11 @@ def test_values_at_the_edges_are_accepted():
         ({"rollouts": 0}, r"^rollouts must be at least 1, got 0$"),
         ({"max_steps": 0}, r"^max_steps must be at least 1, got 0$"),
         ({"max_envs": -5}, r"^max_envs must be at least 1, got -5$"),
-        ({"threads": 0}, r"^threads must be at least 1, got 0$"),
+        ({"runtime": DeviceConfig(threads=0)}, r"^runtime.threads must be at least 1, got 0$"),
         ({"heldout": 101}, r"^heldout must be between 0 and 100 \(the held-out levels\), got 101$"),
         ({"heldout": -1}, r"^heldout must be between 0 and 100"),
         ({"seed": -1}, r"^seed must be an integer in \[0, 4294967295\]"),
-        ({"device": "tpu"}, rf"^device=tpu is not a device: {ALLOWED_DEVICES}$"),
+        ({"runtime": DeviceConfig(device="tpu")}, rf"^runtime.device=tpu is not a device: {RUNTIME_DEVICES}$"),
         ({"layouts": "cramped_room_7x7"}, r"^layouts must be list\[str\], got 'cramped_room_7x7'$"),
         ({"conditions": {"a": 3}}, r"^conditions must be dict\[str, str \| list\[str\]\], got \{'a': 3\}$"),
         ({"rollouts": "5"}, r"^rollouts must be int, got '5'$"),
@@ -171,11 +171,12 @@ def test_bad_eval_configs_are_refused(kwargs, message):
     "override, message",
     [
         ("rollouts=0", r"^rollouts must be at least 1, got 0$"),
-        ("threads=0", r"^threads must be at least 1, got 0$"),
+        ("runtime.threads=0", r"^runtime.threads must be at least 1, got 0$"),
+        ("threads=2", r"^unknown config key 'threads' in the command line \(did you mean 'runtime.threads'\?\)"),
         ("max_envs=0", r"^max_envs must be at least 1, got 0$"),
         ("heldout=200", r"^heldout must be between 0 and 100"),
         ("seed=-1", r"^seed must be an integer in \[0, 4294967295\]"),
-        ("device=tpu", rf"^device=tpu is not a device: {ALLOWED_DEVICES}$"),
+        ("runtime.device=tpu", rf"^runtime.device=tpu is not a device: {RUNTIME_DEVICES}$"),
         ("layouts=cramped_room_7x7", r"^layouts in the command line must be list\[str\], got 'cramped_room_7x7'$"),
     ],
 )
@@ -190,8 +191,8 @@ def test_cuda_is_refused_where_this_machine_has_no_such_gpu(monkeypatch):
         message = rf"device={device}, but torch sees no CUDA GPU on this machine: use (runtime\.)?device=cpu$"
         with pytest.raises(ConfigError, match=rf"^runtime\.{message}"):
             load_config(None, [f"runtime.device={device}"])
-        with pytest.raises(ConfigError, match=rf"^{message}"):
-            EvalConfig(device=device).check()
+        with pytest.raises(ConfigError, match=rf"^runtime\.{message}"):
+            EvalConfig(runtime=DeviceConfig(device=device)).check()
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
@@ -441,3 +442,10 @@ def test_an_unsolvable_level_trains_with_allow_unsolvable_and_a_warning(tmp_path
     assert main(argv) == 0
     assert f"kitchen-train: warning: level {walled} is unsolvable" in capsys.readouterr().err
     assert (tmp_path / "main" / "seed0" / "checkpoints" / "latest.pt").exists()
+
+
+def test_an_evaluation_takes_its_device_and_threads_in_the_runtime_section_as_training_does(tmp_path):
+    (tmp_path / "old.yaml").write_text("device: cpu\nthreads: 2\nrollouts: 3\n")  # a file from before the section
+    config = load_config(tmp_path / "old.yaml", ["runtime.device=cpu"], schema=EvalConfig)
+    assert (config.runtime, config.rollouts) == (DeviceConfig(device="cpu", threads=2), 3)
+    assert "runtime.threads" in config_help(EvalConfig) and "runtime.teams" not in config_help(EvalConfig)
