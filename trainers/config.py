@@ -1,23 +1,26 @@
-"""Experiment configs: one dataclass, YAML files that mirror it, and `key=value` overrides on top.
+"""Experiment configs: one dataclass per command, YAML files composed by Hydra, and `key=value` overrides on top.
 
 Two schemas: `TrainConfig` (a training run) and `EvalConfig` (an evaluation of trained teams). A training config
-has two sections: `runtime` (`RuntimeConfig`: how the run uses the machine, not part of what the run is) and
-`algorithm_config` (the algorithm's own settings, which its class reads into a dataclass of its own,
-`trainers.algorithms.Algorithm.Settings`); their keys are `runtime.threads`, `algorithm_config.partner_epsilon`
-on the command line, and files and saved runs from before the sections had their keys at the top (`sectioned`
-puts them in). A YAML file may list `defaults:` whose values it overrides, as in Hydra: files relative to itself
-(the common part of a family) and config group choices (`regime: ik`, configs/regime/ik.yaml), which the command
-line may replace (`regime=sk_coord_ring`). The layers (defaults, a saved run's values, the file's defaults, the
-file, the command line's group choices, its overrides) are merged and converted by OmegaConf over structured
-configs built from the dataclasses (`kitchen-sweep` hands the same values to Hydra). Unknown keys and ill-typed
-values are refused with the list of valid keys; `check()` refuses values no run can use before any work starts,
-with one line (a `ConfigError`) that says what to change. Every field carries a one-line meaning, which
-`config_help` lists for `--help`.
+has two sections: `runtime` (`RuntimeConfig`: how the run uses the machine, not part of what the run is; an
+evaluation's `runtime` is its device and threads, `DeviceConfig`) and `algorithm_config` (the algorithm's own
+settings, which its class reads into a dataclass of its own, `trainers.algorithms.Algorithm.Settings`); their keys
+are `runtime.threads`, `algorithm_config.partner_epsilon` on the command line, and files and saved runs from before
+the sections had their keys at the top (`sectioned` puts them in).
+
+Every command's file goes through Hydra's compose API (`compose`): its `defaults:` list (files beside it, and the
+config groups of configs/: `algorithm`, `architecture`, `regime`, `runtime`, chosen as `- /regime: ik`), then the
+file's own values; a group chosen on the command line (`regime=sk_coord_ring`) takes the file's choice's place, and
+`kitchen-sweep` sweeps the same groups over the same files. The layers (the schema's defaults, a saved run's values,
+the composed file, the command line's keys) are merged and converted by OmegaConf over structured configs built from
+the dataclasses. Unknown keys and ill-typed values are refused with the list of valid keys; `check()` refuses values
+no run can use before any work starts, with one line (a `ConfigError`) that says what to change; so are Hydra's own
+composition errors. Every field carries a one-line meaning, which `config_help` lists for `--help`.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
 import dataclasses
 import difflib
@@ -25,6 +28,8 @@ import functools
 import math
 import types
 import typing
+import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -449,10 +454,11 @@ def config_help(schema: type, sections: dict[str, type] | None = None) -> str:
     lines = ["config keys (in the YAML file, or as key=value overrides):", *_key_lines(schema)]
     for name, settings in (sections or {}).items():
         lines += ["", f"  algorithm_config (algorithm: {name}):", *_key_lines(settings, "algorithm_config.")]
-    if schema is TrainConfig:
-        lines += ["", "config groups (in a file's `defaults:` list, or as group=choice, which replaces the file's):"]
-        for group, meaning in GROUPS.items():
-            lines += [f"    {group}: {' | '.join(group_choices(group))}", f"        {meaning}"]
+    groups = GROUPS if schema is TrainConfig else {"runtime": GROUPS["runtime"]}
+    lines += ["", "config groups (configs/<group>/; in a file's `defaults:` list as `/group: choice`, or as "
+                  "group=choice, which takes the file's choice's place):"]
+    for group in groups:
+        lines += [f"    {group}: {' | '.join(group_choices(group))}", f"        {groups[group]}"]
     return "\n".join(lines)
 
 
@@ -714,18 +720,14 @@ def sectioned(values: dict, schema: type = TrainConfig) -> dict:
 
 
 CONFIG_ROOT = Path(__file__).resolve().parent.parent / "configs"  # the shipped configs, and the config groups
-# Config groups, as in Hydra: configs/<group>/<choice>.yaml, chosen in a file's `defaults:` list (`- regime: ik`)
-# or on the command line (`regime=sk_coord_ring`, which replaces the file's choice and comes after the file).
-GROUPS = {"regime": "the paper's training regime: ik (Infinite Kitchen) or sk_<layout> (Single Kitchen)"}
-
-
-@dataclass
-class Layer:
-    """Values to merge, where they come from, and the config group they were chosen from (None: not a group's)."""
-
-    values: dict
-    source: str
-    group: str | None = None
+# Config groups (configs/<group>/<choice>.yaml), composed by Hydra: a file's `defaults:` list chooses them
+# (`- /regime: ik`), and the command line replaces or adds a choice (`regime=sk_coord_ring`).
+GROUPS = {
+    "algorithm": "the algorithm and the paper's PPO settings: ippo, or e3t (IPPO's, with E3T's partner)",
+    "architecture": "the networks: mlp, gnn, their _lstm forms, ego_mlp, e3t_mlp, e3t_gnn",
+    "regime": "the paper's training regime: ik (Infinite Kitchen) or sk_<layout> (Single Kitchen)",
+    "runtime": "where a command runs: cpu or gpu (device and threads, as runtime.device=, runtime.threads=)",
+}
 
 
 def group_choices(group: str) -> list[str]:
@@ -733,61 +735,109 @@ def group_choices(group: str) -> list[str]:
     return sorted(path.stem for path in (CONFIG_ROOT / group).glob("*.yaml"))
 
 
-def group_values(group: str, choice: str) -> dict:
-    """The values that `choice` of a config group sets (its file, its own defaults first)."""
-    values = {}
-    for layer in _group_layers(TrainConfig, group, choice, "the config group"):
-        values.update(layer.values)
-    return values
+def is_group_choice(item: str) -> bool:
+    """Whether a command-line `key=value` chooses from a config group (`regime=ik`, `algorithm=e3t`) rather than sets
+    a key; a group that is not a key (`regime`) takes nothing else (a ConfigError names its choices)."""
+    key, _, value = (part.strip() for part in item.partition("="))
+    if key not in GROUPS:
+        return False
+    if value in group_choices(key):
+        return True
+    if key in config_keys(TrainConfig) or key in config_keys(EvalConfig):
+        return False  # e.g. architecture=<a registered plugin's>: the key alone
+    raise ConfigError(f"{key} on the command line must be one of {', '.join(group_choices(key))}, got {value!r}")
 
 
-def _group_layers(schema: type, group: str, choice, source: str) -> list[Layer]:
-    """The layers of `choice` in `group`, or a ConfigError naming the choices."""
-    if not isinstance(choice, str) or choice not in group_choices(group):
-        raise ConfigError(f"{group} in {source} must be one of {', '.join(group_choices(group))}, got {choice!r}")
-    return [dataclasses.replace(layer, group=group)
-            for layer in _read_yaml(schema, CONFIG_ROOT / group / f"{choice}.yaml")]
-
-
-def _read_yaml(schema: type, path: Path, seen: tuple[Path, ...] = ()) -> list[Layer]:
-    """The layers of a YAML config: those of its `defaults:` list in order (files relative to it, and config group
-    choices such as `regime: ik`), then the file's own. `base: FILE` is the same as `defaults: [FILE]`."""
-    path = path.resolve()
-    if path in seen:
-        raise ConfigError(f"config {path} names itself as a base (through {' -> '.join(map(str, seen))})")
+def _checked_file(path: Path, schema: type) -> None:
+    """Refuses, in one line, a config file that does not exist, is not YAML or does not hold `key: value` lines."""
     if not path.is_file():
         raise ConfigError(f"config file {path} does not exist")
     try:
         values = yaml.safe_load(path.read_text()) or {}
     except (yaml.YAMLError, UnicodeDecodeError) as error:
-        raise ConfigError(f"config file {path} is not valid YAML: {error}") from None
+        raise ConfigError(f"config file {path} is not valid YAML: {' '.join(str(error).split())}") from None
     if not isinstance(values, dict):
         raise ConfigError(f"config file {path} must hold `key: value` lines, got {type(values).__name__}")
     for key in values:
         if not isinstance(key, str):
-            raise ConfigError(
-                f"the key {key!r} in {path} is not a config key (keys are names): valid keys: "
-                f"{', '.join(config_keys(schema))}"
-            )
-    defaults = values.pop("defaults", [])
+            raise ConfigError(f"the key {key!r} in {path} is not a config key (keys are names): valid keys: "
+                              f"{', '.join(config_keys(schema))}")
     if "base" in values:
-        base = values.pop("base")
-        if not isinstance(base, str) or not base.strip():
-            raise ConfigError(f"base in {path} must be the path of a config file (relative to this one), got {base!r}")
-        defaults = [base, *defaults] if isinstance(defaults, list) else defaults
-    if not isinstance(defaults, list):
-        raise ConfigError(f"defaults in {path} must be a list of files and choices (e.g. [base.yaml, regime: ik])")
-    layers = []
-    for item in defaults:
-        if isinstance(item, str) and item.strip():
-            layers += _read_yaml(schema, path.parent / item, (*seen, path))
-        elif isinstance(item, dict) and len(item) == 1 and next(iter(item)) in GROUPS:
-            (group, choice), = item.items()
-            layers += _group_layers(schema, group, choice, str(path))
-        else:
-            raise ConfigError(f"defaults in {path}: {item!r} is neither a config file (relative to this one) nor a "
-                              f"group choice ({', '.join(f'{group}: <choice>' for group in GROUPS)})")
-    return [*layers, Layer(sectioned(values, schema), str(path))]
+        raise ConfigError(f"base in {path}: list the file in the defaults instead, `defaults: [{values['base']}, "
+                          "_self_]` (files beside it and config group choices, as Hydra composes them)")
+
+
+@contextlib.contextmanager
+def _hydra_at(config_dir: Path):
+    """Hydra's compose API over `config_dir`, then the shipped configs (for their groups); a Hydra app this runs
+    inside (a sweep's job) gets its own state back afterwards."""
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    outer = GlobalHydra.instance().hydra if GlobalHydra.instance().is_initialized() else None
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
+            yield
+    finally:
+        if outer is not None:
+            GlobalHydra.instance().initialize(outer)
+
+
+def _one_line(error: Exception, where: str) -> ConfigError:
+    """A Hydra composition error as one line naming the file: a missing group choice with the choices."""
+    from hydra.errors import MissingConfigException
+
+    if isinstance(error, MissingConfigException) and error.options:
+        group, _, choice = str(error.missing_cfg_file).rpartition("/")
+        return ConfigError(f"{group.lstrip('/')} in {where} must be one of {', '.join(error.options)}, got {choice!r}")
+    if isinstance(error, MissingConfigException):
+        return ConfigError(f"the defaults of {where} name {error.missing_cfg_file!r}, which is neither a config file "
+                           "beside it nor a config group choice (e.g. /algorithm: ippo, /regime: ik)")
+    return ConfigError(f"{where}: {str(error).strip().splitlines()[0]}")
+
+
+def compose(path: Path | None, choices: Sequence[str] = (), schema: type = TrainConfig) -> dict:
+    """The values Hydra's compose API builds from the YAML file at `path` (None: none, only `choices`): its
+    `defaults:` list in order (files beside it, config groups from configs/ such as `/regime: ik`), the file's own
+    values after them, and the command line's group `choices` in place of the file's (or added)."""
+    return hydra_overrides(path, choices, schema)[0]
+
+
+def hydra_overrides(path: Path | None, choices: Sequence[str] = (), schema: type = TrainConfig
+                    ) -> tuple[dict, list[str]]:
+    """`compose`'s values, and `choices` as Hydra takes them over this file: `+group=choice` where the file's
+    defaults make no choice of that group to replace."""
+    from hydra import compose as hydra_compose
+    from hydra.errors import ConfigCompositionException, HydraException, MissingConfigException
+
+    if path is not None:
+        path = path.resolve()
+        _checked_file(path, schema)
+    where = str(path) if path is not None else "the command line"
+    choices = [f"+{item}" if path is None else item for item in choices]
+    for _ in range(len(choices) + 1):
+        try:
+            with warnings.catch_warnings(), _hydra_at(path.parent if path is not None else CONFIG_ROOT):
+                warnings.filterwarnings("ignore", message=".*Defaults list is missing `_self_`")
+                composed = hydra_compose(
+                    config_name=path.stem if path is not None else None,
+                    overrides=[f"hydra.searchpath=[file://{CONFIG_ROOT}]", *choices],
+                )
+            return OmegaConf.to_container(composed, resolve=False), choices
+        except MissingConfigException as error:
+            raise _one_line(error, where) from None
+        except ConfigCompositionException as error:  # a choice the file's defaults do not make: added instead
+            absent = [item for item in choices if not item.startswith("+")
+                      and f"Could not override '{item.partition('=')[0]}'. No match" in str(error)]
+            if not absent:
+                raise _one_line(error, where) from None
+            choices[choices.index(absent[0])] = f"+{absent[0]}"
+        except (HydraException, OmegaConfBaseException, yaml.YAMLError, ValueError) as error:  # ValueError: a
+            raise _one_line(error, where) from None  # defaults list that is not a list
+        except RecursionError:
+            raise ConfigError(f"the defaults of {where} include one another in a loop") from None
+    raise AssertionError("unreachable: every choice is added at most once")
 
 
 def parse_overrides(overrides: list[str], schema: type = TrainConfig) -> dict:
@@ -817,25 +867,24 @@ Config = typing.TypeVar("Config", TrainConfig, EvalConfig)
 
 def load_config(
     path: str | Path | None = None,
-    overrides: list[str] = (),
+    overrides: Sequence[str] = (),
     base: dict | None = None,
     schema: type[Config] = TrainConfig,
 ) -> Config:
-    """A checked `schema` config: its defaults, then `base` (e.g. a saved run's values), the YAML file (its
-    `defaults:` first), the command line's group choices (`regime=ik`, replacing the file's), then its `key=value`
-    overrides, merged in that order by OmegaConf."""
-    choices = {item.partition("=")[0].strip(): item.partition("=")[2].strip() for item in overrides
-               if schema is TrainConfig and item.partition("=")[0].strip() in GROUPS}
-    layers = [Layer(sectioned(base or {}, schema), "the saved run config")]
-    if path is not None:
-        layers += [layer for layer in _read_yaml(schema, Path(path)) if layer.group not in choices]
-    for group, choice in choices.items():
-        layers += _group_layers(schema, group, choice, "the command line")
-    keys = [item for item in overrides if item.partition("=")[0].strip() not in choices]
-    layers.append(Layer(parse_overrides(keys, schema), "the command line"))
+    """A checked `schema` config: its defaults, then `base` (e.g. a saved run's values), the YAML file as Hydra
+    composes it with the command line's group choices (`compose`), then the command line's `key=value` overrides
+    (a group choice that is also a key, `algorithm=e3t`, sets the key too, so it wins over the file), merged in that
+    order by OmegaConf and checked."""
+    choices = [item for item in overrides if is_group_choice(item)]
+    keys = [item for item in overrides if item not in choices or is_config_key(schema, item.partition("=")[0].strip())]
+    layers = [(sectioned(base or {}, schema), "the saved run config")]
+    if path is not None or choices:
+        layers.append((sectioned(compose(Path(path) if path is not None else None, choices, schema), schema),
+                       str(path) if path is not None else "the command line"))
+    layers.append((parse_overrides(keys, schema), "the command line"))
     merged = OmegaConf.structured(_structured(schema))
-    for layer in layers:
-        merged = _merge(schema, merged, layer.values, layer.source)
+    for values, source in layers:
+        merged = _merge(schema, merged, values, source)
     return _build(schema, OmegaConf.to_container(merged)).check()
 
 
@@ -851,8 +900,10 @@ __all__ = [
     "check_device",
     "config_help",
     "config_keys",
+    "compose",
     "group_choices",
-    "group_values",
+    "hydra_overrides",
+    "is_group_choice",
     "is_config_key",
     "load_config",
     "option",

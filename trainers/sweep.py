@@ -9,13 +9,13 @@ several values, and each point of it is the run `kitchen-train CONFIG key=value 
 too, so `kitchen-eval`'s `runs/<name>/seed*` globs keep working. `teams=K` makes every job train seeds seed ..
 seed+K-1 together in one process, the paper's six teams of a condition in one job.
 
-The config group `regime` (configs/regime/, as in `kitchen-train CONFIG regime=...` and the shipped configs'
-`defaults:`) sets the paper's regimes: `ik` (levels=infinite hidden=256 share_params=true) and `sk_<layout>` (one
-expanded layout, hidden=128, share_params=false). So the paper's grid is one sweep, its runs named as the shipped
-configs name them:
+The config groups (configs/algorithm, architecture, regime, runtime: `kitchen-train CONFIG regime=...` and the
+shipped configs' `defaults:`) sweep as groups, composed by Hydra from the same files as `kitchen-train`'s: e.g.
+the regimes `ik` (levels=infinite hidden=256 share_params=true) and `sk_<layout>` (one expanded layout, hidden=128,
+share_params=false). So the paper's grid is one sweep, its runs named as the shipped configs name them:
 
     kitchen-sweep configs/ippo/mlp_ik.yaml regime=ik,sk_cramped_room,sk_coord_ring architecture=mlp,gnn \
-        'name=ippo_${architecture}_${hydra:runtime.choices.regime}' seed=0 teams=6
+        'name=ippo_${hydra:runtime.choices.architecture}_${hydra:runtime.choices.regime}' seed=0 runtime.teams=6
 
 A name that interpolates what varies names the runs by itself; otherwise the varying keys become a folder.
 
@@ -38,14 +38,16 @@ import logging
 import sys
 from collections.abc import Sequence
 from contextlib import contextmanager
+from pathlib import Path
 
 from trainers.algorithms import algorithm_settings, check_algorithm
 from trainers.config import (
+    GROUPS,
     ConfigError,
     TrainConfig,
     config_help,
     group_choices,
-    group_values,
+    hydra_overrides,
     is_config_key,
     load_config,
     unknown_key,
@@ -53,16 +55,6 @@ from trainers.config import (
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.train_command import train_or_resume
 from trainers.training_run import team_configs
-
-PRIMARY = "kitchen_sweep"  # the name of the sweep's base config in Hydra's ConfigStore
-REGIME = "regime"  # the config group of the paper's regimes
-
-
-def regimes() -> dict[str, dict]:
-    """The paper's training regimes, the choices of the `regime` config group (configs/regime/): "ik" (Infinite
-    Kitchen: a generated level every episode, one network shared by both agents, hidden 256) and "sk_<layout>"
-    (Single Kitchen on one expanded layout, one network per agent, hidden 128), each with the values it sets."""
-    return {choice: group_values(REGIME, choice) for choice in group_choices(REGIME)}
 
 
 def run_point(cfg) -> list[str]:
@@ -73,21 +65,22 @@ def run_point(cfg) -> list[str]:
 
     logging.getLogger("jax").setLevel(logging.WARNING)  # Hydra logs at INFO; JAX's backend search is noise there
     config = load_config(base=OmegaConf.to_container(cfg, resolve=True))
-    varied = HydraConfig.get().job.override_dirname  # the keys that vary in this sweep, but the seed
+    # the keys that vary in this sweep, but the seed, as key=value (without the `++` they are given with)
+    varied = ",".join(item.lstrip("+") for item in HydraConfig.get().job.override_dirname.split(",") if item)
     if varied and not names_itself(cfg):
         config = load_config(base={**config.to_dict(), "name": f"{config.name}/{varied}"})
     return [str(run) for run in train_or_resume(team_configs(config))]
 
 
 def names_itself(cfg) -> bool:
-    """Whether the run name interpolates what varies: name=ippo_${architecture}_${hydra:runtime.choices.regime}."""
+    """Whether the run name interpolates what varies: name=ippo_${hydra:runtime.choices.regime}."""
     from omegaconf import OmegaConf
 
     return "${" in str(OmegaConf.to_container(cfg, resolve=False)["name"])
 
 
 def split_overrides(overrides: Sequence[str]) -> tuple[list[str], list[str]]:
-    """(overrides of config keys, Hydra's own: `hydra.*`, `hydra/launcher=...`, `--flags`)."""
+    """(overrides of config keys and groups, Hydra's own: `hydra.*`, `hydra/launcher=...`, `--flags`)."""
     ours, hydras = [], []
     for item in overrides:
         key = item.partition("=")[0].lstrip("+~")
@@ -96,7 +89,7 @@ def split_overrides(overrides: Sequence[str]) -> tuple[list[str], list[str]]:
 
 
 def grid_values(config_path: str, overrides: Sequence[str]) -> dict[str, list[str]]:
-    """key -> its values in the grid, each value checked as `kitchen-train CONFIG key=value` would check it."""
+    """key or group -> its values in the grid, each checked as `kitchen-train CONFIG key=value` would check it."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import OverrideParseException
 
@@ -107,15 +100,12 @@ def grid_values(config_path: str, overrides: Sequence[str]) -> dict[str, list[st
         except OverrideParseException as error:
             raise ConfigError(f"cannot read the override {item!r}: {error}") from None
         key = override.key_or_group
-        if not is_config_key(TrainConfig, key) and key != REGIME:
+        if not is_config_key(TrainConfig, key) and key not in GROUPS:
             raise unknown_key(TrainConfig, key, "the command line")
         if override.is_sweep_override():
             values[key] = list(override.sweep_string_iterator())
         else:
             values[key] = [item.partition("=")[2]]  # as written: Hydra's string form escapes interpolations
-    for choice in values.get(REGIME, []):
-        if choice not in regimes():
-            raise ConfigError(f"unknown regime {choice!r}; the regimes: {', '.join(regimes())}")
     first = {key: options[0] for key, options in values.items()}
     points = [first, *({**first, key: value} for key, options in values.items() for value in options[1:])]
     for point in points:  # the first point, and each other value beside the first value of every other key
@@ -124,10 +114,20 @@ def grid_values(config_path: str, overrides: Sequence[str]) -> dict[str, list[st
 
 
 def point_overrides(point: dict[str, str]) -> list[str]:
-    """The key=value overrides of one point of the grid, in Hydra's order: the regime's values, then the keys."""
-    regime = regimes()[point[REGIME]] if REGIME in point else {}
-    return [*(f"{key}={value}" for key, value in regime.items()),
-            *(f"{key}={value}" for key, value in point.items() if key != REGIME)]
+    """The key=value overrides of one point of the grid."""
+    return [f"{key}={value}" for key, value in point.items()]
+
+
+def as_hydra_overrides(config_path: str, grid: dict[str, list[str]]) -> list[str]:
+    """The grid as Hydra's overrides over the file: a group whose values are all its choices sweeps as a group
+    (`regime=ik,sk_coord_ring`, or `+regime=...` where the file chooses none), any other key as a value set whether
+    or not the file names it (`++seed=0,1,2`)."""
+    groups = [key for key, options in grid.items()
+              if key in GROUPS and all(option in group_choices(key) for option in options)]
+    _, choices = hydra_overrides(Path(config_path), [f"{key}={grid[key][0]}" for key in groups])
+    added = {choice.lstrip("+").partition("=")[0] for choice in choices if choice.startswith("+")}
+    return [f"{'+' if key in added else ''}{key}={','.join(grid[key])}" if key in groups
+            else f"++{key}={','.join(grid[key])}" for key in grid]
 
 
 @contextmanager
@@ -142,29 +142,28 @@ def command_line(arguments: list[str]):
 
 
 def sweep(config_path: str, overrides: Sequence[str]) -> None:
-    """Runs the grid of `overrides` over the config file `config_path` through Hydra's multirun."""
+    """Runs the grid of `overrides` over the config file `config_path` through Hydra's multirun, which composes every
+    point from the file as `kitchen-train` does (`trainers.config.compose`)."""
     import hydra
-    from hydra.core.config_store import ConfigStore
+
+    from trainers.config import CONFIG_ROOT
 
     ours, hydras = split_overrides(overrides)
-    base = load_config(config_path)
     grid = grid_values(config_path, ours)
     fixed = {key: values[0] for key, values in grid.items() if len(values) == 1}
     single = load_config(config_path, point_overrides(fixed))
     swept_name = len(grid.get("name", [])) > 1 or "${" in single.name
     named = "." if swept_name else single.name  # Hydra's files beside the runs when the name varies
     not_named = sorted({"seed", *fixed})  # run directories name the keys that vary, but the seed
-    store = ConfigStore.instance()
-    for choice, values in regimes().items():
-        store.store(group=REGIME, name=choice, node=values, package="_global_")  # its keys at the top
-    store.store(name=PRIMARY, node={"defaults": ["_self_", {REGIME: None}], **base.to_dict()})
     settings = [
+        f"hydra.searchpath=[file://{CONFIG_ROOT}]",
         f"hydra.sweep.dir={single.run_dir}/{named}/.sweeps/${{now:%Y-%m-%d_%H-%M-%S}}",
         f"hydra.job.config.override_dirname.exclude_keys=[{','.join(not_named)}]",
         "hydra.job.chdir=false",
     ]
-    with command_line(["--multirun", *settings, *hydras, *ours]):
-        hydra.main(version_base="1.3", config_path=None, config_name=PRIMARY)(run_point)()
+    path = Path(config_path).resolve()
+    with command_line(["--multirun", *settings, *hydras, *as_hydra_overrides(config_path, grid)]):
+        hydra.main(version_base="1.3", config_path=str(path.parent), config_name=path.stem)(run_point)()
 
 
 def main(argv: Sequence[str] | None = None) -> int:

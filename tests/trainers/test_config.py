@@ -7,12 +7,23 @@ import yaml
 from tiny import script_module
 
 from trainers.algorithms import check_algorithm
-from trainers.config import PLANNER_START, ConfigError, EvalConfig, RuntimeConfig, TrainConfig, load_config, sectioned
+from trainers.config import (
+    PLANNER_START,
+    ConfigError,
+    EvalConfig,
+    RuntimeConfig,
+    TrainConfig,
+    compose,
+    load_config,
+    sectioned,
+)
 from trainers.runtime import minibatch_shards
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 # configs/eval: kitchen-eval's configs; configs/protocols: scripts/reproduce.py's (conditions, not one trainer config)
-CONFIGS = sorted(path for path in CONFIG_DIR.rglob("*.yaml") if path.parent.name not in ("eval", "protocols"))
+# configs/architecture, configs/runtime: config groups of one or two keys, chosen by the others (and below)
+CONFIGS = sorted(path for path in CONFIG_DIR.rglob("*.yaml")
+                 if path.parent.name not in ("eval", "protocols", "architecture", "runtime"))
 EVAL_CONFIGS = sorted((CONFIG_DIR / "eval").glob("*.yaml"))
 PROTOCOLS = sorted((CONFIG_DIR / "protocols").glob("*.yaml"))
 
@@ -59,15 +70,15 @@ def test_a_regime_chosen_on_the_command_line_replaces_the_files(regime):
             assert chosen == shipped, (algorithm, other)
 
 
-def test_a_regime_on_the_command_line_comes_after_the_file_and_before_the_keys():
+def test_a_group_chosen_on_the_command_line_takes_the_files_choices_place_before_the_files_own_values():
     main = load_config(CONFIG_DIR / "main.yaml")
     assert (main.levels, main.hidden, main.share_params) == ("infinite", 128, True)  # the file's own width
-    ik = load_config(CONFIG_DIR / "main.yaml", ["regime=ik"])
-    assert (ik.levels, ik.hidden, ik.share_params, ik.lr) == ("infinite", 256, True, main.lr)
+    ik = load_config(CONFIG_DIR / "main.yaml", ["regime=ik"])  # the regime's hidden (256) gives way to the file's
+    assert (ik.levels, ik.hidden, ik.share_params, ik.lr) == ("infinite", 128, True, main.lr)
     sk = load_config(CONFIG_DIR / "main.yaml", ["regime=sk_forced_coord"])
     assert (sk.levels, sk.hidden, sk.share_params, sk.init_from) == ("forced_coord_7x7", 128, False, main.init_from)
     assert load_config(CONFIG_DIR / "main.yaml", ["hidden=64", "regime=ik"]).hidden == 64
-    with pytest.raises(ConfigError, match=r"^regime in the command line must be one of ik, sk_asymm_advantages, "
+    with pytest.raises(ConfigError, match=r"^regime on the command line must be one of ik, sk_asymm_advantages, "
                                           r"sk_coord_ring, sk_counter_circuit, sk_cramped_room, sk_forced_coord, "
                                           r"got 'sk_nowhere'$"):
         load_config(CONFIG_DIR / "main.yaml", ["regime=sk_nowhere"])
@@ -146,7 +157,7 @@ def test_unknown_keys_are_refused_with_the_valid_ones(tmp_path):
     with pytest.raises(ConfigError, match=r"unknown config key 'lrr'.*did you mean 'lr'.*valid keys: name, run_dir"):
         load_config(None, ["lrr=0.1"])
     bad = tmp_path / "bad.yaml"
-    bad.write_text("base: " + str(CONFIG_DIR / "ippo/mlp_ik.yaml") + "\nnum_env: 8\n")
+    bad.write_text("defaults: ['/ippo/mlp_ik@_global_', _self_]\nnum_env: 8\n")  # a shipped file, its keys on top
     with pytest.raises(ConfigError, match=r"unknown config key 'num_env' in .*bad.yaml.*did you mean 'num_envs'"):
         load_config(bad)
 
@@ -172,8 +183,8 @@ def test_broken_files_say_what_is_wrong(tmp_path):
     (tmp_path / "list.yaml").write_text("- a\n- b\n")
     with pytest.raises(ConfigError, match="must hold `key: value` lines"):
         load_config(tmp_path / "list.yaml")
-    (tmp_path / "loop.yaml").write_text("base: loop.yaml\n")
-    with pytest.raises(ConfigError, match="names itself as a base"):
+    (tmp_path / "loop.yaml").write_text("defaults: [loop.yaml]\n")
+    with pytest.raises(ConfigError, match=r"^the defaults of .*loop.yaml include one another in a loop$"):
         load_config(tmp_path / "loop.yaml")
 
 
@@ -206,3 +217,14 @@ def test_a_run_saved_before_runtime_and_algorithm_config_had_sections_loads_into
     ippo = load_config(base=recorded["configs/ippo/mlp_ik.yaml"])  # E3T's keys, which IPPO ignored, are dropped
     assert ippo.algorithm_config == {} and check_algorithm(ippo).algorithm_config == {}
     assert ippo == load_config(CONFIG_DIR / "ippo" / "mlp_ik.yaml")
+
+
+def test_a_group_the_file_does_not_choose_is_added_and_the_runtime_group_fills_its_section(tmp_path):
+    (tmp_path / "mine.yaml").write_text("hidden: 32\nlr: 0.01\n")  # a file of one's own, choosing no group
+    mine = load_config(tmp_path / "mine.yaml", ["regime=sk_coord_ring", "algorithm=e3t", "architecture=e3t_mlp"])
+    # Added as Hydra adds a group (`+regime=...`): after the file's own values, so the regime's width wins here,
+    # as it would in a sweep of the same file; a group the file chooses would keep the file's values on top.
+    assert (mine.levels, mine.hidden, mine.share_params, mine.lr) == ("coord_ring_7x7", 128, False, 2.5e-4)
+    assert (mine.algorithm, mine.architecture, mine.algorithm_config["partner_epsilon"]) == ("e3t", "e3t_mlp", 0.3)
+    assert compose(None, ["runtime=gpu"]) == {"runtime": {"device": "cuda", "threads": 1}}
+    assert load_config(tmp_path / "mine.yaml", ["runtime=cpu", "runtime.threads=2"]).runtime.threads == 2

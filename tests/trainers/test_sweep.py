@@ -11,8 +11,8 @@ import pytest
 import torch
 
 pytest.importorskip("hydra", reason="sweeps need the sweep extra: pip install .[sweep]")
-from trainers.config import load_config  # noqa: E402
-from trainers.sweep import main, regimes  # noqa: E402
+from trainers.config import compose, group_choices, load_config  # noqa: E402
+from trainers.sweep import as_hydra_overrides, main  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ["num_envs=2", "rollout_steps=8", "max_steps=8", "hidden=8", "minibatches=1", "eval_episodes=0", "gif=false",
@@ -59,7 +59,8 @@ def test_the_ray_launcher_runs_a_grid_on_a_local_ray_cluster(tmp_path):
 
 @pytest.mark.parametrize("algorithm, architecture", [("ippo", "mlp"), ("ippo", "gnn_lstm"), ("e3t", "e3t_gnn")])
 def test_the_regimes_are_those_of_the_shipped_configs(algorithm, architecture):
-    for regime, values in regimes().items():
+    for regime in group_choices("regime"):
+        values = compose(None, [f"regime={regime}"])  # what the group sets, as a sweep's point composes it
         shipped = load_config(ROOT / "configs" / algorithm / f"{architecture.removeprefix('e3t_')}_{regime}.yaml")
         assert {key: getattr(shipped, key) for key in values} == values, regime
 
@@ -88,7 +89,8 @@ def test_keys_and_values_are_checked_before_any_job_starts(tmp_path, capsys, mon
     assert main([str(ROOT / "configs" / "main.yaml"), "num_envs=2,3", "minibatches=2"]) == 2
     assert "minibatches (2) must divide num_envs (3)" in capsys.readouterr().err
     assert main([str(ROOT / "configs" / "main.yaml"), "regime=ik,sk_nowhere"]) == 2
-    assert "unknown regime 'sk_nowhere'; the regimes: ik, sk_asymm_advantages, sk_coord_ring" in capsys.readouterr().err
+    assert ("regime on the command line must be one of ik, sk_asymm_advantages, sk_coord_ring, sk_counter_circuit, "
+            "sk_cramped_room, sk_forced_coord, got 'sk_nowhere'") in capsys.readouterr().err
     assert not (tmp_path / "runs").exists()
 
 
@@ -128,3 +130,11 @@ def test_a_preempted_submitit_job_is_requeued_and_resumes_from_its_checkpoint(tm
     # The rows before the preemption are the very ones logged then (timings): resumed, not trained again.
     assert final[: len(logged) - 1] == logged[:-1]
     assert torch.load(checkpoint, weights_only=False)["env_steps"] == 4800
+
+
+def test_groups_sweep_as_groups_and_keys_as_values_whether_or_not_the_file_names_them(tmp_path):
+    (tmp_path / "mine.yaml").write_text("hidden: 32\n")
+    grid = {"regime": ["ik", "sk_coord_ring"], "architecture": ["mlp", "my_plugin_net"], "seed": ["0", "1"]}
+    assert as_hydra_overrides(str(ROOT / "configs" / "main.yaml"), grid) == [
+        "regime=ik,sk_coord_ring", "++architecture=mlp,my_plugin_net", "++seed=0,1"]
+    assert as_hydra_overrides(str(tmp_path / "mine.yaml"), grid)[0] == "+regime=ik,sk_coord_ring"
