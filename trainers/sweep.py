@@ -177,11 +177,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     add_plugin_option(parser)
     args = parser.parse_args(argv)
     try:
-        import hydra  # noqa: F401
-    except ImportError:
-        print("kitchen-sweep: error: sweeps need the sweep extra: pip install .[sweep]", file=sys.stderr)
-        return 2
-    try:
         import_plugins(args.plugins)  # and again in every job (run_point), from the environment
         sweep(args.config, args.overrides)
     except (ConfigError, PluginError) as error:

@@ -10,9 +10,8 @@ from pathlib import Path
 import pytest
 import torch
 
-pytest.importorskip("hydra", reason="sweeps need the sweep extra: pip install .[sweep]")
-from trainers.config import compose, group_choices, load_config  # noqa: E402
-from trainers.sweep import as_hydra_overrides, main  # noqa: E402
+from trainers.config import compose, group_choices, load_config
+from trainers.sweep import as_hydra_overrides, main
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ["num_envs=2", "rollout_steps=8", "max_steps=8", "hidden=8", "minibatches=1", "eval_episodes=0", "gif=false",
