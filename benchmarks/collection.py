@@ -28,7 +28,7 @@ import torch
 from timing import seconds_per_call
 
 from torch_kitchen.teams import TeamPolicy
-from trainers.config import load_config
+from trainers.composer import load_config
 from trainers.machine import machine_name
 from trainers.rollout import make_collector
 from trainers.training_run import build_team, make_env, with_model_transforms

@@ -52,7 +52,8 @@ import torch
 from jax_env import DELIVERY_REWARD, NUM_ACTIONS, Overcooked
 from torch_kitchen.env import jax_device_for
 from trainers.advantages import shaping_weight_at
-from trainers.config import TrainConfig, load_config
+from trainers.composer import load_config
+from trainers.config import TrainConfig
 from trainers.ppo import learning_rate_at
 
 # The two settings of `benchmarks/train.py reference`, as config overrides (the rest are TrainConfig defaults).

@@ -23,7 +23,7 @@ from torch_kitchen.onednn_linear import device_path
 from torch_kitchen.op_audit import OpAudit
 from torch_kitchen.teams import TeamPolicy, team_rows
 from trainers.advantages import compute_advantages, shaping_weight_at
-from trainers.config import load_config
+from trainers.composer import load_config
 from trainers.machine import machine_name
 from trainers.ppo import start_update
 from trainers.rollout import make_collector, select_kitchens

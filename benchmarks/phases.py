@@ -23,7 +23,7 @@ from torch.profiler import ProfilerActivity, profile, record_function
 import trainers.ppo
 import trainers.runtime
 import trainers.training_run
-from trainers.config import load_config
+from trainers.composer import load_config
 from trainers.machine import machine_name
 
 PHASES = ("collection", "advantages", "update")

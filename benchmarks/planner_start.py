@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from trainers.config import DeviceConfig, EvalConfig, load_config
+from trainers.composer import load_config
+from trainers.config import DeviceConfig, EvalConfig
 from trainers.distill import distill
 from trainers.evaluate import evaluate
 from trainers.machine import machine_name

@@ -20,7 +20,7 @@ import subprocess
 import sys
 import tempfile
 
-from trainers.config import load_config
+from trainers.composer import load_config
 from trainers.machine import machine_name
 from trainers.ppo import train_teams
 from trainers.training_run import team_configs

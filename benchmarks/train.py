@@ -27,7 +27,7 @@ from collections.abc import Sequence
 
 import torch
 
-from trainers.config import load_config
+from trainers.composer import load_config
 from trainers.machine import THREADS_HELP, machine_name
 from trainers.ppo import train, train_teams
 from trainers.training_run import team_configs

@@ -32,7 +32,8 @@ import torch
 import yaml
 
 from jax_env import EXPANDED_LAYOUTS, PADDED_LAYOUTS
-from trainers.config import DeviceConfig, EvalConfig, load_config
+from trainers.composer import load_config
+from trainers.config import DeviceConfig, EvalConfig
 from trainers.evaluate import HUMAN_PROXY_RUN, SCRIPTED_CONDITION, cross_condition, evaluate
 from trainers.humans import CACHE, fetch
 from trainers.humans import train as train_proxies

@@ -50,7 +50,8 @@ from trainers.checkpoint import (
     restore_rng_states,
     save_checkpoint,
 )
-from trainers.config import ConfigError, TrainConfig, load_config, save_config, train_config_parser
+from trainers.composer import load_config, save_config, train_config_parser
+from trainers.config import ConfigError, TrainConfig
 from trainers.loggers import make_loggers
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.resume import start_fresh

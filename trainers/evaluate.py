@@ -40,16 +40,8 @@ from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.pairing import make_seated_actor
 from torch_kitchen.scripted import SCRIPTED_COOK, scripted_actor_critic
 from trainers.checkpoint import CheckpointError, load_checkpoint
-from trainers.config import (
-    ConfigError,
-    DeviceConfig,
-    EvalConfig,
-    RuntimeConfig,
-    TrainConfig,
-    config_help,
-    load_config,
-    save_config,
-)
+from trainers.composer import config_help, load_config, save_config
+from trainers.config import ConfigError, DeviceConfig, EvalConfig, RuntimeConfig, TrainConfig
 from trainers.figures import draw_figures, draw_heatmap, draw_learning_curve
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.rollout import play_episodes

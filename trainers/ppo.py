@@ -30,7 +30,8 @@ from torch_kitchen.models import ActorCritic
 from torch_kitchen.teams import team_rows
 from trainers.advantages import compute_advantages, shaping_weight_at
 from trainers.checkpoint import LATEST, check_identity, load_checkpoint, restore_rng_states
-from trainers.config import PLANNER_START, ConfigError, TrainConfig, save_config
+from trainers.composer import save_config
+from trainers.config import PLANNER_START, ConfigError, TrainConfig
 from trainers.distill import distill_start
 from trainers.loggers import hyperparameters, make_loggers
 from trainers.resume import RunStopped, StopRequest, TrainingDiverged, drop_csv_rows_after, restore, start_fresh

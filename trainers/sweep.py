@@ -41,17 +41,8 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from trainers.algorithms import algorithm_settings, check_algorithm
-from trainers.config import (
-    GROUPS,
-    ConfigError,
-    TrainConfig,
-    config_help,
-    group_choices,
-    hydra_overrides,
-    is_config_key,
-    load_config,
-    unknown_key,
-)
+from trainers.composer import CONFIG_ROOT, GROUPS, config_help, group_choices, hydra_overrides, load_config
+from trainers.config import ConfigError, TrainConfig, is_config_key, unknown_key
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.train_command import train_or_resume
 from trainers.training_run import team_configs
@@ -143,10 +134,8 @@ def command_line(arguments: list[str]):
 
 def sweep(config_path: str, overrides: Sequence[str]) -> None:
     """Runs the grid of `overrides` over the config file `config_path` through Hydra's multirun, which composes every
-    point from the file as `kitchen-train` does (`trainers.config.compose`)."""
+    point from the file as `kitchen-train` does (`trainers.composer.compose`)."""
     import hydra
-
-    from trainers.config import CONFIG_ROOT
 
     ours, hydras = split_overrides(overrides)
     grid = grid_values(config_path, ours)

@@ -19,7 +19,8 @@ from pathlib import Path
 
 from trainers.algorithms import algorithm_settings
 from trainers.checkpoint import LATEST, CheckpointError
-from trainers.config import ConfigError, TrainConfig, load_config, train_config_parser
+from trainers.composer import load_config, train_config_parser
+from trainers.config import ConfigError, TrainConfig
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.ppo import train_teams
 from trainers.resume import RunStopped, TrainingDiverged

@@ -7,7 +7,7 @@ import yaml
 from scripted_cook import save_scripted_team
 from tiny import script_module
 
-from trainers.config import load_config
+from trainers.composer import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 reproduce = script_module("reproduce")

@@ -7,16 +7,8 @@ import yaml
 from tiny import script_module
 
 from trainers.algorithms import check_algorithm
-from trainers.config import (
-    PLANNER_START,
-    ConfigError,
-    EvalConfig,
-    RuntimeConfig,
-    TrainConfig,
-    compose,
-    load_config,
-    sectioned,
-)
+from trainers.composer import compose, load_config, sectioned
+from trainers.config import PLANNER_START, ConfigError, EvalConfig, RuntimeConfig, TrainConfig
 from trainers.runtime import minibatch_shards
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"

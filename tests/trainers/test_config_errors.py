@@ -12,17 +12,8 @@ from tiny import TINY
 from jax_env import get_layout, save_layout
 from trainers.algorithms import algorithm_settings, check_algorithm
 from trainers.algorithms.e3t import E3TSettings
-from trainers.config import (
-    ConfigError,
-    DeviceConfig,
-    EvalConfig,
-    RuntimeConfig,
-    TrainConfig,
-    check_device,
-    config_help,
-    load_config,
-    save_config,
-)
+from trainers.composer import config_help, load_config, save_config
+from trainers.config import ConfigError, DeviceConfig, EvalConfig, RuntimeConfig, TrainConfig, check_device
 
 # A 5x5 kitchen whose only pot is walled in: no team can ever cook. The same kitchen with the pot in reach.
 WALLED_POT = "WWWWW\nOA  W\nB  AW\nWWXWW\nWPWWW\n"

@@ -29,7 +29,8 @@ from trainers.algorithms import ALGORITHMS, E3T, IPPO, register_algorithm
 from trainers.algorithms.base import standardize_advantage
 from trainers.algorithms.e3t import EGO
 from trainers.checkpoint import load_checkpoint
-from trainers.config import TrainConfig, load_config
+from trainers.composer import load_config
+from trainers.config import TrainConfig
 from trainers.evaluate import load_team
 from trainers.figures import read_scalar
 from trainers.ppo import train
