@@ -18,13 +18,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from jax_env.human_games import LAYOUTS, load_dataset
 from jax_env.observation import Channel
-from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.models import OBSERVATION
-from trainers.behaviour_cloning import human_batch
+from trainers.behaviour_cloning import human_batch, play_together
 from trainers.evaluate import load_team
 from trainers.humans import DATA
 
@@ -45,19 +43,6 @@ def state_figures(observation: torch.Tensor) -> list[float]:
     lying = [float(((1 - cooks) * (1 - pots.float()) * view[..., channel]).sum((-1, -2)).mean())
              for channel in (Channel.ONION, Channel.PLATE)]
     return [*held, busy, ready, *lying]
-
-
-@torch.no_grad()
-def proxies_playing(run: Path, layout: str, games: int, steps: int, seed: int = 0) -> tuple[float, torch.Tensor]:
-    """Soups per game and the observations of `games` games of `steps` steps of two copies of the proxy in `run`."""
-    team = load_team(run)
-    env = with_transforms(KitchenEnv(games, levels=layout, max_steps=steps, seed=seed),
-                          team.actor_critic.env_transforms())
-    torch.manual_seed(seed)
-    with set_exploration_type(ExplorationType.RANDOM):
-        rollout = env.rollout(steps, team.actor_critic.actor, break_when_any_done=False)
-    soups = float(rollout.get(("next", "deliveries")).sum() / games)
-    return soups, rollout.get(OBSERVATION).flatten(0, 1)
 
 
 def main(argv=None) -> None:
@@ -81,8 +66,10 @@ def main(argv=None) -> None:
         steps = int(round(np.mean([len(game) for game in games])))
         humans = [float(np.mean([game.deliveries for game in games])),
                   *state_figures(human_batch(games).get(OBSERVATION))]
-        soups, observation = proxies_playing(args.runs / f"bc_{layout}" / "seed0", layout, len(games), steps)
-        proxies = [soups, *state_figures(observation)]
+        rollout = play_together(load_team(args.runs / f"bc_{layout}" / "seed0").actor_critic, layout, steps,
+                                len(games))
+        soups = float(rollout.get(("next", "deliveries")).sum() / len(games))
+        proxies = [soups, *state_figures(rollout.get(OBSERVATION).flatten(0, 1))]
         for who, figures in (("humans", humans), ("two proxies", proxies)):
             lines.append(f"| {layout} | {who} | " + " | ".join(f"{value:.2f}" for value in figures) + " |")
             print(lines[-1], flush=True)

@@ -123,13 +123,18 @@ def accuracy(actor_critic: ActorCritic, test: TensorDict, train: TensorDict) -> 
 
 
 @torch.no_grad()
-def deliveries_together(actor_critic: ActorCritic, layout: str, steps: int, episodes: int = 8,
-                        seed: int = 0) -> float:
-    """Mean soups delivered by two copies of the proxy (sampling) in `episodes` games of `steps` steps."""
+def play_together(actor_critic: ActorCritic, layout: str, steps: int, episodes: int = 8, seed: int = 0) -> TensorDict:
+    """The rollout [episodes, steps] of `episodes` games of `steps` steps of two copies of the proxy (sampling)."""
     env = KitchenEnv(episodes, levels=layout, max_steps=steps, seed=seed)
     torch.manual_seed(seed)
     with set_exploration_type(ExplorationType.RANDOM):
-        rollout = env.rollout(steps, actor_critic.actor, break_when_any_done=False)
+        return env.rollout(steps, actor_critic.actor, break_when_any_done=False)
+
+
+def deliveries_together(actor_critic: ActorCritic, layout: str, steps: int, episodes: int = 8,
+                        seed: int = 0) -> float:
+    """Mean soups delivered by two copies of the proxy (sampling) in `episodes` games of `steps` steps."""
+    rollout = play_together(actor_critic, layout, steps, episodes, seed)
     return float(rollout.get(("next", "deliveries")).sum() / episodes)
 
 

@@ -194,47 +194,44 @@ def _one_line(error: Exception, where: str) -> ConfigError:
     return ConfigError(f"{where}: {str(error).strip().splitlines()[0]}")
 
 
+def _hydra_compose(path: Path | None, overrides: Sequence[str], hydra_config: bool = False):
+    """One call of Hydra's compose API over the file at `path` (None: an empty primary config) with configs/ on its
+    search path; its errors as one line naming the file."""
+    from hydra import compose as hydra_compose
+    from hydra.errors import HydraException
+
+    where = str(path) if path is not None else "the command line"
+    try:
+        with warnings.catch_warnings(), _hydra_at(path.parent if path is not None else CONFIG_ROOT):
+            warnings.filterwarnings("ignore", message=".*Defaults list is missing `_self_`")
+            return hydra_compose(config_name=path.stem if path is not None else None,
+                                 overrides=[f"hydra.searchpath=[file://{CONFIG_ROOT}]", *overrides],
+                                 return_hydra_config=hydra_config)
+    except (HydraException, OmegaConfBaseException, yaml.YAMLError, ValueError) as error:  # ValueError: a
+        raise _one_line(error, where) from None  # defaults list that is not a list
+    except RecursionError:
+        raise ConfigError(f"the defaults of {where} include one another in a loop") from None
+
+
+def group_overrides(path: Path | None, choices: Sequence[str]) -> list[str]:
+    """The command line's group `choices` as Hydra takes them over the file at `path`: `group=choice` in place of
+    the file's choice, `+group=choice` where its defaults choose none of that group (Hydra's record of the file's
+    choices says which)."""
+    if not choices:
+        return []
+    chosen = set(_hydra_compose(path, [], hydra_config=True).hydra.runtime.choices) if path is not None else set()
+    return [item if item.partition("=")[0].strip() in chosen else f"+{item}" for item in choices]
+
+
 def compose(path: Path | None, choices: Sequence[str] = (), schema: type = TrainConfig) -> dict:
     """The values Hydra's compose API builds from the YAML file at `path` (None: none, only `choices`): its
     `defaults:` list in order (files beside it, config groups from configs/ such as `/regime: ik`), the file's own
     values after them, and the command line's group `choices` in place of the file's (or added)."""
-    return hydra_overrides(path, choices, schema)[0]
-
-
-def hydra_overrides(path: Path | None, choices: Sequence[str] = (), schema: type = TrainConfig
-                    ) -> tuple[dict, list[str]]:
-    """`compose`'s values, and `choices` as Hydra takes them over this file: `+group=choice` where the file's
-    defaults make no choice of that group to replace."""
-    from hydra import compose as hydra_compose
-    from hydra.errors import ConfigCompositionException, HydraException, MissingConfigException
-
     if path is not None:
         path = path.resolve()
         _checked_file(path, schema)
-    where = str(path) if path is not None else "the command line"
-    choices = [f"+{item}" if path is None else item for item in choices]
-    for _ in range(len(choices) + 1):
-        try:
-            with warnings.catch_warnings(), _hydra_at(path.parent if path is not None else CONFIG_ROOT):
-                warnings.filterwarnings("ignore", message=".*Defaults list is missing `_self_`")
-                composed = hydra_compose(
-                    config_name=path.stem if path is not None else None,
-                    overrides=[f"hydra.searchpath=[file://{CONFIG_ROOT}]", *choices],
-                )
-            return OmegaConf.to_container(composed, resolve=False), choices
-        except MissingConfigException as error:
-            raise _one_line(error, where) from None
-        except ConfigCompositionException as error:  # a choice the file's defaults do not make: added instead
-            absent = [item for item in choices if not item.startswith("+")
-                      and f"Could not override '{item.partition('=')[0]}'. No match" in str(error)]
-            if not absent:
-                raise _one_line(error, where) from None
-            choices[choices.index(absent[0])] = f"+{absent[0]}"
-        except (HydraException, OmegaConfBaseException, yaml.YAMLError, ValueError) as error:  # ValueError: a
-            raise _one_line(error, where) from None  # defaults list that is not a list
-        except RecursionError:
-            raise ConfigError(f"the defaults of {where} include one another in a loop") from None
-    raise AssertionError("unreachable: every choice is added at most once")
+    composed = _hydra_compose(path, group_overrides(path, choices))
+    return OmegaConf.to_container(composed, resolve=False)
 
 
 def parse_overrides(overrides: list[str], schema: type = TrainConfig) -> dict:

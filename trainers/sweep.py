@@ -41,7 +41,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from trainers.algorithms import algorithm_settings, check_algorithm
-from trainers.composer import CONFIG_ROOT, GROUPS, config_help, group_choices, hydra_overrides, load_config
+from trainers.composer import CONFIG_ROOT, GROUPS, config_help, group_choices, group_overrides, load_config
 from trainers.config import ConfigError, TrainConfig, is_config_key, unknown_key
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.train_command import train_or_resume
@@ -115,10 +115,8 @@ def as_hydra_overrides(config_path: str, grid: dict[str, list[str]]) -> list[str
     or not the file names it (`++seed=0,1,2`)."""
     groups = [key for key, options in grid.items()
               if key in GROUPS and all(option in group_choices(key) for option in options)]
-    _, choices = hydra_overrides(Path(config_path), [f"{key}={grid[key][0]}" for key in groups])
-    added = {choice.lstrip("+").partition("=")[0] for choice in choices if choice.startswith("+")}
-    return [f"{'+' if key in added else ''}{key}={','.join(grid[key])}" if key in groups
-            else f"++{key}={','.join(grid[key])}" for key in grid]
+    swept = group_overrides(Path(config_path).resolve(), [f"{key}={','.join(grid[key])}" for key in groups])
+    return [*swept, *(f"++{key}={','.join(options)}" for key, options in grid.items() if key not in groups)]
 
 
 @contextmanager
