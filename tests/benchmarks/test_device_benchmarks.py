@@ -27,3 +27,12 @@ def test_gae_launches_fall_from_one_loop_step_per_time_step_to_a_scan_of_log_ste
     torchrl_loop, scan = launches.audit_advantages(num_envs=2, steps=64)
     assert scan.syncs == torchrl_loop.syncs == 0
     assert torchrl_loop.launches >= 2 * 64 > scan.launches
+
+
+def test_reference_measures_a_setting_that_chooses_its_own_architecture():
+    import train
+    from jax_ppo import setting_overrides
+
+    overrides = [*setting_overrides("protocol_gnn"), *TINY_SHAPE, "runtime.teams=2"]
+    assert train.throughput(None, num_envs=4, rollout_steps=8, updates=2, device="cpu", threads=1,
+                            overrides=overrides) > 0
