@@ -14,8 +14,10 @@ cross-play (`cross`), and the evaluation's sizes; `evaluation: {human_proxies: t
 layouts drawn inside a 7x7 kitchen, which join the test grids.
 Training writes `<out>/runs/<condition>/seed<k>`; a condition already trained is skipped and one that stopped
 part-way is resumed, so an interrupted reproduction continues where it stopped. Extra `key=value` arguments
-override every condition (e.g. `total_steps=1e5` for a smoke run). The evaluation (`kitchen-eval`'s code) goes to
-`<out>/eval`; RESULTS.md gets its tables, the claims compared, the budget, machine, wall times and the command.
+override every condition (e.g. `total_steps=1e5` for a smoke run); `--conditions` runs part of a protocol (the
+families and cross pairs of the conditions named; RESULTS.md lists those left out). The evaluation (`kitchen-eval`'s
+code) goes to `<out>/eval`; RESULTS.md gets its tables, the claims compared, the budget, machine, wall times and the
+command.
 """
 
 from __future__ import annotations
@@ -60,6 +62,25 @@ def condition_entry(entry: str | dict) -> tuple[str, list[str]]:
     for item in entry.get("overrides", []):
         overrides += item if isinstance(item, list) else [item]
     return entry["config"], overrides
+
+
+def select_conditions(protocol: dict, names: list[str] | None) -> tuple[dict, list[str]]:
+    """The protocol cut to the conditions `names` (None: all of them): a family keeps its named SK conditions and
+    stays while its IK condition is named, a cross pair while both sides are; and the conditions left out."""
+    if names is None:
+        return protocol, []
+    unknown = [name for name in names if name not in protocol["conditions"]]
+    if unknown:
+        raise ValueError(f"--conditions: {', '.join(unknown)} not in the protocol, which has "
+                         f"{', '.join(protocol['conditions'])}")
+    selected = {
+        **protocol,
+        "conditions": {name: entry for name, entry in protocol["conditions"].items() if name in names},
+        "families": {family: {**members, "sk": [name for name in members["sk"] if name in names]}
+                     for family, members in protocol["families"].items() if members["ik"] in names},
+        "cross": [pair for pair in protocol.get("cross", []) if all(name in names for name in pair)],
+    }
+    return selected, [name for name in protocol["conditions"] if name not in names]
 
 
 def train_condition(name: str, path: str, overrides: list[str], teams: int, runs: Path) -> None:
@@ -165,8 +186,13 @@ def main(argv=None) -> int:
     parser.add_argument("--teams", type=int, help="seeds per condition (default: the protocol's)")
     parser.add_argument("--rollouts", type=int, help="evaluation episodes per pair and grid (default: the protocol's)")
     parser.add_argument("--heldout", type=int, help="held-out levels in the evaluation (default: the protocol's)")
+    parser.add_argument("--conditions", nargs="+", metavar="NAME",
+                        help="train and evaluate these of the protocol's conditions only (default: all)")
     args = parser.parse_args(argv)
-    protocol = yaml.safe_load(Path(args.protocol).read_text())
+    try:
+        protocol, left_out = select_conditions(yaml.safe_load(Path(args.protocol).read_text()), args.conditions)
+    except ValueError as error:
+        parser.error(str(error))
     out = Path(args.out)
     overrides = [*protocol.get("overrides", []), *args.overrides]
     teams, conditions = args.teams or protocol["teams"], protocol["conditions"]
@@ -228,6 +254,8 @@ def main(argv=None) -> int:
         f"(this is 1/{PAPER_STEPS / shared.total_steps:,.0f} of it), 6 seeds. Where a claim does not hold here, the "
         "budget comes first: read the training curves of the runs (`tensorboard --logdir "
         f"{out / 'runs'}`) before the claim.",
+        *([f"- **Conditions:** {len(conditions)} of the protocol's {len(conditions) + len(left_out)}; not run here: "
+           f"{', '.join(left_out)}."] if left_out else []),
         f"- **Shared overrides:** `{' '.join(overrides)}`.",
         *(f"- **{name}** adds `{' '.join(own)}`." for name, (_, own) in entries.items() if own),
         f"- **Machine:** {machine}. **Time:** {sum(seconds.values()) / 60:.0f} min in all; "

@@ -66,6 +66,14 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     assert reproduce.main(argv) == 0
     assert {p: p.stat().st_mtime_ns for p in out.glob("runs/*/seed*/checkpoints/latest.pt")} == stamps
 
+    # Part of the protocol: the conditions named, their family and the report saying what it left out.
+    assert reproduce.main([*argv, "--conditions", "ik", "sk_cramped"]) == 0
+    report = results.read_text()
+    assert "- **Conditions:** 2 of the protocol's 3; not run here: guided_sk." in report
+    assert "| MLP | IPPO from scratch | IK beats SK in cross-play on the 5 layouts (Fig. 3a) | cramped_room" in report
+    assert "| MLP guided | guided | IK beats SK" not in report  # its one SK condition left out: no SK claims
+    assert report.count("guided_sk") == 1  # in the list of those left out only
+
 
 def test_a_stopped_condition_ends_the_command_with_one_line_and_the_signals_code(tmp_path, monkeypatch, capsys):
     def stopped(name, *args):
@@ -88,3 +96,22 @@ def test_a_family_without_single_kitchen_conditions_has_only_its_held_out_claim(
                     "2e9 steps (Fig. 7) | IK cross-play on held-out (20): 0.30 | "
                     "1.0e+06 steps, not 2e9: not comparable |"]
     assert reproduce.claims(summary, "GNN", "gnn_ik", {}, budget=2_000_000_000)[0].endswith("| does not hold |")
+
+
+def test_part_of_a_protocol_keeps_the_families_and_pairs_of_the_conditions_named():
+    protocol = {"conditions": {"ik": "a.yaml", "sk_a": "b.yaml", "sk_b": "c.yaml", "guided": "d.yaml"},
+                "families": {"MLP": {"ik": "ik", "sk": ["sk_a", "sk_b"]}, "guided": {"ik": "guided", "sk": ["sk_a"]}},
+                "cross": [["guided", "sk_a"], ["ik", "sk_b"]]}
+    selected, left_out = reproduce.select_conditions(protocol, ["sk_a", "ik"])
+    assert list(selected["conditions"]) == ["ik", "sk_a"] and left_out == ["sk_b", "guided"]
+    assert selected["families"] == {"MLP": {"ik": "ik", "sk": ["sk_a"]}} and selected["cross"] == []
+    assert reproduce.select_conditions(protocol, None) == (protocol, [])
+
+
+def test_a_condition_not_in_the_protocol_is_one_line_naming_the_ones_there(tmp_path, capsys):
+    path = tmp_path / "protocol.yaml"
+    path.write_text(yaml.safe_dump({"teams": 1, "conditions": {"ik": "a.yaml"}, "families": {}}))
+    with pytest.raises(SystemExit) as stopped:
+        reproduce.main([str(path), "--conditions", "ik", "gnn_ik"])
+    assert stopped.value.code == 2
+    assert capsys.readouterr().err.strip().endswith("--conditions: gnn_ik not in the protocol, which has ik")
