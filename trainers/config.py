@@ -59,6 +59,11 @@ class DeviceConfig:
     device: str = option("cpu", '"cpu" or "cuda[:i]"; the env and the networks share it')
     threads: int = option(1, "torch CPU threads (1 is fastest for small networks on a shared CPU)")
 
+    @property
+    def on_gpu(self) -> bool:
+        """Whether `device` is a CUDA device (where stacked teams, CUDA graphs and capturable Adam apply)."""
+        return torch.device(self.device).type == "cuda"
+
 
 @dataclass
 class RuntimeConfig(DeviceConfig):

@@ -92,7 +92,7 @@ def acts_stacked(config: TrainConfig, policies: Sequence[TensorDictModuleBase]) 
     """Whether the teams act as one stacked network (`TeamPolicy`'s `stack`): on a GPU, where the policies allow
     it, a team's kernel launches for all of them; on a CPU they act one after another, each with its sparse first
     layer."""
-    return torch.device(config.runtime.device).type == "cuda" and stackable_acting(policies) is not None
+    return config.runtime.on_gpu and stackable_acting(policies) is not None
 
 
 def learns_stacked(config: TrainConfig, teams: Sequence[TrainingRun]) -> bool:
@@ -101,7 +101,7 @@ def learns_stacked(config: TrainConfig, teams: Sequence[TrainingRun]) -> bool:
     team learns on its own, with its sparse first layer, on threads where `parallel_teams`."""
     stackable = (config.share_params and not teams[0].actor_critic.recurrent and teams[0].algorithm.stackable
                  and minibatch_shards(config) == 1)
-    return torch.device(config.runtime.device).type == "cuda" and len(teams) > 1 and stackable
+    return config.runtime.on_gpu and len(teams) > 1 and stackable
 
 
 def stacked_update(teams: Sequence[TrainingRun]) -> Callable[[TensorDictBase], dict[str, torch.Tensor]]:

@@ -173,7 +173,7 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
             # GPU, Adam keeps its step counts on the device, as a CUDA graph needs.
             device = config.runtime.device
             optimizer = torch.optim.Adam(parameters, lr=torch.tensor(config.lr, device=device),
-                                         eps=config.adam_eps, capturable=torch.device(device).type == "cuda")
+                                         eps=config.adam_eps, capturable=config.runtime.on_gpu)
         else:
             # Fused: one kernel for all parameters instead of a few per tensor (3x faster on a CPU at hidden 256).
             optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps, fused=True)

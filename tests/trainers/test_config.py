@@ -192,6 +192,7 @@ def test_minibatch_shards_default_to_two_where_they_pay_and_never_for_e3t():
     on_gpu = load_config(None)
     on_gpu.runtime.device = "cuda"  # set after the check, which looks for a GPU
     assert minibatch_shards(on_gpu) == 1  # no second pass on a GPU
+    assert on_gpu.runtime.on_gpu and not load_config(None, ["runtime.device=cpu"]).runtime.on_gpu
     uneven = r"^algorithm=e3t averages its losses over some of a minibatch's transitions, which shards split unevenly"
     with pytest.raises(ConfigError, match=uneven + r": set runtime.minibatch_shards=1 \(got 2\)$"):
         check_algorithm(load_config(None, ["algorithm=e3t", "architecture=e3t_mlp", "runtime.minibatch_shards=2"]))
