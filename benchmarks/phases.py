@@ -1,5 +1,6 @@
 """Where a training batch's time goes on a device: collection, advantages and update, each as wall time on the
-host against the device's busy time (the summed time of the kernels it launched), under `torch.profiler`.
+host against the device's busy time (how long the kernels the phase launched kept the device busy, overlaps counted
+once), under `torch.profiler`.
 
 Runs `trainers.ppo.train_teams` on a setting of `benchmarks/jax_ppo.py` and labels its three phases from outside
 (the collector's batches, `start_update`, which holds GAE, and `UpdateRunner.update`), so the trainer runs as it always
@@ -13,11 +14,14 @@ from __future__ import annotations
 
 import argparse
 import functools
+import math
 import tempfile
 from collections import defaultdict
+from dataclasses import dataclass
 
 import torch
 from jax_ppo import SETTINGS, setting_overrides  # with the test extra
+from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile, record_function
 
 import trainers.ppo
@@ -85,14 +89,58 @@ def phase_seconds(setting: str, updates: int, device: str, overrides: list[str])
             for (where, name), function in originals.items():
                 setattr(where, name, function)
     first_update = {"collection": 1, "advantages": config.runtime.teams, "update": 1}  # its ranges, left out
-    seen = defaultdict(int)
-    for event in sorted(profiler.events(), key=lambda event: event.time_range.start):
-        if event.name in PHASES:
-            seen[event.name] += 1
-            if seen[event.name] > first_update[event.name]:
-                totals[event.name][0] += event.cpu_time_total / 1e6
-                totals[event.name][1] += event.device_time_total / 1e6
+    spans = [Span.of(event) for event in profiler.profiler.kineto_results.events()]
+    seen, timed = defaultdict(int), []
+    for span in sorted(spans, key=lambda span: span.start):
+        if span.name in PHASES and not span.on_device:
+            seen[span.name] += 1
+            if seen[span.name] > first_update[span.name]:
+                timed.append(span)
+                totals[span.name][0] += (span.end - span.start) / 1e9
+    for phase, busy in busy_seconds(spans, timed).items():
+        totals[phase][1] = busy
     return totals
+
+
+@dataclass(frozen=True)
+class Span:
+    """One profiler event, host or device, in nanoseconds: what `busy_seconds` reads of it."""
+
+    name: str
+    id: int  # a host event's correlation id
+    launcher: int  # a kernel's: the id of the host event that launched it (0: none)
+    start: int
+    end: int
+    on_device: bool
+    annotation: bool  # a host range drawn again on the device's timeline, not a kernel
+
+    @classmethod
+    def of(cls, event) -> Span:
+        """From a Kineto event (`profile().profiler.kineto_results.events()`)."""
+        return cls(event.name(), event.correlation_id(), event.linked_correlation_id(), event.start_ns(),
+                   event.start_ns() + event.duration_ns(), event.device_type() != DeviceType.CPU,
+                   event.is_user_annotation())
+
+
+def busy_seconds(spans: list[Span], ranges: list[Span]) -> dict[str, float]:
+    """Per phase: the seconds the device was busy with the kernels launched inside that phase's `ranges` (host
+    ranges), overlapping kernels counted once. (A range's `device_time_total` counts a kernel again under every
+    nested range that the device's timeline annotates, and reads above wall time.)"""
+    launched = {span.id: span.start for span in spans if not span.on_device}
+    intervals = defaultdict(list)
+    for kernel in spans:
+        start = launched.get(kernel.launcher) if kernel.on_device and not kernel.annotation else None
+        phase = next((r.name for r in ranges if start is not None and r.start <= start <= r.end), None)
+        if phase is not None:
+            intervals[phase].append((kernel.start, kernel.end))
+    busy = {}
+    for phase, kernels in intervals.items():
+        total, reached = 0, -math.inf
+        for start, end in sorted(kernels):
+            total += max(0, end - max(start, reached))
+            reached = max(reached, end)
+        busy[phase] = total / 1e9
+    return busy
 
 
 def main(argv=None) -> None:

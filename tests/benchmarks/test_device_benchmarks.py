@@ -36,3 +36,17 @@ def test_reference_measures_a_setting_that_chooses_its_own_architecture():
     overrides = [*setting_overrides("protocol_gnn"), *TINY_SHAPE, "runtime.teams=2"]
     assert train.throughput(None, num_envs=4, rollout_steps=8, updates=2, device="cpu", threads=1,
                             overrides=overrides) > 0
+
+
+def test_device_busy_time_counts_overlapping_kernels_once_and_annotations_not_at_all():
+    def span(id, name, start, end, launcher=0, on_device=False, annotation=False):
+        return phases.Span(name, id, launcher, start, end, on_device, annotation)
+
+    collection, update = span(1, "collection", 0, 100), span(2, "update", 100, 200)
+    spans = [collection, update, span(3, "aten::mm", 10, 12), span(4, "aten::add", 20, 21),
+             span(5, "aten::mm", 150, 152),
+             span(0, "gemm", 30, 70, launcher=3, on_device=True), span(0, "add", 50, 90, launcher=4, on_device=True),
+             span(0, "collection", 30, 90, launcher=1, on_device=True, annotation=True),  # the range on the device
+             span(0, "gemm", 160, 170, launcher=5, on_device=True)]
+    busy = phases.busy_seconds(spans, [collection, update])
+    assert busy == {"collection": 60 / 1e9, "update": 10 / 1e9}  # 30..90 once, though the kernels overlap
