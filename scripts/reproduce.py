@@ -191,6 +191,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         protocol, left_out = select_conditions(yaml.safe_load(Path(args.protocol).read_text()), args.conditions)
+    except OSError as error:
+        parser.error(f"{args.protocol}: {error.strerror}")
     except ValueError as error:
         parser.error(str(error))
     out = Path(args.out)

@@ -115,3 +115,9 @@ def test_a_condition_not_in_the_protocol_is_one_line_naming_the_ones_there(tmp_p
         reproduce.main([str(path), "--conditions", "ik", "gnn_ik"])
     assert stopped.value.code == 2
     assert capsys.readouterr().err.strip().endswith("--conditions: gnn_ik not in the protocol, which has ik")
+
+
+def test_a_protocol_file_that_is_not_there_is_one_line(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        reproduce.main([str(tmp_path / "nowhere.yaml")])
+    assert capsys.readouterr().err.strip().endswith("nowhere.yaml: No such file or directory")
