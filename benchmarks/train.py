@@ -33,16 +33,16 @@ from trainers.ppo import train, train_teams
 from trainers.training_run import team_configs
 
 
-def throughput(architecture: str | None, num_envs: int, rollout_steps: int, updates: int, device: str, threads: int,
+def throughput(architecture: str, num_envs: int, rollout_steps: int, updates: int, device: str, threads: int,
                algorithm: str = "ippo", overrides: Sequence[str] = ()) -> float:
     """Mean env steps per second of updates 2..`updates` (collection + PPO epochs; all teams' steps with `teams=K`);
-    `overrides` (key=value) come last. `architecture=None` leaves the choice to `overrides` (a group is chosen once)."""
+    `overrides` (key=value) come last."""
     rates = {}  # update -> steps/s of the batch, as the last team to learn from it logs it
     with tempfile.TemporaryDirectory() as run_dir:
         config = load_config(
             None,
             [
-                *([f"architecture={architecture}"] if architecture is not None else []),
+                f"architecture={architecture}",
                 f"algorithm={algorithm}",
                 f"num_envs={num_envs}",
                 f"rollout_steps={rollout_steps}",
@@ -127,7 +127,7 @@ def reference(setting: str, updates: int, device: str, threads: int, compile_pol
     overrides = [*setting_overrides(setting), f"runtime.compile_policy={compile_policy}",
                  f"runtime.compile_update={compile_update}"]
     num_envs, rollout_steps = SETTINGS[setting]["num_envs"], SETTINGS[setting]["rollout_steps"]
-    ours = throughput(None, num_envs, rollout_steps, updates, device, threads, overrides=overrides)
+    ours = throughput("mlp", num_envs, rollout_steps, updates, device, threads, overrides=overrides)
     config = load_config(None, [*overrides, f"total_steps={updates * num_envs * rollout_steps}",
                                 f"runtime.device={device}", f"runtime.threads={threads}"])
     print(f"setting {setting}: {' '.join(overrides)}")

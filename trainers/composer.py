@@ -269,8 +269,10 @@ def load_config(
     composes it with the command line's group choices (`compose`), then the command line's `key=value` overrides
     (a group choice that is also a key, `algorithm=e3t`, sets the key too, so it wins over the file), merged in that
     order by OmegaConf and checked."""
-    choices = [item for item in overrides if is_group_choice(item)]
-    keys = [item for item in overrides if item not in choices or is_config_key(schema, item.partition("=")[0].strip())]
+    chosen = [(item, is_group_choice(item)) for item in overrides]
+    # A group chosen more than once keeps its last choice, as a key set more than once keeps its last value.
+    choices = list({item.partition("=")[0].strip(): item for item, choice in chosen if choice}.values())
+    keys = [item for item, choice in chosen if not choice or is_config_key(schema, item.partition("=")[0].strip())]
     layers = [(sectioned(base or {}, schema), "the saved run config")]
     if path is not None or choices:
         layers.append((sectioned(compose(Path(path) if path is not None else None, choices, schema), schema),

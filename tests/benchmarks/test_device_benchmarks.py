@@ -34,7 +34,7 @@ def test_reference_measures_a_setting_that_chooses_its_own_architecture():
     from jax_ppo import setting_overrides
 
     overrides = [*setting_overrides("protocol_gnn"), *TINY_SHAPE, "runtime.teams=2"]
-    assert train.throughput(None, num_envs=4, rollout_steps=8, updates=2, device="cpu", threads=1,
+    assert train.throughput("mlp", num_envs=4, rollout_steps=8, updates=2, device="cpu", threads=1,
                             overrides=overrides) > 0
 
 

@@ -221,3 +221,6 @@ def test_a_group_the_file_does_not_choose_is_added_and_the_runtime_group_fills_i
     assert (mine.algorithm, mine.architecture, mine.algorithm_config["partner_epsilon"]) == ("e3t", "e3t_mlp", 0.3)
     assert compose(None, ["runtime=gpu"]) == {"runtime": {"device": "cuda", "threads": 1}}
     assert load_config(tmp_path / "mine.yaml", ["runtime=cpu", "runtime.threads=2"]).runtime.threads == 2
+    twice = load_config(tmp_path / "mine.yaml", ["regime=ik", "architecture=mlp", "regime=sk_coord_ring",
+                                                 "architecture=gnn"])  # the last choice, as for a key
+    assert (twice.levels, twice.architecture) == ("coord_ring_7x7", "gnn")
