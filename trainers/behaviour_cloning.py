@@ -14,6 +14,12 @@ Fits of one layout with different seeds play very differently together (two prox
 10.8 and 18.1 soups), so `candidates` proxies are fitted with seeds seed, seed + 1, ... and the one kept is the one
 whose two copies deliver closest to what the humans of the fitted games delivered (`choose_proxy`): chosen on the
 fitted split only, measured on the other.
+
+Where cloning alone gets stuck (on forced_coord two cloned proxies deliver an eighth of the humans' soups: the cook
+by the pots picks up a plate before any soup cooks, a state the humans almost never reached, and waits with it at
+an empty pot), the kept proxy is fine-tuned in self-play by anchored IPPO, PPO with a KL penalty toward the cloned
+policy (`trainers.algorithms.anchored`), once per KL weight, and the one whose two copies deliver closest to the
+humans is kept (`fine_tuned`): the reward mends the stuck states, the penalty keeps the humans' way of playing.
 """
 
 from __future__ import annotations
@@ -53,12 +59,23 @@ class ProxySettings:
     stay_weight: float = 0.1
     seed: int = 0
     candidates: int = 5  # fits with seeds seed, seed + 1, ...: the one that plays most like the humans is kept
+    # Fine-tuning (`fine_tune`) where two cloned proxies deliver less than `fine_tune_below` x the humans' soups:
+    # anchored IPPO for `fine_tune_steps` steps (0: never), once per KL weight of `anchor_coefs`.
+    fine_tune_below: float = 0.5
+    fine_tune_steps: int = 2_097_152
+    anchor_coefs: tuple[float, ...] = (0.3, 0.1)
+    fine_tune_lr: float = 1e-3
     threads: int = 1  # torch threads
 
     def __post_init__(self):
         for name in ("hidden", "epochs", "minibatch", "candidates", "threads"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.fine_tune_steps < 0 or not self.fine_tune_below >= 0 or not self.fine_tune_lr > 0:
+            raise ValueError("fine_tune_steps and fine_tune_below must be at least 0 and fine_tune_lr above 0, got "
+                             f"{self.fine_tune_steps}, {self.fine_tune_below} and {self.fine_tune_lr}")
+        if not self.anchor_coefs or min(self.anchor_coefs) < 0:
+            raise ValueError(f"anchor_coefs must be one or more weights of at least 0, got {self.anchor_coefs}")
 
 
 def human_batch(games: list[HumanGame]) -> TensorDict:
@@ -146,11 +163,14 @@ def humanlike_distance(together: float, humans: float) -> float:
 @dataclasses.dataclass(frozen=True)
 class Chosen:
     """The proxy kept among the candidates: it, its seed, and each candidate's soups with a copy of itself in the
-    fitted split's games (by seed)."""
+    fitted split's games (by seed); where it was fine-tuned (`fine_tuned`), the KL weight of the one kept (None: the
+    cloned proxy) and each fine-tune's soups in the same games (by KL weight)."""
 
     actor_critic: ActorCritic
     seed: int
     soups: dict[int, float]
+    anchor_coef: float | None = None
+    tuned: dict[float, float] = dataclasses.field(default_factory=dict)
 
 
 def choose_proxy(train: TensorDict, layout: str, settings: ProxySettings, steps: int, humans: float,
@@ -164,6 +184,49 @@ def choose_proxy(train: TensorDict, layout: str, settings: ProxySettings, steps:
         soups[seed] = deliveries_together(proxies[seed], layout, steps, episodes, seed=SELECTION_GAMES + seed)
     kept = min(soups, key=lambda seed: humanlike_distance(soups[seed], humans))  # the first of equals
     return Chosen(proxies[kept], kept, soups)
+
+
+def fine_tune(start: Path, layout: str, settings: ProxySettings, coef: float, game_steps: int, seed: int,
+              run_dir: Path) -> Path:
+    """Anchored IPPO (`trainers.algorithms.anchored`) from the proxy saved at `start`: two copies in self-play on
+    `layout`, in games of `game_steps` steps, for `settings.fine_tune_steps` steps at Adam's rate
+    `settings.fine_tune_lr`, kept near the start by the KL weight `coef`. Returns the run
+    (`run_dir/anchor<coef>/seed<seed>`)."""
+    from trainers.composer import load_config
+    from trainers.ppo import train
+
+    config = load_config(None, [
+        f"levels={layout}", f"architecture={settings.architecture}", f"hidden={settings.hidden}", "share_params=true",
+        "algorithm=anchored_ippo", f"algorithm_config.anchor_coef={coef}", f"init_from={start}",
+        f"total_steps={settings.fine_tune_steps}", f"max_steps={game_steps}", f"lr={settings.fine_tune_lr}",
+        f"seed={seed}", f"run_dir={run_dir}", f"name=anchor{coef:g}", "eval_episodes=0",
+        f"runtime.threads={settings.threads}",
+    ])  # fmt: skip
+    return train(config)
+
+
+def fine_tuned(chosen: Chosen, layout: str, settings: ProxySettings, steps: int, humans: float, episodes: int,
+               team: Path) -> Chosen:
+    """`chosen` as it is where its two copies deliver at least `settings.fine_tune_below` x `humans` (or
+    `fine_tune_steps` is 0). Else it is fine-tuned once per KL weight of `settings.anchor_coefs` (`fine_tune`, from
+    `team/cloned`, into `team/anchored`), and the one kept, of those and the cloned proxy, is the one whose two copies
+    deliver closest to `humans` in the games `chosen` was measured in (the cloned one on a tie)."""
+    cloned_soups = chosen.soups[chosen.seed]
+    if not settings.fine_tune_steps or cloned_soups >= settings.fine_tune_below * humans:
+        return chosen
+    from trainers.evaluate import load_team
+
+    start = team / "cloned"
+    save_proxy(chosen.actor_critic, dataclasses.replace(settings, seed=chosen.seed), layout, start)
+    proxies, tuned = {}, {}
+    for coef in settings.anchor_coefs:
+        run = fine_tune(start, layout, settings, coef, steps, chosen.seed, team / "anchored")
+        proxies[coef] = load_team(run).actor_critic
+        tuned[coef] = deliveries_together(proxies[coef], layout, steps, episodes, seed=SELECTION_GAMES + chosen.seed)
+    best = min(tuned, key=lambda coef: humanlike_distance(tuned[coef], humans))
+    if humanlike_distance(tuned[best], humans) >= humanlike_distance(cloned_soups, humans):
+        return dataclasses.replace(chosen, tuned=tuned)
+    return dataclasses.replace(chosen, actor_critic=proxies[best], anchor_coef=best, tuned=tuned)
 
 
 def save_proxy(actor_critic: ActorCritic, settings: ProxySettings, layout: str, run: Path) -> Path:

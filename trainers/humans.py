@@ -15,7 +15,8 @@ the layouts that fit a 7x7 kitchen are also written drawn inside one (`<layout>_
 is a human label), so that `train --data` fits proxies of a study's own participants.
 
 `train` fits a proxy per layout on one split (`trainers.behaviour_cloning`; `--candidates` fits, the one kept
-whose two copies deliver closest to that split's humans), saves it as a trained team that
+whose two copies deliver closest to that split's humans; where they deliver under half the humans' soups, it is
+fine-tuned by anchored IPPO into `<team>/anchored/`, and the closest kept), saves it as a trained team that
 `kitchen-eval` and `kitchen-play` seat, and writes a table of the proxies measured on the other split: accuracy
 against always-STAY, accuracy on the humans' moves and interactions against their most frequent one, and the soups
 two proxies deliver together in games of the humans' length against the humans' own. As in Carroll et al. (2019),
@@ -51,6 +52,7 @@ from trainers.behaviour_cloning import (
     accuracy,
     choose_proxy,
     deliveries_together,
+    fine_tuned,
     human_batch,
     save_proxy,
 )
@@ -169,34 +171,41 @@ def train(data: Path, runs: Path, layouts: Sequence[str], settings: ProxySetting
         train_games, test_games = load_dataset(data, fit_on, layout), load_dataset(data, measure_on, layout)
         train_batch, test_batch = human_batch(train_games), human_batch(test_games)
         fitted_humans, fitted_steps = what_humans_did(train_games, game_steps)
-        chosen = choose_proxy(train_batch, layout, settings, fitted_steps, fitted_humans, episodes)
-        proxy = chosen.actor_critic
         run = runs / RUN_NAMES[fit_on].format(layout=layout) / f"seed{settings.seed}"
+        chosen = choose_proxy(train_batch, layout, settings, fitted_steps, fitted_humans, episodes)
+        chosen = fine_tuned(chosen, layout, settings, fitted_steps, fitted_humans, episodes, run)
+        proxy = chosen.actor_critic
         save_proxy(proxy, dataclasses.replace(settings, seed=chosen.seed), layout, run)
         scores = accuracy(proxy, test_batch, train_batch)
         humans, steps = what_humans_did(test_games, game_steps)
         together = deliveries_together(proxy, layout, steps, episodes, settings.seed)
         ratios += [together / humans] if humans else []
         candidates = " ".join(f"{chosen.soups[seed]:.1f}" for seed in sorted(chosen.soups))
+        candidates += "".join(f"; KL {coef:g}: {soups:.1f}" for coef, soups in chosen.tuned.items())
+        kept = "-" if chosen.anchor_coef is None else f"KL {chosen.anchor_coef:g}"
         rows.append(f"| {layout} | {len(train_batch):,} / {len(test_batch):,} | {scores['accuracy']:.3f} | "
                     f"{scores['always_stay']:.3f} | {scores['moving_accuracy']:.3f} | "
                     f"{scores['moving_majority']:.3f} | {steps} | {together:.2f} | {humans:.2f} | "
                     + (f"{together / humans:.2f} |" if humans else "- |")
-                    + f" {chosen.seed} | {candidates} / {fitted_humans:.2f} |")
+                    + f" {chosen.seed} | {kept} | {candidates} / {fitted_humans:.2f} |")
         print(rows[-1], flush=True)
     table = "\n".join([
         f"Proxies fitted on the {fit_on} split, measured on the {measure_on} split: {settings.architecture} hidden "
         f"{settings.hidden}, {settings.epochs} epochs, lr {settings.lr:g}, STAY weight {settings.stay_weight:g}; "
         f"per layout {settings.candidates} fits (seeds {settings.seed} to {settings.seed + settings.candidates - 1}), "
         f"the one kept whose two copies deliver closest to the {fit_on} split's humans ({episodes} games of their "
-        f"length; \"candidates\": each fit's soups / the humans'); two proxies together: {episodes} other games per "
-        "layout (actions sampled), "
+        f"length; \"candidates\": each fit's soups / the humans'); where the kept fit's two copies deliver under "
+        f"{settings.fine_tune_below:g} x the humans' soups, it is also fine-tuned by anchored IPPO, "
+        f"{settings.fine_tune_steps:,} steps at rate {settings.fine_tune_lr:g}, once per KL weight "
+        f"({', '.join(f'{coef:g}' for coef in settings.anchor_coefs)}; \"KL w\": that fine-tune's soups), and the "
+        "closest of them and the fit is kept (\"fine-tuned\"); two proxies together: "
+        f"{episodes} other games per layout (actions sampled), "
         + (f"{game_steps} steps each." if game_steps else f"as long as the humans' {measure_on} games."),
         "",
         f"| layout | steps {fit_on} / {measure_on} | accuracy | always STAY | accuracy on moves | their majority "
         "| game steps "
-        f"| BC+BC soups | humans' soups | ratio | seed kept | candidates on the {fit_on} split |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+        f"| BC+BC soups | humans' soups | ratio | seed kept | fine-tuned | candidates on the {fit_on} split |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|",
         *rows,
         "",
         f"Two proxies together deliver {np.mean(ratios) if ratios else float('nan'):.2f} of what the humans did, "
@@ -233,8 +242,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     training.add_argument("--game-steps", type=int, default=0,
                           help="steps of those games (default: as long as the humans' test games)")
     for field in dataclasses.fields(ProxySettings):
-        training.add_argument(f"--{field.name.replace('_', '-')}", type=type(getattr(defaults, field.name)),
-                              default=getattr(defaults, field.name), help=f"default {getattr(defaults, field.name)}")
+        default = getattr(defaults, field.name)
+        many = isinstance(default, tuple)  # e.g. --anchor-coefs 0.1 0.03
+        training.add_argument(f"--{field.name.replace('_', '-')}", type=type(default[0]) if many else type(default),
+                              nargs="+" if many else None, default=default,
+                              help=f"default {' '.join(map(str, default)) if many else default}")
     args = parser.parse_args(argv)
     try:
         if args.command == "fetch":
@@ -245,7 +257,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(f"{args.out / f'{split}_{layout}.npz'}: {count:,} steps")
         else:
             names = [field.name for field in dataclasses.fields(ProxySettings)]
-            settings = ProxySettings(**{name: getattr(args, name) for name in names})
+            settings = ProxySettings(**{name: tuple(value) if isinstance(value, list) else value
+                                        for name in names for value in [getattr(args, name)]})
             print(train(args.data, args.runs, args.layouts, settings, args.episodes, args.report, args.game_steps,
                         args.fit_on))
     except (RuntimeError, ValueError, ImportError, FileNotFoundError) as error:

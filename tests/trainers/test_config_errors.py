@@ -72,7 +72,7 @@ def test_bad_overrides_are_refused_before_any_work(override, message):
 @pytest.mark.parametrize(
     "overrides, message",
     [
-        (["algorithm=ppo"], r"^algorithm must be one of ippo, e3t, got 'ppo'$"),
+        (["algorithm=ppo"], r"^algorithm must be one of ippo, e3t, anchored_ippo, got 'ppo'$"),
         (["algorithm=e3t", "algorithm_config.partner_epsilon=1.5"],
          r"^algorithm_config.partner_epsilon must lie in \[0, 1\], got 1.5$"),
         (["algorithm=e3t", "algorithm_config.partner_copy_rate=-0.1"],

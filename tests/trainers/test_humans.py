@@ -175,7 +175,8 @@ def test_human_proxies_are_fitted_measured_and_saved_as_teams_that_play(trials, 
     report = tmp_path / "proxies.md"
     assert main(["train", "--data", str(tmp_path / "humans"), "--runs", str(tmp_path / "runs"), "--layouts",
                  "forced_coord", "forced_coord_in_7x7", "--hidden", "32", "--epochs", "40", "--minibatch", "8",
-                 "--episodes", "2", "--game-steps", "30", "--candidates", "2", "--report", str(report)]) == 0
+                 "--episodes", "2", "--game-steps", "30", "--candidates", "2", "--fine-tune-below", "1e9",
+                 "--fine-tune-steps", "1", "--anchor-coefs", "0.1", "0.03", "--report", str(report)]) == 0
     rows = [line.split("|")[1:-1] for line in report.read_text().splitlines() if line.startswith("| forced")]
     assert [row[0].strip() for row in rows] == ["forced_coord", "forced_coord_in_7x7"]
     games = load_dataset(tmp_path / "humans", "test", "forced_coord")
@@ -185,14 +186,23 @@ def test_human_proxies_are_fitted_measured_and_saved_as_teams_that_play(trials, 
         assert always_stay == pytest.approx(stays, abs=1e-3)
         assert moving > majority  # the cooks' moves are a function of what they see: the proxy learned some
         assert float(row[7]) >= 0 and float(row[8]) == pytest.approx(np.mean([g.deliveries for g in games]))
-        kept, (candidates, humans) = int(row[10]), row[11].split(" / ")
-        assert kept in (0, 1) and len(candidates.split()) == 2  # the kept fit of two, each fit's soups shown
+        kept, tuned, (candidates, humans) = int(row[10]), row[11].strip(), row[12].split(" / ")
+        fits, *tunes = candidates.split(";")
+        assert kept in (0, 1) and len(fits.split()) == 2  # the kept fit of two, each fit's soups shown
+        # Every kept fit delivers under 1e9 x the humans' soups: fine-tuned once per KL weight, the closest kept.
+        assert [tune.split(":")[0].strip() for tune in tunes] == ["KL 0.1", "KL 0.03"]
+        assert tuned in ("-", "KL 0.1", "KL 0.03")
         assert float(humans) == pytest.approx(np.mean([g.deliveries for g in load_dataset(tmp_path / "humans",
                                                                                            "train", "forced_coord")]))
     # Saved as trained teams: evaluation and kitchen-play load them like any run.
     team = load_team(tmp_path / "runs" / "bc_forced_coord_in_7x7" / "seed0")  # fitted on the train split
     assert team.obs_shape == (7, 7, 26) and team.config.levels == "forced_coord_in_7x7"
     assert team.config.seed == int(rows[1][10])  # the fit kept, in the run of the base seed
+    fine_tunes = tmp_path / "runs" / "bc_forced_coord_in_7x7" / "seed0" / "anchored"
+    for coef in ("0.1", "0.03"):  # each from the cloned proxy, kept beside the team
+        tuned = load_team(fine_tunes / f"anchor{coef}" / f"seed{team.config.seed}")
+        assert (tuned.config.algorithm, tuned.config.algorithm_config, tuned.config.init_from) == (
+            "anchored_ippo", {"anchor_coef": float(coef)}, str(fine_tunes.parent / "cloned"))
     game = Game(load_layout("forced_coord_in_7x7"), Partner(team.name, team.actor_critic, team.obs_shape), 0,
                 tmp_path / "game.jsonl", max_steps=5)
     while not game.over:
@@ -201,12 +211,15 @@ def test_human_proxies_are_fitted_measured_and_saved_as_teams_that_play(trials, 
     # Fitted on the test split: the evaluations' human proxy, measured on the train split.
     assert main(["train", "--data", str(tmp_path / "humans"), "--runs", str(tmp_path / "runs"), "--layouts",
                  "forced_coord", "--hidden", "8", "--epochs", "1", "--episodes", "1", "--game-steps", "5",
-                 "--fit-on", "test"]) == 0
+                 "--fit-on", "test", "--fine-tune-steps", "0"]) == 0
     assert "fitted on the test split, measured on the train split" in capsys.readouterr().out
     assert load_team(tmp_path / "runs" / "human_proxy_forced_coord" / "seed0").config.levels == "forced_coord"
     # Settings no fit can use, and a layout without games, are one line.
     assert main(["train", "--data", str(tmp_path / "humans"), "--layouts", "forced_coord", "--candidates", "0"]) == 1
     assert "candidates must be at least 1, got 0" in capsys.readouterr().err
+    assert main(["train", "--data", str(tmp_path / "humans"), "--layouts", "forced_coord", "--anchor-coefs",
+                 "-1"]) == 1
+    assert "anchor_coefs must be one or more weights of at least 0, got (-1.0,)" in capsys.readouterr().err
     assert main(["train", "--data", str(tmp_path / "humans"), "--layouts", "coord_ring"]) == 1
     assert "run `kitchen-humans fetch` first" in capsys.readouterr().err
 
@@ -252,3 +265,33 @@ def test_the_proxy_kept_is_the_candidate_that_delivers_closest_to_the_humans(mon
     assert (chosen.actor_critic, chosen.seed, chosen.soups) == ("proxy 4", 4, soups)
     assert games == [cloning.SELECTION_GAMES + seed for seed in range(3, 7)]  # apart from the measured games
     assert cloning.humanlike_distance(10, 10) == 0 and cloning.humanlike_distance(0, 0) == 0
+
+
+def test_a_proxy_that_delivers_far_less_than_the_humans_is_fine_tuned_and_the_closest_kept(monkeypatch, tmp_path):
+    import trainers.behaviour_cloning as cloning
+    import trainers.evaluate as evaluate
+
+    tuned_soups = {0.3: 4.0, 0.1: 9.0, 0.01: 14.0}  # by KL weight; the humans delivered 10
+    runs, games = [], []
+    monkeypatch.setattr(cloning, "save_proxy", lambda proxy, settings, layout, run: run)
+    monkeypatch.setattr(cloning, "fine_tune", lambda start, layout, settings, coef, steps, seed, run_dir:
+                        runs.append((start, coef, steps, seed, run_dir)) or coef)
+    monkeypatch.setattr(evaluate, "load_team", lambda coef: type("Team", (), {"actor_critic": f"tuned {coef}"}))
+    monkeypatch.setattr(cloning, "deliveries_together", lambda proxy, layout, steps, episodes, seed:
+                        games.append(seed) or tuned_soups[float(proxy.removeprefix("tuned "))])
+    settings = cloning.ProxySettings(anchor_coefs=(0.3, 0.1, 0.01))
+    team = tmp_path / "bc_forced_coord" / "seed0"
+    chosen = cloning.Chosen("cloned", 2, {2: 1.0})
+    kept = cloning.fine_tuned(chosen, "forced_coord", settings, 1200, 10.0, 8, team)
+    assert (kept.actor_critic, kept.seed, kept.anchor_coef, kept.tuned) == ("tuned 0.1", 2, 0.1, tuned_soups)
+    assert runs == [(team / "cloned", coef, 1200, 2, team / "anchored") for coef in (0.3, 0.1, 0.01)]
+    assert games == [cloning.SELECTION_GAMES + 2] * 3  # the games the cloned proxy was chosen in
+    # Delivering half of what the humans did or more, or with fine-tuning off, the cloned proxy stays as it is.
+    for near, steps in (({2: 5.0}, settings.fine_tune_steps), ({2: 1.0}, 0)):
+        same = cloning.Chosen("cloned", 2, near)
+        assert cloning.fine_tuned(same, "forced_coord", cloning.ProxySettings(fine_tune_steps=steps), 1200, 10.0, 8,
+                                  team) is same
+    # No fine-tune closer to the humans than the cloned proxy: it is kept, with the fine-tunes' soups shown.
+    monkeypatch.setattr(cloning, "deliveries_together", lambda proxy, layout, steps, episodes, seed: 40.0)
+    kept = cloning.fine_tuned(cloning.Chosen("cloned", 2, {2: 4.0}), "forced_coord", settings, 1200, 10.0, 8, team)
+    assert (kept.actor_critic, kept.anchor_coef, kept.tuned) == ("cloned", None, dict.fromkeys(tuned_soups, 40.0))

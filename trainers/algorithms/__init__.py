@@ -2,6 +2,7 @@
 
     ippo   independent PPO in self-play (`trainers.algorithms.ippo`)
     e3t    E3T's mixed partner and partner predictor (`trainers.algorithms.e3t`)
+    anchored_ippo   IPPO kept near its starting policy by a KL penalty (`trainers.algorithms.anchored`)
 
 Add one by subclassing `Algorithm` (its docstring lists the hooks; its `Settings` dataclass holds its own settings)
 and calling `register_algorithm(name, cls)` before the config is checked; `examples/` and the README show how.
@@ -11,12 +12,13 @@ from __future__ import annotations
 
 import dataclasses
 
+from trainers.algorithms.anchored import AnchoredIPPO
 from trainers.algorithms.base import Algorithm
 from trainers.algorithms.e3t import E3T
 from trainers.algorithms.ippo import IPPO
 from trainers.config import ConfigError, TrainConfig
 
-ALGORITHMS: dict[str, type[Algorithm]] = {"ippo": IPPO, "e3t": E3T}
+ALGORITHMS: dict[str, type[Algorithm]] = {"ippo": IPPO, "e3t": E3T, "anchored_ippo": AnchoredIPPO}
 
 
 def register_algorithm(name: str, algorithm: type[Algorithm]) -> None:
@@ -47,4 +49,5 @@ def algorithm_settings() -> dict[str, type]:
             if dataclasses.fields(algorithm.Settings)}
 
 
-__all__ = ["ALGORITHMS", "Algorithm", "E3T", "IPPO", "algorithm_settings", "check_algorithm", "register_algorithm"]
+__all__ = ["ALGORITHMS", "Algorithm", "AnchoredIPPO", "E3T", "IPPO", "algorithm_settings", "check_algorithm",
+           "register_algorithm"]

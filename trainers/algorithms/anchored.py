@@ -1,0 +1,81 @@
+"""Anchored IPPO: IPPO with a KL penalty that keeps the policy near the one it started from (`init_from`).
+
+The loss adds `anchor_coef * KL(pi || pi_start)` at every transition of the minibatch, pi_start the policy as it
+was before the first update. Started from a behaviour-cloned proxy, this is human-regularised RL (as in piKL,
+Jacob et al. 2022): the reward mends what cloning alone gets stuck in, while the KL term keeps the humans' way of
+playing; `kitchen-humans train` fine-tunes the proxies that way where two cloned proxies deliver far less than the
+humans did. The starting policy is saved with the run's checkpoints, so a resumed run keeps its anchor.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+
+from trainers.algorithms.ippo import IPPO
+from trainers.config import ConfigError, TrainConfig, option
+
+
+@dataclass
+class AnchoredSettings:
+    """Anchored IPPO's settings: `algorithm_config` of a config with `algorithm: anchored_ippo`."""
+
+    anchor_coef: float = option(0.1, "weight of KL(policy || starting policy) in the loss")
+
+    def check(self) -> None:
+        if not self.anchor_coef >= 0:
+            raise ConfigError(f"algorithm_config.anchor_coef must be at least 0, got {self.anchor_coef}")
+
+
+def policy_kl(policy, anchor, minibatch: TensorDictBase) -> torch.Tensor:
+    """KL(policy || anchor) of the two actors' action distributions at each transition of `minibatch` [..., 2],
+    averaged; the anchor's side carries no gradient. Neither actor samples (no random draw). From log-probabilities,
+    so an action the anchor all but rules out costs a finite amount (torch's `kl_divergence` says inf where its
+    probability underflows to 0)."""
+    inputs = minibatch.select(*policy.in_keys, strict=False)
+    own = torch.log_softmax(policy.get_dist(inputs.clone(False)).logits, -1)
+    with torch.no_grad():
+        start = torch.log_softmax(anchor.get_dist(inputs.clone(False)).logits, -1)
+    return (own.exp() * (own - start)).sum(-1).mean()
+
+
+class AnchoredIPPO(IPPO):
+    Settings = AnchoredSettings
+    stackable = False  # the anchor is each team's own
+
+    @classmethod
+    def check_config(cls, config: TrainConfig) -> None:
+        super().check_config(config)
+        if not config.init_from:
+            raise ConfigError("algorithm=anchored_ippo keeps the policy near the one it starts from: set init_from "
+                              "(a run directory, e.g. runs/bc_forced_coord/seed0, or scripted_cook)")
+
+    def __init__(self, config: TrainConfig, actor_critic):
+        super().__init__(config, actor_critic)
+        self.anchor = None  # the policy before the first update (its `init_from` weights), taken then
+
+    def check(self) -> None:
+        super().check()
+        if self.actor_critic.recurrent:
+            raise ConfigError(f"algorithm=anchored_ippo compares the policy with its start at stored steps, which a "
+                              f"recurrent model's start has no state for: choose a feed-forward architecture, not "
+                              f"{self.config.architecture!r}")
+
+    def process_batch(self, batch: TensorDictBase) -> None:
+        if self.anchor is None:
+            self.anchor = copy.deepcopy(self.actor_critic.actor).requires_grad_(False)
+
+    def auxiliary_losses(self, minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
+        kl = policy_kl(self.actor_critic.actor, self.anchor, minibatch)
+        return {"loss_anchor": self.settings.anchor_coef * kl, "anchor_kl": kl.detach()}
+
+    def state_dict(self) -> dict:
+        return {} if self.anchor is None else {"anchor": self.anchor.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        if "anchor" in state:
+            self.anchor = copy.deepcopy(self.actor_critic.actor).requires_grad_(False)
+            self.anchor.load_state_dict(state["anchor"])
