@@ -18,8 +18,9 @@ fitted split only, measured on the other.
 Where cloning alone gets stuck (on forced_coord two cloned proxies deliver an eighth of the humans' soups: the cook
 by the pots picks up a plate before any soup cooks, a state the humans almost never reached, and waits with it at
 an empty pot), the kept proxy is fine-tuned in self-play by anchored IPPO, PPO with a KL penalty toward the cloned
-policy (`trainers.algorithms.anchored`), once per KL weight, and the one whose two copies deliver closest to the
-humans is kept (`fine_tuned`): the reward mends the stuck states, the penalty keeps the humans' way of playing.
+policy (`trainers.algorithms.anchored`), with KL weights searched for until two copies deliver about what the
+humans did, and the closest is kept (`fine_tuned`): the reward mends the stuck states, the penalty keeps the humans'
+way of playing.
 """
 
 from __future__ import annotations
@@ -45,6 +46,8 @@ from trainers.config import TrainConfig
 HUMAN_ACTION = ("agents", "human_action")  # the label, kept apart from the actor's own sampled action
 NOT_HUMAN = -1  # the label of a seat no person played (a kitchen-play game's partner): ignored
 SELECTION_GAMES = 1000  # the seeds of the games candidates are chosen by start here, apart from the measured ones
+ANCHOR_STEP = 4.0  # the factor between KL weights tried while the humans' soups are not yet between two of them
+CLOSE_ENOUGH = 0.1  # a fine-tune this near the humans' soups (`humanlike_distance`, about 10%) ends the search
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,23 +62,25 @@ class ProxySettings:
     stay_weight: float = 0.1
     seed: int = 0
     candidates: int = 5  # fits with seeds seed, seed + 1, ...: the one that plays most like the humans is kept
-    # Fine-tuning (`fine_tune`) where two cloned proxies deliver less than `fine_tune_below` x the humans' soups:
-    # anchored IPPO for `fine_tune_steps` steps (0: never), once per KL weight of `anchor_coefs`.
+    # Fine-tuning (`fine_tuned`) where two cloned proxies deliver less than `fine_tune_below` x the humans' soups:
+    # anchored IPPO for `fine_tune_steps` steps (0: never) at most `fine_tunes` times, the first with KL weight
+    # `anchor_coef`, the next ones' weights searched for (`next_anchor_coef`).
     fine_tune_below: float = 0.5
     fine_tune_steps: int = 2_097_152
-    anchor_coefs: tuple[float, ...] = (0.3, 0.1)
+    fine_tunes: int = 3
+    anchor_coef: float = 0.1
     fine_tune_lr: float = 1e-3
     threads: int = 1  # torch threads
 
     def __post_init__(self):
-        for name in ("hidden", "epochs", "minibatch", "candidates", "threads"):
+        for name in ("hidden", "epochs", "minibatch", "candidates", "fine_tunes", "threads"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
         if self.fine_tune_steps < 0 or not self.fine_tune_below >= 0 or not self.fine_tune_lr > 0:
             raise ValueError("fine_tune_steps and fine_tune_below must be at least 0 and fine_tune_lr above 0, got "
                              f"{self.fine_tune_steps}, {self.fine_tune_below} and {self.fine_tune_lr}")
-        if not self.anchor_coefs or min(self.anchor_coefs) < 0:
-            raise ValueError(f"anchor_coefs must be one or more weights of at least 0, got {self.anchor_coefs}")
+        if not self.anchor_coef > 0:
+            raise ValueError(f"anchor_coef must be above 0, got {self.anchor_coef}")
 
 
 def human_batch(games: list[HumanGame]) -> TensorDict:
@@ -205,12 +210,28 @@ def fine_tune(start: Path, layout: str, settings: ProxySettings, coef: float, ga
     return train(config)
 
 
+def next_anchor_coef(tuned: dict[float, float], humans: float) -> float:
+    """The next KL weight to fine-tune with, from the soups two copies delivered after each weight tried (`tuned`):
+    a stronger anchor keeps a proxy nearer the cloned one, which delivers too few, so the next weight lies between
+    the weakest that still delivered fewer than `humans` and the strongest that delivered more (their geometric
+    mean), or `ANCHOR_STEP` times beyond the one side known; two significant digits."""
+    too_strong = [coef for coef, soups in tuned.items() if soups < humans]
+    too_weak = [coef for coef, soups in tuned.items() if soups >= humans]
+    if too_strong and too_weak:
+        coef = math.sqrt(min(too_strong) * max(too_weak))
+    else:
+        coef = min(too_strong) / ANCHOR_STEP if too_strong else max(too_weak) * ANCHOR_STEP
+    return float(f"{coef:.2g}")
+
+
 def fine_tuned(chosen: Chosen, layout: str, settings: ProxySettings, steps: int, humans: float, episodes: int,
                team: Path) -> Chosen:
     """`chosen` as it is where its two copies deliver at least `settings.fine_tune_below` x `humans` (or
-    `fine_tune_steps` is 0). Else it is fine-tuned once per KL weight of `settings.anchor_coefs` (`fine_tune`, from
-    `team/cloned`, into `team/anchored`), and the one kept, of those and the cloned proxy, is the one whose two copies
-    deliver closest to `humans` in the games `chosen` was measured in (the cloned one on a tie)."""
+    `fine_tune_steps` is 0). Else it is fine-tuned (`fine_tune`, from `team/cloned`, into `team/anchored`) with KL
+    weight `settings.anchor_coef`, then with the weights `next_anchor_coef` finds, until two copies deliver within
+    `CLOSE_ENOUGH` of `humans` or `settings.fine_tunes` were made; the one kept, of those and the cloned proxy, is
+    the one whose two copies deliver closest to `humans` in the games `chosen` was measured in (the cloned one on a
+    tie)."""
     cloned_soups = chosen.soups[chosen.seed]
     if not settings.fine_tune_steps or cloned_soups >= settings.fine_tune_below * humans:
         return chosen
@@ -219,10 +240,16 @@ def fine_tuned(chosen: Chosen, layout: str, settings: ProxySettings, steps: int,
     start = team / "cloned"
     save_proxy(chosen.actor_critic, dataclasses.replace(settings, seed=chosen.seed), layout, start)
     proxies, tuned = {}, {}
-    for coef in settings.anchor_coefs:
+    coef = settings.anchor_coef
+    for _ in range(settings.fine_tunes):
         run = fine_tune(start, layout, settings, coef, steps, chosen.seed, team / "anchored")
         proxies[coef] = load_team(run).actor_critic
         tuned[coef] = deliveries_together(proxies[coef], layout, steps, episodes, seed=SELECTION_GAMES + chosen.seed)
+        if humanlike_distance(tuned[coef], humans) <= CLOSE_ENOUGH:
+            break
+        coef = next_anchor_coef(tuned, humans)
+        if coef in tuned:  # no weight left between two tried
+            break
     best = min(tuned, key=lambda coef: humanlike_distance(tuned[coef], humans))
     if humanlike_distance(tuned[best], humans) >= humanlike_distance(cloned_soups, humans):
         return dataclasses.replace(chosen, tuned=tuned)

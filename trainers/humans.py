@@ -196,9 +196,9 @@ def train(data: Path, runs: Path, layouts: Sequence[str], settings: ProxySetting
         f"the one kept whose two copies deliver closest to the {fit_on} split's humans ({episodes} games of their "
         f"length; \"candidates\": each fit's soups / the humans'); where the kept fit's two copies deliver under "
         f"{settings.fine_tune_below:g} x the humans' soups, it is also fine-tuned by anchored IPPO, "
-        f"{settings.fine_tune_steps:,} steps at rate {settings.fine_tune_lr:g}, once per KL weight "
-        f"({', '.join(f'{coef:g}' for coef in settings.anchor_coefs)}; \"KL w\": that fine-tune's soups), and the "
-        "closest of them and the fit is kept (\"fine-tuned\"); two proxies together: "
+        f"{settings.fine_tune_steps:,} steps at rate {settings.fine_tune_lr:g}, with KL weight "
+        f"{settings.anchor_coef:g} first and then weights searched for, at most {settings.fine_tunes} (\"KL w\": "
+        "that fine-tune's soups), and the closest of them and the fit is kept (\"fine-tuned\"); two proxies together: "
         f"{episodes} other games per layout (actions sampled), "
         + (f"{game_steps} steps each." if game_steps else f"as long as the humans' {measure_on} games."),
         "",
@@ -242,11 +242,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     training.add_argument("--game-steps", type=int, default=0,
                           help="steps of those games (default: as long as the humans' test games)")
     for field in dataclasses.fields(ProxySettings):
-        default = getattr(defaults, field.name)
-        many = isinstance(default, tuple)  # e.g. --anchor-coefs 0.1 0.03
-        training.add_argument(f"--{field.name.replace('_', '-')}", type=type(default[0]) if many else type(default),
-                              nargs="+" if many else None, default=default,
-                              help=f"default {' '.join(map(str, default)) if many else default}")
+        training.add_argument(f"--{field.name.replace('_', '-')}", type=type(getattr(defaults, field.name)),
+                              default=getattr(defaults, field.name), help=f"default {getattr(defaults, field.name)}")
     args = parser.parse_args(argv)
     try:
         if args.command == "fetch":
@@ -257,8 +254,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(f"{args.out / f'{split}_{layout}.npz'}: {count:,} steps")
         else:
             names = [field.name for field in dataclasses.fields(ProxySettings)]
-            settings = ProxySettings(**{name: tuple(value) if isinstance(value, list) else value
-                                        for name in names for value in [getattr(args, name)]})
+            settings = ProxySettings(**{name: getattr(args, name) for name in names})
             print(train(args.data, args.runs, args.layouts, settings, args.episodes, args.report, args.game_steps,
                         args.fit_on))
     except (RuntimeError, ValueError, ImportError, FileNotFoundError) as error:

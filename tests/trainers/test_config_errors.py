@@ -350,11 +350,12 @@ def test_config_help_lists_every_key_with_type_default_and_meaning():
     assert "    total_steps: int = 20000000\n        env steps over the run" in text
     assert "    levels: str | list[str] = infinite\n" in text and "    share_params: bool = true\n" in text
     assert "    runtime.threads: int = 1\n" in text and "    algorithm_config.partner_policy: str = ego\n" in text
+    assert "    algorithm_config.anchor_coef: float = 0.1\n" in text
     groups = [line.strip() for line in text.splitlines() if line.startswith("  ") and not line.startswith("   ")]
     assert groups == ["run:", "environment:", "model:", "PPO:",
                       "planner-guided start (kitchen-distill, then init_from):",
                       "logging, checkpoints, final evaluation:", "runtime:",
-                      "algorithm_config (algorithm: e3t):"]  # fmt: skip
+                      "algorithm_config (algorithm: e3t):", "algorithm_config (algorithm: anchored_ippo):"]  # fmt: skip
     assert "    layouts: list[str] = [cramped_room_7x7, " in config_help(EvalConfig)
 
     # As an epilog, argparse keeps its lines.

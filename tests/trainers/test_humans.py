@@ -28,7 +28,9 @@ from jax_env.human_games import (  # noqa: E402
 )
 from jax_env.layouts import POT  # noqa: E402
 from jax_env.state import DIR_VECTORS, DISH, ONION, PLATE, POT_EMPTY, POT_FULL  # noqa: E402
+from torch_kitchen.models import make_actor_critic  # noqa: E402
 from torch_kitchen.scripted import ScriptedCook  # noqa: E402
+from trainers.checkpoint import load_checkpoint  # noqa: E402
 from trainers.evaluate import load_team  # noqa: E402
 from trainers.humans import main  # noqa: E402
 from trainers.play.game import Game, Partner, replay  # noqa: E402
@@ -176,7 +178,7 @@ def test_human_proxies_are_fitted_measured_and_saved_as_teams_that_play(trials, 
     assert main(["train", "--data", str(tmp_path / "humans"), "--runs", str(tmp_path / "runs"), "--layouts",
                  "forced_coord", "forced_coord_in_7x7", "--hidden", "32", "--epochs", "40", "--minibatch", "8",
                  "--episodes", "2", "--game-steps", "30", "--candidates", "2", "--fine-tune-below", "1e9",
-                 "--fine-tune-steps", "1", "--anchor-coefs", "0.1", "0.03", "--report", str(report)]) == 0
+                 "--fine-tune-steps", "1", "--report", str(report)]) == 0
     rows = [line.split("|")[1:-1] for line in report.read_text().splitlines() if line.startswith("| forced")]
     assert [row[0].strip() for row in rows] == ["forced_coord", "forced_coord_in_7x7"]
     games = load_dataset(tmp_path / "humans", "test", "forced_coord")
@@ -189,20 +191,14 @@ def test_human_proxies_are_fitted_measured_and_saved_as_teams_that_play(trials, 
         kept, tuned, (candidates, humans) = int(row[10]), row[11].strip(), row[12].split(" / ")
         fits, *tunes = candidates.split(";")
         assert kept in (0, 1) and len(fits.split()) == 2  # the kept fit of two, each fit's soups shown
-        # Every kept fit delivers under 1e9 x the humans' soups: fine-tuned once per KL weight, the closest kept.
-        assert [tune.split(":")[0].strip() for tune in tunes] == ["KL 0.1", "KL 0.03"]
-        assert tuned in ("-", "KL 0.1", "KL 0.03")
+        # The study's 40 steps of forced_coord deliver no soup: nothing to fine-tune toward (see below for a fine-tune).
+        assert (tunes, tuned) == ([], "-")
         assert float(humans) == pytest.approx(np.mean([g.deliveries for g in load_dataset(tmp_path / "humans",
                                                                                            "train", "forced_coord")]))
     # Saved as trained teams: evaluation and kitchen-play load them like any run.
     team = load_team(tmp_path / "runs" / "bc_forced_coord_in_7x7" / "seed0")  # fitted on the train split
     assert team.obs_shape == (7, 7, 26) and team.config.levels == "forced_coord_in_7x7"
     assert team.config.seed == int(rows[1][10])  # the fit kept, in the run of the base seed
-    fine_tunes = tmp_path / "runs" / "bc_forced_coord_in_7x7" / "seed0" / "anchored"
-    for coef in ("0.1", "0.03"):  # each from the cloned proxy, kept beside the team
-        tuned = load_team(fine_tunes / f"anchor{coef}" / f"seed{team.config.seed}")
-        assert (tuned.config.algorithm, tuned.config.algorithm_config, tuned.config.init_from) == (
-            "anchored_ippo", {"anchor_coef": float(coef)}, str(fine_tunes.parent / "cloned"))
     game = Game(load_layout("forced_coord_in_7x7"), Partner(team.name, team.actor_critic, team.obs_shape), 0,
                 tmp_path / "game.jsonl", max_steps=5)
     while not game.over:
@@ -217,9 +213,8 @@ def test_human_proxies_are_fitted_measured_and_saved_as_teams_that_play(trials, 
     # Settings no fit can use, and a layout without games, are one line.
     assert main(["train", "--data", str(tmp_path / "humans"), "--layouts", "forced_coord", "--candidates", "0"]) == 1
     assert "candidates must be at least 1, got 0" in capsys.readouterr().err
-    assert main(["train", "--data", str(tmp_path / "humans"), "--layouts", "forced_coord", "--anchor-coefs",
-                 "-1"]) == 1
-    assert "anchor_coefs must be one or more weights of at least 0, got (-1.0,)" in capsys.readouterr().err
+    assert main(["train", "--data", str(tmp_path / "humans"), "--layouts", "forced_coord", "--anchor-coef", "0"]) == 1
+    assert "anchor_coef must be above 0, got 0.0" in capsys.readouterr().err
     assert main(["train", "--data", str(tmp_path / "humans"), "--layouts", "coord_ring"]) == 1
     assert "run `kitchen-humans fetch` first" in capsys.readouterr().err
 
@@ -267,11 +262,13 @@ def test_the_proxy_kept_is_the_candidate_that_delivers_closest_to_the_humans(mon
     assert cloning.humanlike_distance(10, 10) == 0 and cloning.humanlike_distance(0, 0) == 0
 
 
-def test_a_proxy_that_delivers_far_less_than_the_humans_is_fine_tuned_and_the_closest_kept(monkeypatch, tmp_path):
+def test_a_proxy_that_delivers_far_less_than_the_humans_is_fine_tuned_until_it_delivers_about_as_much(monkeypatch,
+                                                                                                       tmp_path):
     import trainers.behaviour_cloning as cloning
     import trainers.evaluate as evaluate
 
-    tuned_soups = {0.3: 4.0, 0.1: 9.0, 0.01: 14.0}  # by KL weight; the humans delivered 10
+    # Soups by KL weight (the humans delivered 10): too few, too many, then about as many between the two.
+    tuned_soups = {0.1: 4.0, 0.025: 14.0, 0.05: 9.5, 0.035: 11.0}
     runs, games = [], []
     monkeypatch.setattr(cloning, "save_proxy", lambda proxy, settings, layout, run: run)
     monkeypatch.setattr(cloning, "fine_tune", lambda start, layout, settings, coef, steps, seed, run_dir:
@@ -279,19 +276,43 @@ def test_a_proxy_that_delivers_far_less_than_the_humans_is_fine_tuned_and_the_cl
     monkeypatch.setattr(evaluate, "load_team", lambda coef: type("Team", (), {"actor_critic": f"tuned {coef}"}))
     monkeypatch.setattr(cloning, "deliveries_together", lambda proxy, layout, steps, episodes, seed:
                         games.append(seed) or tuned_soups[float(proxy.removeprefix("tuned "))])
-    settings = cloning.ProxySettings(anchor_coefs=(0.3, 0.1, 0.01))
+    settings = cloning.ProxySettings(fine_tunes=4)
     team = tmp_path / "bc_forced_coord" / "seed0"
     chosen = cloning.Chosen("cloned", 2, {2: 1.0})
     kept = cloning.fine_tuned(chosen, "forced_coord", settings, 1200, 10.0, 8, team)
-    assert (kept.actor_critic, kept.seed, kept.anchor_coef, kept.tuned) == ("tuned 0.1", 2, 0.1, tuned_soups)
-    assert runs == [(team / "cloned", coef, 1200, 2, team / "anchored") for coef in (0.3, 0.1, 0.01)]
+    # 0.1 too strong, a quarter of it too weak, their geometric mean (0.05) within 10%: the search ends there.
+    assert (kept.actor_critic, kept.seed, kept.anchor_coef) == ("tuned 0.05", 2, 0.05)
+    assert kept.tuned == {0.1: 4.0, 0.025: 14.0, 0.05: 9.5}
+    assert runs == [(team / "cloned", coef, 1200, 2, team / "anchored") for coef in (0.1, 0.025, 0.05)]
     assert games == [cloning.SELECTION_GAMES + 2] * 3  # the games the cloned proxy was chosen in
+    assert cloning.next_anchor_coef({0.1: 20.0}, 10.0) == 0.4  # too many soups: a stronger anchor
     # Delivering half of what the humans did or more, or with fine-tuning off, the cloned proxy stays as it is.
     for near, steps in (({2: 5.0}, settings.fine_tune_steps), ({2: 1.0}, 0)):
         same = cloning.Chosen("cloned", 2, near)
         assert cloning.fine_tuned(same, "forced_coord", cloning.ProxySettings(fine_tune_steps=steps), 1200, 10.0, 8,
                                   team) is same
-    # No fine-tune closer to the humans than the cloned proxy: it is kept, with the fine-tunes' soups shown.
+    # No fine-tune closer to the humans than the cloned proxy: it is kept, after `fine_tunes` tries.
     monkeypatch.setattr(cloning, "deliveries_together", lambda proxy, layout, steps, episodes, seed: 40.0)
-    kept = cloning.fine_tuned(cloning.Chosen("cloned", 2, {2: 4.0}), "forced_coord", settings, 1200, 10.0, 8, team)
-    assert (kept.actor_critic, kept.anchor_coef, kept.tuned) == ("cloned", None, dict.fromkeys(tuned_soups, 40.0))
+    kept = cloning.fine_tuned(cloning.Chosen("cloned", 2, {2: 4.0}), "forced_coord", cloning.ProxySettings(), 1200,
+                              10.0, 8, team)
+    assert (kept.actor_critic, kept.anchor_coef, kept.tuned) == ("cloned", None, {0.1: 40.0, 0.4: 40.0, 1.6: 40.0})
+
+
+def test_a_fine_tune_is_anchored_ippo_from_the_cloned_proxy_saved_beside_the_team(tmp_path):
+    import trainers.behaviour_cloning as cloning
+
+    settings = cloning.ProxySettings(hidden=8, fine_tune_steps=1, fine_tunes=2)  # one update of each fine-tune
+    proxy = make_actor_critic("ego_mlp", (*load_layout("cramped_room").shape, 26), 8)
+    team = tmp_path / "bc_cramped_room" / "seed0"
+    # Humans who delivered 5 soups in 20 steps: an untrained proxy's fine-tunes deliver fewer, so the second KL
+    # weight is a quarter of the first.
+    kept = cloning.fine_tuned(cloning.Chosen(proxy, 1, {1: 0.0}), "cramped_room", settings, 20, 5.0, 1, team)
+    assert list(kept.tuned) == [0.1, 0.025] and kept.anchor_coef is None  # none closer than the cloned one
+    for coef in ("0.1", "0.025"):
+        tuned = load_team(team / "anchored" / f"anchor{coef}" / "seed1")
+        config = tuned.config
+        assert (config.algorithm, config.algorithm_config, config.init_from) == (
+            "anchored_ippo", {"anchor_coef": float(coef)}, str(team / "cloned"))
+        assert (config.levels, config.max_steps, config.lr, config.hidden) == ("cramped_room", 20, 1e-3, 8)
+        assert load_checkpoint(team / "anchored" / f"anchor{coef}" / "seed1")["env_steps"] == 32 * 256
+    assert load_team(team / "cloned").config.levels == "cramped_room"
