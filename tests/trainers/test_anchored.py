@@ -9,7 +9,7 @@ from test_ppo import read_metrics, tiny_config
 from tiny import infinite_observations
 
 from torch_kitchen.models import OBSERVATION, make_actor_critic
-from trainers.algorithms.anchored import policy_kl
+from trainers.algorithms.anchored import action_log_probs, policy_kl
 from trainers.checkpoint import load_checkpoint
 from trainers.config import ConfigError
 from trainers.evaluate import load_team
@@ -21,7 +21,8 @@ FAST = ["lr=0.01", "anneal_lr=false"]  # large steps, so that two updates move t
 
 def kl_from(start, actor, observation) -> float:
     batch = TensorDict({OBSERVATION: observation}, batch_size=[len(observation)])
-    return float(policy_kl(actor, start, batch).detach())
+    with torch.no_grad():
+        return float(policy_kl(actor, action_log_probs(start, batch), batch))
 
 
 def test_policy_kl_is_zero_against_itself_and_the_divergence_of_the_two_distributions():

@@ -30,16 +30,21 @@ class AnchoredSettings:
             raise ConfigError(f"algorithm_config.anchor_coef must be at least 0, got {self.anchor_coef}")
 
 
-def policy_kl(policy, anchor, minibatch: TensorDictBase) -> torch.Tensor:
-    """KL(policy || anchor) of the two actors' action distributions at each transition of `minibatch` [..., 2],
-    averaged; the anchor's side carries no gradient. Neither actor samples (no random draw). From log-probabilities,
-    so an action the anchor all but rules out costs a finite amount (torch's `kl_divergence` says inf where its
-    probability underflows to 0)."""
-    inputs = minibatch.select(*policy.in_keys, strict=False)
-    own = torch.log_softmax(policy.get_dist(inputs.clone(False)).logits, -1)
-    with torch.no_grad():
-        start = torch.log_softmax(anchor.get_dist(inputs.clone(False)).logits, -1)
-    return (own.exp() * (own - start)).sum(-1).mean()
+ANCHOR_LOG_PROBS = ("agents", "anchor_log_probs")  # [..., 2, 6]: the starting policy's, set once per update
+
+
+def action_log_probs(actor, batch: TensorDictBase) -> torch.Tensor:
+    """The actor's log-probabilities of every action [..., 2, 6] at the batch's observations (no action sampled, so
+    no random draw)."""
+    return torch.log_softmax(actor.get_dist(batch.select(*actor.in_keys, strict=False).clone(False)).logits, -1)
+
+
+def policy_kl(policy, anchor_log_probs: torch.Tensor, minibatch: TensorDictBase) -> torch.Tensor:
+    """KL(policy || anchor) at each transition of `minibatch` [..., 2], averaged, given the anchor's log-probabilities
+    there. From log-probabilities, so an action the anchor all but rules out costs a finite amount (torch's
+    `kl_divergence` says inf where its probability underflows to 0)."""
+    own = action_log_probs(policy, minibatch)
+    return (own.exp() * (own - anchor_log_probs)).sum(-1).mean()
 
 
 class AnchoredIPPO(IPPO):
@@ -67,9 +72,11 @@ class AnchoredIPPO(IPPO):
     def process_batch(self, batch: TensorDictBase) -> None:
         if self.anchor is None:
             self.anchor = copy.deepcopy(self.actor_critic.actor).requires_grad_(False)
+        with torch.no_grad():  # the anchor does not change: once per update, not at every epoch's minibatch
+            batch.set(ANCHOR_LOG_PROBS, action_log_probs(self.anchor, batch))
 
     def auxiliary_losses(self, minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
-        kl = policy_kl(self.actor_critic.actor, self.anchor, minibatch)
+        kl = policy_kl(self.actor_critic.actor, minibatch.get(ANCHOR_LOG_PROBS), minibatch)
         return {"loss_anchor": self.settings.anchor_coef * kl, "anchor_kl": kl.detach()}
 
     def state_dict(self) -> dict:
