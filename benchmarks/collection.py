@@ -6,10 +6,13 @@ each over the same kitchens:
     JAX step           the env's jitted step alone (random actions, its outputs waited for)
     env.step           TorchRL's `EnvBase.step` of the `KitchenEnv`: the JAX step, DLPack both ways, the TensorDict
     acting policy      the team's policy on one step's observations (no gradients)
-    collector step     a whole batch of the trainer's `Collector`, per step: policy, `step_and_maybe_reset`, storage
+    collector step     a whole batch of TorchRL's `Collector`, per step: policy, `step_and_maybe_reset`, storage
+    rollout step       a whole batch of the trainer's `KitchenCollector` (`torch_kitchen.rollout`), per step: the
+                       same batch, written in place, the JAX step called directly
 
-The difference between the last and the two before it is TorchRL's bookkeeping around them (`step_mdp`, resets,
-the collector's carrier and its stacked batch). Run it alone on the machine.
+The difference between a whole step and "env.step" plus "acting policy" is TorchRL's bookkeeping around them
+(`step_mdp`, resets, the collector's carrier and its stacked batch); for the rollout step, the difference from
+"JAX step" plus "acting policy" is all that is neither the kitchens nor the network. Run it alone on the machine.
 
     python benchmarks/collection.py [--setting jaxmarl|ik] [--steps 2000] [--envs 192] [--device cuda]
 
@@ -63,12 +66,13 @@ def main(argv=None) -> None:
         rows["env.step"] = 1e6 * seconds_per_call(lambda: env.step(tensordict), args.steps, warmup=20)
         rows["acting policy"] = 1e6 * seconds_per_call(lambda: policy(tensordict), args.steps, warmup=20)
     steps = SETTINGS[args.setting]["rollout_steps"]
-    collector = make_collector(env, policy, config.frames_per_batch)
-    batches = iter(collector)
-    next(batches)
     count = max(1, args.steps // steps)
-    rows["collector step"] = 1e6 * seconds_per_call(lambda: next(batches), count) / steps
-    collector.shutdown()
+    for row, kind in (("collector step", "torchrl"), ("rollout step", "kitchen")):
+        collector = make_collector(env, policy, config.frames_per_batch, kind=kind)
+        batches = iter(collector)
+        next(batches)
+        rows[row] = 1e6 * seconds_per_call(lambda: next(batches), count) / steps
+        collector.shutdown(close_env=False)
 
     print(f"setting {args.setting}: {config.num_envs} kitchens, hidden {config.hidden}; {args.device}, "
           f"{machine_name()}, torch 1 thread")
@@ -77,6 +81,8 @@ def main(argv=None) -> None:
         print(f"{name:<16s} {value:16.1f}")
     rest = rows["collector step"] - rows["env.step"] - rows["acting policy"]
     print(f"{'(bookkeeping)':<16s} {rest:16.1f}   collector step - env.step - acting policy")
+    rest = rows["rollout step"] - rows["JAX step"] - rows["acting policy"]
+    print(f"{'(rollout rest)':<16s} {rest:16.1f}   rollout step - JAX step - acting policy")
 
 
 if __name__ == "__main__":

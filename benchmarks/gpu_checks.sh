@@ -3,6 +3,7 @@
 # benchmarks/results/gpu). Without a package index, TorchRL's wheels come from .whl/ (`make gpu-offline`).
 # The steps run in order of what they tell, each within its own timeout, and a step is skipped (saying so) once
 # less than its timeout is left of BUDGET_S seconds (default 540: one call of a 10-minute limit, with set-up).
+# ONLY=<regex> runs the steps whose output file matches it (e.g. ONLY=main for the main job alone).
 set -uo pipefail
 out=${OUT:-benchmarks/results/gpu}
 budget=${BUDGET_S:-540}
@@ -24,6 +25,7 @@ fi
 step() {
     local file=$1 limit=$2
     shift 2
+    [[ -n ${ONLY:-} && ! $file =~ $ONLY ]] && return
     if (( budget - SECONDS < limit )); then
         echo "== skipped (${limit} s needed, $(( budget - SECONDS )) s left): $*" | tee -a "$out/$file"
         return
@@ -43,6 +45,9 @@ step reference_gpu.txt 180 $reference --setting protocol --updates 3 --update-co
 step launches_gpu.txt 90 python benchmarks/launches.py --setting protocol --teams 1 6 --device cuda
 step phases_gpu.txt 120 python benchmarks/phases.py --setting protocol --updates 3 --device cuda
 step collection_gpu.txt 90 python benchmarks/collection.py --setting ik --envs 192 --steps 300 --device cuda
+# The main job end to end on the GPU (`make main DEVICE=cuda` less its set-up), and its wall time.
+step main_gpu.txt 200 bash -c 'started=$SECONDS; python -m trainers.train_command configs/main.yaml \
+    runtime.device=cuda run_dir=/tmp/main_gpu progress=false && echo "main job: $((SECONDS - started)) s"'
 if (( budget - SECONDS >= 90 )); then  # its warnings are the output: kept whole
     timeout 90 python -c "
 import sys, warnings, torch

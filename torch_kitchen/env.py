@@ -43,6 +43,7 @@ from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv  # noqa: E4
 from jax_env import DELIVERY_REWARD, NUM_ACTIONS, GeneratorConfig, Overcooked, ShapingWeights, State  # noqa: E402
 from jax_env.env import Levels  # noqa: E402
 from torch_kitchen.keys import ACTION  # noqa: E402
+from torch_kitchen.rollout import rollout_into  # noqa: E402
 
 
 def jax_device_for(device: torch.device) -> jax.Device:
@@ -73,12 +74,31 @@ def _to_tensor(array, dtype=None) -> torch.Tensor:
     return torch.from_numpy(np.array(array, dtype=dtype))
 
 
+def pack_outputs(observation: jax.Array, scalars: jax.Array, done: jax.Array) -> jax.Array:
+    """A step's outputs as one flat uint8 buffer, so that they cross DLPack once: the observations uint8 [B, 2, H, W,
+    26], then the per-env scalars float32 [B, 6] as their bytes (reward x2, shaped reward x2, deliveries this step,
+    episode deliveries), then done bool [B]. The observations' size (52 H W bytes a kitchen) keeps the floats
+    4-byte aligned. `unpack_outputs` gives the three back as torch views."""
+    as_bytes = jax.lax.bitcast_convert_type(scalars, jnp.uint8)
+    return jnp.concatenate([observation.reshape(-1), as_bytes.reshape(-1), done.astype(jnp.uint8)])
+
+
+def unpack_outputs(packed: torch.Tensor, num_envs: int,
+                   obs_shape: tuple[int, ...]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`pack_outputs`'s buffer, as a torch tensor, back as views: observation uint8 [B, 2, H, W, C], scalars
+    float32 [B, 6], done bool [B, 1]."""
+    observation_bytes = num_envs * 2 * int(np.prod(obs_shape))
+    scalar_bytes = num_envs * 6 * 4
+    observation, scalars, done = packed.split([observation_bytes, scalar_bytes, num_envs])
+    return (observation.view(num_envs, 2, *obs_shape), scalars.view(torch.float32).view(num_envs, 6),
+            done.view(torch.bool).view(num_envs, 1))
+
+
 class KitchenPrograms(NamedTuple):
-    """The jitted JAX functions behind a `KitchenEnv`. Each returns (states, deliveries, (observation [B, 2, H, W,
-    26], scalars [B, 6], done [B, 1])), fresh arrays only, none of them part of the state; the per-env scalars
-    travel as one float32 array (reward x2, shaped reward x2, deliveries this step, episode deliveries) so that a
-    step crosses DLPack three times instead of six. The levels' start states are an argument, not a constant, so
-    that kitchens of one size and settings share one compilation (a server starting a game compiles nothing)."""
+    """The jitted JAX functions behind a `KitchenEnv`. Each returns (states, deliveries, packed): packed is the
+    step's observations, scalars and dones in one fresh buffer (`pack_outputs`), none of it part of the state, so
+    that a step's outputs cross DLPack once. The levels' start states are an argument, not a constant, so that
+    kitchens of one size and settings share one compilation (a server starting a game compiles nothing)."""
 
     reset_all: Callable  # (start_states, keys [teams, 2]) -> every kitchen fresh
     reset_masked: Callable  # (start_states, keys, states, deliveries, mask [B]) -> the masked kitchens fresh
@@ -116,7 +136,7 @@ def _build_programs(kitchen: Overcooked, num_envs: int, teams: int, pin_levels: 
         scalars = jnp.concatenate(
             [reward, shaped_reward, delivered[:, None], deliveries[:, None]], axis=1, dtype=jnp.float32
         )
-        return states, deliveries, (jax.vmap(kitchen.get_obs)(states), scalars, done[:, None])
+        return states, deliveries, pack_outputs(jax.vmap(kitchen.get_obs)(states), scalars, done)
 
     def observe(states, deliveries):
         zeros = jnp.zeros((num_envs, 2), jnp.float32)
@@ -238,12 +258,16 @@ class KitchenEnv(EnvBase):
         return key
 
     # ------------------------------------------------------------------------------------------ torch side
-    def _to_tensordict(self, out: tuple, with_reward: bool) -> TensorDictBase:
-        observation, scalars, done = out
-        self._last_obs = observation
-        scalars, done = torch.from_dlpack(scalars), torch.from_dlpack(done)
+    def _unpack(self, packed: jax.Array) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """A program's packed outputs as torch views, observation [B, 2, H, W, C], scalars [B, 6], done [B, 1]:
+        one DLPack crossing."""
+        self._last_obs = packed
+        return unpack_outputs(torch.from_dlpack(packed), self.num_envs, self.kitchen.obs_shape)
+
+    def _to_tensordict(self, packed: jax.Array, with_reward: bool) -> TensorDictBase:
+        observation, scalars, done = self._unpack(packed)
         agents = {
-            "observation": torch.from_dlpack(observation),
+            "observation": observation,
             "shaped_reward": scalars[:, 2:4].unsqueeze(-1),
         }
         if with_reward:
@@ -266,16 +290,16 @@ class KitchenEnv(EnvBase):
         full = mask is None or bool(mask.all())
         if self._restored and full:
             self._restored = False
-            self._states, self._deliveries, out = self._programs.observe(self._states, self._deliveries)
+            self._states, self._deliveries, packed = self._programs.observe(self._states, self._deliveries)
         elif self._states is None or full:
-            self._states, self._deliveries, out = self._programs.reset_all(self._start_states, self._next_key())
+            self._states, self._deliveries, packed = self._programs.reset_all(self._start_states, self._next_key())
         else:
             mask = jax.dlpack.from_dlpack(mask.reshape(-1).contiguous())
-            self._states, self._deliveries, out = self._programs.reset_masked(
+            self._states, self._deliveries, packed = self._programs.reset_masked(
                 self._start_states, self._next_key(), self._states, self._deliveries, mask
             )
         self._episode_steps = np.array(self._states.step)  # read once per reset, not per step
-        return self._to_tensordict(out, with_reward=False)
+        return self._to_tensordict(packed, with_reward=False)
 
     @staticmethod
     def _actions_to_jax(actions: torch.Tensor):
@@ -287,9 +311,30 @@ class KitchenEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         actions = self._actions_to_jax(tensordict.get(ACTION))
-        self._states, self._deliveries, out = self._programs.step(self._states, self._deliveries, actions)
+        self._states, self._deliveries, packed = self._programs.step(self._states, self._deliveries, actions)
         self._episode_steps += 1
-        return self._to_tensordict(out, with_reward=True)
+        return self._to_tensordict(packed, with_reward=True)
+
+    def step_tensors(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One step of every kitchen with `actions` int [B, 2], no reset, no TensorDict: observation uint8 [B, 2, H, W,
+        26], scalars float32 [B, 6] (reward x2, shaped reward x2, deliveries this step, episode deliveries) and done
+        bool [B, 1], views of one buffer that JAX owns (read them, do not write them). What `step` computes, for
+        `torch_kitchen.rollout`."""
+        self._states, self._deliveries, packed = self._programs.step(
+            self._states, self._deliveries, self._actions_to_jax(actions))
+        self._episode_steps += 1
+        return self._unpack(packed)
+
+    def episode_ended(self) -> bool:
+        """Whether a kitchen's episode ended at the last step, known on the host (episodes end on a step count)."""
+        return bool((self._episode_steps >= self.kitchen.max_steps).any())
+
+    def rollout(self, max_steps: int, policy=None, callback=None, *, break_when_any_done: bool | None = None,
+                auto_reset: bool = True, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        """TorchRL's `EnvBase.rollout`; with a policy and `break_when_any_done=False` (episodes reset as they end)
+        the kitchens are stepped as `torch_kitchen.rollout` steps them, with the same result."""
+        return kitchen_rollout(super(), self, max_steps, policy, callback, break_when_any_done, auto_reset,
+                               tensordict, kwargs)
 
     def any_done(self, tensordict: TensorDictBase) -> bool:
         """Whether a kitchen's episode ended at the step that gave `tensordict` (marked under "_reset", as TorchRL's
@@ -297,7 +342,7 @@ class KitchenEnv(EnvBase):
         device: TorchRL's own check would wait for the device at every step."""
         if self._episode_steps is None:
             return super().any_done(tensordict)
-        if not (self._episode_steps >= self.kitchen.max_steps).any():
+        if not self.episode_ended():
             return False
         tensordict.set("_reset", tensordict.get("done").clone())
         return True
@@ -403,6 +448,34 @@ class TransformedKitchenEnv(TransformedEnv):
 
     def any_done(self, tensordict: TensorDictBase) -> bool:
         return self.base_env.any_done(tensordict)
+
+    def rollout(self, max_steps: int, policy=None, callback=None, *, break_when_any_done: bool | None = None,
+                auto_reset: bool = True, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        """As `KitchenEnv.rollout`, the transforms run as TorchRL runs them."""
+        return kitchen_rollout(super(), self, max_steps, policy, callback, break_when_any_done, auto_reset,
+                               tensordict, kwargs)
+
+
+def kitchen_rollout(torchrl_env, env: EnvBase, max_steps: int, policy, callback, break_when_any_done: bool | None,
+                    auto_reset: bool, tensordict: TensorDictBase | None, options: dict) -> TensorDictBase:
+    """`env.rollout(...)`: stepped by `torch_kitchen.rollout` where TorchRL's rollout would step every kitchen
+    `max_steps` times with `policy`, resetting episodes as they end; else by TorchRL (`torchrl_env`, the
+    `super()` of `env`'s class)."""
+    plain = {"return_contiguous": (False, None, True), "out": (None,), "storing_device": (None,),
+             "auto_cast_to_device": (False,), "set_truncated": (False,), "trust_policy": (False, True)}
+    fast = (policy is not None and callback is None and break_when_any_done is False
+            and all(value in plain.get(name, ()) for name, value in options.items()))
+    if not fast:
+        return torchrl_env.rollout(max_steps, policy, callback, break_when_any_done=break_when_any_done,
+                                   auto_reset=auto_reset, tensordict=tensordict, **options)
+    if auto_reset:
+        carrier = env.reset(tensordict)
+    elif tensordict is None:
+        raise RuntimeError("tensordict must be provided when auto_reset is False")
+    else:
+        carrier = env.maybe_reset(tensordict)
+    storage, _ = rollout_into(env, policy, carrier, max_steps)
+    return storage.batch
 
 
 def with_transforms(env: EnvBase, transforms: Sequence[Transform]) -> EnvBase:

@@ -38,6 +38,7 @@ class ConfigError(ValueError):
 
 LOGGERS = ("tensorboard", "csv", "wandb", "mlflow", "trackio")  # TorchRL's `get_logger` backends
 PLANNER_START = "scripted_cook"  # init_from: start from the scripted cook, distilled into the run's folder
+COLLECTORS = ("kitchen", "torchrl")  # runtime.collector: torch_kitchen.rollout's, or TorchRL's Collector
 GENERATED_LEVELS = ("infinite", "heldout")  # `levels` values that name generated levels rather than layouts
 # torch takes 64-bit seeds, but JAX (32-bit by default) keeps only a seed's low 32 bits: 2**32 + 5 would replay 5.
 MAX_SEED = 2**32 - 1
@@ -87,6 +88,10 @@ class RuntimeConfig(DeviceConfig):
     compile_policy: bool = option(
         False, "torch.compile the acting policy: the same actions, faster collection after a one-off compilation "
                "(on a GPU, the teams' stacked networks replay as CUDA graphs)"
+    )
+    collector: str = option(
+        "kitchen", '"kitchen": the kitchens\' own in-place rollout (torch_kitchen.rollout); "torchrl": TorchRL\'s '
+                   'Collector; the same batches bit for bit, the first at a fraction of the host\'s work per step'
     )
     compile_update: bool = option(
         False, "torch.compile each PPO minibatch step (loss, backward, clipping, Adam with the learning rate a tensor) "
@@ -284,6 +289,8 @@ class TrainConfig:
                 f"runtime.minibatch_shards ({runtime.minibatch_shards}) must divide the {self.kitchens_per_minibatch} "
                 "kitchens of a minibatch (num_envs / minibatches): shards are equal parts"
             )
+        if runtime.collector not in COLLECTORS:
+            raise ConfigError(f"runtime.collector={runtime.collector!r}: choose one of {', '.join(COLLECTORS)}")
         check_device(runtime.device, "runtime.device")
 
     def check_run_location(self) -> None:

@@ -109,9 +109,10 @@ def under_random_symmetry(data: TensorDictBase) -> TensorDictBase:
     return mirrored
 
 
-def minibatches(data: TensorDictBase, size: int) -> list[TensorDictBase]:
-    """`data` [K, T] in a random order of its kitchens, in minibatches of `size` kitchens (whole sequences)."""
-    order = torch.randperm(data.shape[0], device=data.device)
+def minibatches(data: TensorDictBase, size: int, device: str | torch.device) -> list[TensorDictBase]:
+    """`data` [K, T] (on `device`, the run's) in a random order of its kitchens, in minibatches of `size` kitchens
+    (whole sequences)."""
+    order = torch.randperm(data.shape[0], device=device)
     return [select_kitchens(data, kitchens) for kitchens in order.split(size)]
 
 
@@ -120,12 +121,12 @@ def fit(actor_critic: ActorCritic, optimizer: torch.optim.Optimizer, data: Tenso
     """`distill_epochs` passes of the actor's cross-entropy to the teacher over all the `data` [K, T], and of the
     critic's squared error to the value targets of this round's `batch` [distill_kitchens, T]; returns their
     means and the actor's agreement with the teacher's most likely action."""
-    size = config.distill_minibatch
+    size, device = config.distill_minibatch, config.runtime.device
     parameters = [parameter for group in optimizer.param_groups for parameter in group["params"]]
     sums = []  # on the device, read once at the end
     with set_recurrent_mode(True):
         for _ in range(config.distill_epochs):
-            for own, current in zip(minibatches(data, size), itertools.cycle(minibatches(batch, size))):
+            for own, current in zip(minibatches(data, size, device), itertools.cycle(minibatches(batch, size, device))):
                 if config.distill_symmetries:
                     own = under_random_symmetry(own)
                 logits = actor_critic.actor(own.clone(False)).get(LOGITS)
@@ -214,7 +215,7 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
         return run
 
     collector = make_collector(with_model_transforms(kitchen, actor_critic), policy,
-                               config.distill_kitchens * config.rollout_steps)
+                               config.distill_kitchens * config.rollout_steps, kind=config.runtime.collector)
     if rng is not None:  # after the collector, whose construction runs the policy once
         restore_rng_states(rng)
     bar = tqdm(total=config.distill_rounds, initial=done_rounds, unit="round", disable=not config.progress,

@@ -291,7 +291,7 @@ def train_teams(
             for logger in team.loggers:
                 logger.log_hparams(hyperparameters(team.config))
     frames_per_batch = num_teams * lead.frames_per_batch
-    collector = make_collector(env, policy, frames_per_batch, remaining * frames_per_batch)
+    collector = make_collector(env, policy, frames_per_batch, remaining * frames_per_batch, lead.runtime.collector)
     for team, state in zip(teams, saved):
         if state is not None:  # after the collector, whose construction runs the policy once (and draws actions)
             with team.stream.active():

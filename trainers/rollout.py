@@ -1,4 +1,5 @@
-"""The one rollout routine of training and evaluation: a TorchRL `Collector` over a `KitchenEnv`.
+"""The one rollout routine of training and evaluation: a TorchRL collector over a `KitchenEnv`, by default the
+kitchens' own (`torch_kitchen.rollout.KitchenCollector`, the batches of TorchRL's `Collector` written in place).
 
 Training iterates over it batch after batch; evaluation takes whole episodes from it. Both read the episode
 results the same way, from the "episode_deliveries" the env reports on each episode's last step.
@@ -10,19 +11,24 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.collectors import Collector
+from torchrl.collectors import BaseCollector, Collector
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
 from jax_env import Channel
+from torch_kitchen.rollout import KitchenCollector
 
 
-def make_collector(env: EnvBase, policy, frames_per_batch: int, total_frames: int = -1) -> Collector:
-    """A synchronous collector that samples actions from `policy` (ExplorationType.RANDOM).
+def make_collector(env: EnvBase, policy, frames_per_batch: int, total_frames: int = -1,
+                   kind: str = "kitchen") -> BaseCollector:
+    """A synchronous collector that samples actions from `policy` (ExplorationType.RANDOM): the kitchens' own
+    (`kind="kitchen"`) or TorchRL's `Collector` ("torchrl"), which collect the same batches.
 
-    `return_same_td=True`: every batch is written into the same buffers instead of a fresh copy, which keeps
-    large batches cheap; consume a batch before asking for the next one.
+    Either writes every batch into the same buffers instead of a fresh copy, which keeps large batches cheap;
+    consume a batch before asking for the next one.
     """
+    if kind == "kitchen":
+        return KitchenCollector(env, policy, frames_per_batch, total_frames)
     return Collector(
         env,
         policy,

@@ -168,8 +168,11 @@ def stacked_step(teams: Sequence[TrainingRun], loss: StackedLoss,
     losses = loss(minibatches, parameters)
     # The sum of the teams' losses: the gradient of each team's entry of a stacked parameter is its own loss's.
     gradients = torch.autograd.grad(total_loss(losses).sum(), list(parameters.values()), allow_unused=True)
-    losses["grad_norm"] = clip_per_team([gradient for gradient in gradients if gradient is not None],
-                                        teams[0].config.max_grad_norm)
+    used = [index for index, gradient in enumerate(gradients) if gradient is not None]
+    clipped, losses["grad_norm"] = clip_per_team([gradients[index] for index in used], teams[0].config.max_grad_norm)
+    gradients = list(gradients)
+    for index, gradient in zip(used, clipped):
+        gradients[index] = gradient
     for index, team in enumerate(teams):
         for parameter, gradient in zip(team.parameters, gradients, strict=True):
             parameter.grad = None if gradient is None else gradient_for(parameter, [gradient[index]])
@@ -179,17 +182,15 @@ def stacked_step(teams: Sequence[TrainingRun], loss: StackedLoss,
     return losses
 
 
-def clip_per_team(gradients: list[torch.Tensor], max_norm: float) -> torch.Tensor:
+def clip_per_team(gradients: list[torch.Tensor], max_norm: float) -> tuple[list[torch.Tensor], torch.Tensor]:
     """What `apply_gradients` does to one team's gradients before its Adam step, for K teams' gradients stacked
-    along a leading team dim, in place: non-finite entries zeroed, then each team's clipped to `max_norm` by their
-    joint norm (as `clip_grad_norm_`). Returns the K norms before clipping."""
-    for gradient in gradients:
-        gradient.nan_to_num_(0.0, 0.0, 0.0)
+    along a leading team dim: non-finite entries zeroed, then each team's clipped to `max_norm` by their joint norm
+    (as `clip_grad_norm_`). Returns the clipped gradients, new tensors (in-place writes into autograd's outputs keep
+    Inductor from replaying the step as a CUDA graph), and the K norms before clipping."""
+    gradients = [gradient.nan_to_num(0.0, 0.0, 0.0) for gradient in gradients]
     norms = torch.stack([gradient.flatten(1).norm(dim=1) for gradient in gradients]).norm(dim=0)
     scale = (max_norm / (norms + 1e-6)).clamp(max=1.0)
-    for gradient in gradients:
-        gradient.mul_(scale.view(-1, *[1] * (gradient.dim() - 1)))
-    return norms
+    return [gradient * scale.view(-1, *[1] * (gradient.dim() - 1)) for gradient in gradients], norms
 
 
 class ShardPool(ThreadPoolExecutor):

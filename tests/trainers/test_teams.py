@@ -317,10 +317,12 @@ def test_the_stacked_networks_compile_whole_and_equal_eager(tmp_path, architectu
         torch.testing.assert_close(networks(by_team), eager, rtol=1e-5, atol=1e-6)
 
 
-def test_a_collector_keeps_every_step_of_stacked_networks_whose_outputs_share_one_buffer(tmp_path):
-    """A CUDA graph writes its outputs into the same buffers at every replay, and the collector keeps each step's
-    outputs by reference until it stacks the batch: the stacked networks copy them out in that mode, so each
-    stored step holds its own logits (without the copy, every step would hold the last one's)."""
+@pytest.mark.parametrize("kind", ["torchrl", "kitchen"])
+def test_a_collector_keeps_every_step_of_stacked_networks_whose_outputs_share_one_buffer(tmp_path, kind):
+    """A CUDA graph writes its outputs into the same buffers at every replay, and TorchRL's collector keeps each
+    step's outputs by reference until it stacks the batch: the stacked networks copy them out in that mode, so each
+    stored step holds its own logits (without the copy, every step would hold the last one's). The kitchens'
+    collector copies every step into the batch as it comes, so it keeps each step either way."""
     from trainers.rollout import make_collector
 
     def replaying_into_one_buffer(networks):
@@ -336,13 +338,13 @@ def test_a_collector_keeps_every_step_of_stacked_networks_whose_outputs_share_on
         kitchen, policy = _stacked_team_policy(tmp_path / str(mode), "mlp", compile_mode=mode)
         for networks in policy.stacked:
             networks.compile_mode, networks._run = mode, replaying_into_one_buffer(networks)
-        collector = make_collector(kitchen, policy, frames_per_batch=8 * 4, total_frames=8 * 4)
+        collector = make_collector(kitchen, policy, frames_per_batch=8 * 4, total_frames=8 * 4, kind=kind)
         batch = next(iter(collector))
         collector.shutdown()
         logits = batch["agents", "logits"]  # [8 kitchens, 4 steps, 2, 6]
         stored_last_everywhere = all(torch.equal(logits[:, t], logits[:, -1]) for t in range(4))
-        assert stored_last_everywhere is not keeps_each_step, mode
-        if keeps_each_step:
+        assert stored_last_everywhere is not (keeps_each_step or kind == "kitchen"), mode
+        if keeps_each_step or kind == "kitchen":
             with torch.no_grad():
                 for step in range(4):
                     again = policy(batch[:, step].select(("agents", "observation")).clone())
@@ -356,13 +358,16 @@ def test_clipping_per_team_on_stacked_gradients_is_clip_grad_norm_of_each_team()
     stacked = [torch.randn(3, 4, 5), torch.randn(3, 5) * 0.01, torch.randn(3, 2)]
     stacked[0][1, 2, 3] = float("nan")  # team 1's: zeroed first, as apply_gradients does
     teams = [[gradient[team].clone().nan_to_num_(0.0, 0.0, 0.0) for gradient in stacked] for team in range(3)]
-    norms = clip_per_team(stacked, max_norm=0.5)
+    given = [gradient.clone() for gradient in stacked]
+    clipped, norms = clip_per_team(stacked, max_norm=0.5)
+    for mine, before in zip(stacked, given):  # new tensors: autograd's outputs are left as they were
+        torch.testing.assert_close(mine, before, equal_nan=True, rtol=0, atol=0)
     for team, gradients in enumerate(teams):
         parameters = [torch.nn.Parameter(torch.zeros_like(gradient)) for gradient in gradients]
         for parameter, gradient in zip(parameters, gradients):
             parameter.grad = gradient
         norm = torch.nn.utils.clip_grad_norm_(parameters, 0.5)
         torch.testing.assert_close(norms[team], norm)
-        for parameter, gradient in zip(parameters, stacked):
+        for parameter, gradient in zip(parameters, clipped):
             torch.testing.assert_close(gradient[team], parameter.grad)
     assert (norms > 0.5).all()  # every team was clipped

@@ -1,0 +1,53 @@
+"""The in-place rollout (`torch_kitchen.rollout`) gives the batches TorchRL's Collector gives, bit for bit."""
+
+import pytest
+import torch
+from tiny import TINY
+from torchrl.collectors import Collector
+from torchrl.envs.utils import ExplorationType
+
+from torch_kitchen.rollout import KitchenCollector
+from trainers.composer import load_config
+from trainers.runtime import acting_policy
+from trainers.training_run import algorithm_transforms, build_team, make_env, team_configs, with_model_transforms
+
+
+def env_and_policy(tmp_path, overrides):
+    """The env and acting policy `trainers.ppo.train_teams` builds for a tiny config's teams."""
+    config = load_config(None, [*TINY, f"run_dir={tmp_path}", "total_steps=1e4", *overrides])
+    configs = team_configs(config)
+    kitchen = make_env(config, num_envs=len(configs) * config.num_envs, seed=[team.seed for team in configs])
+    teams = [build_team(team, team.run_path, kitchen, index) for index, team in enumerate(configs)]
+    env = with_model_transforms(kitchen, teams[0].actor_critic, *algorithm_transforms(teams))
+    return env, acting_policy(config, teams), config
+
+
+def torchrl_collector(env, policy, frames):
+    return Collector(env, policy, frames_per_batch=frames, total_frames=3 * frames, return_same_td=True,
+                     exploration_type=ExplorationType.RANDOM, auto_register_policy_transforms=False,
+                     track_traj_ids=False)
+
+
+# Episodes of 10 steps in batches of 16: they end inside a batch and across two.
+@pytest.mark.parametrize("overrides", [
+    ["architecture=mlp"],
+    ["architecture=mlp", "runtime.teams=3", "levels=infinite"],
+    ["architecture=mlp_lstm"],
+    ["architecture=gnn", "runtime.teams=2"],
+    ["algorithm=e3t", "architecture=e3t_mlp"],
+], ids=["mlp", "mlp-3-teams", "lstm", "gnn-2-teams", "e3t"])
+def test_the_kitchen_collector_collects_the_batches_of_torchrls_collector(tmp_path, overrides):
+    overrides = ["max_steps=10", *overrides]
+    env, policy, config = env_and_policy(tmp_path / "torchrl", overrides)
+    frames = env.batch_size.numel() * config.rollout_steps
+    expected = [batch.clone() for batch in torchrl_collector(env, policy, frames)]
+    env, policy, _ = env_and_policy(tmp_path / "kitchen", overrides)
+    collector = KitchenCollector(env, policy, frames, 3 * frames)
+    got = [batch.clone() for batch in collector]
+    assert len(got) == len(expected) == 3
+    assert got[0]["next", "done"].any(), "an episode ends inside the first batch"
+    for ours, theirs in zip(got, expected):
+        assert ours.batch_size == theirs.batch_size
+        assert set(ours.keys(True, True)) == set(theirs.keys(True, True))
+        for key in theirs.keys(True, True):
+            assert torch.equal(ours.get(key), theirs.get(key)), key

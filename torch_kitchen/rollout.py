@@ -1,0 +1,190 @@
+"""Rollouts of a `KitchenEnv` written in place: the batches TorchRL's `Collector` gives, without its per-step work.
+
+A TorchRL collector builds, at every step, the env's output TensorDict, its `step_mdp` successor and the policy's
+copy, then stacks the steps into the batch. Here the batch [B, T] is allocated once and each step writes its
+tensors straight into its time slice; the kitchens are stepped through the env's JAX programs (one DLPack crossing
+each way, `KitchenEnv.step_tensors`), and episode ends are known on the host, so no step waits for the device.
+
+Two ways of stepping, the same batches (`tests/torch_kitchen/test_rollout.py`, bit for bit against `Collector`):
+
+    a bare `KitchenEnv`       the JAX step's outputs go to the batch and to the policy's next input as tensors; a
+                              TensorDict is built only at an episode's end, for TorchRL's own partial reset
+    a `TransformedKitchenEnv` the transforms (an LSTM's states, E3T's partner context) run as TorchRL runs them,
+                              `step_and_maybe_reset`; only the storage is this module's
+
+`KitchenCollector` offers this as a TorchRL collector (`BaseCollector`): a loop written for TorchRL's collectors
+takes it as it is. `KitchenEnv.rollout(..., break_when_any_done=False)` runs the same steps.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Iterator
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.collectors import BaseCollector
+from torchrl.envs import EnvBase, TransformedEnv
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from torch_kitchen.keys import ACTION, OBSERVATION, REWARD, SHAPED_REWARD
+
+NEXT = "next"
+
+
+def base_kitchen(env: EnvBase):
+    """The `KitchenEnv` under `env`'s transforms (or `env` itself)."""
+    return env.base_env if isinstance(env, TransformedEnv) else env
+
+
+class RolloutStorage:
+    """A batch [B, T] allocated once, like the first step's record, with every leaf's view at each step precomputed:
+    writing step t is one `copy_` per leaf, into `batch`'s own memory (a batch handed out is overwritten by the next
+    rollout into the same storage: consume it first)."""
+
+    def __init__(self, record: TensorDictBase, steps: int, device: torch.device | None):
+        batch = record.unsqueeze(-1).expand(*record.batch_size, steps).clone().zero_()
+        if device is not None:
+            batch = batch.to(device)
+        batch.refine_names(..., "time")
+        self.batch, self.steps = batch, steps
+        self.keys = list(batch.keys(True, True))
+        leaves = [batch.get(key) for key in self.keys]
+        time_dim = record.ndim
+        self.views = [[leaf.select(time_dim, t) for leaf in leaves] for t in range(steps)]
+
+    def write(self, t: int, values: list[torch.Tensor]) -> None:
+        """Step t's leaves, in `keys`' order."""
+        for view, value in zip(self.views[t], values):
+            view.copy_(value)
+
+
+def step_record(carrier: TensorDictBase, next_values: dict) -> TensorDictBase:
+    """What a collector stores for one step: the policy's input and outputs, and under "next" what the step gave."""
+    record = carrier.copy()
+    next_td = TensorDict({}, batch_size=carrier.batch_size, device=carrier.device)
+    for key, value in next_values.items():
+        next_td.set(key, value)
+    record.set(NEXT, next_td)
+    return record
+
+
+class KitchenStepper:
+    """Steps a bare `KitchenEnv` for a rollout: the JAX step's outputs as plain tensors, the host counting episodes."""
+
+    def __init__(self, env):
+        self.env = env
+        self.not_terminated = torch.zeros(*env.batch_size, 1, dtype=torch.bool, device=env.device)
+
+    def step(self, actions: torch.Tensor) -> dict:
+        """The "next" entries of one step of every kitchen, by key (views of the step's one output buffer)."""
+        observation, scalars, done = self.env.step_tensors(actions)
+        return {
+            OBSERVATION: observation,
+            REWARD: scalars[:, 0:2].unsqueeze(-1),
+            SHAPED_REWARD: scalars[:, 2:4].unsqueeze(-1),
+            "deliveries": scalars[:, 4:5],
+            "episode_deliveries": scalars[:, 5:6],
+            "done": done,
+            "truncated": done,
+            "terminated": self.not_terminated,
+        }
+
+    def advance(self, carrier: TensorDictBase, next_values: dict) -> TensorDictBase:
+        """The policy's next input: the step's observations (`step_mdp`), with the kitchens whose episode ended
+        reset as TorchRL resets them (`maybe_reset`, a partial reset merged by TorchRL's own rule)."""
+        if self.env.episode_ended():
+            root = TensorDict({}, batch_size=carrier.batch_size, device=carrier.device)
+            for key, value in next_values.items():
+                if key != REWARD:
+                    root.set(key, value)
+            return self.env.maybe_reset(root)
+        for key, value in next_values.items():
+            if key != REWARD:
+                carrier.set(key, value)
+        return carrier
+
+
+def next_entry(key) -> object:
+    """The key under "next" of a storage key ("next", ...), or None for a root key."""
+    if not isinstance(key, tuple) or key[0] != NEXT:
+        return None
+    return key[1] if len(key) == 2 else key[1:]
+
+
+@torch.no_grad()
+def rollout_into(env: EnvBase, policy, carrier: TensorDictBase, steps: int,
+                 storage: RolloutStorage | None = None) -> tuple[RolloutStorage, TensorDictBase]:
+    """`steps` steps of every kitchen of `env` from `carrier` (the policy's first input: a reset's output, or the
+    last step's successor) with `policy` acting, written into `storage` (allocated at the first step if None).
+    Resets ended episodes as they end. Returns the storage and the policy's next input."""
+    bare = None if isinstance(env, TransformedEnv) else KitchenStepper(env)
+    sources = None  # bare: each leaf's key among the step's outputs, or None where the policy's input holds it
+    for t in range(steps):
+        carrier = policy(carrier)
+        if bare is None:
+            stepped, carrier = env.step_and_maybe_reset(carrier)
+            if storage is None:
+                storage = RolloutStorage(stepped, steps, env.device)
+            storage.write(t, [stepped.get(key) for key in storage.keys])
+            continue
+        next_values = bare.step(carrier.get(ACTION))
+        if storage is None:
+            storage = RolloutStorage(step_record(carrier, next_values), steps, env.device)
+        if sources is None:
+            sources = [entry if entry in next_values else None for entry in map(next_entry, storage.keys)]
+        storage.write(t, [carrier.get(key) if source is None else next_values[source]
+                          for key, source in zip(storage.keys, sources)])
+        carrier = bare.advance(carrier, next_values)
+    return storage, carrier
+
+
+class KitchenCollector(BaseCollector):
+    """A TorchRL collector whose batches [B, frames_per_batch / B] come from `rollout_into`: what TorchRL's
+    `Collector(env, policy, frames_per_batch, total_frames, return_same_td=True)` yields over a `KitchenEnv`, bit
+    for bit, at a fraction of the host's work per step. Every batch is written into the same storage (consume it
+    before asking for the next), on the env's device, which the batch carries. Actions are sampled
+    (`exploration_type`, RANDOM by default)."""
+
+    def __init__(self, env: EnvBase, policy, frames_per_batch: int, total_frames: int = -1,
+                 exploration_type: ExplorationType = ExplorationType.RANDOM):
+        super().__init__()
+        num_envs = env.batch_size.numel()
+        if frames_per_batch % num_envs:
+            raise ValueError(f"frames_per_batch={frames_per_batch} is not a whole number of steps of the env's "
+                             f"{num_envs} kitchens")
+        self.env, self.policy = env, policy
+        self.frames_per_batch = self.requested_frames_per_batch = frames_per_batch
+        self.total_frames = total_frames if total_frames > 0 else float("inf")
+        self.exploration_type = exploration_type
+        self.steps = frames_per_batch // num_envs
+        self._frames = 0
+        self._storage = None
+        with torch.no_grad(), set_exploration_type(exploration_type):
+            self._carrier = env.reset()
+            # TorchRL's Collector learns the policy's outputs by running it once on a copy of the first input (its
+            # random draws included): done here too, so a run collects what it collected with TorchRL's.
+            policy(self._carrier.copy())
+
+    def iterator(self) -> Iterator[TensorDictBase]:
+        while self._frames < self.total_frames:
+            with set_exploration_type(self.exploration_type):
+                self._storage, self._carrier = rollout_into(self.env, self.policy, self._carrier, self.steps,
+                                                            self._storage)
+            self._frames += self.frames_per_batch
+            yield self._storage.batch
+
+    def set_seed(self, seed: int, static_seed: bool = False) -> int:
+        return self.env.set_seed(seed, static_seed=static_seed)
+
+    def state_dict(self) -> OrderedDict:
+        return OrderedDict(env_state_dict=self.env.state_dict(), frames=self._frames)
+
+    def load_state_dict(self, state_dict: OrderedDict) -> None:
+        self.env.load_state_dict(state_dict["env_state_dict"])
+        self._frames = state_dict["frames"]
+
+    def shutdown(self, timeout: float | None = None, close_env: bool = True, raise_on_error: bool = True) -> None:
+        self._storage = None
+        if close_env and not self.env.is_closed:
+            self.env.close()
