@@ -332,7 +332,8 @@ class KitchenEnv(EnvBase):
     def rollout(self, max_steps: int, policy=None, callback=None, *, break_when_any_done: bool | None = None,
                 auto_reset: bool = True, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         """TorchRL's `EnvBase.rollout`; with a policy and `break_when_any_done=False` (episodes reset as they end)
-        the kitchens are stepped as `torch_kitchen.rollout` steps them, with the same result."""
+        the kitchens are stepped as `torch_kitchen.rollout` steps them: the same values, written in place into one
+        batch (which holds no autograd graph)."""
         return kitchen_rollout(super(), self, max_steps, policy, callback, break_when_any_done, auto_reset,
                                tensordict, kwargs)
 
@@ -474,7 +475,7 @@ def kitchen_rollout(torchrl_env, env: EnvBase, max_steps: int, policy, callback,
         raise RuntimeError("tensordict must be provided when auto_reset is False")
     else:
         carrier = env.maybe_reset(tensordict)
-    storage, _ = rollout_into(env, policy, carrier, max_steps)
+    storage, _ = rollout_into(env, policy, carrier, max_steps, reset_last=False)
     return storage.batch
 
 

@@ -43,7 +43,8 @@ class RolloutStorage:
     rollout into the same storage: consume it first)."""
 
     def __init__(self, record: TensorDictBase, steps: int, device: torch.device | None):
-        batch = record.unsqueeze(-1).expand(*record.batch_size, steps).clone().zero_()
+        with torch.no_grad():
+            batch = record.detach().unsqueeze(-1).expand(*record.batch_size, steps).clone().zero_()
         if device is not None:
             batch = batch.to(device)
         batch.refine_names(..., "time")
@@ -53,10 +54,16 @@ class RolloutStorage:
         time_dim = record.ndim
         self.views = [[leaf.select(time_dim, t) for leaf in leaves] for t in range(steps)]
 
-    def write(self, t: int, values: list[torch.Tensor]) -> None:
-        """Step t's leaves, in `keys`' order."""
-        for view, value in zip(self.views[t], values):
-            view.copy_(value)
+    def write(self, t: int, values: list[torch.Tensor | None]) -> None:
+        """Step t's leaves, in `keys`' order. KeyError if one is missing: every step must hold the first one's keys
+        (a rollout continued from a tensordict with keys a step does not give back, such as the reward left at the
+        root by `torchrl.envs.utils.step_mdp`'s default reward key; use `env.step_mdp`)."""
+        with torch.no_grad():  # the batch holds values, not the graph that made them
+            for key, view, value in zip(self.keys, self.views[t], values):
+                if value is None:
+                    raise KeyError(f"step {t} of the rollout has no {key!r}, which its first step had: a rollout's "
+                                   "steps must hold the same keys (continue from `env.step_mdp(rollout[..., -1])`)")
+                view.copy_(value)
 
 
 def step_record(carrier: TensorDictBase, next_values: dict) -> TensorDictBase:
@@ -112,18 +119,24 @@ def next_entry(key) -> object:
     return key[1] if len(key) == 2 else key[1:]
 
 
-@torch.no_grad()
-def rollout_into(env: EnvBase, policy, carrier: TensorDictBase, steps: int,
-                 storage: RolloutStorage | None = None) -> tuple[RolloutStorage, TensorDictBase]:
+def rollout_into(env: EnvBase, policy, carrier: TensorDictBase, steps: int, storage: RolloutStorage | None = None,
+                 reset_last: bool = True) -> tuple[RolloutStorage, TensorDictBase | None]:
     """`steps` steps of every kitchen of `env` from `carrier` (the policy's first input: a reset's output, or the
     last step's successor) with `policy` acting, written into `storage` (allocated at the first step if None).
-    Resets ended episodes as they end. Returns the storage and the policy's next input."""
+    Resets episodes as they end: at the last step too where `reset_last` (a collector's way; TorchRL's
+    `EnvBase.rollout` leaves the last step's kitchens for the next call's `maybe_reset`). Returns the storage and
+    the policy's next input (None where the last step was not followed by one). Runs in the caller's grad mode, as
+    `EnvBase.rollout` does (collectors run without gradients)."""
     bare = None if isinstance(env, TransformedEnv) else KitchenStepper(env)
     sources = None  # bare: each leaf's key among the step's outputs, or None where the policy's input holds it
     for t in range(steps):
         carrier = policy(carrier)
+        advance = reset_last or t < steps - 1
         if bare is None:
-            stepped, carrier = env.step_and_maybe_reset(carrier)
+            if advance:
+                stepped, carrier = env.step_and_maybe_reset(carrier)
+            else:
+                stepped, carrier = env.step(carrier), None
             if storage is None:
                 storage = RolloutStorage(stepped, steps, env.device)
             storage.write(t, [stepped.get(key) for key in storage.keys])
@@ -135,7 +148,7 @@ def rollout_into(env: EnvBase, policy, carrier: TensorDictBase, steps: int,
             sources = [entry if entry in next_values else None for entry in map(next_entry, storage.keys)]
         storage.write(t, [carrier.get(key) if source is None else next_values[source]
                           for key, source in zip(storage.keys, sources)])
-        carrier = bare.advance(carrier, next_values)
+        carrier = bare.advance(carrier, next_values) if advance else None
     return storage, carrier
 
 
@@ -168,7 +181,7 @@ class KitchenCollector(BaseCollector):
 
     def iterator(self) -> Iterator[TensorDictBase]:
         while self._frames < self.total_frames:
-            with set_exploration_type(self.exploration_type):
+            with torch.no_grad(), set_exploration_type(self.exploration_type):
                 self._storage, self._carrier = rollout_into(self.env, self.policy, self._carrier, self.steps,
                                                             self._storage)
             self._frames += self.frames_per_batch

@@ -51,3 +51,23 @@ def test_the_kitchen_collector_collects_the_batches_of_torchrls_collector(tmp_pa
         assert set(ours.keys(True, True)) == set(theirs.keys(True, True))
         for key in theirs.keys(True, True):
             assert torch.equal(ours.get(key), theirs.get(key)), key
+
+
+@pytest.mark.parametrize("architecture", ["mlp", "mlp_lstm"])
+def test_env_rollout_is_torchrls_rollout_and_continues_where_it_ended(tmp_path, architecture):
+    """`env.rollout(T, policy, break_when_any_done=False)`, then continued with `auto_reset=False` from the last
+    step's successor (TorchRL's documented loop), gives what TorchRL's own `EnvBase.rollout` gives."""
+    overrides = ["max_steps=10", f"architecture={architecture}"]
+    rollouts = {}
+    for name, rollout in (("torchrl", lambda env, *a, **k: type(env).__mro__[1].rollout(env, *a, **k)),
+                          ("kitchen", lambda env, *a, **k: env.rollout(*a, **k))):
+        env, policy, _ = env_and_policy(tmp_path / name, overrides)
+        first = rollout(env, 12, policy, break_when_any_done=False)
+        second = rollout(env, 12, policy, break_when_any_done=False, auto_reset=False,
+                         tensordict=env.step_mdp(first[..., -1]))
+        rollouts[name] = first, second
+    for ours, theirs in zip(rollouts["kitchen"], rollouts["torchrl"]):
+        assert ours.batch_size == theirs.batch_size == (4, 12)
+        assert set(ours.keys(True, True)) == set(theirs.keys(True, True))
+        for key in theirs.keys(True, True):
+            assert torch.equal(ours.get(key), theirs.get(key)), key
