@@ -95,10 +95,14 @@ def unpack_outputs(packed: torch.Tensor, num_envs: int,
 
 
 class KitchenPrograms(NamedTuple):
-    """The jitted JAX functions behind a `KitchenEnv`. Each returns (states, deliveries, packed): packed is the
-    step's observations, scalars and dones in one fresh buffer (`pack_outputs`), none of it part of the state, so
-    that a step's outputs cross DLPack once. The levels' start states are an argument, not a constant, so that
-    kitchens of one size and settings share one compilation (a server starting a game compiles nothing)."""
+    """The jitted JAX functions behind a `KitchenEnv`. Each returns (states, deliveries, outputs): the step's
+    observations uint8 [B, 2, H, W, 26], scalars float32 [B, 6] and dones bool [B, 1] in fresh arrays, none of them
+    part of the state. On a GPU the outputs are packed into one buffer (`pack_outputs`) so that they cross DLPack
+    once (a crossing costs tens of microseconds there); on the CPU they stay three arrays, since packing them
+    keeps XLA:CPU from writing the observations in place and doubles the step (120-200 us against 290-410 at
+    JaxMARL's 16 kitchens), where a crossing costs about 15 us. The levels' start states are an argument, not a
+    constant, so that kitchens of one size and settings share one compilation (a server starting a game compiles
+    nothing)."""
 
     reset_all: Callable  # (start_states, keys [teams, 2]) -> every kitchen fresh
     reset_masked: Callable  # (start_states, keys, states, deliveries, mask [B]) -> the masked kitchens fresh
@@ -112,20 +116,22 @@ _PROGRAMS_KEPT = 32  # least recently used programs beyond this are dropped (wit
 _PROGRAMS_LOCK = threading.Lock()  # envs are built from several threads (teams trained in parallel, a server)
 
 
-def kitchen_programs(kitchen: Overcooked, num_envs: int, teams: int, pin_levels: bool) -> KitchenPrograms:
-    """The programs of `num_envs` kitchens of `kitchen`'s settings in `teams` teams, built once per settings and
-    shape and reused by every env of them (see `KitchenPrograms`)."""
-    key = (kitchen.settings, num_envs, teams, pin_levels)
+def kitchen_programs(kitchen: Overcooked, num_envs: int, teams: int, pin_levels: bool,
+                     packed: bool = False) -> KitchenPrograms:
+    """The programs of `num_envs` kitchens of `kitchen`'s settings in `teams` teams, their outputs `packed` or not,
+    built once per settings and shape and reused by every env of them (see `KitchenPrograms`)."""
+    key = (kitchen.settings, num_envs, teams, pin_levels, packed)
     with _PROGRAMS_LOCK:
         if key not in _PROGRAMS:
-            _PROGRAMS[key] = _build_programs(kitchen, num_envs, teams, pin_levels)
+            _PROGRAMS[key] = _build_programs(kitchen, num_envs, teams, pin_levels, packed)
             if len(_PROGRAMS) > _PROGRAMS_KEPT:
                 _PROGRAMS.popitem(last=False)
         _PROGRAMS.move_to_end(key)
         return _PROGRAMS[key]
 
 
-def _build_programs(kitchen: Overcooked, num_envs: int, teams: int, pin_levels: bool) -> KitchenPrograms:
+def _build_programs(kitchen: Overcooked, num_envs: int, teams: int, pin_levels: bool,
+                    packed: bool) -> KitchenPrograms:
     team_size = num_envs // teams
     # The level of every kitchen of a team, or None: a fresh draw per episode.
     levels_of_team = jnp.asarray(np.arange(team_size) % kitchen.num_levels, jnp.int32) if pin_levels else None
@@ -136,7 +142,9 @@ def _build_programs(kitchen: Overcooked, num_envs: int, teams: int, pin_levels: 
         scalars = jnp.concatenate(
             [reward, shaped_reward, delivered[:, None], deliveries[:, None]], axis=1, dtype=jnp.float32
         )
-        return states, deliveries, pack_outputs(jax.vmap(kitchen.get_obs)(states), scalars, done)
+        observation = jax.vmap(kitchen.get_obs)(states)
+        out = pack_outputs(observation, scalars, done) if packed else (observation, scalars, done[:, None])
+        return states, deliveries, out
 
     def observe(states, deliveries):
         zeros = jnp.zeros((num_envs, 2), jnp.float32)
@@ -218,7 +226,8 @@ class KitchenEnv(EnvBase):
         if pin_levels and kitchen.num_levels == 0:
             raise ValueError("pin_levels needs a list of levels (or 'heldout'); the Infinite Kitchen generates them")
         self.pinned_levels = np.tile(np.arange(team_size) % kitchen.num_levels, self.teams) if pin_levels else None
-        self._programs = kitchen_programs(kitchen, num_envs, self.teams, pin_levels)
+        self._packed = self._jax_device.platform != "cpu"  # see `KitchenPrograms`
+        self._programs = kitchen_programs(kitchen, num_envs, self.teams, pin_levels, self._packed)
         # On the env's device once: an argument of the compiled resets, not a copy per reset.
         self._start_states = jax.device_put(kitchen.start_states, self._jax_device)
         self._states = None  # the JAX kitchens, batched
@@ -258,14 +267,17 @@ class KitchenEnv(EnvBase):
         return key
 
     # ------------------------------------------------------------------------------------------ torch side
-    def _unpack(self, packed: jax.Array) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """A program's packed outputs as torch views, observation [B, 2, H, W, C], scalars [B, 6], done [B, 1]:
-        one DLPack crossing."""
-        self._last_obs = packed
-        return unpack_outputs(torch.from_dlpack(packed), self.num_envs, self.kitchen.obs_shape)
+    def _unpack(self, out) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """A program's outputs as torch tensors sharing their memory: observation [B, 2, H, W, C], scalars [B, 6],
+        done [B, 1] (one DLPack crossing where packed, three where not)."""
+        if self._packed:
+            self._last_obs = out
+            return unpack_outputs(torch.from_dlpack(out), self.num_envs, self.kitchen.obs_shape)
+        self._last_obs = out[0]
+        return tuple(torch.from_dlpack(array) for array in out)
 
-    def _to_tensordict(self, packed: jax.Array, with_reward: bool) -> TensorDictBase:
-        observation, scalars, done = self._unpack(packed)
+    def _to_tensordict(self, out, with_reward: bool) -> TensorDictBase:
+        observation, scalars, done = self._unpack(out)
         agents = {
             "observation": observation,
             "shaped_reward": scalars[:, 2:4].unsqueeze(-1),
@@ -290,16 +302,16 @@ class KitchenEnv(EnvBase):
         full = mask is None or bool(mask.all())
         if self._restored and full:
             self._restored = False
-            self._states, self._deliveries, packed = self._programs.observe(self._states, self._deliveries)
+            self._states, self._deliveries, out = self._programs.observe(self._states, self._deliveries)
         elif self._states is None or full:
-            self._states, self._deliveries, packed = self._programs.reset_all(self._start_states, self._next_key())
+            self._states, self._deliveries, out = self._programs.reset_all(self._start_states, self._next_key())
         else:
             mask = jax.dlpack.from_dlpack(mask.reshape(-1).contiguous())
-            self._states, self._deliveries, packed = self._programs.reset_masked(
+            self._states, self._deliveries, out = self._programs.reset_masked(
                 self._start_states, self._next_key(), self._states, self._deliveries, mask
             )
         self._episode_steps = np.array(self._states.step)  # read once per reset, not per step
-        return self._to_tensordict(packed, with_reward=False)
+        return self._to_tensordict(out, with_reward=False)
 
     @staticmethod
     def _actions_to_jax(actions: torch.Tensor):
@@ -311,19 +323,19 @@ class KitchenEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         actions = self._actions_to_jax(tensordict.get(ACTION))
-        self._states, self._deliveries, packed = self._programs.step(self._states, self._deliveries, actions)
+        self._states, self._deliveries, out = self._programs.step(self._states, self._deliveries, actions)
         self._episode_steps += 1
-        return self._to_tensordict(packed, with_reward=True)
+        return self._to_tensordict(out, with_reward=True)
 
     def step_tensors(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One step of every kitchen with `actions` int [B, 2], no reset, no TensorDict: observation uint8 [B, 2, H, W,
         26], scalars float32 [B, 6] (reward x2, shaped reward x2, deliveries this step, episode deliveries) and done
         bool [B, 1], views of one buffer that JAX owns (read them, do not write them). What `step` computes, for
         `torch_kitchen.rollout`."""
-        self._states, self._deliveries, packed = self._programs.step(
+        self._states, self._deliveries, out = self._programs.step(
             self._states, self._deliveries, self._actions_to_jax(actions))
         self._episode_steps += 1
-        return self._unpack(packed)
+        return self._unpack(out)
 
     def episode_ended(self) -> bool:
         """Whether a kitchen's episode ended at the last step, known on the host (episodes end on a step count)."""

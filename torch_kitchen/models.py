@@ -339,14 +339,16 @@ class ActingPass(TensorDictModuleBase):
         self.out_keys = [LOGITS, ACTION, LOG_PROB, VALUE]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        observation = tensordict.get(OBSERVATION)
+        for key, value in zip(self.out_keys, self.act(tensordict.get(OBSERVATION))):
+            tensordict.set(key, value)
+        return tensordict
+
+    def act(self, observation: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The pass on plain tensors: observation uint8 [*B, 2, H, W, C] -> (logits [*B, 2, 6], action int64 [*B, 2],
+        its log-prob [*B, 2], value [*B, 2, 1]), in `out_keys`' order."""
         logits = self.policy_net(observation)
         action, log_prob = sample_actions(logits)
-        tensordict.set(LOGITS, logits)
-        tensordict.set(ACTION, action)
-        tensordict.set(LOG_PROB, log_prob)
-        tensordict.set(VALUE, self.value_net(observation))
-        return tensordict
+        return logits, action, log_prob, self.value_net(observation)
 
     def shared_networks(self) -> tuple[nn.Sequential, nn.Sequential] | None:
         """The policy and value networks as chains of plain modules holding these weights (not copies), where both

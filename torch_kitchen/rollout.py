@@ -7,7 +7,8 @@ each way, `KitchenEnv.step_tensors`), and episode ends are known on the host, so
 
 Two ways of stepping, the same batches (`tests/torch_kitchen/test_rollout.py`, bit for bit against `Collector`):
 
-    a bare `KitchenEnv`       the JAX step's outputs go to the batch and to the policy's next input as tensors; a
+    a bare `KitchenEnv`       the JAX step's outputs go to the batch and to the policy's next input as tensors;
+                              where the policy is an acting pass on the observations (`TeamPolicy.act`), a
                               TensorDict is built only at an episode's end, for TorchRL's own partial reset
     a `TransformedKitchenEnv` the transforms (an LSTM's states, E3T's partner context) run as TorchRL runs them,
                               `step_and_maybe_reset`; only the storage is this module's
@@ -19,7 +20,7 @@ takes it as it is. `KitchenEnv.rollout(..., break_when_any_done=False)` runs the
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -66,14 +67,29 @@ class RolloutStorage:
                 view.copy_(value)
 
 
-def step_record(carrier: TensorDictBase, next_values: dict) -> TensorDictBase:
-    """What a collector stores for one step: the policy's input and outputs, and under "next" what the step gave."""
-    record = carrier.copy()
-    next_td = TensorDict({}, batch_size=carrier.batch_size, device=carrier.device)
-    for key, value in next_values.items():
-        next_td.set(key, value)
-    record.set(NEXT, next_td)
-    return record
+def as_tensordict(values: dict, like: EnvBase) -> TensorDictBase:
+    """Tensors by (nested) key as a TensorDict of `like`'s batch size and device."""
+    tensordict = TensorDict({}, batch_size=like.batch_size, device=like.device)
+    for key, value in values.items():
+        tensordict.set(key, value)
+    return tensordict
+
+
+def leaves(tensordict: TensorDictBase) -> dict:
+    """A TensorDict's tensors by (nested) key."""
+    return {key: tensordict.get(key) for key in tensordict.keys(True, True)}
+
+
+def acting_on(policy, env: EnvBase) -> Callable[[dict], dict]:
+    """`policy` as a function of the policy's input by key to its outputs by key: an acting pass on the
+    observations alone where the policy offers one (`TeamPolicy.act`: no TensorDict), else the policy on a
+    TensorDict of its input."""
+    if getattr(policy, "acts_on_observation", False):
+        return lambda root: policy.act(root[OBSERVATION])
+
+    def act(root: dict) -> dict:
+        return leaves(policy(as_tensordict(root, env)))
+    return act
 
 
 class KitchenStepper:
@@ -97,19 +113,13 @@ class KitchenStepper:
             "terminated": self.not_terminated,
         }
 
-    def advance(self, carrier: TensorDictBase, next_values: dict) -> TensorDictBase:
-        """The policy's next input: the step's observations (`step_mdp`), with the kitchens whose episode ended
-        reset as TorchRL resets them (`maybe_reset`, a partial reset merged by TorchRL's own rule)."""
+    def advance(self, next_values: dict) -> dict:
+        """The policy's next input by key: the step's outputs but the reward (`step_mdp`), with the kitchens whose
+        episode ended reset as TorchRL resets them (`maybe_reset`, a partial reset merged by TorchRL's own rule)."""
+        root = {key: value for key, value in next_values.items() if key != REWARD}
         if self.env.episode_ended():
-            root = TensorDict({}, batch_size=carrier.batch_size, device=carrier.device)
-            for key, value in next_values.items():
-                if key != REWARD:
-                    root.set(key, value)
-            return self.env.maybe_reset(root)
-        for key, value in next_values.items():
-            if key != REWARD:
-                carrier.set(key, value)
-        return carrier
+            return leaves(self.env.maybe_reset(as_tensordict(root, self.env)))
+        return root
 
 
 def next_entry(key) -> object:
@@ -127,28 +137,38 @@ def rollout_into(env: EnvBase, policy, carrier: TensorDictBase, steps: int, stor
     `EnvBase.rollout` leaves the last step's kitchens for the next call's `maybe_reset`). Returns the storage and
     the policy's next input (None where the last step was not followed by one). Runs in the caller's grad mode, as
     `EnvBase.rollout` does (collectors run without gradients)."""
-    bare = None if isinstance(env, TransformedEnv) else KitchenStepper(env)
-    sources = None  # bare: each leaf's key among the step's outputs, or None where the policy's input holds it
+    if isinstance(env, TransformedEnv):
+        return transformed_rollout_into(env, policy, carrier, steps, storage, reset_last)
+    stepper, act = KitchenStepper(env), acting_on(policy, env)
+    root = leaves(carrier)
+    sources = None  # each leaf's key among the step's "next" outputs, or None where the policy's input holds it
     for t in range(steps):
-        carrier = policy(carrier)
-        advance = reset_last or t < steps - 1
-        if bare is None:
-            if advance:
-                stepped, carrier = env.step_and_maybe_reset(carrier)
-            else:
-                stepped, carrier = env.step(carrier), None
-            if storage is None:
-                storage = RolloutStorage(stepped, steps, env.device)
-            storage.write(t, [stepped.get(key) for key in storage.keys])
-            continue
-        next_values = bare.step(carrier.get(ACTION))
+        acted = {**root, **act(root)}
+        next_values = stepper.step(acted[ACTION])
         if storage is None:
-            storage = RolloutStorage(step_record(carrier, next_values), steps, env.device)
+            storage = RolloutStorage(as_tensordict({**acted, NEXT: as_tensordict(next_values, env)}, env), steps,
+                                     env.device)
         if sources is None:
             sources = [entry if entry in next_values else None for entry in map(next_entry, storage.keys)]
-        storage.write(t, [carrier.get(key) if source is None else next_values[source]
+        storage.write(t, [acted.get(key) if source is None else next_values[source]
                           for key, source in zip(storage.keys, sources)])
-        carrier = bare.advance(carrier, next_values) if advance else None
+        root = stepper.advance(next_values) if reset_last or t < steps - 1 else None
+    return storage, None if root is None else as_tensordict(root, env)
+
+
+def transformed_rollout_into(env: TransformedEnv, policy, carrier: TensorDictBase, steps: int,
+                             storage: RolloutStorage | None, reset_last: bool
+                             ) -> tuple[RolloutStorage, TensorDictBase | None]:
+    """`rollout_into` through `env`'s transforms, which run as TorchRL runs them (`step_and_maybe_reset`)."""
+    for t in range(steps):
+        carrier = policy(carrier)
+        if reset_last or t < steps - 1:
+            stepped, carrier = env.step_and_maybe_reset(carrier)
+        else:
+            stepped, carrier = env.step(carrier), None
+        if storage is None:
+            storage = RolloutStorage(stepped, steps, env.device)
+        storage.write(t, [stepped.get(key) for key in storage.keys])
     return storage, carrier
 
 

@@ -142,13 +142,20 @@ class StackedNetworks:
 STACKABLE = (nn.Flatten, nn.Linear, nn.ReLU)
 
 
+def acting_pass_of(policy: TensorDictModuleBase) -> ActingPass | None:
+    """The `ActingPass` a policy is (alone, or alone in a `TensorDictSequential`), or None: the policy reads more
+    than the observations or does more than act on them."""
+    acting = policy.module[0] if isinstance(policy, TensorDictSequential) and len(policy.module) == 1 else policy
+    return acting if isinstance(acting, ActingPass) else None
+
+
 def stackable_acting(policies: Sequence[TensorDictModuleBase]) -> list[tuple[nn.Module, nn.Module]] | None:
     """Each policy's (policy network, value network) as plain chains, where every policy is an `ActingPass` alone
     over shared networks (`ActingPass.shared_networks`) that `StackedNetworks` can run; else None."""
     networks = []
     for policy in policies:
-        acting = policy.module[0] if isinstance(policy, TensorDictSequential) and len(policy.module) == 1 else policy
-        pair = acting.shared_networks() if isinstance(acting, ActingPass) else None
+        acting = acting_pass_of(policy)
+        pair = acting.shared_networks() if acting is not None else None
         if pair is None or not all(isinstance(layer, STACKABLE) for network in pair for layer in layers_of(network)):
             return None
         networks.append(pair)
@@ -159,10 +166,15 @@ class TeamPolicy(TensorDictModuleBase):
     """Team k's `policies[k]` acts on team k's rows of the batch, drawing from `streams[k]` (see the module
     docstring). The policies read and write the same keys; one team's policy acts on the batch as it is.
 
-    stack: run the teams' feed-forward acting passes as one network over stacked weights (`StackedNetworks`, compiled
-    in `compile_mode` where given; `restack()` after the weights change) and sample per team; where the policies
-    cannot be stacked (recurrent, GNN, an algorithm's acting modules), or with one team, the policies run one after
-    the other. ValueError if asked to stack what cannot be.
+    stack: run the teams' feed-forward acting passes as one network over stacked weights (`StackedNetworks`;
+    `restack()` after the weights change) and sample per team; where the policies cannot be stacked (recurrent, GNN,
+    an algorithm's acting modules), or with one team, the policies run one after the other. ValueError if asked to
+    stack what cannot be.
+    compile_mode: `torch.compile` in this mode (None: eager) the stacked networks, or else each team's acting pass
+    on plain tensors, or else each team's policy.
+
+    Where every policy is an acting pass, `act(observation)` runs the teams' passes on plain tensors, as `forward`
+    does for a TensorDict: a rollout's way (`torch_kitchen.rollout`), with no TensorDict at a step.
     """
 
     def __init__(self, policies: Sequence[TensorDictModuleBase], streams: Sequence[RandomStream], team_size: int,
@@ -175,8 +187,14 @@ class TeamPolicy(TensorDictModuleBase):
         self.team_size = team_size
         self.in_keys = list(policies[0].in_keys)
         self.out_keys = list(policies[0].out_keys)
+        passes = [acting_pass_of(policy) for policy in policies]
+        self.acts_on_observation = all(acting is not None for acting in passes)
+        stacking = stack and len(policies) > 1
+        compiled = (lambda f: torch.compile(f, mode=compile_mode)) if compile_mode and not stacking else (lambda f: f)
+        self.passes = [compiled(acting.act) for acting in passes] if self.acts_on_observation else None
+        self.runs = [compiled(policy) for policy in policies]  # the policies as they run where not acting passes
         self.stacked = None
-        if stack and len(policies) > 1:
+        if stacking:
             networks = stackable_acting(policies)
             if networks is None:
                 raise ValueError("only feed-forward acting passes over shared MLP networks stack; these policies "
@@ -190,19 +208,36 @@ class TeamPolicy(TensorDictModuleBase):
             networks.restack()
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        if len(self.policies) == 1:  # every step: spare one team the split and the copy back
+        if self.acts_on_observation:
+            for key, value in self.act(tensordict.get(OBSERVATION)).items():
+                tensordict.set(key, value)
+            return tensordict
+        if len(self.runs) == 1:  # every step: spare one team the split and the copy back
             with self.streams[0].active():
-                return self.policies[0](tensordict)
-        if self.stacked is not None:
-            return self._stacked_forward(tensordict)
+                return self.runs[0](tensordict)
         acted = []
-        for team, (policy, stream) in enumerate(zip(self.policies, self.streams)):
+        for team, (policy, stream) in enumerate(zip(self.runs, self.streams)):
             with stream.active():
                 acted.append(policy(tensordict[team_rows(team, self.team_size)]).select(*self.out_keys))
         return tensordict.update(torch.cat(acted))
 
-    def _stacked_forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        observation = tensordict.get(OBSERVATION)
+    def act(self, observation: torch.Tensor) -> dict:
+        """Every team's acting pass on its rows of observation uint8 [B, 2, H, W, C], each in its random stream: the
+        outputs by key (`ActingPass.out_keys`: logits, action, log-prob, value). Only where `acts_on_observation`."""
+        if self.stacked is not None:
+            return self._stacked_act(observation)
+        if len(self.passes) == 1:
+            with self.streams[0].active():
+                outputs = self.passes[0](observation)
+        else:
+            by_team = []
+            for team, (act, stream) in enumerate(zip(self.passes, self.streams)):
+                with stream.active():
+                    by_team.append(act(observation[team_rows(team, self.team_size)]))
+            outputs = [torch.cat(values) for values in zip(*by_team)]
+        return dict(zip(ACTING_KEYS, outputs))
+
+    def _stacked_act(self, observation: torch.Tensor) -> dict:
         by_team = observation.reshape(len(self.streams), self.team_size, *observation.shape[1:])
         policy_net, value_net = self.stacked
         logits = policy_net(by_team).flatten(0, 1)
@@ -215,11 +250,10 @@ class TeamPolicy(TensorDictModuleBase):
             return torch.cat(draws)
 
         action, log_prob = sample_actions(logits, draw_per_team)
-        tensordict.set(LOGITS, logits)
-        tensordict.set(ACTION, action)
-        tensordict.set(LOG_PROB, log_prob)
-        tensordict.set(VALUE, value_net(by_team).flatten(0, 1))
-        return tensordict
+        return dict(zip(ACTING_KEYS, (logits, action, log_prob, value_net(by_team).flatten(0, 1))))
+
+
+ACTING_KEYS = (LOGITS, ACTION, LOG_PROB, VALUE)  # what an acting pass writes, in `ActingPass.act`'s order
 
 
 class StackedLoss:

@@ -63,11 +63,9 @@ def acting_policy(config: TrainConfig, teams: Sequence[TrainingRun]) -> TeamPoli
     with `compile_policy`."""
     policies = [team.policy for team in teams]
     streams = [team.stream for team in teams]
-    if acts_stacked(config, policies):
-        compile_mode = "reduce-overhead" if config.runtime.compile_policy else None
-        return TeamPolicy(policies, streams, config.num_envs, True, compile_mode)
-    policies = [torch.compile(policy) if config.runtime.compile_policy else policy for policy in policies]
-    return TeamPolicy(policies, streams, config.num_envs)
+    stack = acts_stacked(config, policies)
+    compile_mode = ("reduce-overhead" if stack else "default") if config.runtime.compile_policy else None
+    return TeamPolicy(policies, streams, config.num_envs, stack, compile_mode)
 
 
 def compile_step(step: Callable[[TensorDictBase], dict[str, torch.Tensor]],

@@ -285,3 +285,22 @@ def test_with_the_models_transforms_a_step_still_waits_for_nothing(architecture)
         if not ended:
             syncs.append(audit.syncs)
     assert ends == 2 and syncs == [0] * 5
+
+
+def test_packed_outputs_as_a_gpu_crosses_them_hold_what_the_three_arrays_hold():
+    """On a GPU a step's outputs cross DLPack as one packed buffer (`pack_outputs`): forced on the CPU here, the
+    env hands out the same observations, rewards, deliveries and dones as from the three arrays the CPU uses."""
+    from torch_kitchen.env import kitchen_programs
+
+    plain = KitchenEnv(num_envs=6, levels="infinite", max_steps=7, seed=2)
+    packed = KitchenEnv(num_envs=6, levels="infinite", max_steps=7, seed=2)
+    packed._packed, packed._programs = True, kitchen_programs(packed.kitchen, 6, 1, False, packed=True)
+    assert packed._programs is not plain._programs
+    actions = torch.randint(0, 6, (12, 6, 2), generator=torch.Generator().manual_seed(3))
+    ours, theirs = packed.reset(), plain.reset()
+    for t in range(12):
+        assert set(ours.keys(True, True)) == set(theirs.keys(True, True))
+        for key in theirs.keys(True, True):
+            assert torch.equal(ours[key], theirs[key]), (t, key)
+        ours["agents", "action"], theirs["agents", "action"] = actions[t], actions[t]
+        ours, theirs = packed.step_and_maybe_reset(ours)[1], plain.step_and_maybe_reset(theirs)[1]
