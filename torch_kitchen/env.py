@@ -34,6 +34,12 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
+
+# On the CPU, a step is waited for as soon as it is dispatched: run inline in the calling thread, it skips the hand-off
+# to XLA's worker thread and back (10-20% of a collection step at JaxMARL's setting; BENCHMARKS.md). Set before JAX's
+# CPU client starts (the first computation); JAX_CPU_ENABLE_ASYNC_DISPATCH=true keeps JAX's default.
+if "JAX_CPU_ENABLE_ASYNC_DISPATCH" not in os.environ:
+    jax.config.update("jax_cpu_enable_async_dispatch", False)
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from tensordict import TensorDict, TensorDictBase  # noqa: E402
