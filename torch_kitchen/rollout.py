@@ -59,12 +59,12 @@ class RolloutStorage:
         """Step t's leaves, in `keys`' order. KeyError if one is missing: every step must hold the first one's keys
         (a rollout continued from a tensordict with keys a step does not give back, such as the reward left at the
         root by `torchrl.envs.utils.step_mdp`'s default reward key; use `env.step_mdp`)."""
+        for key, value in zip(self.keys, values):
+            if value is None:
+                raise KeyError(f"step {t} of the rollout has no {key!r}, which its first step had: a rollout's "
+                               "steps must hold the same keys (continue from `env.step_mdp(rollout[..., -1])`)")
         with torch.no_grad():  # the batch holds values, not the graph that made them
-            for key, view, value in zip(self.keys, self.views[t], values):
-                if value is None:
-                    raise KeyError(f"step {t} of the rollout has no {key!r}, which its first step had: a rollout's "
-                                   "steps must hold the same keys (continue from `env.step_mdp(rollout[..., -1])`)")
-                view.copy_(value)
+            torch._foreach_copy_(self.views[t], values)  # one call for every leaf (grouped kernels on a GPU)
 
 
 def as_tensordict(values: dict, like: EnvBase) -> TensorDictBase:
