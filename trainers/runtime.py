@@ -118,6 +118,8 @@ def minibatch_step(team: TrainingRun, minibatch: TensorDictBase,
     caller's to check (`learn`, once per update)."""
     if team.compiled_step is not None:
         return team.compiled_step(minibatch)
+    if minibatch_shards(team.config) == 1:
+        return ppo_step(team, minibatch)
     shards = minibatch.chunk(minibatch_shards(team.config), dim=0)
     run = pool.map if pool is not None and len(shards) > 1 else map
     shard_losses, gradients_by_shard = zip(*run(functools.partial(shard_gradients, team), shards))
@@ -129,13 +131,15 @@ def minibatch_step(team: TrainingRun, minibatch: TensorDictBase,
 
 
 def ppo_step(team: TrainingRun, minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
-    """`minibatch_step` as one function for `torch.compile` (`compile_update`; no shards): the loss, its backward,
-    the clipping and the Adam step, with nothing read back on the host; returns the losses."""
+    """The PPO step of one team on a minibatch, written once: the loss, its backward, the clipping and the Adam step,
+    with nothing read back on the host; returns the losses. `minibatch_step` runs it as it is, or compiled
+    (`compile_update`, `compile_step` around it); a minibatch split into shards on a CPU's threads, or the teams
+    stacked on a GPU (`stacked_step`), are its other forms."""
+    for parameter in team.parameters:  # what `optimizer.zero_grad()` does, which compiled graphs stop at
+        parameter.grad = None
     losses = {**team.loss_module(minibatch), **team.algorithm.auxiliary_losses(minibatch)}
     total_loss(losses).backward()
     losses["grad_norm"] = apply_gradients(team)
-    for parameter in team.parameters:  # what `optimizer.zero_grad()` does, which compiled graphs stop at
-        parameter.grad = None
     return losses
 
 
