@@ -10,11 +10,12 @@ from torch._dynamo.utils import counters
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import set_recurrent_mode
 
+from torch_kitchen.keys import OBSERVATION
 from torch_kitchen.onednn_linear import device_path
 from torch_kitchen.op_audit import OpAudit
 from trainers.ppo import train
 from trainers.rollout import make_collector
-from trainers.runtime import minibatch_step
+from trainers.runtime import acting_policy, minibatch_step
 from trainers.training_run import build_team, make_env
 
 
@@ -26,6 +27,20 @@ def test_the_loss_forward_and_the_acting_pass_compile_without_a_graph_break(tmp_
         acting = torch._dynamo.explain(team.policy)(minibatch[:, 0].clone())
     assert loss.graph_break_count == 0, [str(reason.reason)[:200] for reason in loss.break_reasons]
     assert acting.graph_break_count == 0, [str(reason.reason)[:200] for reason in acting.break_reasons]
+
+
+def test_the_rollouts_acting_pass_on_plain_tensors_compiles_without_a_graph_break(tmp_path):
+    """What `KitchenCollector` calls at every step (`TeamPolicy.act`'s pass, observations in, logits, actions,
+    log-probabilities and values out) is one graph: ready to be replayed whole."""
+    config = tiny_config(tmp_path)
+    team, minibatch = team_and_minibatch(config, tmp_path)
+    policy = acting_policy(config, [team])
+    assert policy.acts_on_observation
+    torch._dynamo.reset()
+    with device_path():
+        acting = torch._dynamo.explain(policy.passes[0])(minibatch[:, 0].get(OBSERVATION).clone())
+    reasons = [str(reason.reason)[:200] for reason in acting.break_reasons]
+    assert acting.graph_count == 1 and acting.graph_break_count == 0, reasons
 
 
 def test_a_compiled_minibatch_step_is_the_eager_one_to_float_rounding(tmp_path):
