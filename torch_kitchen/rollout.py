@@ -2,8 +2,9 @@
 
 A TorchRL collector builds, at every step, the env's output TensorDict, its `step_mdp` successor and the policy's
 copy, then stacks the steps into the batch. Here the batch [B, T] is allocated once and each step writes its
-tensors straight into its time slice; the kitchens are stepped through the env's JAX programs (one DLPack crossing
-each way, `KitchenEnv.step_tensors`), and episode ends are known on the host, so no step waits for the device.
+tensors straight into its time slice; the kitchens are stepped through the env's JAX programs
+(`KitchenEnv.step_tensors`: on a GPU one DLPack crossing each way), and episode ends are known on the host, so no
+step waits for the device.
 
 Two ways of stepping, the same batches (`tests/torch_kitchen/test_rollout.py`, bit for bit against `Collector`):
 
@@ -33,14 +34,9 @@ from torch_kitchen.keys import ACTION, OBSERVATION, REWARD, SHAPED_REWARD
 NEXT = "next"
 
 
-def base_kitchen(env: EnvBase):
-    """The `KitchenEnv` under `env`'s transforms (or `env` itself)."""
-    return env.base_env if isinstance(env, TransformedEnv) else env
-
-
 class RolloutStorage:
     """A batch [B, T] allocated once, like the first step's record, with every leaf's view at each step precomputed:
-    writing step t is one `copy_` per leaf, into `batch`'s own memory (a batch handed out is overwritten by the next
+    writing step t is one `_foreach_copy_` into `batch`'s own memory (a batch handed out is overwritten by the next
     rollout into the same storage: consume it first)."""
 
     def __init__(self, record: TensorDictBase, steps: int, device: torch.device | None):
@@ -188,7 +184,7 @@ class KitchenCollector(BaseCollector):
                              f"{num_envs} kitchens")
         self.env, self.policy = env, policy
         self.frames_per_batch = self.requested_frames_per_batch = frames_per_batch
-        self.total_frames = total_frames if total_frames > 0 else float("inf")
+        self.total_frames = total_frames  # -1: no end, as TorchRL's collectors take it
         self.exploration_type = exploration_type
         self.steps = frames_per_batch // num_envs
         self._frames = 0
@@ -200,7 +196,7 @@ class KitchenCollector(BaseCollector):
             policy(self._carrier.copy())
 
     def iterator(self) -> Iterator[TensorDictBase]:
-        while self._frames < self.total_frames:
+        while self.total_frames < 0 or self._frames < self.total_frames:
             with torch.no_grad(), set_exploration_type(self.exploration_type):
                 self._storage, self._carrier = rollout_into(self.env, self.policy, self._carrier, self.steps,
                                                             self._storage)
