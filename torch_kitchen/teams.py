@@ -191,8 +191,9 @@ class TeamPolicy(TensorDictModuleBase):
         self.acts_on_observation = all(acting is not None for acting in passes)
         stacking = stack and len(policies) > 1
         compiled = (lambda f: torch.compile(f, mode=compile_mode)) if compile_mode and not stacking else (lambda f: f)
+        # How the teams act: their passes on plain tensors, or else their policies on TensorDicts.
         self.passes = [compiled(acting.act) for acting in passes] if self.acts_on_observation else None
-        self.runs = [compiled(policy) for policy in policies]  # the policies as they run where not acting passes
+        self.runs = None if self.acts_on_observation else [compiled(policy) for policy in policies]
         self.stacked = None
         if stacking:
             networks = stackable_acting(policies)
