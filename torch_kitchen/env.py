@@ -42,14 +42,14 @@ if "JAX_CPU_ENABLE_ASYNC_DISPATCH" not in os.environ:
     jax.config.update("jax_cpu_enable_async_dispatch", False)
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from tensordict import TensorDict, TensorDictBase  # noqa: E402
+from tensordict import TensorDictBase  # noqa: E402
 from torchrl.data import Bounded, Categorical, Composite, Unbounded  # noqa: E402
 from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv  # noqa: E402
 
 from jax_env import DELIVERY_REWARD, NUM_ACTIONS, GeneratorConfig, Overcooked, ShapingWeights, State  # noqa: E402
 from jax_env.env import Levels  # noqa: E402
-from torch_kitchen.keys import ACTION  # noqa: E402
-from torch_kitchen.rollout import rollout_into  # noqa: E402
+from torch_kitchen.keys import ACTION, OBSERVATION, REWARD, SHAPED_REWARD  # noqa: E402
+from torch_kitchen.rollout import as_tensordict, rollout_into  # noqa: E402
 
 
 def jax_device_for(device: torch.device) -> jax.Device:
@@ -282,26 +282,21 @@ class KitchenEnv(EnvBase):
         self._last_obs = out[0]
         return tuple(torch.from_dlpack(array) for array in out)
 
-    def _to_tensordict(self, out, with_reward: bool) -> TensorDictBase:
+    def _entries(self, out, with_reward: bool) -> dict:
+        """A program's outputs by key (the module docstring's keys), sharing JAX's memory: read them, do not write."""
         observation, scalars, done = self._unpack(out)
-        agents = {
-            "observation": observation,
-            "shaped_reward": scalars[:, 2:4].unsqueeze(-1),
+        entries = {
+            OBSERVATION: observation,
+            SHAPED_REWARD: scalars[:, 2:4].unsqueeze(-1),
+            "deliveries": scalars[:, 4:5],
+            "episode_deliveries": scalars[:, 5:6],
+            "done": done,
+            "truncated": done.clone(),
+            "terminated": torch.zeros_like(done),
         }
         if with_reward:
-            agents["reward"] = scalars[:, 0:2].unsqueeze(-1)
-        return TensorDict(
-            {
-                "agents": TensorDict(agents, batch_size=(*self.batch_size, 2), device=self.device),
-                "deliveries": scalars[:, 4:5],
-                "episode_deliveries": scalars[:, 5:6],
-                "done": done,
-                "truncated": done.clone(),
-                "terminated": torch.zeros_like(done),
-            },
-            batch_size=self.batch_size,
-            device=self.device,
-        )
+            entries[REWARD] = scalars[:, 0:2].unsqueeze(-1)
+        return entries
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         mask = None if tensordict is None else tensordict.get("_reset", None)
@@ -317,7 +312,7 @@ class KitchenEnv(EnvBase):
                 self._start_states, self._next_key(), self._states, self._deliveries, mask
             )
         self._episode_steps = np.array(self._states.step)  # read once per reset, not per step
-        return self._to_tensordict(out, with_reward=False)
+        return as_tensordict(self._entries(out, with_reward=False), self.batch_size, self.device)
 
     @staticmethod
     def _actions_to_jax(actions: torch.Tensor):
@@ -328,20 +323,16 @@ class KitchenEnv(EnvBase):
         return actions.numpy() if actions.device.type == "cpu" else jax.dlpack.from_dlpack(actions)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        actions = self._actions_to_jax(tensordict.get(ACTION))
-        self._states, self._deliveries, out = self._programs.step(self._states, self._deliveries, actions)
-        self._episode_steps += 1
-        return self._to_tensordict(out, with_reward=True)
+        return as_tensordict(self.step_entries(tensordict.get(ACTION)), self.batch_size, self.device)
 
-    def step_tensors(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """One step of every kitchen with `actions` int [B, 2], no reset, no TensorDict: observation uint8 [B, 2, H, W,
-        26], scalars float32 [B, 6] (reward x2, shaped reward x2, deliveries this step, episode deliveries) and done
-        bool [B, 1], views of one buffer that JAX owns (read them, do not write them). What `step` computes, for
-        `torch_kitchen.rollout`."""
+    def step_entries(self, actions: torch.Tensor) -> dict:
+        """One step of every kitchen with `actions` int [B, 2], no reset: what `step` puts under "next", by key,
+        without building a TensorDict (`torch_kitchen.rollout`). The tensors share JAX's memory: read them, do not
+        write them."""
         self._states, self._deliveries, out = self._programs.step(
             self._states, self._deliveries, self._actions_to_jax(actions))
         self._episode_steps += 1
-        return self._unpack(out)
+        return self._entries(out, with_reward=True)
 
     def episode_ended(self) -> bool:
         """Whether a kitchen's episode ended at the last step, known on the host (episodes end on a step count)."""

@@ -3,7 +3,7 @@
 A TorchRL collector builds, at every step, the env's output TensorDict, its `step_mdp` successor and the policy's
 copy, then stacks the steps into the batch. Here the batch [B, T] is allocated once and each step writes its
 tensors straight into its time slice; the kitchens are stepped through the env's JAX programs
-(`KitchenEnv.step_tensors`: on a GPU one DLPack crossing each way), and episode ends are known on the host, so no
+(`KitchenEnv.step_entries`: on a GPU one DLPack crossing each way), and episode ends are known on the host, so no
 step waits for the device.
 
 Two ways of stepping, the same batches (`tests/torch_kitchen/test_rollout.py`, bit for bit against `Collector`):
@@ -29,9 +29,10 @@ from torchrl.collectors import BaseCollector
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torch_kitchen.keys import ACTION, OBSERVATION, REWARD, SHAPED_REWARD
+from torch_kitchen.keys import ACTION, AGENTS, OBSERVATION, REWARD
 
 NEXT = "next"
+N_AGENTS = 2  # the agent dim of the "agents" entries
 
 
 class RolloutStorage:
@@ -63,12 +64,25 @@ class RolloutStorage:
             torch._foreach_copy_(self.views[t], values)  # one call for every leaf (grouped kernels on a GPU)
 
 
-def as_tensordict(values: dict, like: EnvBase) -> TensorDictBase:
-    """Tensors by (nested) key as a TensorDict of `like`'s batch size and device."""
-    tensordict = TensorDict({}, batch_size=like.batch_size, device=like.device)
+def as_tensordict(values: dict, batch_size: torch.Size, device: torch.device | None) -> TensorDictBase:
+    """Tensors by (nested) key as one TensorDict of `batch_size` and `device`, built in one go, its "agents" entries
+    with the agent dim as the env's specs have it ([*B, 2])."""
+    nested = {}
     for key, value in values.items():
-        tensordict.set(key, value)
-    return tensordict
+        *path, name = as_path(key)
+        node = nested
+        for part in path:
+            node = node.setdefault(part, {})
+        node[name] = value
+    return _nested_tensordict(nested, batch_size, device)
+
+
+def _nested_tensordict(nested: dict, batch_size: torch.Size, device: torch.device | None) -> TensorDictBase:
+    return TensorDict({
+        name: _nested_tensordict(value, (*batch_size, N_AGENTS) if name == AGENTS else batch_size, device)
+        if isinstance(value, dict) else value
+        for name, value in nested.items()
+    }, batch_size=batch_size, device=device)  # fmt: skip
 
 
 def leaves(tensordict: TensorDictBase) -> dict:
@@ -84,38 +98,23 @@ def acting_on(policy, env: EnvBase) -> Callable[[dict], dict]:
         return lambda root: policy.act(root[OBSERVATION])
 
     def act(root: dict) -> dict:
-        return leaves(policy(as_tensordict(root, env)))
+        return leaves(policy(as_tensordict(root, env.batch_size, env.device)))
     return act
 
 
-class KitchenStepper:
-    """Steps a bare `KitchenEnv` for a rollout: the JAX step's outputs as plain tensors, the host counting episodes."""
+def advance(env, next_values: dict) -> dict:
+    """The policy's next input by key after a step of the bare `env`: the step's outputs but the reward (`step_mdp`),
+    with the kitchens whose episode ended reset as TorchRL resets them (`maybe_reset`, a partial reset merged by
+    TorchRL's own rule)."""
+    root = {key: value for key, value in next_values.items() if key != REWARD}
+    if env.episode_ended():
+        return leaves(env.maybe_reset(as_tensordict(root, env.batch_size, env.device)))
+    return root
 
-    def __init__(self, env):
-        self.env = env
-        self.not_terminated = torch.zeros(*env.batch_size, 1, dtype=torch.bool, device=env.device)
 
-    def step(self, actions: torch.Tensor) -> dict:
-        """The "next" entries of one step of every kitchen, by key (views of the step's one output buffer)."""
-        observation, scalars, done = self.env.step_tensors(actions)
-        return {
-            OBSERVATION: observation,
-            REWARD: scalars[:, 0:2].unsqueeze(-1),
-            SHAPED_REWARD: scalars[:, 2:4].unsqueeze(-1),
-            "deliveries": scalars[:, 4:5],
-            "episode_deliveries": scalars[:, 5:6],
-            "done": done,
-            "truncated": done,
-            "terminated": self.not_terminated,
-        }
-
-    def advance(self, next_values: dict) -> dict:
-        """The policy's next input by key: the step's outputs but the reward (`step_mdp`), with the kitchens whose
-        episode ended reset as TorchRL resets them (`maybe_reset`, a partial reset merged by TorchRL's own rule)."""
-        root = {key: value for key, value in next_values.items() if key != REWARD}
-        if self.env.episode_ended():
-            return leaves(self.env.maybe_reset(as_tensordict(root, self.env)))
-        return root
+def as_path(key) -> tuple[str, ...]:
+    """A (nested) key as a tuple of names."""
+    return (key,) if isinstance(key, str) else tuple(key)
 
 
 def next_entry(key) -> object:
@@ -135,21 +134,21 @@ def rollout_into(env: EnvBase, policy, carrier: TensorDictBase, steps: int, stor
     `EnvBase.rollout` does (collectors run without gradients)."""
     if isinstance(env, TransformedEnv):
         return transformed_rollout_into(env, policy, carrier, steps, storage, reset_last)
-    stepper, act = KitchenStepper(env), acting_on(policy, env)
+    act = acting_on(policy, env)
     root = leaves(carrier)
     sources = None  # each leaf's key among the step's "next" outputs, or None where the policy's input holds it
     for t in range(steps):
         acted = {**root, **act(root)}
-        next_values = stepper.step(acted[ACTION])
+        next_values = env.step_entries(acted[ACTION])
         if storage is None:
-            storage = RolloutStorage(as_tensordict({**acted, NEXT: as_tensordict(next_values, env)}, env), steps,
-                                     env.device)
+            record = {**acted, **{(NEXT, *as_path(key)): value for key, value in next_values.items()}}
+            storage = RolloutStorage(as_tensordict(record, env.batch_size, env.device), steps, env.device)
         if sources is None:
             sources = [entry if entry in next_values else None for entry in map(next_entry, storage.keys)]
         storage.write(t, [acted.get(key) if source is None else next_values[source]
                           for key, source in zip(storage.keys, sources)])
-        root = stepper.advance(next_values) if reset_last or t < steps - 1 else None
-    return storage, None if root is None else as_tensordict(root, env)
+        root = advance(env, next_values) if reset_last or t < steps - 1 else None
+    return storage, None if root is None else as_tensordict(root, env.batch_size, env.device)
 
 
 def transformed_rollout_into(env: TransformedEnv, policy, carrier: TensorDictBase, steps: int,
