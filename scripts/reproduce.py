@@ -1,33 +1,44 @@
-"""The paper's experiment as one command: train every condition of a protocol, evaluate the whole grid, write
-RESULTS.md with the numbers beside the paper's claims.
+"""The paper's experiment as one command: train the conditions of a protocol, evaluate them, write RESULTS.md with
+the numbers beside the paper's claims, one section per family of conditions.
 
-    python scripts/reproduce.py configs/protocols/reduced.yaml      # about 75 min of training on a 2-core CPU
-    python scripts/reproduce.py configs/protocols/paper.yaml        # the paper's budget, on a GPU
-    python scripts/reproduce.py configs/protocols/reduced.yaml --out results/reduced --results RESULTS.md
+    python scripts/reproduce.py configs/protocols/reduced.yaml --sections planner --jobs 2   # about 100 min, 2 cores
+    python scripts/reproduce.py configs/protocols/reduced.yaml --sections scratch           # several hours
+    python scripts/reproduce.py configs/protocols/paper.yaml                                # the paper's budget, a GPU
 
 A protocol file names the conditions (a trainer config each, or a config and the condition's own overrides,
 applied after the shared ones), the overrides they share, the seeds trained together per condition (`teams`),
 the families compared (an IK condition and the SK conditions of the same architecture and learner, which it
 cross-plays; `learner` says how they learn, `paper` whose of the paper's figures apply), further pairs to
-cross-play (`cross`), and the evaluation's sizes; `evaluation: {human_proxies: true}` also seats a human proxy
+cross-play (`cross`), RESULTS.md's `sections` (the conditions evaluated and reported together: a learner's
+families, say) and the evaluation's sizes; `evaluation: {human_proxies: true}` also seats a human proxy
 (behaviour-cloned from the 2019 human games' test split, `kitchen-humans`) beside every team on the classic
 layouts drawn inside a 7x7 kitchen, which join the test grids.
-Training writes `<out>/runs/<condition>/seed<k>`; a condition already trained is skipped and one that stopped
-part-way is resumed, so an interrupted reproduction continues where it stopped. Extra `key=value` arguments
-override every condition (e.g. `total_steps=1e5` for a smoke run); `--conditions` runs part of a protocol (the
-families and cross pairs of the conditions named; RESULTS.md lists those left out). The evaluation (`kitchen-eval`'s
-code) goes to `<out>/eval`; RESULTS.md gets its tables, the claims compared, the budget, machine, wall times and the
-command.
+
+Training writes `<out>/runs/<condition>/seed<k>`, `--jobs` conditions at a time, each in a process of its own; a
+condition already trained is skipped and one that stopped part-way is resumed, so an interrupted reproduction
+continues where it stopped. Extra `key=value` arguments override every condition, after its own overrides (e.g.
+`total_steps=1e5` for a smoke run); `--sections` and `--conditions` run part of a protocol (the families and cross
+pairs of the conditions named). Each section is evaluated on its own (`kitchen-eval`'s code, into
+`<out>/eval/<section>`) and rewritten in RESULTS.md with its tables, claims, figures, budget, machine, wall times,
+date and command; the sections this run did not touch stay as they were written, and the claims table at the top
+gathers every section's claims.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import datetime
+import functools
 import math
+import multiprocessing
+import re
 import shutil
 import sys
 import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -35,22 +46,25 @@ import yaml
 
 from jax_env import EXPANDED_LAYOUTS, PADDED_LAYOUTS
 from trainers.composer import load_config
-from trainers.config import DeviceConfig, EvalConfig
+from trainers.config import PLANNER_START, DeviceConfig, EvalConfig, TrainConfig
 from trainers.evaluate import HUMAN_PROXY_RUN, SCRIPTED_CONDITION, cross_condition, evaluate
 from trainers.humans import CACHE, fetch
 from trainers.humans import train as train_proxies
 from trainers.machine import machine_name
 from trainers.resume import RunStopped
-from trainers.train_command import train_or_resume
-from trainers.training_run import team_configs
+from trainers.train_command import train_config_file
 
 HELDOUT = "held-out"
 PAPER_STEPS = 2e9  # env steps per team in the paper
 # Deliveries in cross-play on held-out levels the paper reports for IK teams at 2e9 steps (Fig. 7), per family.
 PAPER_HELDOUT_XP = {"MLP": 9, "GNN": 10}
-
-
 SCRATCH = "IPPO from scratch"  # the paper's learner, a family's unless it names another
+
+TITLE = "# Results: the paper's experiment at a reduced budget"
+WHOLE = "all"  # the one section of a protocol that names none
+SECTION_START, SECTION_END = "<!-- section: {} -->", "<!-- /section: {} -->"
+CLAIMS_START, CLAIMS_END = "<!-- claims -->", "<!-- /claims -->"
+CLAIMS_HEADER = ["| family | learner | claim | here | at this budget |", "|---|---|---|---|---|"]
 
 
 def condition_entry(entry: str | dict) -> tuple[str, list[str]]:
@@ -64,9 +78,27 @@ def condition_entry(entry: str | dict) -> tuple[str, list[str]]:
     return entry["config"], overrides
 
 
+def protocol_sections(protocol: dict) -> dict[str, dict]:
+    """RESULTS.md's sections of a protocol: name -> {"title", "conditions"}; one section of every condition where
+    the protocol names none."""
+    return protocol.get("sections") or {WHOLE: {"title": "All conditions", "conditions": list(protocol["conditions"])}}
+
+
+def named_conditions(protocol: dict, sections: list[str] | None, conditions: list[str] | None) -> list[str] | None:
+    """The conditions that `--sections` and `--conditions` name together (None: neither was given, all of them).
+    ValueError for a section the protocol does not have."""
+    if sections is None and conditions is None:
+        return None
+    known = protocol_sections(protocol)
+    unknown = [name for name in sections or [] if name not in known]
+    if unknown:
+        raise ValueError(f"--sections: {', '.join(unknown)} not in the protocol, which has {', '.join(known)}")
+    return [*(name for section in sections or [] for name in known[section]["conditions"]), *(conditions or [])]
+
+
 def select_conditions(protocol: dict, names: list[str] | None) -> tuple[dict, list[str]]:
-    """The protocol cut to the conditions `names` (None: all of them): a family keeps its named SK conditions and
-    stays while its IK condition is named, a cross pair while both sides are; and the conditions left out."""
+    """The protocol cut to the conditions `names` (None: all): a family keeps its named SK conditions and stays while
+    its IK condition is named, a cross pair while both sides are; and the conditions left out."""
     if names is None:
         return protocol, []
     unknown = [name for name in names if name not in protocol["conditions"]]
@@ -83,10 +115,38 @@ def select_conditions(protocol: dict, names: list[str] | None) -> tuple[dict, li
     return selected, [name for name in protocol["conditions"] if name not in names]
 
 
-def train_condition(name: str, path: str, overrides: list[str], teams: int, runs: Path) -> None:
-    """Trains (or resumes, or skips) one condition's teams together."""
-    config = load_config(path, [*overrides, f"name={name}", f"runtime.teams={teams}", f"run_dir={runs}"])
-    train_or_resume(team_configs(config))
+def train_condition(name: str, path: str, overrides: list[str], teams: int, runs: Path) -> float:
+    """Trains (or resumes, or skips) one condition's teams together; returns the wall seconds."""
+    return train_config_file(path, condition_overrides(name, overrides, teams, runs))
+
+
+def condition_overrides(name: str, overrides: list[str], teams: int, runs: Path) -> list[str]:
+    return [*overrides, f"name={name}", f"runtime.teams={teams}", f"run_dir={runs}"]
+
+
+def train_conditions(entries: dict[str, tuple[str, list[str]]], teams: int, runs: Path, jobs: int) -> dict[str, float]:
+    """Trains every condition (`entries`: name -> its config and overrides), `jobs` at a time in processes of their
+    own (1: here, one after another); returns each one's wall seconds. RunStopped, naming the condition, as soon as
+    one is stopped."""
+    for name, (path, overrides) in entries.items():
+        print(f"== {name}: {teams} teams, {path} {' '.join(overrides)}", flush=True)
+    if jobs == 1:
+        trainings = {name: functools.partial(train_condition, name, path, overrides, teams, runs)
+                     for name, (path, overrides) in entries.items()}
+        return {name: named_stop(name, training) for name, training in trainings.items()}
+    # Spawned, not forked: a fork of a process that has started JAX's threads may hang.
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = {name: pool.submit(train_config_file, path, condition_overrides(name, overrides, teams, runs))
+                   for name, (path, overrides) in entries.items()}
+        return {name: named_stop(name, future.result) for name, future in futures.items()}
+
+
+def named_stop(name: str, training: Callable[[], float]) -> float:
+    """`training()`, whose RunStopped names the condition `name`."""
+    try:
+        return training()
+    except RunStopped as error:
+        raise RunStopped(error.exit_code - 128, f"{name}: {error}") from None
 
 
 def logged_training_seconds(condition: Path) -> float:
@@ -114,13 +174,18 @@ def value(summary: dict, condition: str, grids: str, key: str) -> float:
     return float(row[key]) if row is not None and row[key] != "" else math.nan
 
 
+def heldout_grids(summary: dict) -> str | None:
+    """The summary's held-out group, e.g. "held-out (100)"; None where it has none."""
+    return next((grids for _, grids in summary if grids.startswith(HELDOUT)), None)
+
+
 def claims(summary: dict, family: str, ik: str, sk: dict[str, str], budget: int, learner: str = SCRATCH,
            paper: str | None = None) -> list[str]:
     """Markdown rows: each of the paper's claims for one family (an IK condition, layout -> its SK condition) and
     the learner it was tested under, what came out here, and whether it holds at this budget (env steps per team).
     A family without SK conditions has only its held-out claim; `paper`: the paper's family whose held-out figure
     applies (default: this one's name)."""
-    heldout = next((grids for _, grids in summary if grids.startswith(HELDOUT)), None)
+    heldout = heldout_grids(summary)
     rows = []
     if sk:
         ik_xp = {layout: value(summary, ik, layout, "xp") for layout in sk}
@@ -138,7 +203,8 @@ def claims(summary: dict, family: str, ik: str, sk: dict[str, str], budget: int,
         at_paper_budget = ("holds" if ik_heldout >= paper - 1 else "does not hold") if budget >= PAPER_STEPS else (
             f"{budget:.1e} steps, not 2e9: not comparable")
         rows.append((f"IK reaches about {paper} deliveries in cross-play on held-out levels at 2e9 steps (Fig. 7)",
-                     f"IK cross-play on {heldout}: {ik_heldout:.2f}", at_paper_budget))
+                     f"IK on {heldout}: self-play {value(summary, ik, heldout, 'sp'):.2f}, cross-play "
+                     f"{ik_heldout:.2f}", at_paper_budget))
     if sk:
         ik_gap = [value(summary, ik, layout, "gap") for layout in sk]
         sk_gap = [value(summary, condition, layout, "gap") for layout, condition in sk.items()]
@@ -146,7 +212,47 @@ def claims(summary: dict, family: str, ik: str, sk: dict[str, str], budget: int,
         rows.append(("The SP - XP gap is smaller for IK (Fig. 3b)",
                      f"mean gap IK {sum(ik_gap) / len(ik_gap):.2f}, SK {sum(sk_gap) / len(sk_gap):.2f}",
                      f"smaller on {smaller} of {len(sk)} layouts"))
+        rows.extend(outside_partners(summary, ik, sk))
     return [f"| {family} | {learner} | {claim} | {ours} | {verdict} |" for claim, ours, verdict in rows]
+
+
+def outside_partners(summary: dict, ik: str, sk: dict[str, str]) -> list[tuple[str, str, str]]:
+    """Claims rows (claim, here, verdict) on partners outside every population: the scripted cook beside IK and
+    beside each SK team at home, and the human proxies beside IK where the evaluation seated them (against two
+    proxies together)."""
+    rows = []
+    ik_cook = {layout: value(summary, ik, layout, "partner") for layout in sk}
+    sk_cook = {layout: value(summary, condition, layout, "partner") for layout, condition in sk.items()}
+    if not any(math.isnan(score) for score in [*ik_cook.values(), *sk_cook.values()]):
+        wins = sum(ik_cook[layout] > sk_cook[layout] for layout in sk)
+        rows.append(("IK plays with a partner outside its population better than SK: the scripted cook",
+                     ", ".join(f"{layout.removesuffix('_7x7')} {ik_cook[layout]:.2f} vs {sk_cook[layout]:.2f}"
+                               for layout in sk), f"{wins} of {len(sk)} layouts"))
+    with_proxy = [(grids, score, value(summary, f"human_proxy_{grids}", grids, "sp"))
+                  for (condition, grids) in summary if condition == ik
+                  for score in [value(summary, ik, grids, "human")] if not math.isnan(score)]
+    if with_proxy:
+        above = sum(score >= proxies for _, score, proxies in with_proxy)
+        rows.append(("IK plays with a partner outside its population: the human proxies",
+                     ", ".join(f"{grids.removesuffix('_in_7x7')} {score:.2f} (two proxies {proxies:.2f})"
+                               for grids, score, proxies in with_proxy),
+                     f"at least two proxies' on {above} of {len(with_proxy)} layouts"))
+    return rows
+
+
+def shared_teacher(summary: dict, family: str, learner: str, pairs: list[list[str]]) -> list[str]:
+    """Claims rows: for each cross pair of a family's IK condition with teams that imitated another teacher (or
+    learned otherwise), how the IK teams' cross-play between their own seeds compares with that pair's, on the
+    held-out levels: what a shared teacher adds to cross-play."""
+    heldout = heldout_grids(summary)
+    rows = []
+    for ik, partner in pairs if heldout else []:
+        within, across = value(summary, ik, heldout, "xp"), value(summary, cross_condition(ik, partner), heldout, "xp")
+        if not math.isnan(within) and not math.isnan(across):
+            rows.append(f"| {family} | {learner} | Imitating one teacher inflates cross-play (IK x IK against IK x "
+                        f"{partner}) | {heldout}: {within:.2f} against {across:.2f} | "
+                        f"{'inflated' if within > across else 'not inflated'} by {within - across:+.2f} |")
+    return rows
 
 
 def cross_pairs(summary: dict, pairs: list[list[str]]) -> list[str]:
@@ -163,6 +269,43 @@ def cross_pairs(summary: dict, pairs: list[list[str]]) -> list[str]:
     return rows
 
 
+@dataclass(frozen=True)
+class Section:
+    """A section of RESULTS.md as one run writes it: the conditions it trained of the section, the partners that its
+    cross pairs need beside them, its families (name -> IK condition, layout -> SK condition, learner, the paper's
+    family) and cross pairs, and its conditions this run left out."""
+
+    name: str
+    title: str
+    conditions: list[str]
+    evaluated: list[str]
+    families: dict[str, tuple[str, dict[str, str], str, str | None]]
+    cross: list[list[str]]
+    left_out: list[str]
+
+
+def sections_run(full: dict, protocol: dict, entries: dict[str, tuple[str, list[str]]]) -> list[Section]:
+    """The sections of the `full` protocol that the run of `protocol` (its cut to the conditions named) trained
+    conditions of, in the protocol's order."""
+    sections = []
+    for name, section in protocol_sections(full).items():
+        conditions = [condition for condition in section["conditions"] if condition in protocol["conditions"]]
+        if not conditions:
+            continue
+        families = {
+            family: (members["ik"],
+                     {load_config(entries[sk][0], entries[sk][1]).levels: sk for sk in members["sk"]},
+                     members.get("learner", SCRATCH), members.get("paper"))
+            for family, members in protocol["families"].items() if members["ik"] in conditions
+        }  # fmt: skip
+        cross = [pair for pair in protocol.get("cross", []) if pair[0] in conditions]
+        partners = [*(sk for _, sks, _, _ in families.values() for sk in sks.values()), *(pair[1] for pair in cross)]
+        evaluated = [condition for condition in protocol["conditions"] if condition in {*conditions, *partners}]
+        left_out = [condition for condition in section["conditions"] if condition not in conditions]
+        sections.append(Section(name, section["title"], conditions, evaluated, families, cross, left_out))
+    return sections
+
+
 def human_proxies(out: Path) -> Path:
     """The test split's human proxy of every classic layout drawn inside a 7x7 kitchen, in `out`/runs (fetched and
     fitted the first time: `kitchen-humans fetch`, then `kitchen-humans train --fit-on test`)."""
@@ -177,6 +320,168 @@ def human_proxies(out: Path) -> Path:
     return runs
 
 
+def evaluate_section(section: Section, out: Path, evaluation: dict, device: str, proxies: Path | None) -> Path:
+    """Plays the section's teams (`kitchen-eval`'s code): self-play, cross-play between each condition's seeds,
+    each family's IK against its SK conditions and the section's cross pairs, beside the scripted cook and the
+    human proxies; returns the folder of its tables and figures."""
+    config = EvalConfig(
+        conditions={name: str(out / "runs" / name / "seed*") for name in section.evaluated},
+        cross=[*([ik, name] for ik, sk, _, _ in section.families.values() for name in sk.values()), *section.cross],
+        layouts=[*EXPANDED_LAYOUTS, *(PADDED_LAYOUTS if proxies else [])], heldout=evaluation["heldout"],
+        human_proxies=str(proxies or ""),
+        rollouts=evaluation["rollouts"], max_steps=evaluation.get("max_steps", 256),
+        heatmaps=evaluation.get("heatmaps", []), runtime=DeviceConfig(device=device),
+        out_dir=str(out / "eval" / section.name), progress=False,
+    ).check()  # fmt: skip
+    evaluate(config)
+    return Path(config.out_dir)
+
+
+@dataclass(frozen=True)
+class RunFacts:
+    """What every section a command writes says of that command."""
+
+    command: str
+    protocol: str
+    date: str
+    machine: str
+    teams: int
+    overrides: list[str]
+    own_overrides: dict[str, list[str]]
+    jobs: int
+    training_seconds: float  # wall time of all the command's training
+    condition_seconds: dict[str, float]  # each condition's, in its own process
+    evaluation: dict
+    proxies: Path | None
+
+
+def budget(config: TrainConfig, teams: int) -> str:
+    """The budget line of a section whose conditions train as `config` does."""
+    distilled = (f", after the scripted cook is distilled into it ({config.distill_rounds} DAgger rounds of "
+                 f"{config.distill_kitchens} kitchens x {config.rollout_steps} steps, {config.distill_epochs} passes "
+                 "over the rounds' data after each)" if config.init_from == PLANNER_START else "")
+    return (f"- **Budget:** {config.total_steps:,} env steps per team ({config.num_updates} updates of "
+            f"{config.num_envs} kitchens x {config.rollout_steps} steps){distilled}, {teams} teams (seeds "
+            f"{config.seed}..{config.seed + teams - 1}) per condition; the paper trains {PAPER_STEPS:.0e} steps per "
+            f"team (this is 1/{PAPER_STEPS / config.total_steps:,.0f} of it), 6 seeds. Where a claim does not hold "
+            "here, the budget comes first: read the training curves of the runs (`tensorboard --logdir` on the "
+            "runs' folder) before the claim.")
+
+
+def section_markdown(section: Section, facts: RunFacts, config: TrainConfig, eval_dir: Path,
+                     eval_seconds: float, pictures: list[str]) -> str:
+    """The section's text, between its markers: how it was made, its claims, cross pairs, tables and figures."""
+    summary = read_summary(eval_dir / "summary.csv")
+    own = {name: facts.own_overrides[name] for name in section.conditions if facts.own_overrides[name]}
+    lines = [
+        SECTION_START.format(section.name),
+        f"## {section.title}",
+        "",
+        f"Written by `{facts.command}` on {facts.date} (protocol `{facts.protocol}`). Every number in this section "
+        "was measured by that run.",
+        "",
+        budget(config, facts.teams),
+        *([f"- **Conditions:** {len(section.conditions)} of the section's "
+           f"{len(section.conditions) + len(section.left_out)}; not run here: {', '.join(section.left_out)}."]
+          if section.left_out else []),
+        f"- **Shared overrides:** `{' '.join(facts.overrides)}`.",
+        *(f"- **{name}** adds `{' '.join(overrides)}`." for name, overrides in own.items()),
+        f"- **Machine:** {facts.machine}. **Time:** training {facts.training_seconds / 60:.0f} min of wall time for "
+        f"the command's {len(facts.condition_seconds)} conditions, {facts.jobs} at a time ("
+        + ", ".join(f"{name} {facts.condition_seconds[name] / 60:.1f} min" for name in section.conditions)
+        + f", each in its own process: distillation, collection and updates); evaluation {eval_seconds / 60:.1f} min.",
+        f"- **Evaluation:** the 5 expanded layouts and {facts.evaluation['heldout']} held-out levels, "
+        f"{facts.evaluation['rollouts']} rollouts per pair and grid; the scripted cook "
+        f"(`torch_kitchen/scripted.py`) beside every team; \"{SCRIPTED_CONDITION}\" is its own self-play."
+        + (f" The classic layouts that fit a 7x7 kitchen, drawn inside one ({', '.join(PADDED_LAYOUTS)}), with "
+           "each one's human proxy beside every team (behaviour-cloned from the 2019 human games' test split, so no "
+           f"team is tuned to it; how the proxies play: `{facts.proxies.parent / 'proxies.md'}`); "
+           "\"human_proxy_<layout>\" is two proxies together." if facts.proxies else ""),
+        "",
+        "### Claims",
+        "",
+        CLAIMS_START,
+        *CLAIMS_HEADER,
+        *(row for family, (ik, sk, learner, paper) in section.families.items()
+          for row in claims(summary, family, ik, sk, config.total_steps, learner, paper)),
+        *(row for family, (ik, _, learner, _) in section.families.items()
+          for row in shared_teacher(summary, family, learner, [pair for pair in section.cross if pair[0] == ik])),
+        CLAIMS_END,
+        "",
+        *([
+            "### Cross-play across learners and teachers",
+            "",
+            "Teams that imitated one teacher share its conventions, so their cross-play between seeds can overstate "
+            "how well they play with strangers. Each pair the protocol adds: its cross-play, beside each side's "
+            "cross-play between its own seeds.",
+            "",
+            "| team | partner | grids | XP of the pair | XP within the team | XP within the partner |",
+            "|---|---|---|---:|---:|---:|",
+            *cross_pairs(summary, section.cross),
+            "",
+        ] if section.cross else []),
+        "### Self-play, cross-play and the scripted partner",
+        "",
+        (eval_dir / "eval.md").read_text().rstrip(),
+        "",
+        "### Figures",
+        "",
+        *pictures,
+        SECTION_END.format(section.name),
+    ]
+    return "\n".join(lines)
+
+
+def copy_figures(eval_dir: Path, results: Path, section: str) -> list[str]:
+    """The evaluation's pictures copied beside RESULTS.md (docs/results/<section>/), as Markdown images."""
+    figures = results.parent / "docs" / "results" / section
+    figures.mkdir(parents=True, exist_ok=True)
+    pictures = []
+    for picture in sorted(eval_dir.glob("*.png")):
+        shutil.copy(picture, figures / picture.name)
+        pictures.append(f"![{picture.stem}](docs/results/{section}/{picture.name})")
+    return pictures
+
+
+def read_sections(text: str) -> dict[str, str]:
+    """RESULTS.md's sections, name -> text between (and with) its markers, in the file's order."""
+    pattern = re.compile(r"<!-- section: (\S+) -->.*?<!-- /section: \1 -->", re.S)
+    return {match.group(1): match.group(0) for match in pattern.finditer(text)}
+
+
+def claims_rows(section: str) -> list[str]:
+    """The rows of a section's claims table."""
+    start, end = section.find(CLAIMS_START), section.find(CLAIMS_END)
+    if start < 0 or end < 0:
+        return []
+    rows = section[start + len(CLAIMS_START):end].strip().splitlines()
+    return [row for row in rows if row.startswith("| ") and row not in CLAIMS_HEADER]
+
+
+def write_results(path: Path, written: dict[str, str], order: list[str]) -> None:
+    """RESULTS.md with the sections `written` replacing their earlier text, every other section kept as it was
+    written, in the protocol's `order` (others after), and the claims of them all gathered at the top."""
+    sections = read_sections(path.read_text()) if path.exists() else {}
+    sections.update(written)
+    names = [*(name for name in order if name in sections), *(name for name in sections if name not in order)]
+    lines = [
+        TITLE,
+        "",
+        "Each section below was written by the command it names (`python scripts/reproduce.py PROTOCOL --sections "
+        "NAME`), which rewrites its own section and keeps the others as they were written. Each section says its "
+        "budget, machine, time and date; the claims table gathers every section's claims, and its family and learner "
+        "columns say which teams each row measures.",
+        "",
+        "## The paper's claims, here",
+        "",
+        *CLAIMS_HEADER,
+        *(row for name in names for row in claims_rows(sections[name])),
+        "",
+        *(part for name in names for part in (sections[name], "")),
+    ]
+    path.write_text("\n".join(lines))
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("protocol", help="a protocol file (configs/protocols/reduced.yaml or paper.yaml)")
@@ -186,121 +491,58 @@ def main(argv=None) -> int:
     parser.add_argument("--teams", type=int, help="seeds per condition (default: the protocol's)")
     parser.add_argument("--rollouts", type=int, help="evaluation episodes per pair and grid (default: the protocol's)")
     parser.add_argument("--heldout", type=int, help="held-out levels in the evaluation (default: the protocol's)")
+    parser.add_argument("--sections", nargs="+", metavar="NAME",
+                        help="train, evaluate and rewrite these of the protocol's sections only (default: all)")
     parser.add_argument("--conditions", nargs="+", metavar="NAME",
                         help="train and evaluate these of the protocol's conditions only (default: all)")
+    parser.add_argument("--jobs", type=int, default=1,
+                        help="conditions trained at a time, each in its own process (2 uses both cores of a 2-core "
+                             "CPU; the results are the same)")
     args = parser.parse_args(argv)
+    if args.jobs < 1:
+        parser.error(f"--jobs must be at least 1, got {args.jobs}")
     try:
-        protocol, left_out = select_conditions(yaml.safe_load(Path(args.protocol).read_text()), args.conditions)
+        full = yaml.safe_load(Path(args.protocol).read_text())
+        protocol, _ = select_conditions(full, named_conditions(full, args.sections, args.conditions))
     except OSError as error:
         parser.error(f"{args.protocol}: {error.strerror}")
     except ValueError as error:
         parser.error(str(error))
-    out = Path(args.out)
+    out, results = Path(args.out), Path(args.results)
     overrides = [*protocol.get("overrides", []), *args.overrides]
-    teams, conditions = args.teams or protocol["teams"], protocol["conditions"]
-    entries = {name: condition_entry(entry) for name, entry in conditions.items()}
-    families = {  # family -> (its IK condition, layout -> its SK condition, its learner, the paper's family)
-        family: (members["ik"],
-                 {load_config(entries[name][0], entries[name][1]).levels: name for name in members["sk"]},
-                 members.get("learner", SCRATCH), members.get("paper"))
-        for family, members in protocol["families"].items()
-    }
-
-    seconds = {}
-    for name, (path, own) in entries.items():
-        print(f"== {name}: {teams} teams, {path} {' '.join([*overrides, *own])}", flush=True)
-        try:
-            train_condition(name, path, [*overrides, *own], teams, out / "runs")
-        except RunStopped as error:
-            print(f"reproduce: {name}: {error}; run the same command again to continue", file=sys.stderr)
-            return error.exit_code
-        seconds[name] = logged_training_seconds(out / "runs" / name)
+    teams = args.teams or protocol["teams"]
+    entries = {name: condition_entry(entry) for name, entry in protocol["conditions"].items()}
+    started = time.perf_counter()
+    try:
+        seconds = train_conditions({name: (path, [*protocol.get("overrides", []), *own, *args.overrides])
+                                    for name, (path, own) in entries.items()}, teams, out / "runs", args.jobs)
+    except RunStopped as error:
+        print(f"reproduce: {error}; run the same command again to continue", file=sys.stderr)
+        return error.exit_code
     evaluation = {**protocol.get("evaluation", {}),
                   **{key: getattr(args, key) for key in ("rollouts", "heldout") if getattr(args, key) is not None}}
-    shared = load_config(entries[next(iter(conditions))][0], overrides)  # what every condition shares: budget, device
-    device = shared.runtime.device
-    proxies = human_proxies(out / "humans") if evaluation.get("human_proxies") else None
-    eval_config = EvalConfig(
-        conditions={name: str(out / "runs" / name / "seed*") for name in conditions},
-        cross=[*([ik, name] for ik, sk, _, _ in families.values() for name in sk.values()),
-               *protocol.get("cross", [])],
-        layouts=[*EXPANDED_LAYOUTS, *(PADDED_LAYOUTS if proxies else [])], heldout=evaluation["heldout"],
-        human_proxies=str(proxies or ""),
-        rollouts=evaluation["rollouts"], max_steps=evaluation.get("max_steps", 256),
-        heatmaps=evaluation.get("heatmaps", []), runtime=DeviceConfig(device=device),
-        out_dir=str(out / "eval"), progress=False,
-    ).check()  # fmt: skip
-    evaluated = time.perf_counter()
-    evaluate(eval_config)
-    seconds["evaluation"] = time.perf_counter() - evaluated
-
-    summary = read_summary(out / "eval" / "summary.csv")
-    figures = Path(args.results).parent / "docs" / "results"
-    figures.mkdir(parents=True, exist_ok=True)
-    pictures = []
-    for picture in sorted((out / "eval").glob("*.png")):
-        shutil.copy(picture, figures / picture.name)
-        pictures.append(f"![{picture.stem}](docs/results/{picture.name})")
+    device = load_config(next(iter(entries.values()))[0], overrides).runtime.device  # shared by every condition
     machine = f"{machine_name()}, device {device}"
     if device.startswith("cuda") and torch.cuda.is_available():
         machine += f" ({torch.cuda.get_device_name()})"
-    command = " ".join(["python scripts/reproduce.py", *(argv if argv is not None else sys.argv[1:])])
-    lines = [
-        "# Results: the paper's experiment at a reduced budget",
-        "",
-        f"Written by `{command}` (protocol `{args.protocol}`). Every number below was measured by that run.",
-        "",
-        f"- **Budget:** {shared.total_steps:,} env steps per team ({shared.num_updates} updates of "
-        f"{shared.num_envs} kitchens x {shared.rollout_steps} steps), {teams} teams (seeds "
-        f"{shared.seed}..{shared.seed + teams - 1}) per condition; the paper trains {PAPER_STEPS:.0e} steps per team "
-        f"(this is 1/{PAPER_STEPS / shared.total_steps:,.0f} of it), 6 seeds. Where a claim does not hold here, the "
-        "budget comes first: read the training curves of the runs (`tensorboard --logdir "
-        f"{out / 'runs'}`) before the claim.",
-        *([f"- **Conditions:** {len(conditions)} of the protocol's {len(conditions) + len(left_out)}; not run here: "
-           f"{', '.join(left_out)}."] if left_out else []),
-        f"- **Shared overrides:** `{' '.join(overrides)}`.",
-        *(f"- **{name}** adds `{' '.join(own)}`." for name, (_, own) in entries.items() if own),
-        f"- **Machine:** {machine}. **Time:** {sum(seconds.values()) / 60:.0f} min in all; "
-        + ", ".join(f"{name} {s / 60:.1f} min" for name, s in seconds.items())
-        + " (training from the runs' logs: collection and updates; evaluation: its wall time).",
-        f"- **Evaluation:** the 5 expanded layouts and {evaluation['heldout']} held-out levels, "
-        f"{evaluation['rollouts']} rollouts per pair and grid; the scripted cook "
-        f"(`torch_kitchen/scripted.py`) beside every team; \"{SCRIPTED_CONDITION}\" is its own self-play."
-        + (f" The classic layouts that fit a 7x7 kitchen, drawn inside one ({', '.join(PADDED_LAYOUTS)}), with "
-           "each one's human proxy beside every team (behaviour-cloned from the 2019 human games' test split, so no "
-           "team is tuned to it; how the proxies play: "
-           f"`{out / 'humans' / 'proxies.md'}`); \"human_proxy_<layout>\" is two proxies together."
-           if proxies else ""),
-        "",
-        "## The paper's claims, here",
-        "",
-        "| family | learner | claim | here | at this budget |",
-        "|---|---|---|---|---|",
-        *(row for family, (ik, sk, learner, paper) in families.items()
-          for row in claims(summary, family, ik, sk, shared.total_steps, learner, paper)),
-        "",
-        *([
-            "## Cross-play across learners and teachers",
-            "",
-            "Teams that imitated one teacher share its conventions, so their cross-play between seeds can overstate "
-            "how well they play with strangers. Each pair the protocol adds: its cross-play, beside each side's "
-            "cross-play between its own seeds.",
-            "",
-            "| team | partner | grids | XP of the pair | XP within the team | XP within the partner |",
-            "|---|---|---|---:|---:|---:|",
-            *cross_pairs(summary, protocol["cross"]),
-            "",
-        ] if protocol.get("cross") else []),
-        "## Self-play, cross-play and the scripted partner",
-        "",
-        (out / "eval" / "eval.md").read_text(),
-        "## Figures",
-        "",
-        *pictures,
-        "",
-    ]
-    Path(args.results).write_text("\n".join(lines))
-    print(f"wrote {args.results}")
+    facts = RunFacts(
+        command=" ".join(["python scripts/reproduce.py", *(argv if argv is not None else sys.argv[1:])]),
+        protocol=args.protocol, date=datetime.date.today().isoformat(), machine=machine, teams=teams,
+        overrides=overrides, own_overrides={name: own for name, (_, own) in entries.items()}, jobs=args.jobs,
+        training_seconds=time.perf_counter() - started, condition_seconds=seconds, evaluation=evaluation,
+        proxies=human_proxies(out / "humans") if evaluation.get("human_proxies") else None,
+    )  # fmt: skip
+    written = {}
+    for section in sections_run(full, protocol, entries):
+        evaluated = time.perf_counter()
+        eval_dir = evaluate_section(section, out, evaluation, device, facts.proxies)
+        path, own = entries[section.conditions[0]]
+        config = load_config(path, [*protocol.get("overrides", []), *own, *args.overrides])
+        written[section.name] = section_markdown(section, facts, config, eval_dir,
+                                                 time.perf_counter() - evaluated,
+                                                 copy_figures(eval_dir, results, section.name))
+    write_results(results, written, list(protocol_sections(full)))
+    print(f"wrote {results} (sections {', '.join(written)})")
     return 0
 
 

@@ -2,6 +2,7 @@
 episodes, narrow networks, no progress bar, no final evaluation), and real observations for the models."""
 
 import functools
+import sys
 
 TINY = [
     "num_envs=4",
@@ -50,5 +51,6 @@ def script_module(name: str):
 
     spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # as an import would: dataclasses look their module up there
     spec.loader.exec_module(module)
     return module

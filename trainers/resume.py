@@ -20,6 +20,9 @@ class RunStopped(Exception):
         super().__init__(message)
         self.exit_code = 128 + signum
 
+    def __reduce__(self):  # raised again in the process that waits on a condition trained in another
+        return type(self), (self.exit_code - 128, str(self))
+
 
 class TrainingDiverged(RuntimeError):
     """A loss became NaN or infinite; the last good state is in the run's latest checkpoint."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import shutil
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -37,6 +38,14 @@ def train_or_resume(configs: Sequence[TrainConfig]) -> list[Path]:
     for config in configs:
         shutil.rmtree(config.run_path, ignore_errors=True)
     return train_teams(configs)
+
+
+def train_config_file(path: str, overrides: Sequence[str]) -> float:
+    """`train_or_resume` of the teams a config file and its overrides name; returns the wall seconds it took. A
+    process's task where conditions train side by side (`scripts/reproduce.py --jobs`)."""
+    started = time.perf_counter()
+    train_or_resume(team_configs(load_config(path, overrides)))
+    return time.perf_counter() - started
 
 
 def build_parser() -> argparse.ArgumentParser:

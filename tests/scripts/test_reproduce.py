@@ -39,7 +39,7 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     path.write_text(yaml.safe_dump(protocol))
     out, results = tmp_path / "out", tmp_path / "RESULTS.md"
     argv = [str(path), "--out", str(out), "--results", str(results)]
-    assert reproduce.main(argv) == 0
+    assert reproduce.main([*argv, "--jobs", "2"]) == 0  # two conditions at a time, each in a process of its own
 
     for condition in ("ik", "sk_cramped", "guided_sk"):
         for seed in (0, 1):
@@ -56,8 +56,8 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     assert "SK scores 0 on generated levels" in report and "with the scripted cook" in report
     assert "| with the human proxy |" in report and "| ik | cramped_room_in_7x7 |" in report
     assert "128 env steps per team (2 updates of 4 kitchens x 16 steps), 2 teams" in report
-    assert (tmp_path / "docs" / "results").is_dir() and "![" in report
-    summary = reproduce.read_summary(out / "eval" / "summary.csv")
+    assert (tmp_path / "docs" / "results" / "all").is_dir() and "](docs/results/all/" in report
+    summary = reproduce.read_summary(out / "eval" / "all" / "summary.csv")
     assert ("ik x sk_cramped", "cramped_room_7x7") in summary and ("guided_sk x ik", "cramped_room_7x7") in summary
     assert ("guided_sk x sk_cramped", "cramped_room_7x7") in summary  # a pair the protocol adds
 
@@ -69,7 +69,7 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     # Part of the protocol: the conditions named, their family and the report saying what it left out.
     assert reproduce.main([*argv, "--conditions", "ik", "sk_cramped"]) == 0
     report = results.read_text()
-    assert "- **Conditions:** 2 of the protocol's 3; not run here: guided_sk." in report
+    assert "- **Conditions:** 2 of the section's 3; not run here: guided_sk." in report
     assert "| MLP | IPPO from scratch | IK beats SK in cross-play on the 5 layouts (Fig. 3a) | cramped_room" in report
     assert "| MLP guided | guided | IK beats SK" not in report  # its one SK condition left out: no SK claims
     assert report.count("guided_sk") == 1  # in the list of those left out only
@@ -93,7 +93,7 @@ def test_a_family_without_single_kitchen_conditions_has_only_its_held_out_claim(
     summary = {("gnn_ik", "held-out (20)"): {"sp": "0.40", "xp": "0.30", "gap": "0.10"}}
     rows = reproduce.claims(summary, "GNN", "gnn_ik", {}, budget=1_000_000)
     assert rows == ["| GNN | IPPO from scratch | IK reaches about 10 deliveries in cross-play on held-out levels at "
-                    "2e9 steps (Fig. 7) | IK cross-play on held-out (20): 0.30 | "
+                    "2e9 steps (Fig. 7) | IK on held-out (20): self-play 0.40, cross-play 0.30 | "
                     "1.0e+06 steps, not 2e9: not comparable |"]
     assert reproduce.claims(summary, "GNN", "gnn_ik", {}, budget=2_000_000_000)[0].endswith("| does not hold |")
 
@@ -121,3 +121,63 @@ def test_a_protocol_file_that_is_not_there_is_one_line(tmp_path, capsys):
     with pytest.raises(SystemExit):
         reproduce.main([str(tmp_path / "nowhere.yaml")])
     assert capsys.readouterr().err.strip().endswith("nowhere.yaml: No such file or directory")
+
+
+def test_a_section_written_again_keeps_the_others_as_they_were_and_the_claims_of_all(tmp_path):
+    results = tmp_path / "RESULTS.md"
+
+    def section(name, claim, body):
+        return "\n".join([reproduce.SECTION_START.format(name), f"## {name}", "", reproduce.CLAIMS_START,
+                          *reproduce.CLAIMS_HEADER, f"| {name} | learner | {claim} | 1.00 | holds |",
+                          reproduce.CLAIMS_END, "", body, reproduce.SECTION_END.format(name)])
+
+    reproduce.write_results(results, {"scratch": section("scratch", "A", "first run")}, ["scratch", "planner"])
+    reproduce.write_results(results, {"planner": section("planner", "B", "second run")}, ["scratch", "planner"])
+    reproduce.write_results(results, {"planner": section("planner", "C", "third run")}, ["scratch", "planner"])
+    text = results.read_text()
+    sections = reproduce.read_sections(text)
+    assert sections == {"scratch": section("scratch", "A", "first run"),
+                        "planner": section("planner", "C", "third run")}
+    claims = text[text.index("## The paper's claims, here"):text.index(reproduce.SECTION_START.format("scratch"))]
+    assert "| scratch | learner | A |" in claims and "| planner | learner | C |" in claims and "| B |" not in text
+
+
+def test_sections_name_their_conditions_and_an_unknown_one_is_one_line(tmp_path, capsys):
+    protocol = {"conditions": {"ik": "a.yaml", "sk": "b.yaml", "guided": "c.yaml"},
+                "sections": {"scratch": {"title": "S", "conditions": ["ik", "sk"]},
+                             "planner": {"title": "P", "conditions": ["guided"]}}}
+    assert reproduce.named_conditions(protocol, ["planner"], ["ik"]) == ["guided", "ik"]
+    assert reproduce.named_conditions(protocol, None, None) is None
+    assert list(reproduce.protocol_sections({"conditions": {"ik": "a.yaml"}})) == ["all"]
+    path = tmp_path / "protocol.yaml"
+    path.write_text(yaml.safe_dump({**protocol, "teams": 1, "families": {}}, sort_keys=False))
+    with pytest.raises(SystemExit):
+        reproduce.main([str(path), "--sections", "e3t"])
+    assert capsys.readouterr().err.strip().endswith("--sections: e3t not in the protocol, which has scratch, planner")
+
+
+def test_every_condition_of_the_reduced_protocol_is_in_one_section():
+    protocol = yaml.safe_load((ROOT / "configs" / "protocols" / "reduced.yaml").read_text())
+    placed = [name for section in protocol["sections"].values() for name in section["conditions"]]
+    assert sorted(placed) == sorted(protocol["conditions"])
+
+
+def test_the_claims_on_outside_partners_and_a_shared_teacher_read_the_summary():
+    def row(sp="", xp="", partner="", human=""):
+        return {"sp": sp, "xp": xp, "gap": "", "partner": partner, "human": human}
+
+    summary = {
+        ("ik", "cramped_room_7x7"): row(partner="4.00"), ("ik", "coord_ring_7x7"): row(partner="1.00"),
+        ("sk_a", "cramped_room_7x7"): row(partner="3.00"), ("sk_b", "coord_ring_7x7"): row(partner="2.00"),
+        ("ik", "cramped_room_in_7x7"): row(human="1.50"),
+        ("human_proxy_cramped_room_in_7x7", "cramped_room_in_7x7"): row(sp="1.20"),
+        ("ik", "held-out (100)"): row(sp="4.10", xp="4.00"),
+        ("ewsn x ik", "held-out (100)"): row(xp="3.50"),  # the pair named in sorted order
+    }  # fmt: skip
+    sk = {"cramped_room_7x7": "sk_a", "coord_ring_7x7": "sk_b"}
+    cook, proxy = reproduce.outside_partners(summary, "ik", sk)
+    assert cook[1:] == ("cramped_room 4.00 vs 3.00, coord_ring 1.00 vs 2.00", "1 of 2 layouts")
+    assert proxy[1:] == ("cramped_room 1.50 (two proxies 1.20)", "at least two proxies' on 1 of 1 layouts")
+    [teacher] = reproduce.shared_teacher(summary, "MLP", "planner", [["ik", "ewsn"]])
+    assert teacher.endswith("| held-out (100): 4.00 against 3.50 | inflated by +0.50 |")
+    assert reproduce.shared_teacher({}, "MLP", "planner", [["ik", "ewsn"]]) == []
