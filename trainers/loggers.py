@@ -1,5 +1,5 @@
-"""A run's loggers: TorchRL's, by the names in `config.loggers` (csv, tensorboard, wandb, mlflow), under the run
-directory, and the config as TensorBoard's hyperparameters."""
+"""A run's loggers: TorchRL's, by the names in `config.loggers` (tensorboard, csv, wandb, mlflow, trackio), under the
+run directory, and the config as TensorBoard's hyperparameters."""
 
 from __future__ import annotations
 

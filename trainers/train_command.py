@@ -49,8 +49,8 @@ def train_config_file(path: str, overrides: Sequence[str]) -> float:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = train_config_parser("kitchen-train", "Train a team with IPPO or E3T (TorchRL) on Single or Infinite "
-                                 "Kitchen levels.", algorithm_settings())
+    parser = train_config_parser("kitchen-train", "Train a team with IPPO, E3T, anchored IPPO or a registered "
+                                 "algorithm (TorchRL) on Single or Infinite Kitchen levels.", algorithm_settings())
     parser.add_argument("--resume", metavar="RUN_DIR", nargs="+",
                         help="continue the run in RUN_DIR from its latest checkpoint; several run directories (the "
                              "teams of a condition, e.g. runs/NAME/seed*) continue together in one batch; key=value "

@@ -5,7 +5,7 @@
     anchored_ippo   IPPO kept near its starting policy by a KL penalty (`trainers.algorithms.anchored`)
 
 Add one by subclassing `Algorithm` (its docstring lists the hooks; its `Settings` dataclass holds its own settings)
-and calling `register_algorithm(name, cls)` before the config is checked; `examples/` and the README show how.
+and calling `register_algorithm(name, cls)` before the config is checked; `examples/` and docs/extending.md show how.
 """
 
 from __future__ import annotations
