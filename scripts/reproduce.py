@@ -149,21 +149,6 @@ def named_stop(name: str, training: Callable[[], float]) -> float:
         raise RunStopped(error.exit_code - 128, f"{name}: {error}") from None
 
 
-def logged_training_seconds(condition: Path) -> float:
-    """Seconds a condition's teams spent training, from their own logs (so a resumed or skipped condition counts
-    too): each batch's steps, all teams', over the steps per second logged for it, which time the whole batch
-    (collection and every team's update) in the log of the condition's last team."""
-    seeds = sorted(condition.glob("seed*"), key=lambda seed: int(seed.name.removeprefix("seed")))
-    rates = seeds[-1] / "csv" / "scalars" / "charts" / "steps_per_second.csv"
-    seconds, previous = 0.0, 0.0
-    for line in rates.read_text().splitlines():
-        if line.strip():
-            steps, rate = map(float, line.split(",")[:2])
-            seconds += len(seeds) * (steps - previous) / rate
-            previous = steps
-    return seconds
-
-
 def read_summary(path: Path) -> dict[tuple[str, str], dict]:
     with open(path) as handle:
         return {(row["condition"], row["grids"]): row for row in csv.DictReader(handle)}
@@ -228,9 +213,10 @@ def outside_partners(summary: dict, ik: str, sk: dict[str, str]) -> list[tuple[s
         rows.append(("IK plays with a partner outside its population better than SK: the scripted cook",
                      ", ".join(f"{layout.removesuffix('_7x7')} {ik_cook[layout]:.2f} vs {sk_cook[layout]:.2f}"
                                for layout in sk), f"{wins} of {len(sk)} layouts"))
-    with_proxy = [(grids, score, value(summary, f"human_proxy_{grids}", grids, "sp"))
-                  for (condition, grids) in summary if condition == ik
-                  for score in [value(summary, ik, grids, "human")] if not math.isnan(score)]
+    seated = [grids for condition, grids in summary
+              if condition == ik and not math.isnan(value(summary, ik, grids, "human"))]
+    with_proxy = [(grids, value(summary, ik, grids, "human"), value(summary, f"human_proxy_{grids}", grids, "sp"))
+                  for grids in seated]
     if with_proxy:
         above = sum(score >= proxies for _, score, proxies in with_proxy)
         rows.append(("IK plays with a partner outside its population: the human proxies",
@@ -512,10 +498,12 @@ def main(argv=None) -> int:
     overrides = [*protocol.get("overrides", []), *args.overrides]
     teams = args.teams or protocol["teams"]
     entries = {name: condition_entry(entry) for name, entry in protocol["conditions"].items()}
+    # the shared overrides, the condition's own, then the command line's
+    trained = {name: (path, [*protocol.get("overrides", []), *own, *args.overrides])
+               for name, (path, own) in entries.items()}
     started = time.perf_counter()
     try:
-        seconds = train_conditions({name: (path, [*protocol.get("overrides", []), *own, *args.overrides])
-                                    for name, (path, own) in entries.items()}, teams, out / "runs", args.jobs)
+        seconds = train_conditions(trained, teams, out / "runs", args.jobs)
     except RunStopped as error:
         print(f"reproduce: {error}; run the same command again to continue", file=sys.stderr)
         return error.exit_code
@@ -536,8 +524,7 @@ def main(argv=None) -> int:
     for section in sections_run(full, protocol, entries):
         evaluated = time.perf_counter()
         eval_dir = evaluate_section(section, out, evaluation, device, facts.proxies)
-        path, own = entries[section.conditions[0]]
-        config = load_config(path, [*protocol.get("overrides", []), *own, *args.overrides])
+        config = load_config(*trained[section.conditions[0]])
         written[section.name] = section_markdown(section, facts, config, eval_dir,
                                                  time.perf_counter() - evaluated,
                                                  copy_figures(eval_dir, results, section.name))
