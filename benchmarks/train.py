@@ -12,9 +12,9 @@ the ratio of their steps/s.
     python benchmarks/train.py e3t [--encoders mlp gnn] [--envs 32] [--device cpu|cuda]
     python benchmarks/train.py learning [--target 5] [--budget 2e7] [--threads 2] [key=value ...]
     python benchmarks/train.py reference [--setting jaxmarl|ik|protocol|protocol_gnn] [--updates 3] [--compile]
-                                         [--update-compiled true]
+                                         [--update-compiled true] [--collector kitchen|torchrl|xla]
     python benchmarks/train.py parity [--setting jaxmarl] [--budget 3e6] [--rows 10] [--seed 0]
-    python benchmarks/train.py profile [--setting jaxmarl|ik] [--updates 12] [--rows 40]
+    python benchmarks/train.py profile [--setting jaxmarl|ik] [--updates 12] [--rows 40] [--collector xla]
 """
 
 from __future__ import annotations
@@ -115,7 +115,7 @@ def learning_check(target: float, budget: int, threads: int, device: str, seed: 
 
 
 def reference(setting: str, updates: int, device: str, threads: int, compile_policy: bool = False,
-              compile_update: bool = False) -> None:
+              compile_update: bool = False, collector: str = "kitchen") -> None:
     """Steps/s of our trainer (updates 2..`updates`) and of the JAX reference (all `updates`, compilation excluded,
     the median of 3 runs) on one setting of `benchmarks/jax_ppo.py`, one after the other, and their ratio.
 
@@ -125,7 +125,7 @@ def reference(setting: str, updates: int, device: str, threads: int, compile_pol
     from jax_ppo import SETTINGS, check_supported, run_reference, setting_overrides  # with the test extra
 
     overrides = [*setting_overrides(setting), f"runtime.compile_policy={compile_policy}",
-                 f"runtime.compile_update={compile_update}"]
+                 f"runtime.compile_update={compile_update}", f"runtime.collector={collector}"]
     num_envs, rollout_steps = SETTINGS[setting]["num_envs"], SETTINGS[setting]["rollout_steps"]
     ours = throughput("mlp", num_envs, rollout_steps, updates, device, threads, overrides=overrides)
     config = load_config(None, [*overrides, f"total_steps={updates * num_envs * rollout_steps}",
@@ -141,7 +141,8 @@ def reference(setting: str, updates: int, device: str, threads: int, compile_pol
     print(f"{ours:13,.0f} {jax_rate:12,.0f} {ours / jax_rate:11.3f}", flush=True)
 
 
-def profile(setting: str, updates: int, threads: int, rows: int, device: str = "cpu") -> None:
+def profile(setting: str, updates: int, threads: int, rows: int, device: str = "cpu", collector: str = "kitchen"
+            ) -> None:
     """Where our trainer's time goes on one setting: collection and update seconds per batch (updates 2..N), then
     cProfile's functions by cumulative time over the whole run (the first update compiles the env)."""
     import cProfile
@@ -153,7 +154,8 @@ def profile(setting: str, updates: int, threads: int, rows: int, device: str = "
     seconds = {}
     with tempfile.TemporaryDirectory() as run_dir:
         overrides = [f"total_steps={updates * frames}", f"runtime.threads={threads}", f"runtime.device={device}",
-                     f"run_dir={run_dir}", "progress=false", "eval_episodes=0", "checkpoint_every=1000"]
+                     f"run_dir={run_dir}", "progress=false", "eval_episodes=0", "checkpoint_every=1000",
+                     f"runtime.collector={collector}"]
         config = load_config(None, [*setting_overrides(setting), *overrides])
         profiler = cProfile.Profile()
         profiler.enable()
@@ -231,12 +233,15 @@ def main(argv=None):
     ref.add_argument("--compile", action="store_true", help="ours with compile_policy=true")
     ref.add_argument("--update-compiled", choices=["false", "true"], default="false",
                      help="ours with compile_update (the minibatch step compiled; CUDA graphs on a GPU)")
+    ref.add_argument("--collector", choices=["kitchen", "torchrl", "xla"], default="kitchen",
+                     help="ours with this runtime.collector (xla: the MLP teams act inside the kitchens' program)")
     prof = sub.add_parser("profile")
     prof.add_argument("--setting", choices=["jaxmarl", "ik"], default="jaxmarl")
     prof.add_argument("--updates", type=int, default=12)
     prof.add_argument("--threads", type=int, default=1)
     prof.add_argument("--rows", type=int, default=40, help="functions listed")
     prof.add_argument("--device", default="cpu")
+    prof.add_argument("--collector", choices=["kitchen", "torchrl", "xla"], default="kitchen")
     par = sub.add_parser("parity")
     par.add_argument("--setting", choices=["jaxmarl", "ik"], default="jaxmarl")
     par.add_argument("--budget", type=float, default=3e6)
@@ -252,10 +257,11 @@ def main(argv=None):
         return
 
     if args.mode == "profile":
-        profile(args.setting, args.updates, args.threads, args.rows, args.device)
+        profile(args.setting, args.updates, args.threads, args.rows, args.device, args.collector)
         return
     if args.mode == "reference":
-        reference(args.setting, args.updates, args.device, args.threads, args.compile, args.update_compiled == "true")
+        reference(args.setting, args.updates, args.device, args.threads, args.compile, args.update_compiled == "true",
+                  args.collector)
         return
     if args.mode == "learning":
         learning_check(args.target, int(args.budget), args.threads, args.device, args.seed, args.overrides)

@@ -100,6 +100,23 @@ def unpack_outputs(packed: torch.Tensor, num_envs: int,
             done.view(torch.bool).view(num_envs, 1))
 
 
+def output_entries(observation: torch.Tensor, scalars: torch.Tensor, done: torch.Tensor, with_reward: bool) -> dict:
+    """A program's outputs, observation uint8 [*B, 2, H, W, C], scalars float32 [*B, 6] and done bool [*B, 1] (for
+    one step, or a rollout's steps [B, T]), by key (the module docstring's keys), as views where they can be."""
+    entries = {
+        OBSERVATION: observation,
+        SHAPED_REWARD: scalars[..., 2:4].unsqueeze(-1),
+        "deliveries": scalars[..., 4:5],
+        "episode_deliveries": scalars[..., 5:6],
+        "done": done,
+        "truncated": done.clone(),
+        "terminated": torch.zeros_like(done),
+    }
+    if with_reward:
+        entries[REWARD] = scalars[..., 0:2].unsqueeze(-1)
+    return entries
+
+
 class KitchenPrograms(NamedTuple):
     """The jitted JAX functions behind a `KitchenEnv`. Each returns (states, deliveries, outputs): the step's
     observations uint8 [B, 2, H, W, 26], scalars float32 [B, 6] and dones bool [B, 1] in fresh arrays, none of them
@@ -284,19 +301,7 @@ class KitchenEnv(EnvBase):
 
     def _entries(self, out, with_reward: bool) -> dict:
         """A program's outputs by key (the module docstring's keys), sharing JAX's memory: read them, do not write."""
-        observation, scalars, done = self._unpack(out)
-        entries = {
-            OBSERVATION: observation,
-            SHAPED_REWARD: scalars[:, 2:4].unsqueeze(-1),
-            "deliveries": scalars[:, 4:5],
-            "episode_deliveries": scalars[:, 5:6],
-            "done": done,
-            "truncated": done.clone(),
-            "terminated": torch.zeros_like(done),
-        }
-        if with_reward:
-            entries[REWARD] = scalars[:, 0:2].unsqueeze(-1)
-        return entries
+        return output_entries(*self._unpack(out), with_reward)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         mask = None if tensordict is None else tensordict.get("_reset", None)

@@ -167,40 +167,31 @@ def transformed_rollout_into(env: TransformedEnv, policy, carrier: TensorDictBas
     return storage, carrier
 
 
-class KitchenCollector(BaseCollector):
-    """A TorchRL collector whose batches [B, frames_per_batch / B] come from `rollout_into`: what TorchRL's
-    `Collector(env, policy, frames_per_batch, total_frames, return_same_td=True)` yields over a `KitchenEnv`, bit
-    for bit, at a fraction of the host's work per step. Every batch is written into the same storage (consume it
-    before asking for the next), on the env's device, which the batch carries. Actions are sampled
-    (`exploration_type`, RANDOM by default)."""
+class InPlaceCollector(BaseCollector):
+    """A TorchRL collector over an env whose batches [B, frames_per_batch / B] its subclass's `rollout()` writes
+    into one storage, every batch into the same (consume it before asking for the next), on the env's device."""
 
-    def __init__(self, env: EnvBase, policy, frames_per_batch: int, total_frames: int = -1,
-                 exploration_type: ExplorationType = ExplorationType.RANDOM):
+    def __init__(self, env: EnvBase, frames_per_batch: int, total_frames: int = -1):
         super().__init__()
         num_envs = env.batch_size.numel()
         if frames_per_batch % num_envs:
             raise ValueError(f"frames_per_batch={frames_per_batch} is not a whole number of steps of the env's "
                              f"{num_envs} kitchens")
-        self.env, self.policy = env, policy
+        self.env = env
         self.frames_per_batch = self.requested_frames_per_batch = frames_per_batch
         self.total_frames = total_frames  # -1: no end, as TorchRL's collectors take it
-        self.exploration_type = exploration_type
         self.steps = frames_per_batch // num_envs
         self._frames = 0
-        self._storage = None
-        with torch.no_grad(), set_exploration_type(exploration_type):
-            self._carrier = env.reset()
-            # TorchRL's Collector learns the policy's outputs by running it once on a copy of the first input (its
-            # random draws included): done here too, so a run collects what it collected with TorchRL's.
-            policy(self._carrier.copy())
+
+    def rollout(self) -> TensorDictBase:
+        """The next batch."""
+        raise NotImplementedError
 
     def iterator(self) -> Iterator[TensorDictBase]:
         while self.total_frames < 0 or self._frames < self.total_frames:
-            with torch.no_grad(), set_exploration_type(self.exploration_type):
-                self._storage, self._carrier = rollout_into(self.env, self.policy, self._carrier, self.steps,
-                                                            self._storage)
+            batch = self.rollout()
             self._frames += self.frames_per_batch
-            yield self._storage.batch
+            yield batch
 
     def set_seed(self, seed: int, static_seed: bool = False) -> int:
         return self.env.set_seed(seed, static_seed=static_seed)
@@ -216,3 +207,28 @@ class KitchenCollector(BaseCollector):
         self._storage = None
         if close_env and not self.env.is_closed:
             self.env.close()
+
+
+class KitchenCollector(InPlaceCollector):
+    """A TorchRL collector whose batches come from `rollout_into`: what TorchRL's `Collector(env, policy,
+    frames_per_batch, total_frames, return_same_td=True)` yields over a `KitchenEnv`, bit for bit, at a fraction
+    of the host's work per step (an `InPlaceCollector`). Actions are sampled (`exploration_type`, RANDOM by
+    default)."""
+
+    def __init__(self, env: EnvBase, policy, frames_per_batch: int, total_frames: int = -1,
+                 exploration_type: ExplorationType = ExplorationType.RANDOM):
+        super().__init__(env, frames_per_batch, total_frames)
+        self.policy = policy
+        self.exploration_type = exploration_type
+        self._storage = None
+        with torch.no_grad(), set_exploration_type(exploration_type):
+            self._carrier = env.reset()
+            # TorchRL's Collector learns the policy's outputs by running it once on a copy of the first input (its
+            # random draws included): done here too, so a run collects what it collected with TorchRL's.
+            policy(self._carrier.copy())
+
+    def rollout(self) -> TensorDictBase:
+        with torch.no_grad(), set_exploration_type(self.exploration_type):
+            self._storage, self._carrier = rollout_into(self.env, self.policy, self._carrier, self.steps,
+                                                        self._storage)
+        return self._storage.batch

@@ -38,7 +38,7 @@ class ConfigError(ValueError):
 
 LOGGERS = ("tensorboard", "csv", "wandb", "mlflow", "trackio")  # TorchRL's `get_logger` backends
 PLANNER_START = "scripted_cook"  # init_from: start from the scripted cook, distilled into the run's folder
-COLLECTORS = ("kitchen", "torchrl")  # runtime.collector: torch_kitchen.rollout's, or TorchRL's Collector
+COLLECTORS = ("kitchen", "torchrl", "xla")  # runtime.collector: torch_kitchen.rollout's, TorchRL's, whole in XLA
 GENERATED_LEVELS = ("infinite", "heldout")  # `levels` values that name generated levels rather than layouts
 # torch takes 64-bit seeds, but JAX (32-bit by default) keeps only a seed's low 32 bits: 2**32 + 5 would replay 5.
 MAX_SEED = 2**32 - 1
@@ -91,7 +91,9 @@ class RuntimeConfig(DeviceConfig):
     )
     collector: str = option(
         "kitchen", '"kitchen": the kitchens\' own in-place rollout (torch_kitchen.rollout); "torchrl": TorchRL\'s '
-                   'Collector; the same batches bit for bit, the first at a fraction of the host\'s work per step'
+                   'Collector; the same batches bit for bit, the first at a fraction of the host\'s work per step. '
+                   '"xla": MLP teams act inside the kitchens\' XLA program, a whole batch one call '
+                   '(torch_kitchen.xla_rollout; actions drawn by JAX), other models as "kitchen"'
     )
     compile_update: bool = option(
         False, "torch.compile each PPO minibatch step (loss, backward, clipping, Adam with the learning rate a tensor) "

@@ -17,17 +17,22 @@ from torchrl.envs.utils import ExplorationType
 
 from jax_env import Channel
 from torch_kitchen.rollout import KitchenCollector
+from torch_kitchen.xla_rollout import XlaCollector, xla_chains
 
 
 def make_collector(env: EnvBase, policy, frames_per_batch: int, total_frames: int = -1,
                    kind: str = "kitchen") -> BaseCollector:
     """A synchronous collector that samples actions from `policy` (ExplorationType.RANDOM): the kitchens' own
-    (`kind="kitchen"`) or TorchRL's `Collector` ("torchrl"), which collect the same batches.
+    (`kind="kitchen"`) or TorchRL's `Collector` ("torchrl"), which collect the same batches; or, where the policy's
+    teams act with MLP chains on a bare `KitchenEnv`, the whole rollout inside XLA ("xla", `XlaCollector`: actions
+    drawn by JAX), else the kitchens' own.
 
-    Either writes every batch into the same buffers instead of a fresh copy, which keeps large batches cheap;
+    Each writes every batch into the same buffers instead of a fresh copy, which keeps large batches cheap;
     consume a batch before asking for the next one.
     """
-    if kind == "kitchen":
+    if kind == "xla" and xla_chains(env, policy) is not None:
+        return XlaCollector(env, policy, frames_per_batch, total_frames)
+    if kind in ("kitchen", "xla"):
         return KitchenCollector(env, policy, frames_per_batch, total_frames)
     return Collector(
         env,
