@@ -9,10 +9,13 @@ each over the same kitchens:
     collector step     a whole batch of TorchRL's `Collector`, per step: policy, `step_and_maybe_reset`, storage
     rollout step       a whole batch of the trainer's `KitchenCollector` (`torch_kitchen.rollout`), per step: the
                        same batch, written in place, the JAX step called directly
+    xla rollout step   a whole batch of `XlaCollector` (`torch_kitchen.xla_rollout`, `runtime.collector=xla`), per
+                       step: the kitchens and the team's network in one XLA program, the batch copied out once
 
 The difference between a whole step and "env.step" plus "acting policy" is TorchRL's bookkeeping around them
 (`step_mdp`, resets, the collector's carrier and its stacked batch); for the rollout step, the difference from
-"JAX step" plus "acting policy" is all that is neither the kitchens nor the network. Run it alone on the machine.
+"JAX step" plus "acting policy" is all that is neither the kitchens nor the network; the xla rollout step, less the
+JAX step, is the network, the draws and the batch's copy together. Run it alone on the machine.
 
     python benchmarks/collection.py [--setting jaxmarl|ik] [--steps 2000] [--envs 192] [--device cuda]
 
@@ -67,7 +70,7 @@ def main(argv=None) -> None:
         rows["acting policy"] = 1e6 * seconds_per_call(lambda: policy(tensordict), args.steps, warmup=20)
     steps = SETTINGS[args.setting]["rollout_steps"]
     count = max(1, args.steps // steps)
-    for row, kind in (("collector step", "torchrl"), ("rollout step", "kitchen")):
+    for row, kind in (("collector step", "torchrl"), ("rollout step", "kitchen"), ("xla rollout step", "xla")):
         collector = make_collector(env, policy, config.frames_per_batch, kind=kind)
         batches = iter(collector)
         next(batches)
@@ -83,6 +86,8 @@ def main(argv=None) -> None:
     print(f"{'(bookkeeping)':<16s} {rest:16.1f}   collector step - env.step - acting policy")
     rest = rows["rollout step"] - rows["JAX step"] - rows["acting policy"]
     print(f"{'(rollout rest)':<16s} {rest:16.1f}   rollout step - JAX step - acting policy")
+    rest = rows["xla rollout step"] - rows["JAX step"]
+    print(f"{'(xla rest)':<16s} {rest:16.1f}   xla rollout step - JAX step")
 
 
 if __name__ == "__main__":

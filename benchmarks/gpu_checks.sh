@@ -36,11 +36,14 @@ step() {
 
 { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv; python -c "import torch, jax; print('torch', torch.__version__, torch.cuda.get_device_name(0), '| jax', jax.__version__, jax.devices())"; } 2>&1 | tee "$out/device.txt"
 reference="python benchmarks/train.py reference --device cuda --threads 1"
-# The headline first: the paper's protocol (c), ours against the pure-JAX yardstick in the same run, eager, with
+# The headline first: the paper's protocol (c), ours against the pure-JAX yardstick in the same run: the teams
+# acting inside the kitchens' XLA program (the default collector), then acting step by step from torch, then with
 # the compiled update (CUDA graphs), and with the stacked acting networks as CUDA graphs too.
 step reference_gpu.txt 200 $reference --setting protocol --updates 3
+step reference_gpu.txt 200 $reference --setting protocol --updates 3 --collector kitchen
 step reference_gpu.txt 200 $reference --setting protocol --updates 3 --update-compiled true
-step reference_gpu.txt 180 $reference --setting protocol --updates 3 --update-compiled true --compile
+step reference_gpu.txt 180 $reference --setting protocol --updates 3 --update-compiled true --compile \
+    --collector kitchen
 # What the host does per step and minibatch, where a batch's time goes, the floor, and the syncs torch reports.
 step launches_gpu.txt 90 python benchmarks/launches.py --setting protocol --teams 1 6 --device cuda
 step phases_gpu.txt 120 python benchmarks/phases.py --setting protocol --updates 3 --device cuda

@@ -64,6 +64,22 @@ class NonZeroEntries:
         entries.cols, entries.shape, entries._transposed = cols, (self.shape[0], in_features), None
         return entries
 
+    def of_blocks(self, blocks: torch.Tensor, block_rows: int) -> NonZeroEntries:
+        """The entries of the input made of these blocks of `block_rows` rows (block b: rows b * block_rows on), in
+        the order given: what `NonZeroEntries` finds in that input, without searching it (a minibatch of whole
+        kitchens of a batch whose entries were found once)."""
+        starts = self.row_offsets[blocks * block_rows]
+        counts = self.row_offsets[(blocks + 1) * block_rows] - starts
+        ends = counts.cumsum(0)
+        index = torch.arange(int(ends[-1])) + torch.repeat_interleave(starts - (ends - counts), counts)
+        entries = copy.copy(self)
+        entries.shape = (len(blocks) * block_rows, self.shape[1])
+        shift = torch.repeat_interleave((torch.arange(len(blocks)) - blocks) * block_rows, counts)
+        entries.rows, entries.cols, entries.values = self.rows[index] + shift, self.cols[index], self.values[index]
+        entries.row_offsets = _row_offsets(entries.rows, entries.shape[0])
+        entries._transposed = None
+        return entries
+
     def transposed(self) -> torch.Tensor:
         """x.T as a CSR matrix [in, N]: the entries by column."""
         if self._transposed is None:
@@ -97,6 +113,14 @@ def nonzero_entries(x: torch.Tensor, dtype: torch.dtype) -> NonZeroEntries:
     if _last_input.tensor is None or _last_input.key != key:
         _last_input.tensor, _last_input.key, _last_input.entries = x, key, NonZeroEntries(x, dtype)
     return _last_input.entries
+
+
+def remember_entries(x: torch.Tensor, entries: NonZeroEntries) -> None:
+    """Hands x's entries, found another way (`NonZeroEntries.of_blocks`), to the next layers that read x."""
+    if not x.is_inference():
+        _last_input.tensor, _last_input.entries = x, entries
+        _last_input.key = (x.untyped_storage().data_ptr(), x.storage_offset(), x.shape, x.stride(), x._version,
+                           entries.values.dtype)
 
 
 class SparseProduct(torch.autograd.Function):

@@ -16,7 +16,9 @@ collect with `KitchenCollector` (`trainers.rollout.make_collector` picks).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import threading
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -87,12 +89,29 @@ def xla_chains(env: EnvBase, policy) -> tuple[Chain, Chain] | None:
     return next(iter(chains))
 
 
-def rollout_program(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int):
-    """The jitted rollout of `steps` steps of every kitchen of `env` with the teams acting by `chains`:
-    (weights, states, deliveries, env key, act keys [teams, 2], carrier) -> ((states, deliveries, env key,
-    carrier), records [B, steps, ...]), where carrier = (observation, scalars, done), the policy's next input as
-    the env's programs give it, and records = (observation, scalars, done, logits, action, log-prob, value, next
-    observation, next scalars, next done)."""
+_PROGRAMS: OrderedDict[tuple, Callable] = OrderedDict()
+_PROGRAMS_KEPT = 8  # least recently used programs beyond this are dropped (with their compilations)
+_PROGRAMS_LOCK = threading.Lock()
+
+
+def rollout_program(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> Callable:
+    """The jitted rollout of `steps` steps of every kitchen of `env` with the teams acting by `chains` (built once
+    per kitchen settings, shape and chains, and shared, as the env's own programs are):
+    (weights, start states, states, deliveries, env key, act keys [teams, 2], carrier) -> ((states, deliveries,
+    env key, carrier), records [B, steps, ...]), where carrier = (observation, scalars, done), the policy's next
+    input as the env's programs give it, and records = (observation, scalars, done, logits, action, log-prob,
+    value, next observation, next scalars, next done)."""
+    key = (env.kitchen.settings, env.num_envs, env.teams, env.pinned_levels is not None, chains, steps)
+    with _PROGRAMS_LOCK:
+        if key not in _PROGRAMS:
+            _PROGRAMS[key] = _build_rollout(env, chains, steps)
+            if len(_PROGRAMS) > _PROGRAMS_KEPT:
+                _PROGRAMS.popitem(last=False)
+        _PROGRAMS.move_to_end(key)
+        return _PROGRAMS[key]
+
+
+def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> Callable:
     programs = kitchen_programs(env.kitchen, env.num_envs, env.teams, env.pinned_levels is not None, packed=False)
     policy_chain, value_chain = chains
     teams, team_size = env.teams, env.team_size

@@ -90,10 +90,10 @@ class RuntimeConfig(DeviceConfig):
                "(on a GPU, the teams' stacked networks replay as CUDA graphs)"
     )
     collector: str = option(
-        "kitchen", '"kitchen": the kitchens\' own in-place rollout (torch_kitchen.rollout); "torchrl": TorchRL\'s '
-                   'Collector; the same batches bit for bit, the first at a fraction of the host\'s work per step. '
-                   '"xla": MLP teams act inside the kitchens\' XLA program, a whole batch one call '
-                   '(torch_kitchen.xla_rollout; actions drawn by JAX), other models as "kitchen"'
+        "xla", '"xla": MLP teams act inside the kitchens\' XLA program, a whole batch one call '
+               '(torch_kitchen.xla_rollout; actions drawn by JAX), other models as "kitchen"; "kitchen": the '
+               'kitchens\' own in-place rollout (torch_kitchen.rollout); "torchrl": TorchRL\'s Collector; the last '
+               'two collect the same batches bit for bit, the first at a fraction of the host\'s work per step'
     )
     compile_update: bool = option(
         False, "torch.compile each PPO minibatch step (loss, backward, clipping, Adam with the learning rate a tensor) "

@@ -25,7 +25,8 @@ import torch
 from tensordict import TensorDictBase
 from tqdm import tqdm
 
-from torch_kitchen.keys import REWARD, SHAPED_REWARD, VALUE, VALUE_TARGET
+from torch_kitchen.cpu_kernels import batch_observations
+from torch_kitchen.keys import OBSERVATION, REWARD, SHAPED_REWARD, VALUE, VALUE_TARGET
 from torch_kitchen.models import ActorCritic
 from torch_kitchen.teams import team_rows
 from trainers.advantages import compute_advantages, shaping_weight_at
@@ -112,10 +113,13 @@ def learn(team: TrainingRun, batch: TensorDictBase, orders: list[tuple[torch.Ten
     Raises TrainingDiverged when a loss was NaN or infinite, with the weights and optimizer state put back as they
     were before the update."""
     restore_point = RestorePoint(team)
+    observations = batch_observations([team.actor_critic.actor, team.actor_critic.critic], batch.get(OBSERVATION))
     stats = []
     for order in orders:
         for kitchens in order:
             minibatch = select_kitchens(batch, kitchens)
+            if observations is not None:  # the sparse first layers' entries, found once per batch
+                observations.hand_to(minibatch.get(OBSERVATION), kitchens)
             team.algorithm.process_minibatch(minibatch)
             losses = step(minibatch)
             stats.append({key: value.detach().float() for key, value in losses.items()})
