@@ -134,23 +134,34 @@ class KitchenPrograms(NamedTuple):
     split_keys: Callable  # keys [teams, 2] -> (kept, used)
 
 
-_PROGRAMS: OrderedDict[tuple, KitchenPrograms] = OrderedDict()
-_PROGRAMS_KEPT = 32  # least recently used programs beyond this are dropped (with their compilations)
-_PROGRAMS_LOCK = threading.Lock()  # envs are built from several threads (teams trained in parallel, a server)
+class ProgramCache:
+    """Compiled programs by the settings and shapes they were built for, built once and shared by every env of
+    them; the least recently used beyond `kept` are dropped (with their compilations). Envs are built from several
+    threads (teams trained in parallel, a server), so a lookup holds a lock."""
+
+    def __init__(self, kept: int):
+        self.kept, self._programs, self._lock = kept, OrderedDict(), threading.Lock()
+
+    def get(self, key: tuple, build: Callable[[], object]):
+        """The programs built for `key`, built by `build()` if none are kept."""
+        with self._lock:
+            if key not in self._programs:
+                self._programs[key] = build()
+                if len(self._programs) > self.kept:
+                    self._programs.popitem(last=False)
+            self._programs.move_to_end(key)
+            return self._programs[key]
+
+
+_PROGRAMS = ProgramCache(kept=32)
 
 
 def kitchen_programs(kitchen: Overcooked, num_envs: int, teams: int, pin_levels: bool,
                      packed: bool = False) -> KitchenPrograms:
     """The programs of `num_envs` kitchens of `kitchen`'s settings in `teams` teams, their outputs `packed` or not,
     built once per settings and shape and reused by every env of them (see `KitchenPrograms`)."""
-    key = (kitchen.settings, num_envs, teams, pin_levels, packed)
-    with _PROGRAMS_LOCK:
-        if key not in _PROGRAMS:
-            _PROGRAMS[key] = _build_programs(kitchen, num_envs, teams, pin_levels, packed)
-            if len(_PROGRAMS) > _PROGRAMS_KEPT:
-                _PROGRAMS.popitem(last=False)
-        _PROGRAMS.move_to_end(key)
-        return _PROGRAMS[key]
+    return _PROGRAMS.get((kitchen.settings, num_envs, teams, pin_levels, packed),
+                         lambda: _build_programs(kitchen, num_envs, teams, pin_levels, packed))
 
 
 def _build_programs(kitchen: Overcooked, num_envs: int, teams: int, pin_levels: bool,
@@ -450,6 +461,22 @@ class KitchenEnv(EnvBase):
     def _to_jax(self, tensor: torch.Tensor, dtype) -> jax.Array:
         # Through NumPy on the CPU: a checkpoint may have been loaded onto any torch device.
         return jax.device_put(np.asarray(tensor.detach().cpu().numpy(), dtype=dtype), self._jax_device)
+
+    @property
+    def jax_device(self) -> jax.Device:
+        """The JAX device the kitchens live on (the env's torch device's twin)."""
+        return self._jax_device
+
+    def kitchens(self) -> tuple:
+        """(start states, states, deliveries, key) as the env's programs take them: for a program that steps the
+        kitchens outside the env (`torch_kitchen.xla_rollout`), which hands them back with `continue_from`."""
+        return self._start_states, self._states, self._deliveries, self._key
+
+    def continue_from(self, states, deliveries, key, observation: jax.Array) -> None:
+        """The kitchens where a program outside the env left them (and the last observation it handed out): the
+        env's next step, reset or checkpoint goes on from there."""
+        self._states, self._deliveries, self._key, self._last_obs = states, deliveries, key, observation
+        self._episode_steps = np.array(states.step)  # read once per program, as once per reset
 
     @property
     def states(self):

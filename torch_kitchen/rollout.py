@@ -182,6 +182,7 @@ class InPlaceCollector(BaseCollector):
         self.total_frames = total_frames  # -1: no end, as TorchRL's collectors take it
         self.steps = frames_per_batch // num_envs
         self._frames = 0
+        self._storage = None  # the subclass's, allocated at its first batch
 
     def rollout(self) -> TensorDictBase:
         """The next batch."""
@@ -220,7 +221,6 @@ class KitchenCollector(InPlaceCollector):
         super().__init__(env, frames_per_batch, total_frames)
         self.policy = policy
         self.exploration_type = exploration_type
-        self._storage = None
         with torch.no_grad(), set_exploration_type(exploration_type):
             self._carrier = env.reset()
             # TorchRL's Collector learns the policy's outputs by running it once on a copy of the first input (its

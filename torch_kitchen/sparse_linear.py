@@ -109,18 +109,21 @@ def nonzero_entries(x: torch.Tensor, dtype: torch.dtype) -> NonZeroEntries:
     """
     if x.is_inference():
         return NonZeroEntries(x, dtype)
-    key = (x.untyped_storage().data_ptr(), x.storage_offset(), x.shape, x.stride(), x._version, dtype)
-    if _last_input.tensor is None or _last_input.key != key:
-        _last_input.tensor, _last_input.key, _last_input.entries = x, key, NonZeroEntries(x, dtype)
+    if _last_input.tensor is None or _last_input.key != _input_key(x, dtype):
+        remember_entries(x, NonZeroEntries(x, dtype))
     return _last_input.entries
 
 
+def _input_key(x: torch.Tensor, dtype: torch.dtype) -> tuple:
+    """What tells x's data apart from any other's while x is held: storage, offset, shape, strides, version."""
+    return x.untyped_storage().data_ptr(), x.storage_offset(), x.shape, x.stride(), x._version, dtype
+
+
 def remember_entries(x: torch.Tensor, entries: NonZeroEntries) -> None:
-    """Hands x's entries, found another way (`NonZeroEntries.of_blocks`), to the next layers that read x."""
+    """Hands x's entries (found by a search, or another way: `NonZeroEntries.of_blocks`) to the next layers that
+    read x; not for inference tensors, which have no version counter."""
     if not x.is_inference():
-        _last_input.tensor, _last_input.entries = x, entries
-        _last_input.key = (x.untyped_storage().data_ptr(), x.storage_offset(), x.shape, x.stride(), x._version,
-                           entries.values.dtype)
+        _last_input.tensor, _last_input.key, _last_input.entries = x, _input_key(x, entries.values.dtype), entries
 
 
 class SparseProduct(torch.autograd.Function):

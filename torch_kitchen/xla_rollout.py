@@ -16,22 +16,19 @@ collect with `KitchenCollector` (`trainers.rollout.make_collector` picks).
 
 from __future__ import annotations
 
-import threading
-from collections import OrderedDict
 from collections.abc import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
 
 from torch_kitchen.egocentric import EgocentricLinear
-from torch_kitchen.env import KitchenEnv, kitchen_programs, output_entries
-from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, VALUE
-from torch_kitchen.rollout import NEXT, InPlaceCollector, as_path, as_tensordict, leaves
+from torch_kitchen.env import KitchenEnv, ProgramCache, kitchen_programs, output_entries
+from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, OBSERVATION, SHAPED_REWARD, VALUE
+from torch_kitchen.rollout import NEXT, InPlaceCollector, as_path, as_tensordict
 from torch_kitchen.teams import TeamPolicy, layers_of, stackable_acting
 
 Chain = tuple[tuple, ...]  # a network's layers as JAX runs them: ("flatten", start, end), ("linear",), ("relu",)
@@ -89,26 +86,18 @@ def xla_chains(env: EnvBase, policy) -> tuple[Chain, Chain] | None:
     return next(iter(chains))
 
 
-_PROGRAMS: OrderedDict[tuple, Callable] = OrderedDict()
-_PROGRAMS_KEPT = 8  # least recently used programs beyond this are dropped (with their compilations)
-_PROGRAMS_LOCK = threading.Lock()
+_PROGRAMS = ProgramCache(kept=8)
 
 
 def rollout_program(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> Callable:
     """The jitted rollout of `steps` steps of every kitchen of `env` with the teams acting by `chains` (built once
     per kitchen settings, shape and chains, and shared, as the env's own programs are):
-    (weights, start states, states, deliveries, env key, act keys [teams, 2], carrier) -> ((states, deliveries,
+    (weights, (start states, states, deliveries, env key), act keys [teams, 2], carrier) -> ((states, deliveries,
     env key, carrier), records [B, steps, ...]), where carrier = (observation, scalars, done), the policy's next
     input as the env's programs give it, and records = (observation, scalars, done, logits, action, log-prob,
     value, next observation, next scalars, next done)."""
     key = (env.kitchen.settings, env.num_envs, env.teams, env.pinned_levels is not None, chains, steps)
-    with _PROGRAMS_LOCK:
-        if key not in _PROGRAMS:
-            _PROGRAMS[key] = _build_rollout(env, chains, steps)
-            if len(_PROGRAMS) > _PROGRAMS_KEPT:
-                _PROGRAMS.popitem(last=False)
-        _PROGRAMS.move_to_end(key)
-        return _PROGRAMS[key]
+    return _PROGRAMS.get(key, lambda: _build_rollout(env, chains, steps))
 
 
 def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> Callable:
@@ -149,7 +138,8 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> 
         return (next_states, next_deliveries, env_key, act_keys, next_carrier), record
 
     @jax.jit
-    def rollout(weights, start_states, states, deliveries, env_key, act_keys, carrier):
+    def rollout(weights, kitchens, act_keys, carrier):
+        start_states, states, deliveries, env_key = kitchens
         carry = (states, deliveries, env_key, act_keys, carrier)
         carry, records = jax.lax.scan(lambda c, x: step(start_states, weights, c, x), carry, None, length=steps)
         states, deliveries, env_key, _, carrier = carry
@@ -172,22 +162,20 @@ class XlaCollector(InPlaceCollector):
         self.policy = policy
         self._program = rollout_program(env, chains, self.steps)
         self._networks = stackable_acting(list(policy.policies))
-        self._storage = None
         with torch.no_grad():
             first = env.reset()
         self._carrier = self._carrier_of(first)
 
     def _to_jax(self, tensor: torch.Tensor) -> jax.Array:
-        return jax.device_put(jax.dlpack.from_dlpack(tensor.detach().contiguous()), self.env._jax_device)
+        return jax.device_put(jax.dlpack.from_dlpack(tensor.detach().contiguous()), self.env.jax_device)
 
     def _carrier_of(self, tensordict: TensorDictBase) -> tuple[jax.Array, ...]:
-        """The env's output as the programs give it: (observation, scalars [B, 6] with no reward, done)."""
-        entries = leaves(tensordict)
-        scalars = torch.cat([torch.zeros_like(entries[("agents", "shaped_reward")].squeeze(-1)),
-                             entries[("agents", "shaped_reward")].squeeze(-1),
-                             entries["deliveries"], entries["episode_deliveries"]], dim=-1)
-        return tuple(self._to_jax(value) for value in
-                     (entries[("agents", "observation")], scalars, entries["done"]))
+        """The env's reset output as the programs give it: (observation, scalars [B, 6], done), the scalars' reward
+        columns zero (a reset earns nothing)."""
+        shaped = tensordict.get(SHAPED_REWARD).squeeze(-1)
+        scalars = torch.cat([torch.zeros_like(shaped), shaped, tensordict.get("deliveries"),
+                             tensordict.get("episode_deliveries")], dim=-1)
+        return tuple(self._to_jax(value) for value in (tensordict.get(OBSERVATION), scalars, tensordict.get("done")))
 
     def _weights(self) -> tuple[list[jax.Array], list[jax.Array]]:
         """The teams' current weights, stacked along a leading team dim."""
@@ -206,11 +194,9 @@ class XlaCollector(InPlaceCollector):
     def rollout(self) -> TensorDictBase:
         """The next batch: `steps` steps of every kitchen, written into the storage; the env left where they end."""
         env = self.env
-        (env._states, env._deliveries, env._key, self._carrier), records = self._program(
-            self._weights(), env._start_states, env._states, env._deliveries, env._key, self._act_keys(),
-            self._carrier)
-        env._episode_steps = np.array(env._states.step)
-        env._last_obs = self._carrier[0]
+        (states, deliveries, key, self._carrier), records = self._program(
+            self._weights(), env.kitchens(), self._act_keys(), self._carrier)
+        env.continue_from(states, deliveries, key, self._carrier[0])
         observation, scalars, done, logits, action, log_prob, value, *stepped = map(torch.from_dlpack, records)
         values = {**output_entries(observation, scalars, done, with_reward=False),
                   LOGITS: logits, ACTION: action, LOG_PROB: log_prob, VALUE: value,
