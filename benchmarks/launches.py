@@ -27,7 +27,7 @@ from trainers.composer import load_config
 from trainers.machine import machine_name
 from trainers.ppo import start_update
 from trainers.rollout import make_collector, select_kitchens
-from trainers.runtime import minibatch_step, stacked_update
+from trainers.runtime import Learner
 from trainers.training_run import build_team, make_env, team_configs, with_model_transforms
 
 
@@ -63,16 +63,17 @@ def audit_training(setting: str, teams: int, device: str, steps: int = 8, stack:
                 with team.stream.active():
                     orders.append(start_update(team, team_batch))
             if stack:  # every team's minibatch as one step
-                step = stacked_update(built)
+                step = Learner(lead, built).step
 
                 def update(index: int) -> None:  # the first epoch's minibatch `index`
                     step(torch.stack([select_kitchens(team_batch, order[0][index])
                                       for team_batch, order in zip(team_batches, orders)]))
             else:  # the first team's minibatch
+                step = Learner(lead, built[:1]).step
+
                 def update(index: int) -> None:
                     minibatch = select_kitchens(team_batches[0], orders[0][0][index])
-                    built[0].algorithm.process_minibatch(minibatch)
-                    minibatch_step(built[0], minibatch, None)
+                    step(minibatch)
             update(0)  # the first builds the optimizer's state
             with audits["minibatch"]:
                 update(1)

@@ -3,7 +3,7 @@ host against the device's busy time (how long the kernels the phase launched kep
 once), under `torch.profiler`.
 
 Runs `trainers.ppo.train_teams` on a setting of `benchmarks/jax_ppo.py` and labels its three phases from outside
-(the collector's batches, `start_update`, which holds GAE, and `UpdateRunner.update`), so the trainer runs as it always
+(the collector's batches, `start_update`, which holds GAE, and `update_teams`), so the trainer runs as it always
 does. Where busy time is far below wall time, the host (Python, launches, syncs) is what the phase waits on. The
 first update compiles and is left out. On a CPU the device columns are empty.
 
@@ -25,7 +25,6 @@ from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile, record_function
 
 import trainers.ppo
-import trainers.runtime
 import trainers.training_run
 from trainers.composer import load_config
 from trainers.machine import machine_name
@@ -69,7 +68,7 @@ def phase_seconds(setting: str, updates: int, device: str, overrides: list[str])
     patched = {  # (where, name): the labelled stand-in
         (trainers.ppo, "make_collector"): lambda *args, **kwargs: LabelledCollector(make_collector(*args, **kwargs)),
         (trainers.ppo, "start_update"): labelled(trainers.ppo.start_update, "advantages"),
-        (trainers.runtime.UpdateRunner, "update"): labelled(trainers.runtime.UpdateRunner.update, "update"),
+        (trainers.ppo, "update_teams"): labelled(trainers.ppo.update_teams, "update"),
     }
     originals = {target: getattr(*target) for target in patched}
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.startswith("cuda") else [])

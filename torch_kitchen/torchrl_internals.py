@@ -98,7 +98,10 @@ class MultiAgentNet(MultiAgentNetBase):
     def thread_template(self) -> nn.Module:
         """The calling thread's copy of the parameter-less template into which each agent's parameters are moved
         while it runs: threads that run the network at once (a minibatch's shards) would otherwise move theirs
-        into one module."""
+        into one module. A compiled graph (a compiled minibatch step is never split into shards) takes the
+        template itself: it cannot trace thread-local storage."""
+        if torch.compiler.is_compiling():
+            return getattr(self, TEMPLATE)
         templates = self.__dict__.setdefault(THREAD_TEMPLATES, threading.local())
         if not hasattr(templates, "module"):
             templates.module = copy.deepcopy(getattr(self, TEMPLATE))

@@ -23,10 +23,11 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
+from torchrl.envs.utils import set_exploration_type
+from torchrl.modules import set_recurrent_mode
 from tqdm import tqdm
 
-from torch_kitchen.cpu_kernels import batch_observations
-from torch_kitchen.keys import OBSERVATION, REWARD, SHAPED_REWARD, VALUE, VALUE_TARGET
+from torch_kitchen.keys import REWARD, SHAPED_REWARD, VALUE, VALUE_TARGET
 from torch_kitchen.models import ActorCritic
 from torch_kitchen.teams import team_rows
 from trainers.advantages import compute_advantages, shaping_weight_at
@@ -35,9 +36,10 @@ from trainers.composer import save_config
 from trainers.config import PLANNER_START, ConfigError, TrainConfig
 from trainers.distill import distill_start
 from trainers.loggers import hyperparameters, make_loggers
+from trainers.ppo_step import Losses, total_loss
 from trainers.resume import RunStopped, StopRequest, TrainingDiverged, drop_csv_rows_after, restore, start_fresh
-from trainers.rollout import finished_episode_deliveries, make_collector, select_kitchens
-from trainers.runtime import UpdateRunner, acting_policy, use_threads
+from trainers.rollout import finished_episode_deliveries, make_collector
+from trainers.runtime import Learner, UpdateRunner, acting_policy, set_learning_rate, use_threads
 from trainers.training_run import (
     RestorePoint,
     TrainingRun,
@@ -45,7 +47,6 @@ from trainers.training_run import (
     build_team,
     check_teams,
     make_env,
-    total_loss,
     with_model_transforms,
 )
 
@@ -96,7 +97,7 @@ def start_update(team: TrainingRun, batch: TensorDictBase) -> list[tuple[torch.T
     config = team.config
     team.update += 1
     team.env_steps += batch.numel()
-    team.set_learning_rate(learning_rate_at(config, team.update))
+    set_learning_rate(config, team.optimizer, learning_rate_at(config, team.update))
     compute_advantages(batch, team.actor_critic.critic, config, shaping_weight_at(config, team.env_steps))
     team.algorithm.process_batch(batch)
     # Drawn where the batch is: a GPU's minibatches then need nothing from the host.
@@ -104,26 +105,49 @@ def start_update(team: TrainingRun, batch: TensorDictBase) -> list[tuple[torch.T
             for _ in range(config.epochs)]
 
 
-def learn(team: TrainingRun, batch: TensorDictBase, orders: list[tuple[torch.Tensor, ...]],
-          step: Callable[[TensorDictBase], dict[str, torch.Tensor]]) -> dict[str, float]:
-    """The PPO epochs of an update over minibatches of whole kitchen sequences, in `orders` (`start_update`), each
-    minibatch taken by `step` (the loss, its gradient, the clipped Adam step: `trainers.runtime.minibatch_step`);
-    returns the update's metrics (`finish_update`). Draws nothing at random and sets no global mode, so that several
-    teams learn at once on threads (`trainers.runtime.UpdateRunner`).
-    Raises TrainingDiverged when a loss was NaN or infinite, with the weights and optimizer state put back as they
-    were before the update."""
-    restore_point = RestorePoint(team)
-    observations = batch_observations([team.actor_critic.actor, team.actor_critic.critic], batch.get(OBSERVATION))
-    stats = []
-    for order in orders:
-        for kitchens in order:
-            minibatch = select_kitchens(batch, kitchens)
-            if observations is not None:  # the sparse first layers' entries, found once per batch
-                observations.hand_to(minibatch.get(OBSERVATION), kitchens)
-            team.algorithm.process_minibatch(minibatch)
-            losses = step(minibatch)
-            stats.append({key: value.detach().float() for key, value in losses.items()})
-    return finish_update(team, batch, stats, restore_point)
+def update_teams(teams: Sequence[TrainingRun], batches: Sequence[TensorDictBase], orders: Sequence[list],
+                 runner: UpdateRunner) -> list[tuple[dict[str, float], float]]:
+    """Every team's update on its batch, in its minibatch `orders` (`start_update`): the PPO epochs of the teams as
+    the runtime has them learn (`learn`: each team on its own, on threads at once or not, or all as one stacked
+    step on a GPU), then each team's end of update in turn (`finish_update`). Returns each team's metrics and the
+    seconds its learning took. A team whose loss diverged is put back as it was before the update, checkpointed so
+    once the teams before it are done, and its error raised.
+
+    The modes that TorchRL's losses set while they run (recurrent mode, deterministic sampling) are process-wide;
+    set here around all the teams, the losses' own settings and restorings, interleaved on threads, agree.
+    """
+    restore_points = [RestorePoint(team) for team in teams]
+
+    def learn_teams(learner: Learner, indices: list[int]) -> tuple[list[list[Losses]], float]:
+        return learn(learner, [batches[index] for index in indices], [orders[index] for index in indices])
+
+    results = []
+    with set_recurrent_mode(True), set_exploration_type(teams[0].loss_module.deterministic_sampling_mode):
+        for indices, (stats, seconds) in zip(runner.indices, runner.map(learn_teams)):
+            for index, team_stats in zip(indices, stats):
+                try:
+                    metrics = finish_update(teams[index], batches[index], team_stats, restore_points[index])
+                except TrainingDiverged:
+                    teams[index].checkpoint()
+                    raise
+                results.append((metrics, seconds))
+    return results
+
+
+def learn(learner: Learner, batches: Sequence[TensorDictBase],
+          orders: Sequence[list[tuple[torch.Tensor, ...]]]) -> tuple[list[list[Losses]], float]:
+    """The PPO epochs of a learner's teams (a team, or several stacked) over minibatches of whole kitchen sequences,
+    in their `orders`, each minibatch taken by the learner's step (`trainers.ppo_step.ppo_step`: the losses, their
+    gradient, each team's clipped Adam step). Returns each team's losses by minibatch, on the device, and the
+    seconds they took. Draws nothing at random and sets no global mode, so that several learners run at once on
+    threads."""
+    started = time.perf_counter()
+    stats = [[] for _ in learner.teams]
+    for minibatch in learner.minibatches(batches, orders):
+        losses = learner.step(minibatch)
+        for index, team_stats in enumerate(stats):
+            team_stats.append({key: value[index].detach().float() for key, value in losses.items()})
+    return stats, time.perf_counter() - started
 
 
 def finish_update(team: TrainingRun, batch: TensorDictBase, stats: list[dict[str, torch.Tensor]],
@@ -274,7 +298,7 @@ def train_teams(
              for index, (config, run) in enumerate(zip(configs, runs))]
     env = with_model_transforms(kitchen, teams[0].actor_critic, *algorithm_transforms(teams))
     policy = acting_policy(lead, teams)
-    updates = UpdateRunner(lead, teams, learn, finish_update)
+    runner = UpdateRunner(lead, teams)
 
     # ---------------------------------------------------------------- resume or start fresh
     saved = resume_or_start(teams, resume)  # the collector's first reset hands out restored kitchens
@@ -306,7 +330,7 @@ def train_teams(
 
     # ---------------------------------------------------------------- training loop
     try:
-        with StopRequest() as stop, updates:
+        with StopRequest() as stop, runner:
             started = time.perf_counter()
             for batch in collector:
                 collected = time.perf_counter()
@@ -317,7 +341,7 @@ def train_teams(
                     with team.stream.active():
                         orders.append(start_update(team, team_batch))
                     prepare_seconds.append(time.perf_counter() - preparing)
-                learned = updates.update(batches, orders)
+                learned = update_teams(teams, batches, orders, runner)
                 policy.restack()
                 steps_per_second = batch.numel() / (time.perf_counter() - started)
                 asked = log_update(teams, learned, prepare_seconds, collected - started, steps_per_second, on_update)

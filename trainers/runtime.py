@@ -1,41 +1,46 @@
 """How the teams of one batch act and learn on this machine: the run options (`threads`, `parallel_teams`,
 `minibatch_shards`, `compile_policy`, `compile_update`, the device), which change how fast a run goes and never
-what it learns. The PPO loop (`trainers.ppo`) hands each team's update to an `UpdateRunner`; it runs them one
-after another, on threads at once, or (on a GPU) as one stacked computation, and each team's minibatch step as it
-is, split into shards on threads, or compiled.
+what it learns. Here are the run's device and speed choices: the networks' CPU kernels, the optimizer's set-up,
+the acting pass (`acting_policy`), and how the teams take their PPO steps (`UpdateRunner`, `Learner`): the step
+of `trainers.ppo_step`, written once, with its gradients on a whole minibatch, on shards on threads, or for several
+teams stacked (on a GPU), compiled or not.
 """
 
 from __future__ import annotations
 
 import functools
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING, TypeVar
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.envs.utils import set_exploration_type
-from torchrl.modules import set_recurrent_mode
 
+from torch_kitchen.cpu_kernels import accelerate_cpu, batch_observations
+from torch_kitchen.keys import OBSERVATION
 from torch_kitchen.teams import StackedLoss, TeamPolicy, stackable_acting
 from trainers.algorithms import ALGORITHMS
 from trainers.config import TrainConfig
 from trainers.machine import usable_cores
-from trainers.resume import TrainingDiverged
-from trainers.rollout import select_kitchens
-from trainers.training_run import (
-    RestorePoint,
-    TrainingRun,
-    apply_gradients,
-    gradient_for,
+from trainers.ppo_step import (
+    Gradients,
+    GradientsOf,
+    Losses,
+    loss_gradients,
     mean_over_shards,
-    shard_gradients,
+    ppo_step,
+    team_gradients,
     total_loss,
 )
+from trainers.rollout import select_kitchens
 
-Learn = Callable  # trainers.ppo.learn: (team, batch, orders, minibatch step) -> the update's metrics
-Finish = Callable  # trainers.ppo.finish_update: (team, batch, minibatch losses, restore point) -> its metrics
+if TYPE_CHECKING:
+    from torch_kitchen.models import ActorCritic
+    from trainers.training_run import TrainingRun
+
+T = TypeVar("T")
 
 
 def use_threads(config: TrainConfig) -> None:
@@ -57,6 +62,37 @@ def minibatch_shards(config: TrainConfig) -> int:
     return 2 if pays else 1
 
 
+def place_networks(config: TrainConfig, actor_critic: ActorCritic, own_kernels: bool) -> None:
+    """The team's networks on the run's device; on a CPU with `own_kernels` (networks built from the config, not a
+    user's own) their layers swapped for this project's faster CPU kernels (`accelerate_cpu`)."""
+    if own_kernels and torch.device(config.runtime.device).type == "cpu":
+        accelerate_cpu(actor_critic.actor, actor_critic.critic)
+    actor_critic.actor.to(config.runtime.device)
+    actor_critic.critic.to(config.runtime.device)
+
+
+def make_optimizer(config: TrainConfig, parameters: list[torch.nn.Parameter]) -> torch.optim.Adam:
+    """The team's Adam: with `compile_update` its learning rate a tensor, so that annealing it changes a value
+    rather than the compiled graph, and on a GPU its step counts on the device, as a CUDA graph needs; else fused,
+    one kernel for all parameters instead of a few per tensor (3x faster on a CPU at hidden 256)."""
+    if config.runtime.compile_update:
+        lr = torch.tensor(config.lr, device=config.runtime.device)
+        return torch.optim.Adam(parameters, lr=lr, eps=config.adam_eps, capturable=config.runtime.on_gpu)
+    return torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps, fused=True)
+
+
+def set_learning_rate(config: TrainConfig, optimizer: torch.optim.Optimizer, lr: float) -> None:
+    """The optimizer's learning rate for the next update: with `compile_update` written into the tensor the
+    compiled step reads (made again after resuming a run saved without it)."""
+    for group in optimizer.param_groups:
+        if config.runtime.compile_update:
+            if not isinstance(group["lr"], torch.Tensor):
+                group["lr"] = torch.tensor(lr, device=config.runtime.device)
+            group["lr"].fill_(lr)
+        else:
+            group["lr"] = lr
+
+
 def acting_policy(config: TrainConfig, teams: Sequence[TrainingRun]) -> TeamPolicy:
     """The teams' policies acting on their rows of the batch, each in its random stream: on a GPU as one stacked
     network where they allow it (compiled, replayed as CUDA graphs), on a CPU one after another; each compiled
@@ -70,15 +106,20 @@ def acting_policy(config: TrainConfig, teams: Sequence[TrainingRun]) -> TeamPoli
 
 def compile_step(step: Callable[[TensorDictBase], dict[str, torch.Tensor]],
                  device: str | torch.device) -> Callable[[TensorDictBase], dict[str, torch.Tensor]]:
-    """A minibatch step (`ppo_step`, `stacked_step`) compiled (`compile_update`). On a GPU in "reduce-overhead"
+    """A minibatch step (`ppo_step` with its gradients' form) compiled (`compile_update`): the losses and their
+    gradient one graph, the optimizer's step another. On a GPU in "reduce-overhead"
     mode, which replays the compiled graphs as CUDA graphs (a minibatch's launches at once); their outputs live in
     buffers that the next replay overwrites, and the update keeps every minibatch's losses, so these are copied
     out, all in one tensor."""
-    compiled = torch.compile(step, mode="reduce-overhead" if torch.device(device).type == "cuda" else None)
+    compiled = torch.compile(step, mode="reduce-overhead" if torch.device(device).type == "cuda" else None,
+                             dynamic=False)
 
     def run(minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
         torch.compiler.cudagraph_mark_step_begin()
-        losses = compiled(minibatch)
+        # The loss and its gradient traced as one graph (`torch.autograd.grad` would otherwise break it in two);
+        # torch's optimizer step breaks the graph around itself on purpose.
+        with torch._dynamo.config.patch(trace_autograd_ops=True):
+            losses = compiled(minibatch)
         copied = torch.cat([value.detach().reshape(-1) for value in losses.values()])
         parts = copied.split([value.numel() for value in losses.values()])
         return {key: part.view_as(value) for (key, value), part in zip(losses.items(), parts)}
@@ -94,7 +135,7 @@ def acts_stacked(config: TrainConfig, policies: Sequence[TensorDictModuleBase]) 
 
 
 def learns_stacked(config: TrainConfig, teams: Sequence[TrainingRun]) -> bool:
-    """Whether the teams' minibatch steps run as one (`stacked_update`): on a GPU, where several teams learn and
+    """Whether the teams' minibatch steps run as one (`stacked_gradients`): on a GPU, where several teams learn and
     their model and algorithm allow it (feed-forward with shared parameters, `Algorithm.stackable`); on a CPU each
     team learns on its own, with its sparse first layer, on threads where `parallel_teams`."""
     stackable = (config.share_params and not teams[0].actor_critic.recurrent and teams[0].algorithm.stackable
@@ -102,97 +143,71 @@ def learns_stacked(config: TrainConfig, teams: Sequence[TrainingRun]) -> bool:
     return config.runtime.on_gpu and len(teams) > 1 and stackable
 
 
-def stacked_update(teams: Sequence[TrainingRun]) -> Callable[[TensorDictBase], dict[str, torch.Tensor]]:
-    """The teams' minibatch step as one computation: `stacked_step` over their `StackedLoss`, compiled with
-    `compile_update` (on a GPU, replayed as CUDA graphs)."""
+def sharded_gradients(team: TrainingRun, shards: int, pool: ThreadPoolExecutor | None) -> GradientsOf:
+    """`team_gradients` as the mean of the minibatch's `shards` equal parts by kitchen (on `pool`'s threads at once
+    where given; one after the other gives the same numbers), the minibatch made ready as a whole first."""
+
+    def gradients_of(minibatch: TensorDictBase) -> tuple[Losses, Gradients]:
+        team.algorithm.process_minibatch(minibatch)
+        parts = minibatch.chunk(shards, dim=0)
+        run = pool.map if pool is not None and len(parts) > 1 else map
+        part_losses, part_gradients = zip(*run(functools.partial(loss_gradients, team), parts))
+        losses = {key: mean_over_shards([losses[key] for losses in part_losses]).unsqueeze(0)
+                  for key in part_losses[0]}
+        gradients = [None if by_part[0] is None else mean_over_shards(list(by_part)).unsqueeze(0)
+                     for by_part in zip(*part_gradients)]
+        return losses, gradients
+
+    return gradients_of
+
+
+def stacked_gradients(teams: Sequence[TrainingRun]) -> GradientsOf:
+    """`team_gradients` of K teams on their minibatches stacked along a team dim, as one computation: their losses
+    (`StackedLoss`, each team's own `process_minibatch` included) and one backward to their stacked parameters. The
+    gradient of the sum of the teams' losses is, in each team's entry of a stacked parameter, its own loss's."""
     loss = StackedLoss([team.loss_module for team in teams], teams[0].algorithm.process_minibatch)
-    step = functools.partial(stacked_step, teams, loss)
-    return compile_step(step, teams[0].config.runtime.device) if teams[0].config.runtime.compile_update else step
+
+    def gradients_of(minibatches: TensorDictBase) -> tuple[Losses, Gradients]:
+        parameters = loss.parameters()
+        losses = loss(minibatches, parameters)
+        gradients = torch.autograd.grad(total_loss(losses).sum(), list(parameters.values()), allow_unused=True)
+        return {key: value.detach() for key, value in losses.items()}, list(gradients)
+
+    return gradients_of
 
 
-def minibatch_step(team: TrainingRun, minibatch: TensorDictBase,
-                   pool: ThreadPoolExecutor | None) -> dict[str, torch.Tensor]:
-    """One PPO step on a minibatch: the mean of its shards' losses and gradients (`minibatch_shards` equal parts
-    by kitchen, on `pool`'s threads at once where given; one after the other gives the same numbers), clipped
-    and applied; returns the losses. Reads nothing back from the device: whether the losses were finite is the
-    caller's to check (`learn`, once per update)."""
-    if team.compiled_step is not None:
-        return team.compiled_step(minibatch)
-    if minibatch_shards(team.config) == 1:
-        return ppo_step(team, minibatch)
-    shards = minibatch.chunk(minibatch_shards(team.config), dim=0)
-    run = pool.map if pool is not None and len(shards) > 1 else map
-    shard_losses, gradients_by_shard = zip(*run(functools.partial(shard_gradients, team), shards))
-    losses = {key: mean_over_shards([losses[key] for losses in shard_losses]) for key in shard_losses[0]}
-    for parameter, gradients in zip(team.parameters, zip(*gradients_by_shard)):
-        parameter.grad = gradient_for(parameter, list(gradients))
-    losses["grad_norm"] = apply_gradients(team)
-    return losses
+class Learner:
+    """Teams that take each PPO step as one (`ppo_step`): a team alone, or on a GPU several teams stacked
+    (`learns_stacked`). Their gradients come in the form the run options ask (a whole minibatch, shards on
+    threads, or the teams stacked), and the step is compiled with `compile_update`."""
 
+    def __init__(self, config: TrainConfig, teams: Sequence[TrainingRun], pool: ThreadPoolExecutor | None = None):
+        self.teams = list(teams)
+        shards = minibatch_shards(config)
+        if len(self.teams) > 1:
+            gradients_of = stacked_gradients(self.teams)
+        elif shards > 1:
+            gradients_of = sharded_gradients(self.teams[0], shards, pool)
+        else:
+            gradients_of = functools.partial(team_gradients, self.teams[0])
+        step = functools.partial(ppo_step, self.teams, gradients_of)
+        self.step = compile_step(step, config.runtime.device) if config.runtime.compile_update else step
 
-def ppo_step(team: TrainingRun, minibatch: TensorDictBase) -> dict[str, torch.Tensor]:
-    """The PPO step of one team on a minibatch, written once: the loss, its backward, the clipping and the Adam step,
-    with nothing read back on the host; returns the losses. `minibatch_step` runs it as it is, or compiled
-    (`compile_update`, `compile_step` around it); a minibatch split into shards on a CPU's threads, or the teams
-    stacked on a GPU (`stacked_step`), are its other forms."""
-    for parameter in team.parameters:  # what `optimizer.zero_grad()` does, which compiled graphs stop at
-        parameter.grad = None
-    losses = {**team.loss_module(minibatch), **team.algorithm.auxiliary_losses(minibatch)}
-    total_loss(losses).backward()
-    losses["grad_norm"] = apply_gradients(team)
-    return losses
-
-
-def learn_stacked(teams: Sequence[TrainingRun], step: Callable[[TensorDictBase], dict[str, torch.Tensor]],
-                  batches: Sequence[TensorDictBase],
-                  orders: Sequence[list[tuple[torch.Tensor, ...]]]) -> list[list[dict[str, torch.Tensor]]]:
-    """The PPO epochs of K teams' updates as one: each minibatch of all teams (team k's kitchens in its own order),
-    stacked along a team dim, goes through `step` (`stacked_step`). Returns each team's losses by minibatch, on the
-    device, for `finish_update`."""
-    stats = [[] for _ in teams]
-    for kitchens_by_team in zip(*[[kitchens for order in team_orders for kitchens in order]
-                                  for team_orders in orders]):
-        minibatches = torch.stack([select_kitchens(batch, kitchens)
-                                   for batch, kitchens in zip(batches, kitchens_by_team)])
-        losses = step(minibatches)
-        for index, team_stats in enumerate(stats):
-            team_stats.append({key: value[index].detach().float() for key, value in losses.items()})
-    return stats
-
-
-def stacked_step(teams: Sequence[TrainingRun], loss: StackedLoss,
-                 minibatches: TensorDictBase) -> dict[str, torch.Tensor]:
-    """`ppo_step` of K teams at once on their minibatches [K, ...]: one loss (`StackedLoss`, the algorithm's
-    `process_minibatch` included) and one backward to the teams' stacked parameters, each team's gradient zeroed
-    where not finite and clipped to its own norm there (`clip_per_team`), then each team's Adam step; returns the
-    losses, [K] each."""
-    parameters = loss.parameters()
-    losses = loss(minibatches, parameters)
-    # The sum of the teams' losses: the gradient of each team's entry of a stacked parameter is its own loss's.
-    gradients = torch.autograd.grad(total_loss(losses).sum(), list(parameters.values()), allow_unused=True)
-    used = [index for index, gradient in enumerate(gradients) if gradient is not None]
-    clipped, losses["grad_norm"] = clip_per_team([gradients[index] for index in used], teams[0].config.max_grad_norm)
-    gradients = list(gradients)
-    for index, gradient in zip(used, clipped):
-        gradients[index] = gradient
-    for index, team in enumerate(teams):
-        for parameter, gradient in zip(team.parameters, gradients, strict=True):
-            parameter.grad = None if gradient is None else gradient_for(parameter, [gradient[index]])
-        team.optimizer.step()
-        for parameter in team.parameters:
-            parameter.grad = None
-    return losses
-
-
-def clip_per_team(gradients: list[torch.Tensor], max_norm: float) -> tuple[list[torch.Tensor], torch.Tensor]:
-    """What `apply_gradients` does to one team's gradients before its Adam step, for K teams' gradients stacked
-    along a leading team dim: non-finite entries zeroed, then each team's clipped to `max_norm` by their joint norm
-    (as `clip_grad_norm_`). Returns the clipped gradients, new tensors (in-place writes into autograd's outputs keep
-    Inductor from replaying the step as a CUDA graph), and the K norms before clipping."""
-    gradients = [gradient.nan_to_num(0.0, 0.0, 0.0) for gradient in gradients]
-    norms = torch.stack([gradient.flatten(1).norm(dim=1) for gradient in gradients]).norm(dim=0)
-    scale = (max_norm / (norms + 1e-6)).clamp(max=1.0)
-    return [gradient * scale.view(-1, *[1] * (gradient.dim() - 1)) for gradient in gradients], norms
+    def minibatches(self, batches: Sequence[TensorDictBase],
+                    orders: Sequence[list[tuple[torch.Tensor, ...]]]) -> Iterator[TensorDictBase]:
+        """The minibatches of the teams' PPO epochs over their batches, in their `orders` (`start_update`): a
+        team's kitchens, or the teams' stacked along a team dim, minibatch i of every team together. A team alone
+        on a CPU hands each minibatch its sparse first layers' entries, found once per batch."""
+        found = None
+        if len(self.teams) == 1:
+            networks = [self.teams[0].actor_critic.actor, self.teams[0].actor_critic.critic]
+            found = batch_observations(networks, batches[0].get(OBSERVATION))
+        for kitchens_by_team in zip(*[[kitchens for order in team_orders for kitchens in order]
+                                      for team_orders in orders]):
+            minibatches = [select_kitchens(batch, kitchens) for batch, kitchens in zip(batches, kitchens_by_team)]
+            if found is not None:
+                found.hand_to(minibatches[0].get(OBSERVATION), kitchens_by_team[0])
+            yield minibatches[0] if len(minibatches) == 1 else torch.stack(minibatches)
 
 
 class ShardPool(ThreadPoolExecutor):
@@ -236,68 +251,37 @@ def learning_pool(config: TrainConfig, num_teams: int) -> ThreadPoolExecutor | N
 
 
 class UpdateRunner:
-    """Runs the teams' updates of each batch (`learn`, the PPO epochs of one team, and `finish`, the end of its
-    update) as the run options ask: all teams as one stacked computation (`stacked_update`), one after another,
-    or on `parallel_teams` threads at once; a single team's minibatches split into `minibatch_shards` on threads,
-    or compiled (`compile_update`). Every way gives each team the update it would have alone. A context manager:
-    its threads live while it is entered."""
+    """How the teams of a batch learn on this machine: as `Learner`s (all teams stacked as one on a GPU, where
+    they allow it, else each team on its own), one after another, or on `parallel_teams` threads at once; a team
+    alone has its minibatches' shards on threads (`minibatch_shards`). Every way gives each team the update it
+    would have alone. A context manager: its threads live while it is entered."""
 
-    def __init__(self, config: TrainConfig, teams: Sequence[TrainingRun], learn: Learn, finish: Finish):
-        self.config, self.teams, self.learn, self.finish = config, list(teams), learn, finish
-        self.stacked = stacked_update(teams) if learns_stacked(config, teams) else None
-        if config.runtime.compile_update and self.stacked is None:
-            for team in teams:
-                team.compiled_step = compile_step(functools.partial(ppo_step, team), config.runtime.device)
+    def __init__(self, config: TrainConfig, teams: Sequence[TrainingRun]):
+        self.config, self.teams = config, list(teams)
         self.pool: ThreadPoolExecutor | None = None
+        self.learners: list[Learner] = []
+        self.indices: list[list[int]] = []  # per learner, its teams' places among the teams
 
     def __enter__(self) -> UpdateRunner:
         self.pool = learning_pool(self.config, len(self.teams))
+        if learns_stacked(self.config, self.teams):
+            self.learners, self.indices = [Learner(self.config, self.teams)], [list(range(len(self.teams)))]
+        else:
+            shard_pool = self.pool if len(self.teams) == 1 else None
+            self.learners = [Learner(self.config, [team], shard_pool) for team in self.teams]
+            self.indices = [[index] for index in range(len(self.teams))]
         return self
 
     def __exit__(self, *exc) -> None:
         if self.pool is not None:
             self.pool.shutdown()
-        self.pool = None
+        self.pool, self.learners, self.indices = None, [], []
 
-    def update(self, batches: Sequence[TensorDictBase], orders: Sequence[list]) -> list[tuple[dict[str, float], float]]:
-        """Every team's update on its batch in its minibatch `orders`; returns each team's metrics and seconds. A
-        team whose loss diverged is checkpointed with its last good weights once the teams before it are done, and
-        its error raised.
-
-        The modes that TorchRL's losses set while they run (recurrent mode, deterministic sampling) are
-        process-wide; set here around all the teams, the losses' own settings and restorings, interleaved on
-        threads, agree.
-        """
-        teams, pool = self.teams, self.pool
-
-        def timed_learn(team, batch, team_orders, shard_pool=None):
-            started = time.perf_counter()
-            metrics = self.learn(team, batch, team_orders, functools.partial(minibatch_step, team, pool=shard_pool))
-            return metrics, time.perf_counter() - started
-
-        def timed_finish(team, batch, team_stats, restore_point, seconds):
-            return self.finish(team, batch, team_stats, restore_point), seconds
-
-        with set_recurrent_mode(True), set_exploration_type(teams[0].loss_module.deterministic_sampling_mode):
-            arguments = list(zip(teams, batches, orders))
-            if self.stacked is not None:
-                started = time.perf_counter()
-                restore_points = [RestorePoint(team) for team in teams]
-                stats = learn_stacked(teams, self.stacked, batches, orders)
-                seconds = time.perf_counter() - started  # the teams' one update
-                pending = [functools.partial(timed_finish, *team_arguments, seconds)
-                           for team_arguments in zip(teams, batches, stats, restore_points)]
-            elif len(teams) == 1:
-                pending = [functools.partial(timed_learn, *arguments[0], pool)]
-            elif pool is None:  # each team learns when its result is asked for
-                pending = [functools.partial(timed_learn, *team_arguments) for team_arguments in arguments]
-            else:
-                pending = [pool.submit(timed_learn, *team_arguments).result for team_arguments in arguments]
-            results = []
-            for team, result in zip(teams, pending):
-                try:
-                    results.append(result())
-                except TrainingDiverged:
-                    team.checkpoint()
-                    raise
-        return results
+    def map(self, learn: Callable[[Learner, list[int]], T]) -> Iterator[T]:
+        """`learn(learner, its teams' places)` of every learner, in order: on the teams' threads at once where
+        there are several, else each when its result is asked for."""
+        calls = [functools.partial(learn, learner, indices) for learner, indices in zip(self.learners, self.indices)]
+        if self.pool is None or len(calls) == 1:
+            return (call() for call in calls)
+        futures = [self.pool.submit(call) for call in calls]
+        return (future.result() for future in futures)

@@ -1,23 +1,21 @@
 """A seed's run as it trains (`TrainingRun`): its kitchens, networks, algorithm, TorchRL loss and optimizer,
-built in the team's own random stream, and what it does with a minibatch's losses: their gradients, the clipped
-Adam step, and the restore point an update that diverged goes back to. The PPO loop (`trainers.ppo`) drives
-the runs; `trainers.runtime` decides how several of them share the machine."""
+built in the team's own random stream, its checkpoint, and the restore point an update that diverged goes back
+to. The PPO loop (`trainers.ppo`) drives the runs; their step is `trainers.ppo_step`'s; `trainers.runtime` places
+them on the machine and decides how several of them share it."""
 
 from __future__ import annotations
 
 import copy
 import dataclasses
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import torch
-from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
 from torchrl.envs import Transform
 from torchrl.objectives import ClipPPOLoss
 from torchrl.record.loggers import Logger
 
-from torch_kitchen.cpu_kernels import accelerate_cpu
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.keys import ACTION, ADVANTAGE, LOG_PROB, VALUE, VALUE_TARGET
 from torch_kitchen.models import ActorCritic, make_actor_critic
@@ -26,6 +24,7 @@ from torch_kitchen.torchrl_internals import entropy_without_host_check, hold_val
 from trainers.algorithms import ALGORITHMS, Algorithm, check_algorithm
 from trainers.checkpoint import LATEST, capture_rng_states, model_identity, save_checkpoint
 from trainers.config import ConfigError, TrainConfig
+from trainers.runtime import make_optimizer, place_networks
 
 
 def make_env(config: TrainConfig, num_envs: int | None = None, levels=None,
@@ -75,12 +74,6 @@ def make_loss(config: TrainConfig, actor_critic: ActorCritic, algorithm: Algorit
     return loss
 
 
-def total_loss(losses: dict[str, torch.Tensor]) -> torch.Tensor:
-    """The sum of the "loss_*" terms (TorchRL's convention: each already weighted by its coefficient)."""
-    return sum(value for key, value in losses.items() if key.startswith("loss_"))
-
-
-
 class TeamKitchens:
     """A team's rows of the shared `KitchenEnv`, checkpointed as `env.state_dict()` of a run of its own."""
 
@@ -114,22 +107,10 @@ class TrainingRun:
     update: int = 0
     env_steps: int = 0
     loggers: list[Logger] = dataclasses.field(default_factory=list)
-    compiled_step: Callable | None = None  # its minibatch step compiled (`trainers.runtime`, `compile_update`)
 
     @property
     def checkpoint_path(self) -> Path:
         return self.run / "checkpoints" / LATEST
-
-    def set_learning_rate(self, lr: float) -> None:
-        """The optimizer's learning rate for the next update: with `compile_update` a tensor the compiled step
-        reads (also after resuming a run saved without it), so that annealing changes a value, not the graph."""
-        for group in self.optimizer.param_groups:
-            if self.config.runtime.compile_update:
-                if not isinstance(group["lr"], torch.Tensor):
-                    group["lr"] = torch.tensor(lr, device=self.config.runtime.device)
-                group["lr"].fill_(lr)
-            else:
-                group["lr"] = lr
 
     def checkpoint(self) -> None:
         with self.stream.active():
@@ -158,30 +139,22 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
     stream = RandomStream(config.seed, config.runtime.device)
     obs_shape = kitchen.kitchen.obs_shape
     with stream.active():
-        if actor_critic is None:
+        own_networks = actor_critic is None
+        if own_networks:
             actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
-            if torch.device(config.runtime.device).type == "cpu":
-                accelerate_cpu(actor_critic.actor, actor_critic.critic)
-        actor, critic = actor_critic.actor.to(config.runtime.device), actor_critic.critic.to(config.runtime.device)
+        place_networks(config, actor_critic, own_kernels=own_networks)
         algorithm = make_algorithm(config, actor_critic)
         # The critic runs while acting: its values feed GAE.
         policy = actor_critic.acting_policy(*algorithm.acting_modules())
         loss_module = make_loss(config, actor_critic, algorithm)
         parameters = [*loss_module.parameters(), *algorithm.parameters()]
-        if config.runtime.compile_update:
-            # The learning rate a tensor, so that annealing it changes a value rather than the compiled graph; on a
-            # GPU, Adam keeps its step counts on the device, as a CUDA graph needs.
-            device = config.runtime.device
-            optimizer = torch.optim.Adam(parameters, lr=torch.tensor(config.lr, device=device),
-                                         eps=config.adam_eps, capturable=config.runtime.on_gpu)
-        else:
-            # Fused: one kernel for all parameters instead of a few per tensor (3x faster on a CPU at hidden 256).
-            optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps, fused=True)
+        optimizer = make_optimizer(config, parameters)
     team = TrainingRun(
         config=config, run=run, stream=stream, actor_critic=actor_critic, algorithm=algorithm, policy=policy,
         loss_module=loss_module, optimizer=optimizer, parameters=parameters,
         identity=model_identity(config.architecture, obs_shape, config.hidden, config.share_params),
-        parts={"actor": actor, "critic": critic, "optimizer": optimizer, "env": TeamKitchens(kitchen, index)},
+        parts={"actor": actor_critic.actor, "critic": actor_critic.critic, "optimizer": optimizer,
+               "env": TeamKitchens(kitchen, index)},
     )  # fmt: skip
     return team
 
@@ -192,40 +165,6 @@ def algorithm_transforms(teams: list[TrainingRun]) -> list[Transform]:
         return teams[0].algorithm.env_transforms()
     per_team = [team.algorithm.env_transforms() for team in teams]
     return [TeamTransform(transforms, teams[0].config.num_envs) for transforms in zip(*per_team)]
-
-
-def shard_gradients(team: TrainingRun, shard: TensorDictBase) -> tuple[dict[str, torch.Tensor], list]:
-    """The losses of one shard of a minibatch and the gradient of their total for each of the team's parameters
-    (None where a parameter does not take part)."""
-    losses = {**team.loss_module(shard), **team.algorithm.auxiliary_losses(shard)}
-    gradients = torch.autograd.grad(total_loss(losses), team.parameters, allow_unused=True)
-    return losses, list(gradients)
-
-
-def mean_over_shards(values: list[torch.Tensor]) -> torch.Tensor:
-    return values[0] if len(values) == 1 else torch.stack(values).mean(0)
-
-
-def gradient_for(parameter: torch.nn.Parameter, gradients: list[torch.Tensor | None]) -> torch.Tensor | None:
-    """The mean of the shards' gradients of `parameter`, laid out in memory as the parameter is: fused Adam reads
-    a parameter and its gradient element by element in memory order (backward() would lay it out so too)."""
-    if gradients[0] is None:
-        return None
-    gradient = mean_over_shards(gradients)
-    return gradient if gradient.stride() == parameter.stride() else torch.empty_like(parameter).copy_(gradient)
-
-
-def apply_gradients(team: TrainingRun) -> torch.Tensor:
-    """The Adam step on the gradients held by the team's parameters, clipped to `max_grad_norm`; returns their norm
-    before clipping. A non-finite gradient is zeroed first: a diverged minibatch must leave the weights finite until
-    the update's end undoes it (`learn`), since NaN weights would make the next minibatch's sampling fail (or assert
-    on a GPU) before the check could say why."""
-    for parameter in team.parameters:
-        if parameter.grad is not None:
-            parameter.grad.nan_to_num_(0.0, 0.0, 0.0)
-    grad_norm = torch.nn.utils.clip_grad_norm_(team.parameters, team.config.max_grad_norm)
-    team.optimizer.step()
-    return grad_norm
 
 
 class RestorePoint:

@@ -15,7 +15,7 @@ from torch_kitchen.onednn_linear import device_path
 from torch_kitchen.op_audit import OpAudit
 from trainers.ppo import train
 from trainers.rollout import make_collector
-from trainers.runtime import acting_policy, minibatch_step
+from trainers.runtime import Learner, acting_policy
 from trainers.training_run import build_team, make_env
 
 
@@ -50,8 +50,8 @@ def test_a_compiled_minibatch_step_is_the_eager_one_to_float_rounding(tmp_path):
     for mine, theirs in zip(compiled.parameters, eager.parameters):
         assert torch.equal(mine, theirs)  # the same seed builds the same weights
     with device_path(), set_recurrent_mode(True), set_exploration_type(ExplorationType.RANDOM):
-        eager_losses = minibatch_step(eager, minibatch.clone(), None)
-        compiled_losses = minibatch_step(compiled, minibatch.clone(), None)
+        eager_losses = Learner(eager.config, [eager]).step(minibatch.clone())
+        compiled_losses = Learner(compiled_config, [compiled]).step(minibatch.clone())
     for key in ("loss_objective", "loss_critic", "loss_entropy", "grad_norm"):
         torch.testing.assert_close(compiled_losses[key], eager_losses[key], rtol=1e-5, atol=1e-6, msg=key)
     moved = 0
@@ -63,10 +63,11 @@ def test_a_compiled_minibatch_step_is_the_eager_one_to_float_rounding(tmp_path):
 
 
 def test_compiled_training_recompiles_nothing_as_the_learning_rate_and_shaping_anneal(tmp_path):
-    """Graph breaks only where torch itself puts them (backward(), inside the optimizer's step); the annealed
-    learning rate is a tensor and the shaping weight acts outside the step, so no update after the first compiles."""
+    """Graph breaks only where torch itself puts them (around the optimizer's step): the loss and its gradient are
+    one graph; the annealed learning rate is a tensor and the shaping weight acts outside the step, so no update
+    after the first compiles. With one network per agent (the SK configs'), which TorchRL runs under vmap."""
     config = tiny_config(tmp_path, "runtime.compile_update=true", "anneal_lr=true", "shaping_weight=1",
-                         "shaping_anneal_steps=200", updates=4)
+                         "shaping_anneal_steps=200", "share_params=false", updates=4)
     torch._dynamo.reset()
     counters.clear()
     graphs, rates = [], []
@@ -78,11 +79,9 @@ def test_compiled_training_recompiles_nothing_as_the_learning_rate_and_shaping_a
     train(config, on_update=on_update)
     assert len(set(rates)) == 4 and graphs[0] > 0
     assert graphs == [graphs[0]] * 4, graphs
-    reasons = " ".join(counters["graph_break"])
-    allowed = ("Tensor.backward()", "Called `torch._dynamo.graph_break()`")
+    assert counters["graph_break"], "the optimizer's own breaks are expected"
     for reason in counters["graph_break"]:
-        assert any(text in reason for text in allowed), reason
-    assert "Tensor.backward()" in reasons
+        assert "Called `torch._dynamo.graph_break()`" in reason, reason
 
 
 def test_a_collection_step_and_a_minibatch_make_the_host_wait_for_nothing(tmp_path):
@@ -101,19 +100,18 @@ def test_a_collection_step_and_a_minibatch_make_the_host_wait_for_nothing(tmp_pa
         collector.shutdown()
         team, minibatch = team_and_minibatch(tiny_config(tmp_path / "update"), tmp_path / "update")
         with set_recurrent_mode(True), set_interaction_type(team.loss_module.deterministic_sampling_mode):
-            minibatch_step(team, minibatch.clone(), None)  # builds Adam's state
+            learner = Learner(team.config, [team])
+            learner.step(minibatch.clone())  # builds Adam's state
             with OpAudit() as update:
-                minibatch_step(team, minibatch.clone(), None)
+                learner.step(minibatch.clone())
     assert collection.launches > 0 and collection.syncs == 0, collection.summary()
     assert update.launches > 0 and update.syncs == 0 and update.host_tensors == 0, update.summary()
 
 
 @pytest.mark.slow
 def test_the_teams_stacked_step_compiles_to_the_eager_one_and_launches_fewer_kernels_than_two_teams(tmp_path):
-    """Three teams' minibatch step as one (`stacked_update`, the GPU's way), eager and compiled, moves every team's
-    weights as the other does; eager, it launches fewer kernels than two teams' steps one after another."""
-    from trainers.runtime import stacked_update
-
+    """Three teams' minibatch step as one (`stacked_gradients`, the GPU's way), eager and compiled, moves every
+    team's weights as the other does; eager, it launches fewer kernels than two teams' steps one after another."""
     def teams_and_minibatches(name, *overrides):
         return zip(*[team_and_minibatch(tiny_config(tmp_path / name / str(seed), f"seed={seed}", *overrides),
                                         tmp_path / name / str(seed)) for seed in range(3)])
@@ -124,8 +122,9 @@ def test_the_teams_stacked_step_compiles_to_the_eager_one_and_launches_fewer_ker
     minibatches = torch.stack(minibatches)
     torch._dynamo.reset()
     with device_path(), set_recurrent_mode(True):
-        eager_losses = stacked_update(eager_teams)(minibatches.clone())
-        compiled_losses = stacked_update(compiled_teams)(minibatches.clone())
+        eager_step = Learner(eager_teams[0].config, eager_teams).step
+        eager_losses = eager_step(minibatches.clone())
+        compiled_losses = Learner(compiled_teams[0].config, compiled_teams).step(minibatches.clone())
         for key in ("loss_objective", "loss_critic", "loss_entropy", "grad_norm"):
             assert compiled_losses[key].shape == (3,)
             torch.testing.assert_close(compiled_losses[key], eager_losses[key], rtol=1e-5, atol=1e-6, msg=key)
@@ -134,12 +133,10 @@ def test_the_teams_stacked_step_compiles_to_the_eager_one_and_launches_fewer_ker
                 torch.testing.assert_close(mine, theirs, rtol=1e-5, atol=1e-6)
 
         with OpAudit() as stacked:
-            stacked_update(eager_teams)(minibatches.clone())
+            eager_step(minibatches.clone())
         with OpAudit() as apart:
             for team, minibatch in zip(apart_teams, minibatches):
-                minibatch = minibatch.clone()
-                team.algorithm.process_minibatch(minibatch)
-                minibatch_step(team, minibatch, None)
+                Learner(team.config, [team]).step(minibatch.clone())
     # The loss's and backward's kernels once for all teams; per team its clipping and Adam step.
     assert stacked.syncs == 0 and stacked.launches < 2 * apart.launches / 3, (stacked.summary(), apart.summary())
 

@@ -1,6 +1,6 @@
 import copy
 import csv
-import dataclasses
+import functools
 import signal
 import subprocess
 import sys
@@ -19,6 +19,7 @@ from torchrl.envs.utils import set_exploration_type
 from torchrl.modules import set_recurrent_mode
 
 import trainers.ppo
+import trainers.ppo_step
 import trainers.rollout
 import trainers.training_run
 from jax_env import EXPANDED_LAYOUTS
@@ -34,8 +35,9 @@ from trainers.config import TrainConfig
 from trainers.evaluate import load_team
 from trainers.figures import read_scalar
 from trainers.ppo import train
+from trainers.ppo_step import team_gradients
 from trainers.rollout import make_collector
-from trainers.runtime import minibatch_step
+from trainers.runtime import Learner, sharded_gradients
 from trainers.train_command import main
 from trainers.training_run import build_team, make_algorithm, make_env, make_loss, with_model_transforms
 
@@ -483,20 +485,26 @@ def team_and_minibatch(config, tmp_path):
 
 
 @pytest.mark.parametrize("architecture", ["mlp", "gnn"])
-def test_a_minibatch_step_moves_the_weights_as_backward_clipping_and_plain_adam_do(tmp_path, architecture):
-    config = tiny_config(tmp_path, f"architecture={architecture}", "shaping_weight=1", "lr=1e-3")
+def test_a_ppo_step_moves_the_weights_bit_for_bit_as_backward_clipping_and_fused_adam_do(tmp_path, architecture):
+    """The step written once for K teams (`ppo_step`, a team dim of 1 here) is what a team's step was before it:
+    backward(), `clip_grad_norm_` and its fused Adam."""
+    config = tiny_config(tmp_path, f"architecture={architecture}", "shaping_weight=1", "lr=1e-3", "max_grad_norm=0.01")
     team, minibatch = team_and_minibatch(config, tmp_path)
     reference = copy.deepcopy(team.loss_module)
     parameters = list(reference.parameters())
     assert [p.shape for p in parameters] == [p.shape for p in team.parameters]
-    optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps, foreach=False)
+    optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps, fused=True)
+    theirs = minibatch.clone()
+    team.algorithm.process_minibatch(theirs)  # as the step does
     with set_recurrent_mode(True):
-        trainers.training_run.total_loss(reference(minibatch)).backward()
-        minibatch_step(team, minibatch, pool=None)
-    torch.nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
+        trainers.ppo_step.total_loss(reference(theirs)).backward()
+        losses = Learner(config, [team]).step(minibatch.clone())
+    norm = torch.nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
     optimizer.step()
+    assert losses["grad_norm"].shape == (1,) and torch.equal(losses["grad_norm"][0], norm) and norm > 0.01
     for ours, theirs in zip(team.parameters, parameters):
-        torch.testing.assert_close(ours.detach(), theirs.detach(), rtol=1e-5, atol=1e-6)
+        assert torch.equal(ours.detach(), theirs.detach())
+        assert ours.grad is None  # let go after the step
 
 
 @pytest.mark.parametrize("overrides", [
@@ -505,30 +513,29 @@ def test_a_minibatch_step_moves_the_weights_as_backward_clipping_and_plain_adam_
     ["architecture=gnn"],
 ], ids=["mlp", "lstm-per-agent", "gnn"])
 def test_a_minibatch_in_shards_has_the_losses_and_gradient_of_the_whole_on_threads_or_not(tmp_path, overrides):
-    config = tiny_config(tmp_path, *overrides, "shaping_weight=1", "max_grad_norm=1e6")
+    config = tiny_config(tmp_path, *overrides, "shaping_weight=1")
     team, minibatch = team_and_minibatch(config, tmp_path)
-    team.optimizer.step = lambda: None  # the gradient is what is compared
 
-    def step(shards, pool=None):
-        team.config = dataclasses.replace(config, runtime=dataclasses.replace(config.runtime, minibatch_shards=shards))
-        # As `learn_teams` does: the losses' own mode settings, interleaved on threads, then agree, and the
+    def gradients(gradients_of):
+        # As `update_teams` does: the losses' own mode settings, interleaved on threads, then agree, and the
         # process's mode is left as it was.
         with set_recurrent_mode(True), set_exploration_type(team.loss_module.deterministic_sampling_mode):
-            losses = minibatch_step(team, minibatch, pool)
-        return losses, [parameter.grad.clone() for parameter in team.parameters]
+            return gradients_of(minibatch.clone())
 
-    whole_losses, whole = step(1)
-    sequential_losses, sequential = step(4)
+    whole_losses, whole = gradients(functools.partial(team_gradients, team))
+    sequential_losses, sequential = gradients(sharded_gradients(team, 4, None))
     with ThreadPoolExecutor(4) as pool:
-        threaded_losses, threaded = step(4, pool)
+        threaded_losses, threaded = gradients(sharded_gradients(team, 4, pool))
     for name, value in whole_losses.items():
-        if name.startswith("loss_") or name in ("entropy", "grad_norm"):
+        if name.startswith("loss_") or name == "entropy":
+            assert sequential_losses[name].shape == (1,)
             torch.testing.assert_close(sequential_losses[name], value, rtol=1e-5, atol=1e-6, msg=name)
     for shards, gradient in zip(sequential, whole):
         torch.testing.assert_close(shards, gradient, rtol=1e-4, atol=1e-6)
     for name in sequential_losses:  # on threads at once: the same numbers, bit for bit
         assert torch.equal(threaded_losses[name], sequential_losses[name]), name
-    assert all(torch.equal(a, b) for a, b in zip(threaded, sequential))
+    for shards, on_threads in zip(sequential, threaded):
+        assert torch.equal(shards, on_threads)
 
 
 def test_one_standardiser_pools_every_transition_or_those_asked_for_without_reading_the_host():

@@ -246,7 +246,7 @@ def test_a_stacked_loss_gives_each_team_its_own_losses_and_gradients(tmp_path, a
     from torchrl.modules import set_recurrent_mode
 
     from torch_kitchen.teams import StackedLoss
-    from trainers.training_run import total_loss
+    from trainers.ppo_step import total_loss
 
     teams, minibatches = zip(*[team_and_minibatch(tiny_config(tmp_path / str(seed), f"seed={seed}",
                                                               f"architecture={architecture}"), tmp_path / str(seed))
@@ -352,11 +352,11 @@ def test_a_collector_keeps_every_step_of_stacked_networks_whose_outputs_share_on
 
 
 def test_clipping_per_team_on_stacked_gradients_is_clip_grad_norm_of_each_team():
-    from trainers.runtime import clip_per_team
+    from trainers.ppo_step import clip_per_team
 
     torch.manual_seed(0)
     stacked = [torch.randn(3, 4, 5), torch.randn(3, 5) * 0.01, torch.randn(3, 2)]
-    stacked[0][1, 2, 3] = float("nan")  # team 1's: zeroed first, as apply_gradients does
+    stacked[0][1, 2, 3] = float("nan")  # team 1's: zeroed first
     teams = [[gradient[team].clone().nan_to_num_(0.0, 0.0, 0.0) for gradient in stacked] for team in range(3)]
     given = [gradient.clone() for gradient in stacked]
     clipped, norms = clip_per_team(stacked, max_norm=0.5)
