@@ -21,7 +21,7 @@ import torch
 
 from jax_env.human_games import LAYOUTS, load_dataset
 from jax_env.observation import Channel
-from torch_kitchen.models import OBSERVATION
+from torch_kitchen.keys import OBSERVATION
 from trainers.behaviour_cloning import human_batch, play_together
 from trainers.evaluate import load_team
 from trainers.humans import DATA

@@ -10,7 +10,7 @@ It reproduces our IPPO's semantics, read off `trainers/ppo.py`, `trainers/config
 
 - both agents' transitions are trained; one network for both agents (`share_params`) or one per agent (stacked
   parameters, vmapped over the agent axis, like TorchRL's `MultiAgentNetBase`);
-- actor and critic are separate torsos of OUR "mlp" architecture (`torch_kitchen/models.py`): flatten the
+- actor and critic are separate torsos of OUR "mlp" architecture (`torch_kitchen/models/`): flatten the
   uint8 observation H*W*26 as float -> 3 x (Linear(h) + ReLU) -> Linear(6 logits | 1 value), orthogonal init
   with gains sqrt(2) (hidden), 0.01 (policy), 1.0 (value), zero biases. JaxMARL's own IPPO for Overcooked has
   2 x 64 tanh layers; we match our network, not theirs;

@@ -1,6 +1,6 @@
 """Kernel launches and host synchronisations per env step, per GAE and per PPO minibatch, counted on any device.
 
-Counts what the trainer's device path dispatches (`torch_kitchen.op_audit.OpAudit`; on a CPU the layers are held
+Counts what the trainer's device path dispatches (`benchmarks/op_audit.py`'s `OpAudit`; on a CPU the layers are held
 to the products a GPU runs, `torch_kitchen.onednn_linear.device_path`): one batch of collection through TorchRL's
 collector (divided by its steps), the advantages of that batch, and one PPO minibatch (loss, backward, clipping,
 Adam step), for 1 team and for K teams in one batch, one after another and stacked (the "advantages" row at 8
@@ -18,10 +18,11 @@ import tempfile
 
 import torch
 from jax_ppo import SETTINGS, setting_overrides  # with the test extra
+from op_audit import OpAudit
 
+from torch_kitchen.env import team_rows
 from torch_kitchen.onednn_linear import device_path
-from torch_kitchen.op_audit import OpAudit
-from torch_kitchen.teams import TeamPolicy, team_rows
+from torch_kitchen.teams import TeamPolicy
 from trainers.advantages import compute_advantages, shaping_weight_at
 from trainers.composer import load_config
 from trainers.machine import machine_name

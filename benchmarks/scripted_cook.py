@@ -29,7 +29,7 @@ def main(argv=None) -> None:
     kitchen = KitchenEnv(args.envs, levels=evaluation_grids(list(EXPANDED_LAYOUTS), 20), pin_levels=True, seed=1)
     tensordict = kitchen.reset()
     observation = tensordict["agents", "observation"]
-    cook, team = ScriptedCook(), make_actor_critic("mlp", kitchen.kitchen.obs_shape, 64, True)
+    cook, team = ScriptedCook(), make_actor_critic("mlp", kitchen.obs_shape, 64, True)
     with torch.no_grad():
         scripted = seconds_per_call(lambda: cook(observation), args.calls) * 1e3
         mlp = seconds_per_call(lambda: team.actor(tensordict.clone()), args.calls) * 1e3

@@ -96,6 +96,26 @@ def make_actor_critic(env: KitchenEnv) -> tuple[ProbabilisticActor, TensorDictMo
     return actor.to(env.device), critic.to(env.device)
 
 
+def make_loss_module(actor, critic) -> ClipPPOLoss:
+    """ALGO LOGIC: PPO on the ("agents", ...) keys; each agent gets its own advantage from its own value (GAE)."""
+    loss_module = ClipPPOLoss(
+        actor, critic, clip_epsilon=0.2, entropy_coeff=0.01, critic_coeff=0.5,
+        normalize_advantage=True, normalize_advantage_exclude_dims=(-2,),  # advantages [N, 2, 1]: per agent
+    )
+    loss_module.set_keys(
+        action=("agents", "action"),
+        sample_log_prob=("agents", "action_log_prob"),
+        value=("agents", "state_value"),
+        reward=("agents", "ppo_reward"),
+        done=("agents", "done"),
+        terminated=("agents", "terminated"),
+        advantage=("agents", "advantage"),
+        value_target=("agents", "value_target"),
+    )
+    loss_module.make_value_estimator(ValueEstimators.GAE, gamma=0.99, lmbda=0.95)
+    return loss_module
+
+
 def main(argv: list[str] | None = None) -> dict:
     """Train, log to TensorBoard and print one line per iteration.
 
@@ -118,22 +138,7 @@ def main(argv: list[str] | None = None) -> dict:
         return_same_td=True, auto_register_policy_transforms=False,
     )
 
-    # ALGO LOGIC: PPO on the ("agents", ...) keys; each agent gets its own advantage from its own value.
-    loss_module = ClipPPOLoss(
-        actor, critic, clip_epsilon=0.2, entropy_coeff=0.01, critic_coeff=0.5,
-        normalize_advantage=True, normalize_advantage_exclude_dims=(-2,),  # advantages [N, 2, 1]: per agent
-    )
-    loss_module.set_keys(
-        action=("agents", "action"),
-        sample_log_prob=("agents", "action_log_prob"),
-        value=("agents", "state_value"),
-        reward=("agents", "ppo_reward"),
-        done=("agents", "done"),
-        terminated=("agents", "terminated"),
-        advantage=("agents", "advantage"),
-        value_target=("agents", "value_target"),
-    )
-    loss_module.make_value_estimator(ValueEstimators.GAE, gamma=0.99, lmbda=0.95)
+    loss_module = make_loss_module(actor, critic)
     optimizer = torch.optim.Adam(loss_module.parameters(), lr=args.lr)
     run_name = f"{'+'.join(Path(level).stem for level in args.levels)}_seed{args.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
     logger = TensorboardLogger(exp_name=run_name, log_dir=args.log_dir)

@@ -70,8 +70,8 @@ class KitchenParallelEnv(ParallelEnv):
     ):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
-        self.kitchen = Overcooked(level, max_steps=max_steps, shaping=shaping, generator=generator)
-        self.max_steps = self.kitchen.max_steps
+        self.jax_env = Overcooked(level, max_steps=max_steps, shaping=shaping, generator=generator)
+        self.max_steps = self.jax_env.max_steps
         self.shaped_reward = bool(shaped_reward)
         self.render_mode = render_mode
         self.tile_size = int(tile_size)
@@ -79,12 +79,12 @@ class KitchenParallelEnv(ParallelEnv):
         self.agents: list[str] = []
         # Built once: PettingZoo (and action-space seeding) expects the same space object on every call.
         self.observation_spaces = {
-            agent: gymnasium.spaces.Box(0, 255, self.kitchen.obs_shape, np.uint8) for agent in self.possible_agents
+            agent: gymnasium.spaces.Box(0, 255, self.jax_env.obs_shape, np.uint8) for agent in self.possible_agents
         }
         self.action_spaces = {agent: gymnasium.spaces.Discrete(NUM_ACTIONS) for agent in self.possible_agents}
-        self.state_space = gymnasium.spaces.Box(0, 255, self.kitchen.obs_shape, np.uint8)
+        self.state_space = gymnasium.spaces.Box(0, 255, self.jax_env.obs_shape, np.uint8)
 
-        kitchen = self.kitchen
+        kitchen = self.jax_env
 
         def step(state: State, actions: jax.Array):
             # No auto-reset: PettingZoo hands the terminal observation out and leaves the next reset to the caller.
@@ -98,7 +98,7 @@ class KitchenParallelEnv(ParallelEnv):
         self._observations: np.ndarray | None = None  # uint8 (2, H, W, 26) for the current state
 
     def __repr__(self) -> str:
-        return f"KitchenParallelEnv({self.kitchen!r})"
+        return f"KitchenParallelEnv({self.jax_env!r})"
 
     def observation_space(self, agent: str) -> gymnasium.spaces.Box:
         """Box(0, 255, (H, W, 26), uint8), the same object on every call."""

@@ -14,7 +14,8 @@ from torch import nn
 
 from jax_env import INTERACT, STAY, Channel, parse_layout
 from jax_env.state import DIR_VECTORS
-from torch_kitchen.models import ActorCritic, register_architecture, sampling_actor
+from torch_kitchen.models import ActorCritic, register_architecture
+from torch_kitchen.models.acting import sampling_actor
 from trainers.checkpoint import model_identity, save_checkpoint
 from trainers.config import TrainConfig
 

@@ -24,32 +24,30 @@ trainer steps several independently trained teams in one batch this way (`traine
 from __future__ import annotations
 
 import dataclasses
-import os
 import threading
 from collections import OrderedDict
 from typing import Callable, NamedTuple, Sequence
 
-# JAX would otherwise take 75% of the GPU's memory at its first operation and starve torch.
-os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+import jax
+import jax.numpy as jnp
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
 
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
+from jax_env import DELIVERY_REWARD, NUM_ACTIONS, GeneratorConfig, Overcooked, ShapingWeights, State
+from jax_env.env import Levels
+from torch_kitchen.jax_settings import share_process_with_torch
+from torch_kitchen.keys import ACTION, OBSERVATION, REWARD, SHAPED_REWARD
+from torch_kitchen.rollout import as_tensordict, rollout_into
 
-# On the CPU, a step is waited for as soon as it is dispatched: run inline in the calling thread, it skips the hand-off
-# to XLA's worker thread and back (10-20% of a collection step at JaxMARL's setting; BENCHMARKS.md). Set before JAX's
-# CPU client starts (the first computation); JAX_CPU_ENABLE_ASYNC_DISPATCH=true keeps JAX's default.
-if "JAX_CPU_ENABLE_ASYNC_DISPATCH" not in os.environ:
-    jax.config.update("jax_cpu_enable_async_dispatch", False)
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from tensordict import TensorDictBase  # noqa: E402
-from torchrl.data import Bounded, Categorical, Composite, Unbounded  # noqa: E402
-from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv  # noqa: E402
+share_process_with_torch()
 
-from jax_env import DELIVERY_REWARD, NUM_ACTIONS, GeneratorConfig, Overcooked, ShapingWeights, State  # noqa: E402
-from jax_env.env import Levels  # noqa: E402
-from torch_kitchen.keys import ACTION, OBSERVATION, REWARD, SHAPED_REWARD  # noqa: E402
-from torch_kitchen.rollout import as_tensordict, rollout_into  # noqa: E402
+
+def team_rows(team: int, team_size: int) -> slice:
+    """The rows of team `team` in a batch of teams of `team_size` kitchens."""
+    return slice(team * team_size, (team + 1) * team_size)
 
 
 def jax_device_for(device: torch.device) -> jax.Device:
@@ -253,10 +251,10 @@ class KitchenEnv(EnvBase):
         self._jax_device = jax_device_for(device)
         super().__init__(batch_size=torch.Size([num_envs]), device=device)
         self.num_envs = num_envs
-        self.kitchen = Overcooked(levels, max_steps=max_steps, shaping=ShapingWeights(*shaping), generator=generator)
+        self.jax_env = Overcooked(levels, max_steps=max_steps, shaping=ShapingWeights(*shaping), generator=generator)
         self._make_specs()
 
-        kitchen = self.kitchen
+        kitchen = self.jax_env
         if pin_levels and kitchen.num_levels == 0:
             raise ValueError("pin_levels needs a list of levels (or 'heldout'); the Infinite Kitchen generates them")
         self.pinned_levels = np.tile(np.arange(team_size) % kitchen.num_levels, self.teams) if pin_levels else None
@@ -272,7 +270,7 @@ class KitchenEnv(EnvBase):
         self.set_seed(seed)
 
     def _make_specs(self) -> None:
-        batch, (height, width, channels) = self.batch_size, self.kitchen.obs_shape
+        batch, (height, width, channels) = self.batch_size, self.jax_env.obs_shape
         agents = (*batch, 2)
         self.observation_spec = Composite(
             agents=Composite(
@@ -306,7 +304,7 @@ class KitchenEnv(EnvBase):
         done [B, 1] (one DLPack crossing where packed, three where not)."""
         if self._packed:
             self._last_obs = out
-            return unpack_outputs(torch.from_dlpack(out), self.num_envs, self.kitchen.obs_shape)
+            return unpack_outputs(torch.from_dlpack(out), self.num_envs, self.jax_env.obs_shape)
         self._last_obs = out[0]
         return tuple(torch.from_dlpack(array) for array in out)
 
@@ -352,7 +350,7 @@ class KitchenEnv(EnvBase):
 
     def episode_ended(self) -> bool:
         """Whether a kitchen's episode ended at the last step, known on the host (episodes end on a step count)."""
-        return bool((self._episode_steps >= self.kitchen.max_steps).any())
+        return bool((self._episode_steps >= self.jax_env.max_steps).any())
 
     def rollout(self, max_steps: int, policy=None, callback=None, *, break_when_any_done: bool | None = None,
                 auto_reset: bool = True, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
@@ -373,7 +371,7 @@ class KitchenEnv(EnvBase):
         tensordict.set("_reset", tensordict.get("done").clone())
         return True
 
-    def compile_step(self) -> None:
+    def precompile(self) -> None:
         """Compiles the step for these kitchens without stepping them (the result is discarded), so that the first
         real step costs what every step costs: a server ticking several games cannot afford a compilation inside
         one game's tick. Resets first if the kitchens were never reset."""
@@ -418,7 +416,7 @@ class KitchenEnv(EnvBase):
         if {name: tuple(value.shape) for name, value in saved.items()} != team_shapes:
             raise ValueError(
                 f"this env state holds {len(state['deliveries'])} kitchens of another shape; the env's teams have "
-                f"{self.team_size} {self.kitchen.obs_shape[0]}x{self.kitchen.obs_shape[1]} kitchens: build the env "
+                f"{self.team_size} {self.jax_env.obs_shape[0]}x{self.jax_env.obs_shape[1]} kitchens: build the env "
                 "with the num_envs and levels the state was saved with"
             )
         if tuple(state["key"].shape) != self._key.shape[1:]:
@@ -456,11 +454,16 @@ class KitchenEnv(EnvBase):
     def _team_rows(self, team: int) -> slice:
         if not 0 <= team < self.teams:
             raise IndexError(f"team {team} of an env with {self.teams} teams")
-        return slice(team * self.team_size, (team + 1) * self.team_size)
+        return team_rows(team, self.team_size)
 
     def _to_jax(self, tensor: torch.Tensor, dtype) -> jax.Array:
         # Through NumPy on the CPU: a checkpoint may have been loaded onto any torch device.
         return jax.device_put(np.asarray(tensor.detach().cpu().numpy(), dtype=dtype), self._jax_device)
+
+    @property
+    def obs_shape(self) -> tuple[int, int, int]:
+        """(height, width, channels) of an agent's observation of these kitchens."""
+        return self.jax_env.obs_shape
 
     @property
     def jax_device(self) -> jax.Device:

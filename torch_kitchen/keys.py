@@ -5,6 +5,7 @@ modelling carries. The shapes and meanings are in `torch_kitchen.env` and `torch
 """
 
 AGENTS = "agents"
+N_AGENTS = 2  # entries of the "agents" dim: the kitchens are for two
 
 # The env (`torch_kitchen.env.KitchenEnv`)
 OBSERVATION = (AGENTS, "observation")
@@ -22,7 +23,7 @@ ADVANTAGE = (AGENTS, "advantage")
 VALUE_TARGET = (AGENTS, "value_target")
 TRAIN_REWARD = (AGENTS, "train_reward")  # sparse + shaping weight x shaped: the reward optimised
 
-# E3T's partner modelling (`torch_kitchen.partner`, `torch_kitchen.models.PartnerPredictor`)
+# E3T's partner modelling (`torch_kitchen.partner`, `torch_kitchen.models.partner_predictor.PartnerPredictor`)
 CONTEXT_OBSERVATION = (AGENTS, "context_observation")
 CONTEXT_ACTION = (AGENTS, "context_action")
 MIXED = (AGENTS, "mixed")

@@ -26,8 +26,10 @@ from torchrl.envs import InitTracker, Transform
 from torchrl.modules import ProbabilisticActor
 
 from jax_env import NUM_ACTIONS
-from torch_kitchen.keys import LOGITS, OBSERVATION
-from torch_kitchen.models import N_AGENTS, agent_state_primer, partner_context_length, recurrent_states, sampling_actor
+from torch_kitchen.keys import LOGITS, N_AGENTS, OBSERVATION
+from torch_kitchen.models.acting import sampling_actor
+from torch_kitchen.models.partner_predictor import partner_context_length
+from torch_kitchen.models.recurrence import agent_state_primer, recurrent_states
 from torch_kitchen.partner import PartnerContext
 
 

@@ -27,7 +27,8 @@ from torch import nn
 from jax_env import INTERACT, NUM_ACTIONS, STAY, Channel
 from jax_env.state import DIR_VECTORS
 from torch_kitchen.keys import LOGITS, OBSERVATION, VALUE
-from torch_kitchen.models import ActorCritic, register_architecture, sampling_actor
+from torch_kitchen.models import ActorCritic, register_architecture
+from torch_kitchen.models.acting import sampling_actor
 
 UNREACHABLE = 1e4  # a distance longer than any path in a kitchen
 
@@ -88,9 +89,11 @@ class ScriptedCook(nn.Module):
             raise ValueError(f"move_order must be a permutation of {MOVE_ORDER!r}, got {move_order!r}")
         self.move_order = [MOVE_ORDER.index(direction) for direction in move_order]
 
-    def forward(self, observation: torch.Tensor) -> torch.Tensor:
-        batch_shape = observation.shape[:-3]
-        obs = observation.reshape(-1, *observation.shape[-3:]).float()  # [N, H, W, C]: one seat's view each
+    @staticmethod
+    def goals(obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list]:
+        """What the cook reads of its kitchens, obs float [N, H, W, C]: where it and its partner stand, the cells
+        it may walk, and its goals in order of preference (the tiles to reach [N, H, W], and the action on
+        arrival), by what it holds."""
         present = obs > 0  # [N, H, W, C]
 
         def channel(c):
@@ -139,6 +142,12 @@ class ScriptedCook(nn.Module):
             (when(empty, plates), INTERACT),
             (when(empty, onions), INTERACT),
         ]
+        return me, partner, walkable, goals
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        batch_shape = observation.shape[:-3]
+        obs = observation.reshape(-1, *observation.shape[-3:]).float()  # [N, H, W, C]: one seat's view each
+        me, partner, walkable, goals = self.goals(obs)
         targets = torch.stack([targets for targets, _ in goals], dim=1)  # [N, K, H, W]
         n = targets.shape[0]
         # A goal is reachable where a walkable cell beside its tiles is: one wave from the cook serves all goals.
@@ -146,7 +155,7 @@ class ScriptedCook(nn.Module):
         reached = distance_from(me, walkable) < UNREACHABLE
         reachable = (ends & reached[:, None]).flatten(2).any(2)  # [N, K]
         choice = reachable.float().argmax(1)  # the first reachable goal
-        pick = choice[:, None, None, None].expand(n, 1, *pot.shape[1:])
+        pick = choice[:, None, None, None].expand(n, 1, *me.shape[1:])
         goal = targets.gather(1, pick)[:, 0]
         goal_distance = distance_from(ends.gather(1, pick)[:, 0], walkable)
         on_arrival = torch.tensor([action for _, action in goals], device=observation.device)[choice]

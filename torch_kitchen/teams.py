@@ -32,21 +32,9 @@ from torchrl.data import Composite
 from torchrl.envs import Transform
 
 from torch_kitchen.egocentric import EgocentricLinear
-from torch_kitchen.models import (
-    ACTION,
-    LOG_PROB,
-    LOGITS,
-    OBSERVATION,
-    VALUE,
-    ActingPass,
-    draw_categorical,
-    sample_actions,
-)
-
-
-def team_rows(team: int, team_size: int) -> slice:
-    """The rows of team `team` in a batch of teams of `team_size` kitchens."""
-    return slice(team * team_size, (team + 1) * team_size)
+from torch_kitchen.env import team_rows
+from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, OBSERVATION, VALUE
+from torch_kitchen.models.acting import ActingPass, draw_categorical, sample_actions
 
 
 class RandomStream:

@@ -96,12 +96,12 @@ def rollout_program(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) ->
     env key, carrier), records [B, steps, ...]), where carrier = (observation, scalars, done), the policy's next
     input as the env's programs give it, and records = (observation, scalars, done, logits, action, log-prob,
     value, next observation, next scalars, next done)."""
-    key = (env.kitchen.settings, env.num_envs, env.teams, env.pinned_levels is not None, chains, steps)
+    key = (env.jax_env.settings, env.num_envs, env.teams, env.pinned_levels is not None, chains, steps)
     return _PROGRAMS.get(key, lambda: _build_rollout(env, chains, steps))
 
 
 def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> Callable:
-    programs = kitchen_programs(env.kitchen, env.num_envs, env.teams, env.pinned_levels is not None, packed=False)
+    programs = kitchen_programs(env.jax_env, env.num_envs, env.teams, env.pinned_levels is not None, packed=False)
     policy_chain, value_chain = chains
     teams, team_size = env.teams, env.team_size
 

@@ -39,7 +39,8 @@ from jax_env import STAY, load_layout
 from jax_env.human_games import HumanGame
 from jax_env.observation import get_obs
 from torch_kitchen.env import KitchenEnv
-from torch_kitchen.models import LOGITS, OBSERVATION, ActorCritic, make_actor_critic
+from torch_kitchen.keys import LOGITS, OBSERVATION
+from torch_kitchen.models import ActorCritic, make_actor_critic
 from trainers.checkpoint import LATEST, model_identity, save_checkpoint
 from trainers.config import TrainConfig
 

@@ -33,9 +33,8 @@ from torchrl.modules import set_recurrent_mode
 from tqdm import tqdm
 
 from jax_env import NUM_ACTIONS
-from torch_kitchen.cpu_kernels import accelerate_cpu
-from torch_kitchen.keys import VALUE_TARGET
-from torch_kitchen.models import ACTION, LOGITS, OBSERVATION, VALUE, ActorCritic, make_actor_critic
+from torch_kitchen.keys import ACTION, LOGITS, OBSERVATION, VALUE, VALUE_TARGET
+from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.scripted import ScriptedCook
 from torch_kitchen.symmetry import symmetries_of, transform_action_probs, transform_observation
 from trainers.advantages import compute_advantages, shaping_weight_at
@@ -56,6 +55,7 @@ from trainers.loggers import make_loggers
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.resume import start_fresh
 from trainers.rollout import finished_episode_deliveries, make_collector, select_kitchens
+from trainers.runtime import place_networks
 from trainers.training_run import TeamKitchens, make_env, with_model_transforms
 
 TEACHER_PROBS = ("agents", "teacher_probs")  # the scripted cook's action distribution in the visited state
@@ -184,12 +184,9 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
                           "another name=, seed= or run_dir=")
 
     kitchen = make_env(config, num_envs=config.distill_kitchens)
-    obs_shape = kitchen.kitchen.obs_shape
+    obs_shape = kitchen.obs_shape
     actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
-    if torch.device(config.runtime.device).type == "cpu":
-        accelerate_cpu(actor_critic.actor, actor_critic.critic)
-    actor_critic.actor.to(config.runtime.device)
-    actor_critic.critic.to(config.runtime.device)
+    place_networks(config, actor_critic, own_kernels=True)
     parameters = [*actor_critic.actor.parameters(), *actor_critic.critic.parameters()]
     optimizer = torch.optim.Adam(parameters, lr=config.distill_lr, eps=config.adam_eps)
     identity = model_identity(config.architecture, obs_shape, config.hidden, config.share_params)
@@ -226,20 +223,8 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
             policy.teacher_share = teacher_share(config, round_)
             batch = next(batches)
             env_steps += batch.numel()
-            deliveries = finished_episode_deliveries(batch)
-            compute_advantages(batch, actor_critic.critic, config, shaping_weight_at(config, env_steps))
-            data.append(kept(batch, actor_critic).memmap_(round_path(run, round_)))
-            for group in optimizer.param_groups:
-                group["lr"] = learning_rate(config, round_)
-            # Every round's data, from the memory-mapped files to the networks' device.
-            every_round = torch.cat(data).to(config.runtime.device)
-            metrics = fit(actor_critic, optimizer, every_round,
-                          batch.select(*actor_critic.critic.in_keys, VALUE_TARGET, strict=False), config)
+            metrics = learn_round(config, round_, batch, env_steps, data, actor_critic, optimizer, run)
             metrics["distill/teacher_share"] = policy.teacher_share
-            metrics["distill/kitchen_steps"] = sum(part.numel() for part in data)
-            metrics["charts/learning_rate"] = learning_rate(config, round_)
-            if len(deliveries):
-                metrics["charts/episode_deliveries"] = float(deliveries.float().mean())
             for logger in loggers:
                 logger.log_metrics(metrics, step=env_steps)
             save_checkpoint(checkpoint, {
@@ -258,6 +243,27 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
         for logger in loggers:
             logger.close()
     return run
+
+
+def learn_round(config: TrainConfig, round_: int, batch: TensorDictBase, env_steps: int, data: list,
+                actor_critic: ActorCritic, optimizer: torch.optim.Optimizer, run: Path) -> dict[str, float]:
+    """Round `round_` of distillation on its `batch` (the guided policy's, `env_steps` in all so far): the batch's
+    value targets, its kept steps added to `data` (memory-mapped into the run's folder), and the networks fitted
+    to every round's data (`fit`) at the round's learning rate. Returns the round's metrics."""
+    deliveries = finished_episode_deliveries(batch)
+    compute_advantages(batch, actor_critic.critic, config, shaping_weight_at(config, env_steps))
+    data.append(kept(batch, actor_critic).memmap_(round_path(run, round_)))
+    for group in optimizer.param_groups:
+        group["lr"] = learning_rate(config, round_)
+    # Every round's data, from the memory-mapped files to the networks' device.
+    every_round = torch.cat(data).to(config.runtime.device)
+    metrics = fit(actor_critic, optimizer, every_round,
+                  batch.select(*actor_critic.critic.in_keys, VALUE_TARGET, strict=False), config)
+    metrics["distill/kitchen_steps"] = sum(part.numel() for part in data)
+    metrics["charts/learning_rate"] = learning_rate(config, round_)
+    if len(deliveries):
+        metrics["charts/episode_deliveries"] = float(deliveries.float().mean())
+    return metrics
 
 
 def distill_start(config: TrainConfig, run: Path) -> Path:

@@ -27,9 +27,9 @@ from torchrl.envs.utils import set_exploration_type
 from torchrl.modules import set_recurrent_mode
 from tqdm import tqdm
 
+from torch_kitchen.env import team_rows
 from torch_kitchen.keys import REWARD, SHAPED_REWARD, VALUE, VALUE_TARGET
 from torch_kitchen.models import ActorCritic
-from torch_kitchen.teams import team_rows
 from trainers.advantages import compute_advantages, shaping_weight_at
 from trainers.checkpoint import LATEST, check_identity, load_checkpoint, restore_rng_states
 from trainers.composer import save_config
@@ -39,7 +39,7 @@ from trainers.loggers import hyperparameters, make_loggers
 from trainers.ppo_step import Losses, total_loss
 from trainers.resume import RunStopped, StopRequest, TrainingDiverged, drop_csv_rows_after, restore, start_fresh
 from trainers.rollout import finished_episode_deliveries, make_collector
-from trainers.runtime import Learner, UpdateRunner, acting_policy, set_learning_rate, use_threads
+from trainers.runtime import Learner, UpdateRunner, set_learning_rate, team_policy, use_threads
 from trainers.training_run import (
     RestorePoint,
     TrainingRun,
@@ -186,15 +186,20 @@ def finish_update(team: TrainingRun, batch: TensorDictBase, stats: list[dict[str
     return metrics
 
 
+def distill_planner_starts(configs: Sequence[TrainConfig], runs: Sequence[Path]) -> None:
+    """The planner-guided start of every team whose `init_from` asks for it, a step before its training: the
+    scripted cook distilled into the team's run folder (a distillation stopped there is finished)."""
+    for config, run in zip(configs, runs):
+        if config.init_from == PLANNER_START:
+            distill_start(config, config.init_path(run))
+
+
 def start_from(team: TrainingRun) -> None:
     """Loads into `team` the actor's and critic's weights that its `init_from` names (nothing to load from scratch):
-    a run's latest checkpoint, or the scripted cook distilled first into the team's run folder. CheckpointError if
-    that model is not the team's."""
+    a run's latest checkpoint, or its planner-guided start. CheckpointError if that model is not the team's."""
     start = team.config.init_path(team.run)
     if start is None:
         return
-    if team.config.init_from == PLANNER_START:
-        distill_start(team.config, start)
     state = load_checkpoint(start, map_location=team.config.runtime.device)
     check_identity(state, team.identity)
     team.parts["actor"].load_state_dict(state["actor"])
@@ -277,27 +282,17 @@ def train_teams(
     """
     configs = check_teams(configs)
     lead, num_teams = configs[0], len(configs)
-    for warning in lead.check_levels(allow_unsolvable):
-        print(f"kitchen-train: warning: {warning}", file=sys.stderr)
-    if note := lead.step_note():
-        print(f"kitchen-train: {note}", file=sys.stderr)
-    if actor_critic is not None and num_teams > 1:
-        raise ConfigError("a given actor_critic trains one team; build the teams from config.architecture")
+    runs = run_directories(configs, runs, resume, allow_unsolvable, actor_critic)
     use_threads(lead)
-    runs = [Path(run) for run in runs] if runs is not None else [config.run_path for config in configs]
-    for run in runs:
-        if not resume and (run / "checkpoints" / LATEST).exists():
-            raise ConfigError(
-                f"{run} already holds a trained run; resume it with `kitchen-train --resume {run}`, or choose "
-                "another name=, seed= or run_dir="
-            )
+    if not resume:
+        distill_planner_starts(configs, runs)
 
     # ---------------------------------------------------------------- environment and teams
     kitchen = make_env(lead, num_envs=num_teams * lead.num_envs, seed=[config.seed for config in configs])
     teams = [build_team(config, run, kitchen, index, actor_critic)
              for index, (config, run) in enumerate(zip(configs, runs))]
     env = with_model_transforms(kitchen, teams[0].actor_critic, *algorithm_transforms(teams))
-    policy = acting_policy(lead, teams)
+    policy = team_policy(lead, teams)
     runner = UpdateRunner(lead, teams)
 
     # ---------------------------------------------------------------- resume or start fresh
@@ -306,7 +301,6 @@ def train_teams(
     for team in teams:
         team.run.mkdir(parents=True, exist_ok=True)
         save_config(team.config, team.run / "config.yaml")
-
     remaining = lead.num_updates - teams[0].update
     if remaining <= 0:
         for team in teams:
@@ -324,9 +318,7 @@ def train_teams(
         if state is not None:  # after the collector, whose construction runs the policy once (and draws actions)
             with team.stream.active():
                 restore_rng_states(state["rng"])
-    bar = tqdm(total=num_teams * lead.planned_steps, initial=sum(team.env_steps for team in teams), unit="step",
-               unit_scale=True, disable=not lead.progress, dynamic_ncols=True)
-    recent_deliveries = deque(maxlen=10 * num_teams * lead.num_envs)
+    progress = Progress(teams)
 
     # ---------------------------------------------------------------- training loop
     try:
@@ -345,29 +337,73 @@ def train_teams(
                 policy.restack()
                 steps_per_second = batch.numel() / (time.perf_counter() - started)
                 asked = log_update(teams, learned, prepare_seconds, collected - started, steps_per_second, on_update)
-                recent_deliveries.extend(finished_episode_deliveries(batch).tolist())
-                bar.update(batch.numel())
-                recent = sum(recent_deliveries) / max(1, len(recent_deliveries))
-                bar.set_postfix(deliveries=f"{recent:.2f}", sps=f"{steps_per_second:,.0f}")
-
-                # --- checkpoint, and stop if asked
-                update = teams[0].update
-                last = update == lead.num_updates or asked or stop.signum is not None
-                if last or update % lead.checkpoint_every == 0:
-                    for team in teams:
-                        team.checkpoint()
-                if stop.signum is not None:
-                    steps = sum(team.env_steps for team in teams)
-                    raise RunStopped(stop.signum, f"stopped by {signal.Signals(stop.signum).name} at update {update} "
-                                                  f"({steps:,} of {bar.total:,} env steps), checkpoint written")
-                if last:
+                progress.update(batch, steps_per_second)
+                if checkpoint_or_stop(teams, asked, stop.signum, progress.total):
                     break
                 started = time.perf_counter()
     finally:
         collector.shutdown()
-        bar.close()
+        progress.close()
         for team in teams:
             for logger in team.loggers:
                 logger.close()
     return runs
 
+
+def run_directories(configs: Sequence[TrainConfig], runs: Sequence[Path] | None, resume: bool,
+                    allow_unsolvable: bool, actor_critic: ActorCritic | None) -> list[Path]:
+    """The teams' run directories (default: their configs' `run_path`), checked before any work; prints the
+    levels' warnings and the config's note on its steps. ConfigError where a fresh run
+    would overwrite a trained one, or a given actor_critic would train several teams."""
+    lead = configs[0]
+    for warning in lead.check_levels(allow_unsolvable):
+        print(f"kitchen-train: warning: {warning}", file=sys.stderr)
+    if note := lead.step_note():
+        print(f"kitchen-train: {note}", file=sys.stderr)
+    if actor_critic is not None and len(configs) > 1:
+        raise ConfigError("a given actor_critic trains one team; build the teams from config.architecture")
+    runs = [Path(run) for run in runs] if runs is not None else [config.run_path for config in configs]
+    for run in runs:
+        if not resume and (run / "checkpoints" / LATEST).exists():
+            raise ConfigError(
+                f"{run} already holds a trained run; resume it with `kitchen-train --resume {run}`, or choose "
+                "another name=, seed= or run_dir="
+            )
+    return runs
+
+
+class Progress:
+    """The run's progress bar (`progress`): env steps of all teams, with the recent episodes' mean deliveries and
+    the steps per second."""
+
+    def __init__(self, teams: Sequence[TrainingRun]):
+        lead, num_teams = teams[0].config, len(teams)
+        self.total = num_teams * lead.planned_steps
+        self.bar = tqdm(total=self.total, initial=sum(team.env_steps for team in teams), unit="step",
+                        unit_scale=True, disable=not lead.progress, dynamic_ncols=True)
+        self.recent_deliveries = deque(maxlen=10 * num_teams * lead.num_envs)
+
+    def update(self, batch: TensorDictBase, steps_per_second: float) -> None:
+        self.recent_deliveries.extend(finished_episode_deliveries(batch).tolist())
+        self.bar.update(batch.numel())
+        recent = sum(self.recent_deliveries) / max(1, len(self.recent_deliveries))
+        self.bar.set_postfix(deliveries=f"{recent:.2f}", sps=f"{steps_per_second:,.0f}")
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def checkpoint_or_stop(teams: Sequence[TrainingRun], asked: bool, signum: int | None, total_steps: int) -> bool:
+    """After an update: every team checkpointed every `checkpoint_every` updates and at the last (the run's, or
+    one `on_update` asked for); returns whether that was the last. RunStopped after a checkpoint where a signal
+    came (`signum`)."""
+    lead, update = teams[0].config, teams[0].update
+    last = update == lead.num_updates or asked or signum is not None
+    if last or update % lead.checkpoint_every == 0:
+        for team in teams:
+            team.checkpoint()
+    if signum is not None:
+        steps = sum(team.env_steps for team in teams)
+        raise RunStopped(signum, f"stopped by {signal.Signals(signum).name} at update {update} "
+                                 f"({steps:,} of {total_steps:,} env steps), checkpoint written")
+    return last

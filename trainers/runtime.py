@@ -1,7 +1,7 @@
 """How the teams of one batch act and learn on this machine: the run options (`threads`, `parallel_teams`,
 `minibatch_shards`, `compile_policy`, `compile_update`, the device), which change how fast a run goes and never
 what it learns. Here are the run's device and speed choices: the networks' CPU kernels, the optimizer's set-up,
-the acting pass (`acting_policy`), and how the teams take their PPO steps (`UpdateRunner`, `Learner`): the step
+the teams acting together (`team_policy`), and how the teams take their PPO steps (`UpdateRunner`, `Learner`): the step
 of `trainers.ppo_step`, written once, with its gradients on a whole minibatch, on shards on threads, or for several
 teams stacked (on a GPU), compiled or not.
 """
@@ -93,7 +93,7 @@ def set_learning_rate(config: TrainConfig, optimizer: torch.optim.Optimizer, lr:
             group["lr"] = lr
 
 
-def acting_policy(config: TrainConfig, teams: Sequence[TrainingRun]) -> TeamPolicy:
+def team_policy(config: TrainConfig, teams: Sequence[TrainingRun]) -> TeamPolicy:
     """The teams' policies acting on their rows of the batch, each in its random stream: on a GPU as one stacked
     network where they allow it (compiled, replayed as CUDA graphs), on a CPU one after another; each compiled
     with `compile_policy`."""

@@ -137,7 +137,7 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
     """Team `index` of the batch: networks (from `config.architecture` unless given), algorithm, loss and
     optimizer, all built in the team's own random stream, seeded with its seed."""
     stream = RandomStream(config.seed, config.runtime.device)
-    obs_shape = kitchen.kitchen.obs_shape
+    obs_shape = kitchen.obs_shape
     with stream.active():
         own_networks = actor_critic is None
         if own_networks:

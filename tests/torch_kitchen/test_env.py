@@ -38,18 +38,18 @@ def test_torchrl_rollout_equals_the_raw_jax_stepper():
     td = env.reset()
     # The first reset draws its levels from the second half of split(PRNGKey(seed)).
     _, key = jax.random.split(jax.random.PRNGKey(seed))
-    obs, states = env.kitchen.reset_batch(key, num_envs)
+    obs, states = env.jax_env.reset_batch(key, num_envs)
     np.testing.assert_array_equal(td["agents", "observation"].numpy(), np.asarray(obs))
 
     actions = torch.randint(0, 6, (steps, num_envs, 2), generator=torch.Generator().manual_seed(0))
-    step = jax.jit(jax.vmap(env.kitchen.step_env))
+    step = jax.jit(jax.vmap(env.jax_env.step_env))
     delivered = np.zeros(num_envs)
     for t in range(steps):
         td["agents", "action"] = actions[t]
         out = env.step(td)["next"]
         states, reward, done, info = step(states, jnp.asarray(actions[t].numpy(), jnp.int32))
         np.testing.assert_array_equal(
-            out["agents", "observation"].numpy(), np.asarray(jax.vmap(env.kitchen.get_obs)(states))
+            out["agents", "observation"].numpy(), np.asarray(jax.vmap(env.jax_env.get_obs)(states))
         )
         np.testing.assert_array_equal(out["agents", "reward"].numpy()[..., 0], np.asarray(reward))
         np.testing.assert_array_equal(out["agents", "shaped_reward"].numpy()[..., 0], np.asarray(info["shaped_reward"]))
@@ -94,7 +94,7 @@ def test_partial_reset_resets_exactly_the_masked_kitchens():
     for old, new in zip(before, after):
         np.testing.assert_array_equal(old[keep], new[keep])
     np.testing.assert_array_equal(out["agents", "observation"][keep].numpy(), previous_obs[keep].numpy())
-    fresh_obs = jax.vmap(env.kitchen.get_obs)(env.states)
+    fresh_obs = jax.vmap(env.jax_env.get_obs)(env.states)
     np.testing.assert_array_equal(out["agents", "observation"].numpy(), np.asarray(fresh_obs))
     assert (out["episode_deliveries"][mask[:, 0]] == 0).all()
 
@@ -202,9 +202,9 @@ def test_the_jax_key_round_trips_bit_for_bit(tmp_path):
 
 def test_compile_step_compiles_without_stepping_the_kitchens():
     env = KitchenEnv(2, levels="cramped_room_7x7", seed=1)
-    env.compile_step()  # resets first
+    env.precompile()  # resets first
     before = jax.tree_util.tree_map(np.asarray, env.states)
-    env.compile_step()
+    env.precompile()
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(before),
                                                      jax.tree_util.tree_leaves(env.states)))
     fresh = KitchenEnv(2, levels="cramped_room_7x7", seed=1)
@@ -221,10 +221,10 @@ def test_kitchens_of_one_size_share_one_compilation_and_keep_their_own_levels():
     """A server starts each game on a new env: kitchens that differ only in their levels reuse the first one's
     compiled reset and step (no compilation when a game starts), and each still plays its own layout."""
     first = KitchenEnv(1, levels="cramped_room_7x7", max_steps=37, seed=3)
-    first.compile_step()
+    first.precompile()
     second = KitchenEnv(1, levels="coord_ring_7x7", max_steps=37, seed=3)
     assert second._programs is first._programs
-    second.compile_step()
+    second.precompile()
     actions = TensorDict({"agents": {"action": torch.tensor([[1, 2]])}}, batch_size=[1])
     for env in (first, second):
         env.step(actions.clone())
@@ -239,7 +239,7 @@ def test_kitchens_of_one_size_share_one_compilation_and_keep_their_own_levels():
 def test_the_host_knows_when_episodes_end_without_reading_done_from_the_device():
     """`any_done` answers from the host's step counts, which follow the kitchens' own through full and partial
     resets; a step and its reset then make the host wait for nothing."""
-    from torch_kitchen.op_audit import OpAudit
+    from op_audit import OpAudit
 
     env = KitchenEnv(num_envs=4, levels="infinite", max_steps=5)
     td = env.reset()
@@ -268,9 +268,10 @@ def test_the_host_knows_when_episodes_end_without_reading_done_from_the_device()
 def test_with_the_models_transforms_a_step_still_waits_for_nothing(architecture):
     """Recurrent and E3T models put transforms on the env (episode starts, LSTM states, the partner context); the
     episode ends still come from the host, and the transforms read nothing back either."""
+    from op_audit import OpAudit
+
     from torch_kitchen.env import with_transforms
     from torch_kitchen.models import make_actor_critic
-    from torch_kitchen.op_audit import OpAudit
 
     kitchen = KitchenEnv(num_envs=4, levels="infinite", max_steps=3)
     env = with_transforms(kitchen, make_actor_critic(architecture, hidden=8).env_transforms())
@@ -294,7 +295,7 @@ def test_packed_outputs_as_a_gpu_crosses_them_hold_what_the_three_arrays_hold():
 
     plain = KitchenEnv(num_envs=6, levels="infinite", max_steps=7, seed=2)
     packed = KitchenEnv(num_envs=6, levels="infinite", max_steps=7, seed=2)
-    packed._packed, packed._programs = True, kitchen_programs(packed.kitchen, 6, 1, False, packed=True)
+    packed._packed, packed._programs = True, kitchen_programs(packed.jax_env, 6, 1, False, packed=True)
     assert packed._programs is not plain._programs
     actions = torch.randint(0, 6, (12, 6, 2), generator=torch.Generator().manual_seed(3))
     ours, theirs = packed.reset(), plain.reset()

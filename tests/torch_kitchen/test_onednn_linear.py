@@ -5,7 +5,8 @@ from torch import nn
 
 from torch_kitchen import onednn_linear
 from torch_kitchen.cpu_kernels import accelerate_cpu
-from torch_kitchen.models import make_actor_critic, make_head
+from torch_kitchen.models import make_actor_critic
+from torch_kitchen.models.networks import make_head
 from torch_kitchen.onednn_linear import OneDNNLinear, onednn_available
 
 pytestmark = pytest.mark.skipif(not onednn_available(), reason="this torch has no oneDNN")

@@ -8,7 +8,7 @@ from torchrl.envs.utils import ExplorationType
 
 from torch_kitchen.rollout import KitchenCollector
 from trainers.composer import load_config
-from trainers.runtime import acting_policy
+from trainers.runtime import team_policy
 from trainers.training_run import algorithm_transforms, build_team, make_env, team_configs, with_model_transforms
 
 
@@ -19,7 +19,7 @@ def env_and_policy(tmp_path, overrides):
     kitchen = make_env(config, num_envs=len(configs) * config.num_envs, seed=[team.seed for team in configs])
     teams = [build_team(team, team.run_path, kitchen, index) for index, team in enumerate(configs)]
     env = with_model_transforms(kitchen, teams[0].actor_critic, *algorithm_transforms(teams))
-    return env, acting_policy(config, teams), config
+    return env, team_policy(config, teams), config
 
 
 def torchrl_collector(env, policy, frames):

@@ -9,7 +9,8 @@ from torch import nn
 
 from torch_kitchen import sparse_linear
 from torch_kitchen.cpu_kernels import accelerate_cpu
-from torch_kitchen.models import make_actor_critic, make_encoder
+from torch_kitchen.models import make_actor_critic
+from torch_kitchen.models.networks import make_encoder
 from torch_kitchen.sparse_linear import ObservationLinear, SparseInputLinear
 
 HIDDEN = 32

@@ -5,6 +5,7 @@ import functools
 
 import pytest
 import torch
+from op_audit import OpAudit
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
@@ -12,8 +13,7 @@ from torch import nn
 from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 
-from torch_kitchen.models import make_encoder
-from torch_kitchen.op_audit import OpAudit
+from torch_kitchen.models.networks import make_encoder
 from torch_kitchen.torchrl_internals import (
     TEMPLATE,
     MultiAgentNet,

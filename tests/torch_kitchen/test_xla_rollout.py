@@ -7,9 +7,10 @@ from tensordict.nn import TensorDictModuleBase
 from test_rollout import assert_same_batches, env_and_policy
 from torch.utils._pytree import tree_flatten
 
+from torch_kitchen.env import team_rows
 from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, OBSERVATION, VALUE
 from torch_kitchen.rollout import KitchenCollector
-from torch_kitchen.teams import stackable_acting, team_rows
+from torch_kitchen.teams import stackable_acting
 from torch_kitchen.xla_rollout import XlaCollector
 from trainers.rollout import make_collector
 

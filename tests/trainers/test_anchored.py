@@ -8,7 +8,8 @@ from tensordict import TensorDict
 from test_ppo import read_metrics, tiny_config
 from tiny import infinite_observations
 
-from torch_kitchen.models import OBSERVATION, make_actor_critic
+from torch_kitchen.keys import OBSERVATION
+from torch_kitchen.models import make_actor_critic
 from trainers.algorithms.anchored import action_log_probs, policy_kl
 from trainers.checkpoint import load_checkpoint
 from trainers.config import ConfigError

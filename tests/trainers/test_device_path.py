@@ -4,6 +4,7 @@ updates, and makes the host wait for nothing inside a collection step or a minib
 import pytest
 import torch
 import torch._dynamo
+from op_audit import OpAudit
 from tensordict.nn import set_interaction_type
 from test_ppo import team_and_minibatch, tiny_config
 from torch._dynamo.utils import counters
@@ -12,10 +13,9 @@ from torchrl.modules import set_recurrent_mode
 
 from torch_kitchen.keys import OBSERVATION
 from torch_kitchen.onednn_linear import device_path
-from torch_kitchen.op_audit import OpAudit
 from trainers.ppo import train
 from trainers.rollout import make_collector
-from trainers.runtime import Learner, acting_policy
+from trainers.runtime import Learner, team_policy
 from trainers.training_run import build_team, make_env
 
 
@@ -34,7 +34,7 @@ def test_the_rollouts_acting_pass_on_plain_tensors_compiles_without_a_graph_brea
     log-probabilities and values out) is one graph: ready to be replayed whole."""
     config = tiny_config(tmp_path)
     team, minibatch = team_and_minibatch(config, tmp_path)
-    policy = acting_policy(config, [team])
+    policy = team_policy(config, [team])
     assert policy.acts_on_observation
     torch._dynamo.reset()
     with device_path():

@@ -165,11 +165,11 @@ def test_stacked_teams_act_as_the_teams_one_after_another_at_one_teams_launches(
     """The teams' networks stacked and vmapped (the GPU's way) give each team's logits and values to float rounding
     and, sampled in each team's own stream, its actions; restacked, the weights are the teams' after an optimizer's
     step; and acting for 3 teams launches one team's kernels but a draw per team."""
+    from op_audit import OpAudit
     from tensordict import TensorDict
     from tensordict.nn import InteractionType, set_interaction_type
 
     from torch_kitchen.onednn_linear import device_path
-    from torch_kitchen.op_audit import OpAudit
     from torch_kitchen.teams import TeamPolicy
     from trainers.training_run import build_team, make_env
 

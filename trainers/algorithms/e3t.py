@@ -21,7 +21,8 @@ from torchrl.envs import Transform
 from torchrl.objectives import ClipPPOLoss
 
 from torch_kitchen.keys import ACTION
-from torch_kitchen.models import ActorCritic, split_partner_predictor
+from torch_kitchen.models import ActorCritic
+from torch_kitchen.models.partner_predictor import split_partner_predictor
 from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
 from trainers.algorithms.base import Algorithm, standardize_advantage
 from trainers.config import ConfigError, TrainConfig, option

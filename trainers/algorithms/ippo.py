@@ -5,7 +5,7 @@ Everything IPPO needs is the PPO core itself; this class only refuses models bui
 
 from __future__ import annotations
 
-from torch_kitchen.models import partner_context_length
+from torch_kitchen.models.partner_predictor import partner_context_length
 from trainers.algorithms.base import Algorithm
 from trainers.config import ConfigError
 

@@ -32,7 +32,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from jax_env import EAST, INTERACT, NORTH, NUM_ACTIONS, SOUTH, STAY, WEST, Layout, State, parse_layout
 from torch_kitchen.env import KitchenEnv, with_transforms
-from torch_kitchen.models import ActorCritic, sampling_actor
+from torch_kitchen.models import ActorCritic
+from torch_kitchen.models.acting import sampling_actor
 from torch_kitchen.scripted import scripted_actor_critic
 from trainers.evaluate import load_team
 
@@ -122,7 +123,7 @@ class Game:
         self.env = with_transforms(self.kitchen, partner.actor_critic.env_transforms())
         torch.manual_seed(seed)
         self.tensordict = self.env.reset()
-        self.kitchen.compile_step()  # here, not in the first tick
+        self.kitchen.precompile()  # here, not in the first tick
         self.t, self.score, self.over = 0, 0, False
         self.started = time.monotonic()
         self.recorder = Recorder(record_path, {
@@ -214,7 +215,7 @@ def read_record(path: str | Path) -> tuple[dict, list[dict], dict | None]:
 
 def agent_cells(kitchen: KitchenEnv) -> list[list[int]]:
     """[[x, y] of agent 0, [x, y] of agent 1] in the first kitchen of `kitchen`."""
-    width = kitchen.kitchen.width
+    width = kitchen.jax_env.width
     return [[int(p % width), int(p // width)] for p in np.asarray(kitchen.states.agent_pos)[0]]
 
 

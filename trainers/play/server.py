@@ -150,6 +150,78 @@ def same_origin(origin: str | None, host: str | None) -> bool:
     return origin is None or (host is not None and origin in (f"http://{host}", f"https://{host}"))
 
 
+async def receive_actions(websocket: WebSocket, game_id: str, pending: asyncio.Queue, latest: list[int]) -> None:
+    """Reads the player's messages until the socket closes: each action into `pending` and `latest[0]`; a message
+    it cannot use is answered with an error and logged, and the game goes on. None into `pending` at the end."""
+    try:
+        while True:
+            message = await websocket.receive()
+            if message["type"] == "websocket.disconnect":
+                break
+            try:
+                if message.get("text") is None:
+                    raise ValueError(f"a binary frame; {EXPECTED}, as text")
+                action = parse_action(message["text"])
+            except ValueError as error:
+                log.warning("game %s: refused message %r: %s", game_id, str(message.get("text"))[:80], error)
+                await websocket.send_json({"type": "error", "reason": str(error)})
+                continue
+            latest[0] = action
+            await pending.put(action)
+    except (WebSocketDisconnect, RuntimeError):
+        pass
+    finally:
+        await pending.put(None)
+
+
+async def play_game(websocket: WebSocket, game_id: str, game: Game, mode: str, tick_ms: int, idle_s: float) -> None:
+    """Plays `game` with the player connected on `websocket` until it ends: in "turns" mode a step per action (the
+    game ends after `idle_s` seconds without one), else a step every `tick_ms` with the player's latest action.
+    Ends the game with its reason (finished, idle, disconnected) and hands its memory back."""
+    pending: asyncio.Queue[int | None] = asyncio.Queue()
+    latest = [STAY]
+    receiver = asyncio.create_task(receive_actions(websocket, game_id, pending, latest))
+    loop = asyncio.get_running_loop()
+    reason = "disconnected"
+    try:
+        await websocket.send_json(game.view())
+        next_tick = loop.time()
+        while not game.over:
+            if mode == "turns":
+                try:
+                    action = await asyncio.wait_for(pending.get(), idle_s)
+                except TimeoutError:
+                    reason = "idle"
+                    await websocket.send_json({"type": "error", "reason": f"no action for {idle_s:g} s: "
+                                                                          "the game ended"})
+                    break
+                if action is None:
+                    break
+            else:  # ticks on a fixed schedule: the time a step takes does not delay the next one
+                next_tick += tick_ms / 1000
+                await asyncio.sleep(max(0.0, next_tick - loop.time()))
+                if receiver.done():
+                    break
+                action, latest[0] = latest[0], STAY
+            # The partner's forward pass and the kitchen's step run on a worker thread (both release the GIL):
+            # the event loop keeps ticking the other games meanwhile.
+            await websocket.send_json(await asyncio.to_thread(game.step, action))
+    except (WebSocketDisconnect, RuntimeError):
+        pass
+    finally:
+        receiver.cancel()
+        reason = "finished" if game.t >= game.max_steps else reason
+        game.end(reason)
+        log.info("game %s ended (%s) after %d steps, score %d", game_id, reason, game.t, game.score)
+    del game  # its kitchen and tensors freed, then handed back
+    await asyncio.to_thread(release_freed_memory)
+    if reason in ("finished", "idle"):
+        try:
+            await websocket.close()
+        except (WebSocketDisconnect, RuntimeError):
+            pass  # the player left first
+
+
 def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int = 150, device: str = "cpu",
                level_files: list[str] = (), max_steps: int = 400, runs_root: str = "runs",
                idle_s: float = 600.0, hosts: list[str] | None = None, connect_s: float = 120.0,
@@ -236,73 +308,8 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
             await websocket.send_json({"type": "error", "reason": "no such game waiting (ended, expired or taken)"})
             await websocket.close()
             return
-        game, mode, _ = games.pop(game_id)  # one connection per game
-        pending: asyncio.Queue[int | None] = asyncio.Queue()
-        latest = [STAY]
-
-        async def receive() -> None:
-            """Reads the player's messages until the socket closes; a message it cannot use is answered with an
-            error and logged, and the game goes on."""
-            try:
-                while True:
-                    message = await websocket.receive()
-                    if message["type"] == "websocket.disconnect":
-                        break
-                    try:
-                        if message.get("text") is None:
-                            raise ValueError(f"a binary frame; {EXPECTED}, as text")
-                        action = parse_action(message["text"])
-                    except ValueError as error:
-                        log.warning("game %s: refused message %r: %s", game_id, str(message.get("text"))[:80], error)
-                        await websocket.send_json({"type": "error", "reason": str(error)})
-                        continue
-                    latest[0] = action
-                    await pending.put(action)
-            except (WebSocketDisconnect, RuntimeError):
-                pass
-            finally:
-                await pending.put(None)
-
-        receiver = asyncio.create_task(receive())
-        loop = asyncio.get_running_loop()
-        reason = "disconnected"
-        try:
-            await websocket.send_json(game.view())
-            next_tick = loop.time()
-            while not game.over:
-                if mode == "turns":
-                    try:
-                        action = await asyncio.wait_for(pending.get(), idle_s)
-                    except TimeoutError:
-                        reason = "idle"
-                        await websocket.send_json({"type": "error", "reason": f"no action for {idle_s:g} s: "
-                                                                              "the game ended"})
-                        break
-                    if action is None:
-                        break
-                else:  # ticks on a fixed schedule: the time a step takes does not delay the next one
-                    next_tick += tick_ms / 1000
-                    await asyncio.sleep(max(0.0, next_tick - loop.time()))
-                    if receiver.done():
-                        break
-                    action, latest[0] = latest[0], STAY
-                # The partner's forward pass and the kitchen's step run on a worker thread (both release the GIL):
-                # the event loop keeps ticking the other games meanwhile.
-                await websocket.send_json(await asyncio.to_thread(game.step, action))
-        except (WebSocketDisconnect, RuntimeError):
-            pass
-        finally:
-            receiver.cancel()
-            reason = "finished" if game.t >= game.max_steps else reason
-            game.end(reason)
-            log.info("game %s ended (%s) after %d steps, score %d", game_id, reason, game.t, game.score)
-        del game  # its kitchen and tensors freed, then handed back
-        await asyncio.to_thread(release_freed_memory)
-        if reason in ("finished", "idle"):
-            try:
-                await websocket.close()
-            except (WebSocketDisconnect, RuntimeError):
-                pass  # the player left first
+        # One connection per game; the game is held by `play_game` alone, which frees it when it ends.
+        await play_game(websocket, game_id, *games.pop(game_id)[:2], tick_ms, idle_s)
 
     return app
 

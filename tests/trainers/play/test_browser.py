@@ -17,7 +17,7 @@ import torch  # noqa: E402
 import uvicorn  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 
-from torch_kitchen.models import OBSERVATION  # noqa: E402
+from torch_kitchen.keys import OBSERVATION  # noqa: E402
 from trainers.behaviour_cloning import HUMAN_ACTION, ProxySettings, fit_proxy, save_proxy  # noqa: E402
 from trainers.play.game import read_record, replay  # noqa: E402
 from trainers.play.server import create_app  # noqa: E402

@@ -6,7 +6,8 @@ import torch
 
 from jax_env import load_layout
 from jax_env.render import AGENT_COLOURS
-from torch_kitchen.models import make_actor_critic, recurrent_states
+from torch_kitchen.models import make_actor_critic
+from torch_kitchen.models.recurrence import recurrent_states
 from torch_kitchen.partner import CONTEXT_ACTION
 from trainers.play.game import Game, Partner, read_record, replay
 
