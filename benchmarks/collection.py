@@ -37,7 +37,7 @@ from torch_kitchen.teams import TeamPolicy
 from trainers.composer import load_config
 from trainers.machine import machine_name
 from trainers.rollout import make_collector
-from trainers.training_run import build_team, make_env, with_model_transforms
+from trainers.training_team import build_team, make_env, with_model_transforms
 
 
 def main(argv=None) -> None:

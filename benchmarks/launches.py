@@ -29,7 +29,7 @@ from trainers.machine import machine_name
 from trainers.ppo import start_update
 from trainers.rollout import make_collector, select_kitchens
 from trainers.runtime import Learner
-from trainers.training_run import build_team, make_env, team_configs, with_model_transforms
+from trainers.training_team import build_team, make_env, team_configs, with_model_transforms
 
 
 def audit_training(setting: str, teams: int, device: str, steps: int = 8, stack: bool = False

@@ -25,7 +25,7 @@ from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile, record_function
 
 import trainers.ppo
-import trainers.training_run
+import trainers.training_team
 from trainers.composer import load_config
 from trainers.machine import machine_name
 
@@ -83,7 +83,7 @@ def phase_seconds(setting: str, updates: int, device: str, overrides: list[str])
             for (where, name), function in patched.items():
                 setattr(where, name, function)
             with profile(activities=activities) as profiler:
-                trainers.ppo.train_teams(trainers.training_run.team_configs(config))
+                trainers.ppo.train_teams(trainers.training_team.team_configs(config))
         finally:
             for (where, name), function in originals.items():
                 setattr(where, name, function)

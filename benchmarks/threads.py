@@ -23,7 +23,7 @@ import tempfile
 from trainers.composer import load_config
 from trainers.machine import machine_name
 from trainers.ppo import train_teams
-from trainers.training_run import team_configs
+from trainers.training_team import team_configs
 
 # A pure-Python busy loop: one core's worth of load, no threads of its own.
 BUSY_LOOP = "while True:\n    sum(range(10000))\n"

@@ -30,7 +30,7 @@ import torch
 from trainers.composer import load_config
 from trainers.machine import THREADS_HELP, machine_name
 from trainers.ppo import train, train_teams
-from trainers.training_run import team_configs
+from trainers.training_team import team_configs
 
 
 def throughput(architecture: str, num_envs: int, rollout_steps: int, updates: int, device: str, threads: int,

@@ -56,7 +56,7 @@ from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.resume import start_fresh
 from trainers.rollout import finished_episode_deliveries, make_collector, select_kitchens
 from trainers.runtime import place_networks
-from trainers.training_run import TeamKitchens, make_env, with_model_transforms
+from trainers.training_team import TeamKitchens, make_env, with_model_transforms
 
 TEACHER_PROBS = ("agents", "teacher_probs")  # the scripted cook's action distribution in the visited state
 DATA = "dagger"  # the run's folder of every round's labelled batch

@@ -40,9 +40,9 @@ from trainers.ppo_step import Losses, total_loss
 from trainers.resume import RunStopped, StopRequest, TrainingDiverged, drop_csv_rows_after, restore, start_fresh
 from trainers.rollout import finished_episode_deliveries, make_collector
 from trainers.runtime import Learner, UpdateRunner, set_learning_rate, team_policy, use_threads
-from trainers.training_run import (
+from trainers.training_team import (
     RestorePoint,
-    TrainingRun,
+    TrainingTeam,
     algorithm_transforms,
     build_team,
     check_teams,
@@ -90,7 +90,7 @@ def metric_name(key: str) -> str | None:
     return f"losses/{key.removeprefix('loss_')}" if key.startswith("loss_") else f"charts/{key}"
 
 
-def start_update(team: TrainingRun, batch: TensorDictBase) -> list[tuple[torch.Tensor, ...]]:
+def start_update(team: TrainingTeam, batch: TensorDictBase) -> list[tuple[torch.Tensor, ...]]:
     """The first part of an update of `team` on its batch [num_envs, rollout_steps], run in the team's random
     stream, one team after another: the counters, the learning rate, the training reward and GAE, the
     algorithm's batch hook, and the minibatch orders of every epoch (the update's only random draws)."""
@@ -105,7 +105,7 @@ def start_update(team: TrainingRun, batch: TensorDictBase) -> list[tuple[torch.T
             for _ in range(config.epochs)]
 
 
-def update_teams(teams: Sequence[TrainingRun], batches: Sequence[TensorDictBase], orders: Sequence[list],
+def update_teams(teams: Sequence[TrainingTeam], batches: Sequence[TensorDictBase], orders: Sequence[list],
                  runner: UpdateRunner) -> list[tuple[dict[str, float], float]]:
     """Every team's update on its batch, in its minibatch `orders` (`start_update`): the PPO epochs of the teams as
     the runtime has them learn (`learn`: each team on its own, on threads at once or not, or all as one stacked
@@ -150,7 +150,7 @@ def learn(learner: Learner, batches: Sequence[TensorDictBase],
     return stats, time.perf_counter() - started
 
 
-def finish_update(team: TrainingRun, batch: TensorDictBase, stats: list[dict[str, torch.Tensor]],
+def finish_update(team: TrainingTeam, batch: TensorDictBase, stats: list[dict[str, torch.Tensor]],
                   restore_point: RestorePoint) -> dict[str, float]:
     """The end of `team`'s update, after its minibatches' `stats` (losses on the device): raises TrainingDiverged if
     a loss was NaN or infinite, with the team put back to `restore_point`; else the algorithm's `after_update`, and
@@ -194,7 +194,7 @@ def distill_planner_starts(configs: Sequence[TrainConfig], runs: Sequence[Path])
             distill_start(config, config.init_path(run))
 
 
-def start_from(team: TrainingRun) -> None:
+def start_from(team: TrainingTeam) -> None:
     """Loads into `team` the actor's and critic's weights that its `init_from` names (nothing to load from scratch):
     a run's latest checkpoint, or its planner-guided start. CheckpointError if that model is not the team's."""
     start = team.config.init_path(team.run)
@@ -206,7 +206,7 @@ def start_from(team: TrainingRun) -> None:
     team.parts["critic"].load_state_dict(state["critic"])
 
 
-def resume_or_start(teams: Sequence[TrainingRun], resume: bool) -> list[dict | None]:
+def resume_or_start(teams: Sequence[TrainingTeam], resume: bool) -> list[dict | None]:
     """`resume`: every team restored from its latest checkpoint (all at one update), the CSV rows logged after it
     dropped; else every team's old logs removed and its `init_from` weights loaded. Returns the checkpoints (their
     RNG states are put back once the collector is built), None for a fresh start."""
@@ -224,7 +224,7 @@ def resume_or_start(teams: Sequence[TrainingRun], resume: bool) -> list[dict | N
     return saved
 
 
-def log_update(teams: Sequence[TrainingRun], learned: list[tuple[dict, float]], prepare_seconds: list[float],
+def log_update(teams: Sequence[TrainingTeam], learned: list[tuple[dict, float]], prepare_seconds: list[float],
                collect_seconds: float, steps_per_second: float,
                on_update: Callable[[int, dict], bool | None] | None) -> bool:
     """Logs each team's metrics of the update with its timings, and calls `on_update`; returns whether it asked to
@@ -376,7 +376,7 @@ class Progress:
     """The run's progress bar (`progress`): env steps of all teams, with the recent episodes' mean deliveries and
     the steps per second."""
 
-    def __init__(self, teams: Sequence[TrainingRun]):
+    def __init__(self, teams: Sequence[TrainingTeam]):
         lead, num_teams = teams[0].config, len(teams)
         self.total = num_teams * lead.planned_steps
         self.bar = tqdm(total=self.total, initial=sum(team.env_steps for team in teams), unit="step",
@@ -393,7 +393,7 @@ class Progress:
         self.bar.close()
 
 
-def checkpoint_or_stop(teams: Sequence[TrainingRun], asked: bool, signum: int | None, total_steps: int) -> bool:
+def checkpoint_or_stop(teams: Sequence[TrainingTeam], asked: bool, signum: int | None, total_steps: int) -> bool:
     """After an update: every team checkpointed every `checkpoint_every` updates and at the last (the run's, or
     one `on_update` asked for); returns whether that was the last. RunStopped after a checkpoint where a signal
     came (`signum`)."""

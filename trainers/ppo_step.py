@@ -16,7 +16,7 @@ import torch
 from tensordict import TensorDictBase
 
 if TYPE_CHECKING:
-    from trainers.training_run import TrainingRun
+    from trainers.training_team import TrainingTeam
 
 Losses = dict[str, torch.Tensor]
 Gradients = list[torch.Tensor | None]  # per parameter of the teams, [K, *shape] (None: not taking part)
@@ -28,7 +28,7 @@ def total_loss(losses: Losses) -> torch.Tensor:
     return sum(value for key, value in losses.items() if key.startswith("loss_"))
 
 
-def ppo_step(teams: Sequence[TrainingRun], gradients_of: GradientsOf, minibatch: TensorDictBase) -> Losses:
+def ppo_step(teams: Sequence[TrainingTeam], gradients_of: GradientsOf, minibatch: TensorDictBase) -> Losses:
     """The PPO step of K teams on their minibatch (a team's, or K teams' stacked along a team dim): its losses and
     their gradients (`gradients_of`), each team's clipped (`clip_per_team`) and its Adam step. Returns the losses,
     [K] each, with the gradients' norms before clipping as "grad_norm". Reads nothing back from the device: whether
@@ -44,7 +44,7 @@ def ppo_step(teams: Sequence[TrainingRun], gradients_of: GradientsOf, minibatch:
     return losses
 
 
-def team_gradients(team: TrainingRun, minibatch: TensorDictBase) -> tuple[Losses, Gradients]:
+def team_gradients(team: TrainingTeam, minibatch: TensorDictBase) -> tuple[Losses, Gradients]:
     """`ppo_step`'s losses and gradients for one team on its minibatch, made ready by the team's algorithm
     (`process_minibatch`); a team dim of 1 in front of each."""
     team.algorithm.process_minibatch(minibatch)
@@ -53,7 +53,7 @@ def team_gradients(team: TrainingRun, minibatch: TensorDictBase) -> tuple[Losses
             [None if gradient is None else gradient.unsqueeze(0) for gradient in gradients])
 
 
-def loss_gradients(team: TrainingRun, minibatch: TensorDictBase) -> tuple[Losses, Gradients]:
+def loss_gradients(team: TrainingTeam, minibatch: TensorDictBase) -> tuple[Losses, Gradients]:
     """The team's losses on a minibatch ready for them (TorchRL's loss and the algorithm's auxiliary ones) and the
     gradient of their total for each of its parameters (None where a parameter does not take part), laid out as
     backward() lays out a parameter's: its norm then sums in the same order."""
@@ -86,7 +86,7 @@ def team_norms(gradient: torch.Tensor) -> torch.Tensor:
     return torch.linalg.vector_norm(gradient, dim=tuple(range(1, gradient.dim())))
 
 
-def adam_step(team: TrainingRun, gradients: Gradients) -> None:
+def adam_step(team: TrainingTeam, gradients: Gradients) -> None:
     """The team's optimizer step on `gradients` (one per parameter), which are then let go."""
     for parameter, gradient in zip(team.parameters, gradients, strict=True):
         parameter.grad = None if gradient is None else laid_out_as(parameter, gradient)

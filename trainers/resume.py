@@ -10,7 +10,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from trainers.checkpoint import check_identity, load_checkpoint
-from trainers.training_run import TrainingRun
+from trainers.training_team import TrainingTeam
 
 
 class RunStopped(Exception):
@@ -35,7 +35,7 @@ def start_fresh(run: Path) -> None:
         shutil.rmtree(run / logs, ignore_errors=True)
 
 
-def restore(team: TrainingRun) -> dict:
+def restore(team: TrainingTeam) -> dict:
     """Loads `team`'s latest checkpoint into its parts (networks, optimizer, its kitchens) and its algorithm, and
     sets its counters; returns the checkpoint (for its RNG states)."""
     state = load_checkpoint(team.checkpoint_path, map_location=team.config.runtime.device)

@@ -38,7 +38,7 @@ from trainers.rollout import select_kitchens
 
 if TYPE_CHECKING:
     from torch_kitchen.models import ActorCritic
-    from trainers.training_run import TrainingRun
+    from trainers.training_team import TrainingTeam
 
 T = TypeVar("T")
 
@@ -93,7 +93,7 @@ def set_learning_rate(config: TrainConfig, optimizer: torch.optim.Optimizer, lr:
             group["lr"] = lr
 
 
-def team_policy(config: TrainConfig, teams: Sequence[TrainingRun]) -> TeamPolicy:
+def team_policy(config: TrainConfig, teams: Sequence[TrainingTeam]) -> TeamPolicy:
     """The teams' policies acting on their rows of the batch, each in its random stream: on a GPU as one stacked
     network where they allow it (compiled, replayed as CUDA graphs), on a CPU one after another; each compiled
     with `compile_policy`."""
@@ -134,7 +134,7 @@ def acts_stacked(config: TrainConfig, policies: Sequence[TensorDictModuleBase]) 
     return config.runtime.on_gpu and stackable_acting(policies) is not None
 
 
-def learns_stacked(config: TrainConfig, teams: Sequence[TrainingRun]) -> bool:
+def learns_stacked(config: TrainConfig, teams: Sequence[TrainingTeam]) -> bool:
     """Whether the teams' minibatch steps run as one (`stacked_gradients`): on a GPU, where several teams learn and
     their model and algorithm allow it (feed-forward with shared parameters, `Algorithm.stackable`); on a CPU each
     team learns on its own, with its sparse first layer, on threads where `parallel_teams`."""
@@ -143,7 +143,7 @@ def learns_stacked(config: TrainConfig, teams: Sequence[TrainingRun]) -> bool:
     return config.runtime.on_gpu and len(teams) > 1 and stackable
 
 
-def sharded_gradients(team: TrainingRun, shards: int, pool: ThreadPoolExecutor | None) -> GradientsOf:
+def sharded_gradients(team: TrainingTeam, shards: int, pool: ThreadPoolExecutor | None) -> GradientsOf:
     """`team_gradients` as the mean of the minibatch's `shards` equal parts by kitchen (on `pool`'s threads at once
     where given; one after the other gives the same numbers), the minibatch made ready as a whole first."""
 
@@ -161,7 +161,7 @@ def sharded_gradients(team: TrainingRun, shards: int, pool: ThreadPoolExecutor |
     return gradients_of
 
 
-def stacked_gradients(teams: Sequence[TrainingRun]) -> GradientsOf:
+def stacked_gradients(teams: Sequence[TrainingTeam]) -> GradientsOf:
     """`team_gradients` of K teams on their minibatches stacked along a team dim, as one computation: their losses
     (`StackedLoss`, each team's own `process_minibatch` included) and one backward to their stacked parameters. The
     gradient of the sum of the teams' losses is, in each team's entry of a stacked parameter, its own loss's."""
@@ -181,7 +181,7 @@ class Learner:
     (`learns_stacked`). Their gradients come in the form the run options ask (a whole minibatch, shards on
     threads, or the teams stacked), and the step is compiled with `compile_update`."""
 
-    def __init__(self, config: TrainConfig, teams: Sequence[TrainingRun], pool: ThreadPoolExecutor | None = None):
+    def __init__(self, config: TrainConfig, teams: Sequence[TrainingTeam], pool: ThreadPoolExecutor | None = None):
         self.teams = list(teams)
         shards = minibatch_shards(config)
         if len(self.teams) > 1:
@@ -256,7 +256,7 @@ class UpdateRunner:
     alone has its minibatches' shards on threads (`minibatch_shards`). Every way gives each team the update it
     would have alone. A context manager: its threads live while it is entered."""
 
-    def __init__(self, config: TrainConfig, teams: Sequence[TrainingRun]):
+    def __init__(self, config: TrainConfig, teams: Sequence[TrainingTeam]):
         self.config, self.teams = config, list(teams)
         self.pool: ThreadPoolExecutor | None = None
         self.learners: list[Learner] = []

@@ -45,7 +45,7 @@ from trainers.composer import CONFIG_ROOT, GROUPS, config_help, group_choices, g
 from trainers.config import ConfigError, TrainConfig, is_config_key, unknown_key
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.train_command import train_or_resume
-from trainers.training_run import team_configs
+from trainers.training_team import team_configs
 
 
 def run_point(cfg) -> list[str]:

@@ -25,7 +25,7 @@ from trainers.config import ConfigError, TrainConfig
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.ppo import train_teams
 from trainers.resume import RunStopped, TrainingDiverged
-from trainers.training_run import team_configs
+from trainers.training_team import team_configs
 
 
 def train_or_resume(configs: Sequence[TrainConfig]) -> list[Path]:

@@ -19,7 +19,7 @@ from torch_kitchen.models import make_actor_critic
 from trainers.advantages import compute_advantages, shaping_weight_at
 from trainers.composer import load_config
 from trainers.ppo_step import total_loss
-from trainers.training_run import make_algorithm, make_loss
+from trainers.training_team import make_algorithm, make_loss
 
 # benchmarks/ is a folder of scripts, not a package: load the module from its file.
 _spec = importlib.util.spec_from_file_location(

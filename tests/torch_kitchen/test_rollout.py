@@ -9,7 +9,7 @@ from torchrl.envs.utils import ExplorationType
 from torch_kitchen.rollout import KitchenCollector
 from trainers.composer import load_config
 from trainers.runtime import team_policy
-from trainers.training_run import algorithm_transforms, build_team, make_env, team_configs, with_model_transforms
+from trainers.training_team import algorithm_transforms, build_team, make_env, team_configs, with_model_transforms
 
 
 def env_and_policy(tmp_path, overrides):

@@ -8,7 +8,7 @@ from test_teams import assert_same_run
 from trainers.checkpoint import load_checkpoint
 from trainers.ppo import train, train_teams
 from trainers.train_command import main
-from trainers.training_run import team_configs
+from trainers.training_team import team_configs
 
 
 def test_a_run_collecting_with_torchrls_collector_learns_what_the_kitchen_collector_learns(tmp_path):

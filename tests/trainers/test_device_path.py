@@ -16,7 +16,7 @@ from torch_kitchen.onednn_linear import device_path
 from trainers.ppo import train
 from trainers.rollout import make_collector
 from trainers.runtime import Learner, team_policy
-from trainers.training_run import build_team, make_env
+from trainers.training_team import build_team, make_env
 
 
 def test_the_loss_forward_and_the_acting_pass_compile_without_a_graph_break(tmp_path):

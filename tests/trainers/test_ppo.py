@@ -21,7 +21,7 @@ from torchrl.modules import set_recurrent_mode
 import trainers.ppo
 import trainers.ppo_step
 import trainers.rollout
-import trainers.training_run
+import trainers.training_team
 from jax_env import EXPANDED_LAYOUTS
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
@@ -39,7 +39,7 @@ from trainers.ppo_step import team_gradients
 from trainers.rollout import make_collector
 from trainers.runtime import Learner, sharded_gradients
 from trainers.train_command import main
-from trainers.training_run import build_team, make_algorithm, make_env, make_loss, with_model_transforms
+from trainers.training_team import build_team, make_algorithm, make_env, make_loss, with_model_transforms
 
 MAIN_CONFIG = str(Path(__file__).resolve().parents[2] / "configs" / "main.yaml")
 TIMING = {"steps_per_second", "collect_seconds", "update_seconds"}
@@ -365,14 +365,14 @@ def test_a_nan_loss_stops_the_run_with_a_clear_error_and_the_last_good_weights(t
             batch.set(("agents", "advantage"), torch.full_like(batch.get(("agents", "advantage")), float("nan")))
 
     saved = []  # every checkpoint's weights and optimizer state, as written
-    real_save = trainers.training_run.save_checkpoint
+    real_save = trainers.training_team.save_checkpoint
 
     def keeping_a_copy(path, state):
         saved.append(copy.deepcopy({key: state[key] for key in ("actor", "critic", "optimizer")}))
         real_save(path, state)
 
     monkeypatch.setattr(trainers.ppo, "compute_advantages", nan_advantages_at_update_2)
-    monkeypatch.setattr(trainers.training_run, "save_checkpoint", keeping_a_copy)
+    monkeypatch.setattr(trainers.training_team, "save_checkpoint", keeping_a_copy)
     argv = [MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "total_steps=256", "checkpoint_every=1"]
     assert main(argv) == 1
     err = capsys.readouterr().err

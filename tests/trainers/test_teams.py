@@ -16,7 +16,7 @@ from trainers.config import ConfigError
 from trainers.ppo import train, train_teams
 from trainers.runtime import ShardPool, learning_pool
 from trainers.train_command import main
-from trainers.training_run import team_configs
+from trainers.training_team import team_configs
 
 
 def assert_same_run(team_run, single_run):
@@ -171,7 +171,7 @@ def test_stacked_teams_act_as_the_teams_one_after_another_at_one_teams_launches(
 
     from torch_kitchen.onednn_linear import device_path
     from torch_kitchen.teams import TeamPolicy
-    from trainers.training_run import build_team, make_env
+    from trainers.training_team import build_team, make_env
 
     config = tiny_config(tmp_path, f"architecture={architecture}", "levels=infinite", "runtime.teams=3")
     configs = team_configs(config)
@@ -279,7 +279,7 @@ def test_a_stacked_loss_gives_each_team_its_own_losses_and_gradients(tmp_path, a
 ])
 def test_teams_learn_as_one_where_the_gpu_model_and_algorithm_allow(tmp_path, overrides, stacks):
     from trainers.runtime import learns_stacked
-    from trainers.training_run import build_team, make_env
+    from trainers.training_team import build_team, make_env
 
     configs = team_configs(tiny_config(tmp_path, "runtime.teams=2", *overrides))
     kitchen = make_env(configs[0], num_envs=2 * configs[0].num_envs, seed=[c.seed for c in configs])
@@ -293,7 +293,7 @@ def test_teams_learn_as_one_where_the_gpu_model_and_algorithm_allow(tmp_path, ov
 
 def _stacked_team_policy(tmp_path, architecture, compile_mode=None):
     from torch_kitchen.teams import TeamPolicy
-    from trainers.training_run import build_team, make_env
+    from trainers.training_team import build_team, make_env
 
     config = tiny_config(tmp_path, f"architecture={architecture}", "levels=infinite", "runtime.teams=2")
     configs = team_configs(config)

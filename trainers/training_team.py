@@ -1,4 +1,4 @@
-"""A seed's run as it trains (`TrainingRun`): its kitchens, networks, algorithm, TorchRL loss and optimizer,
+"""A seed's team as it trains (`TrainingTeam`): its kitchens, networks, algorithm, TorchRL loss and optimizer,
 built in the team's own random stream, its checkpoint, and the restore point an update that diverged goes back
 to. The PPO loop (`trainers.ppo`) drives the runs; their step is `trainers.ppo_step`'s; `trainers.runtime` places
 them on the machine and decides how several of them share it."""
@@ -88,7 +88,7 @@ class TeamKitchens:
 
 
 @dataclasses.dataclass
-class TrainingRun:
+class TrainingTeam:
     """One seed's run as it trains: its config and run directory, the team's networks, algorithm, loss and
     optimizer, random stream, counters and loggers. A process trains one, or several in one batch of kitchens
     (`train_teams`); a finished run's team is loaded for play as a `trainers.evaluate.Team`."""
@@ -133,7 +133,7 @@ def team_configs(config: TrainConfig) -> list[TrainConfig]:
 
 
 def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
-               actor_critic: ActorCritic | None = None) -> TrainingRun:
+               actor_critic: ActorCritic | None = None) -> TrainingTeam:
     """Team `index` of the batch: networks (from `config.architecture` unless given), algorithm, loss and
     optimizer, all built in the team's own random stream, seeded with its seed."""
     stream = RandomStream(config.seed, config.runtime.device)
@@ -149,7 +149,7 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
         loss_module = make_loss(config, actor_critic, algorithm)
         parameters = [*loss_module.parameters(), *algorithm.parameters()]
         optimizer = make_optimizer(config, parameters)
-    team = TrainingRun(
+    team = TrainingTeam(
         config=config, run=run, stream=stream, actor_critic=actor_critic, algorithm=algorithm, policy=policy,
         loss_module=loss_module, optimizer=optimizer, parameters=parameters,
         identity=model_identity(config.architecture, obs_shape, config.hidden, config.share_params),
@@ -159,7 +159,7 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
     return team
 
 
-def algorithm_transforms(teams: list[TrainingRun]) -> list[Transform]:
+def algorithm_transforms(teams: list[TrainingTeam]) -> list[Transform]:
     """The env transforms of the teams' algorithms: each team's own, on its rows, where there are several."""
     if len(teams) == 1:
         return teams[0].algorithm.env_transforms()
@@ -171,7 +171,7 @@ class RestorePoint:
     """A team's weights and optimizer state as they were, copied on their device: an update whose loss diverged
     is undone from it, so that the update's minibatches need not stop to ask whether each loss was finite."""
 
-    def __init__(self, team: TrainingRun):
+    def __init__(self, team: TrainingTeam):
         self.team = team
         self.weights = [parameter.detach().clone() for parameter in team.parameters]
         self.optimizer = copy.deepcopy(team.optimizer.state_dict())
