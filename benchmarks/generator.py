@@ -6,6 +6,11 @@ Stepping runs `Overcooked.step_batch` (the batched step that generates levels on
 step as JaxMARL does, is shown too.
 
     python benchmarks/generator.py [--envs 1024 8192]
+    python benchmarks/generator.py --sizes 7 9 [--levels 20000] [--envs 1024]
+
+`--sizes`: per kitchen size, `--levels` training levels checked by the solvability checker (how many unsolvable,
+how many held-out grids drawn), the levels/s, and the env steps/s on generated kitchens of that size, against
+the first size's.
 """
 
 from __future__ import annotations
@@ -14,13 +19,15 @@ import argparse
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from env_step import make_rollout, per_second
 
 from jax_env import GeneratorConfig, Overcooked, heldout_grids, sample_levels, sample_training_levels
+from jax_env.solvability import UNSOLVABLE, classify_levels
 
 
-def level_sampler(num_levels, training):
-    config, heldout = GeneratorConfig(), heldout_grids()
+def level_sampler(num_levels, training, config=GeneratorConfig()):
+    heldout = heldout_grids(config)
     if training:
         return lambda key: sample_training_levels(jax.random.split(key, num_levels), config, heldout)
     return lambda key: sample_levels(jax.random.split(key, num_levels), config)
@@ -44,13 +51,39 @@ def batched_rollout(env, num_envs, num_steps):
     return jax.jit(rollout)
 
 
+def by_size(sizes: list[int], num_levels: int, num_envs: int, num_steps: int, min_seconds: float) -> None:
+    """Per kitchen size: unsolvable and held-out levels among `num_levels` training levels, levels/s, env steps/s
+    on generated kitchens, and that against the first size's."""
+    print(f"{'size':>5s} {'levels checked':>15s} {'unsolvable':>11s} {'held-out drawn':>15s} {'levels/s':>10s} "
+          f"{'env steps/s':>12s} {'vs first':>9s}")
+    first = None
+    for size in sizes:
+        config = GeneratorConfig(size=size)
+        heldout = {grid.tobytes() for grid in np.asarray(heldout_grids(config))}
+        levels = jax.tree_util.tree_map(np.asarray, level_sampler(num_levels, True, config)(jax.random.PRNGKey(1)))
+        cells = np.stack([levels.agent_pos % size, levels.agent_pos // size], axis=-1)  # (x, y) of each agent
+        unsolvable = int((classify_levels(levels.grid, cells) == UNSOLVABLE).sum())
+        drawn = sum(grid.tobytes() in heldout for grid in levels.grid)
+        rate = per_second(level_sampler(num_envs, True, config), num_envs, min_seconds)
+        env = Overcooked("infinite", max_steps=256, generator=config)
+        steps = per_second(batched_rollout(env, num_envs, num_steps), num_envs * num_steps, min_seconds)
+        first = first or steps
+        print(f"{size:>5d} {num_levels:15,d} {unsolvable:11d} {drawn:15d} {rate:10,.0f} {steps:12,.0f} "
+              f"{steps / first:9.2f}", flush=True)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--envs", nargs="+", type=int, default=[1024, 8192])
     parser.add_argument("--steps", type=int, default=512, help="steps per jitted rollout (2 episodes)")
     parser.add_argument("--min-seconds", type=float, default=3.0)
+    parser.add_argument("--sizes", nargs="+", type=int, help="compare kitchen sizes instead (e.g. 7 9)")
+    parser.add_argument("--levels", type=int, default=20_000, help="with --sizes: training levels checked")
     args = parser.parse_args(argv)
     print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()})")
+    if args.sizes:
+        by_size(args.sizes, args.levels, args.envs[0], args.steps, args.min_seconds)
+        return
 
     print(f"{'levels per call':>16s} {'levels/s':>12s} {'training levels/s (held-out rejected)':>40s}")
     for n in args.envs:

@@ -1,6 +1,9 @@
-"""The Infinite Kitchen level generator: random solvable 7x7 kitchens, in pure JAX.
+"""The Infinite Kitchen level generator: random solvable 7x7 kitchens (or 9x9: `GeneratorConfig.size`), in pure
+JAX.
 
-Every level is a border of counters around a 5x5 interior. `sample_level` draws, with independent keys:
+Every level is a border of counters around a 5x5 interior (7x7 at size 9; the numbers below are those of 7x7,
+their 9x9 counterparts in `Geometry`: middle row and column 4, walls of 7 interior cells, 8-cell quadrants).
+`sample_level` draws, with independent keys:
 
 1. Interior walls by one of four predicates: none (p_empty), a 3x3 middle block whose 9 cells are each
    reopened with p_block_reopen (p_middle), or a continuous wall down column 3 (p_vertical) or along row 3
@@ -40,7 +43,8 @@ import numpy as np
 from jax_env.layouts import COUNTER, EXPANDED_LAYOUTS, FLOOR, GOAL, ONION_PILE, PLATE_PILE, POT, get_layout
 from jax_env.state import DISH, ONION, PLATE, POT_EMPTY, State, make_state
 
-SIZE = 7
+SIZES = (7, 9)  # kitchen sizes the construction keeps solvable (a border around a 5x5 or 7x7 interior)
+SIZE = 7  # the paper's
 NUM_CELLS = SIZE * SIZE
 
 # Required kinds in placement order; extra copies use the same order.
@@ -48,60 +52,118 @@ ITEM_KINDS = (ONION_PILE, PLATE_PILE, POT, GOAL)
 # Loose item kinds, in the order of `GeneratorConfig.loose_probs`.
 LOOSE_KINDS = (ONION, PLATE, DISH)
 
-BORDER_CELLS = tuple((r, c) for r in range(SIZE) for c in range(SIZE) if r in (0, SIZE - 1) or c in (0, SIZE - 1))
-CORNER_CELLS = ((0, 0), (0, 6), (6, 0), (6, 6))
-T_JUNCTION_CELLS = ((0, 3), (3, 0), (3, 6), (6, 3))
-SAFE_CELLS = tuple(cell for cell in BORDER_CELLS if cell not in CORNER_CELLS + T_JUNCTION_CELLS)
-BLOCK_CELLS = tuple((r, c) for r in range(2, 5) for c in range(2, 5))
-VERTICAL_CELLS = tuple((r, 3) for r in range(1, 6))
-HORIZONTAL_CELLS = tuple((3, c) for c in range(1, 6))
-CROSS_CELLS = tuple(sorted({(3, c) for c in range(SIZE)} | {(r, 3) for r in range(SIZE)}))
-QUESTIONABLE_CELLS = tuple(sorted(set(CROSS_CELLS) | set(BLOCK_CELLS) | set(CORNER_CELLS)))
-# Top-left, top-right, bottom-left, bottom-right; no predicate ever walls these cells.
-QUADRANT_CELLS = (
-    ((1, 1), (1, 2), (2, 1)),
-    ((1, 4), (1, 5), (2, 5)),
-    ((4, 1), (5, 1), (5, 2)),
-    ((5, 4), (5, 5), (4, 5)),
-)
-# The two diagonal quadrant pairs: (top-left, bottom-right) and (top-right, bottom-left).
-QUADRANT_PAIRS = ((0, 3), (1, 2))
-
 # Seed of the held-out evaluation set; changing it changes which levels training never sees.
 HELDOUT_SEED = 20240
 NUM_HELDOUT_GENERATED = 100
 
 
-def _flat(cells) -> np.ndarray:
-    return np.asarray([r * SIZE + c for r, c in cells], dtype=np.int32)
+@dataclasses.dataclass(frozen=True)
+class Geometry:
+    """The cells of an S x S kitchen (S odd, m = S // 2 its middle row and column) that the construction names,
+    as (row, col) tuples; the module docstring's numbers are those of S = 7 (m = 3)."""
+
+    size: int
+
+    @property
+    def middle(self) -> int:
+        return self.size // 2
+
+    @property
+    def border(self) -> tuple:
+        last = self.size - 1
+        return tuple((r, c) for r in range(self.size) for c in range(self.size) if r in (0, last) or c in (0, last))
+
+    @property
+    def corners(self) -> tuple:
+        last = self.size - 1
+        return ((0, 0), (0, last), (last, 0), (last, last))
+
+    @property
+    def t_junctions(self) -> tuple:
+        """Where a middle-row or middle-column wall meets the border."""
+        m, last = self.middle, self.size - 1
+        return ((0, m), (m, 0), (m, last), (last, m))
+
+    @property
+    def safe(self) -> tuple:
+        return tuple(cell for cell in self.border if cell not in self.corners + self.t_junctions)
+
+    @property
+    def block(self) -> tuple:
+        """The 3x3 middle block."""
+        m = self.middle
+        return tuple((r, c) for r in range(m - 1, m + 2) for c in range(m - 1, m + 2))
+
+    @property
+    def vertical(self) -> tuple:
+        return tuple((r, self.middle) for r in range(1, self.size - 1))
+
+    @property
+    def horizontal(self) -> tuple:
+        return tuple((self.middle, c) for c in range(1, self.size - 1))
+
+    @property
+    def cross(self) -> tuple:
+        m = self.middle
+        return tuple(sorted({(m, c) for c in range(self.size)} | {(r, m) for r in range(self.size)}))
+
+    @property
+    def questionable(self) -> tuple:
+        return tuple(sorted(set(self.cross) | set(self.block) | set(self.corners)))
+
+    @property
+    def quadrants(self) -> tuple:
+        """Top-left, top-right, bottom-left, bottom-right: the interior cells off the middle row and column and
+        off the block, row by row (the bottom-right one's from the bottom row up); no predicate ever walls them."""
+        m, last = self.middle, self.size - 1
+        rows = (range(1, m), range(1, m), range(m + 1, last), range(last - 1, m, -1))  # the last from the bottom
+        cols = (range(1, m), range(m + 1, last), range(1, m), range(m + 1, last))
+        return tuple(tuple((r, c) for r in rs for c in cs if (r, c) not in self.block) for rs, cs in zip(rows, cols))
+
+    def flat(self, cells) -> np.ndarray:
+        return np.asarray([r * self.size + c for r, c in cells], dtype=np.int32)
+
+    def mask(self, cells) -> np.ndarray:
+        mask = np.zeros(self.size * self.size, dtype=bool)
+        mask[self.flat(cells)] = True
+        return mask
 
 
-def _mask(cells) -> np.ndarray:
-    mask = np.zeros(NUM_CELLS, dtype=bool)
-    mask[_flat(cells)] = True
-    return mask
+@functools.cache
+def geometry(size: int) -> Geometry:
+    if size not in SIZES:
+        raise ValueError(f"Infinite Kitchen levels are {' or '.join(f'{s}x{s}' for s in SIZES)}, not {size}x{size}")
+    return Geometry(size)
 
 
-_BORDER_MASK = _mask(BORDER_CELLS)
-_SAFE_FLAT = _flat(SAFE_CELLS)
-_BLOCK_FLAT = _flat(BLOCK_CELLS)
-_VERTICAL_FLAT = _flat(VERTICAL_CELLS)
-_HORIZONTAL_FLAT = _flat(HORIZONTAL_CELLS)
-_QUESTIONABLE_MASK = _mask(QUESTIONABLE_CELLS)
-_QUADRANT_FLAT = np.stack([_flat(cells) for cells in QUADRANT_CELLS])  # (4, 3)
+# The paper's 7x7 geometry, by name.
+BORDER_CELLS = geometry(SIZE).border
+CORNER_CELLS = geometry(SIZE).corners
+T_JUNCTION_CELLS = geometry(SIZE).t_junctions
+SAFE_CELLS = geometry(SIZE).safe
+BLOCK_CELLS = geometry(SIZE).block
+VERTICAL_CELLS = geometry(SIZE).vertical
+HORIZONTAL_CELLS = geometry(SIZE).horizontal
+CROSS_CELLS = geometry(SIZE).cross
+QUESTIONABLE_CELLS = geometry(SIZE).questionable
+QUADRANT_CELLS = geometry(SIZE).quadrants
+# The two diagonal quadrant pairs: (top-left, bottom-right) and (top-right, bottom-left).
+QUADRANT_PAIRS = ((0, 3), (1, 2))
 _QUADRANT_PAIRS = np.asarray(QUADRANT_PAIRS, dtype=np.int32)  # (2, 2)
 
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class GeneratorConfig:
-    """Probabilities of the Infinite Kitchen generator (defaults: the paper's).
+    """The kitchen size and probabilities of the Infinite Kitchen generator (defaults: the paper's).
 
     Hashable, so it can be a static argument (`jax.jit(sample_level, static_argnames="config")`), and a pytree
     of scalars, so it can also be traced: `jax.jit(jax.vmap(sample_level, in_axes=(0, None)))(keys, config)`
-    compiles once for every config.
+    compiles once for every config of one size (the size is static: it decides the arrays' shapes).
     """
 
+    size: int = dataclasses.field(default=SIZE, metadata={"static": True})
+    """the kitchens' side, border included: 7 (the paper's) or 9"""
     p_empty: float = 0.1
     """probability of the predicate with no interior walls"""
     p_middle: float = 0.3
@@ -124,10 +186,12 @@ class GeneratorConfig:
     """probability of a loose dish (plated soup) on a plain counter"""
 
     def __post_init__(self):
-        values = [getattr(self, field.name) for field in dataclasses.fields(self)]
+        geometry(self.size)  # ValueError for a size the construction does not keep solvable
+        probabilities = [field for field in dataclasses.fields(self) if field.name != "size"]
+        values = [getattr(self, field.name) for field in probabilities]
         if not all(isinstance(value, (int, float)) for value in values):
             return  # traced or batched fields, rebuilt by jax; checked when first built from numbers
-        for field in dataclasses.fields(self):
+        for field in probabilities:
             # Plain floats, so that configs given with ints and with floats trace alike.
             value = float(getattr(self, field.name))
             object.__setattr__(self, field.name, value)
@@ -177,44 +241,49 @@ def _categorical(u: jax.Array, probs) -> jax.Array:
 
 
 def _interior_walls(u: jax.Array, config: GeneratorConfig) -> jax.Array:
-    """bool (49,): interior walls drawn by one of the four predicates; u: float32 (4, >= 9) independent uniforms."""
+    """bool (S*S,): interior walls drawn by one of the four predicates; u: float32 (4, >= S - 2) independent
+    uniforms."""
+    geo = geometry(config.size)
+    line = len(geo.vertical)  # interior cells of a continuous wall: 5 at 7x7
     predicate = _categorical(u[0, 0], config.predicate_probs)
-    block_kept = u[1, : len(BLOCK_CELLS)] >= config.p_block_reopen
+    block_kept = u[1, : len(geo.block)] >= config.p_block_reopen
     intact = u[2, 0] < config.p_wall_intact
-    reopened = _distinct_choice(u[3], jnp.ones(5, bool), 2)
-    line_kept = intact | ~jnp.zeros(5, bool).at[reopened].set(True)
+    reopened = _distinct_choice(u[3], jnp.ones(line, bool), 2)
+    line_kept = intact | ~jnp.zeros(line, bool).at[reopened].set(True)
 
-    none = jnp.zeros(NUM_CELLS, bool)
+    none = jnp.zeros(config.size * config.size, bool)
     walls = jnp.stack(
         [
             none,
-            none.at[_BLOCK_FLAT].set(block_kept),
-            none.at[_VERTICAL_FLAT].set(line_kept),
-            none.at[_HORIZONTAL_FLAT].set(line_kept),
+            none.at[geo.flat(geo.block)].set(block_kept),
+            none.at[geo.flat(geo.vertical)].set(line_kept),
+            none.at[geo.flat(geo.horizontal)].set(line_kept),
         ]
     )
     return walls[predicate]
 
 
 def sample_level(key: jax.Array, config: GeneratorConfig = GeneratorConfig()) -> State:
-    """One random Infinite Kitchen level (7x7): grid uint8 (7, 7), contents uint8 (7, 7) with loose items and
-    empty pots, agent_pos/agent_dir/agent_inv int32 (2,), step int32 (). Jittable and vmappable over `key`."""
+    """One random Infinite Kitchen level of `config.size` (S = 7 by default): grid uint8 (S, S), contents uint8
+    (S, S) with loose items and empty pots, agent_pos/agent_dir/agent_inv int32 (2,), step int32 (). Jittable and
+    vmappable over `key`."""
+    geo, num_cells = geometry(config.size), config.size * config.size
     # Every draw has its own key. The draws are vmapped over their keys, in two widths, so that the program
     # holds 2 random kernels instead of 13 (XLA compiles it several times faster); one row per draw.
     keys = jax.random.split(key, 13)
-    u = jax.vmap(lambda k: jax.random.uniform(k, (len(SAFE_CELLS),)))(keys[:11])  # float32 (11, 16)
-    cell_u = jax.vmap(lambda k: jax.random.uniform(k, (NUM_CELLS,)))(keys[11:])  # float32 (2, 49)
+    u = jax.vmap(lambda k: jax.random.uniform(k, (len(geo.safe),)))(keys[:11])  # float32 (11, 16) at 7x7
+    cell_u = jax.vmap(lambda k: jax.random.uniform(k, (num_cells,)))(keys[11:])  # float32 (2, 49) at 7x7
 
-    walls = jnp.asarray(_BORDER_MASK) | _interior_walls(u[0:4], config)
+    walls = jnp.asarray(geo.mask(geo.border)) | _interior_walls(u[0:4], config)
     grid = jnp.where(walls, COUNTER, FLOOR).astype(jnp.uint8)
 
     # Required items: a uniform ordered choice of 4 distinct safe cells.
-    safe_order = _distinct_choice(u[4], jnp.ones(len(SAFE_CELLS), bool), len(ITEM_KINDS))
-    grid = grid.at[jnp.asarray(_SAFE_FLAT)[safe_order]].set(jnp.asarray(ITEM_KINDS, jnp.uint8))
+    safe_order = _distinct_choice(u[4], jnp.ones(len(geo.safe), bool), len(ITEM_KINDS))
+    grid = grid.at[jnp.asarray(geo.flat(geo.safe))[safe_order]].set(jnp.asarray(ITEM_KINDS, jnp.uint8))
 
     # Extras: 4 distinct questionable walls drawn together, each kind keeping its cell with p_extra_item.
     # Required items sit on safe cells, never questionable ones, so the extras cannot land on them.
-    extra_cells = _distinct_choice(cell_u[0], jnp.asarray(_QUESTIONABLE_MASK) & walls, len(ITEM_KINDS))
+    extra_cells = _distinct_choice(cell_u[0], jnp.asarray(geo.mask(geo.questionable)) & walls, len(ITEM_KINDS))
     has_extra = u[5, : len(ITEM_KINDS)] < config.p_extra_item
     extra_kinds = jnp.where(has_extra, jnp.asarray(ITEM_KINDS, jnp.uint8), grid[extra_cells])
     grid = grid.at[extra_cells].set(extra_kinds)
@@ -222,20 +291,21 @@ def sample_level(key: jax.Array, config: GeneratorConfig = GeneratorConfig()) ->
     # Loose items on distinct plain counters (no pile, pot or goal).
     loose_cells = _distinct_choice(cell_u[1], grid == COUNTER, len(LOOSE_KINDS))
     has_loose = u[6, : len(LOOSE_KINDS)] < jnp.asarray(config.loose_probs, jnp.float32)
-    contents = jnp.zeros(NUM_CELLS, jnp.uint8)
+    contents = jnp.zeros(num_cells, jnp.uint8)
     contents = contents.at[loose_cells].set(jnp.where(has_loose, jnp.asarray(LOOSE_KINDS, jnp.uint8), 0))
     contents = jnp.where(grid == POT, jnp.uint8(POT_EMPTY), contents)
 
     # Agents: a diagonal quadrant pair, one cell in each quadrant, a coin for who goes where.
     pair = jnp.asarray(_QUADRANT_PAIRS)[_uniform_int(u[7, 0], len(QUADRANT_PAIRS))]
-    positions = jnp.asarray(_QUADRANT_FLAT)[pair, _uniform_int(u[8, :2], 3)]
+    quadrant_cells = np.stack([geo.flat(cells) for cells in geo.quadrants])  # (4, 3) at 7x7
+    positions = jnp.asarray(quadrant_cells)[pair, _uniform_int(u[8, :2], quadrant_cells.shape[1])]
     swap = u[9, 0] < 0.5
     agent_pos = jnp.where(swap, positions[::-1], positions).astype(jnp.int32)
     agent_dir = _uniform_int(u[10, :2], 4)
 
     return State(
-        grid=grid.reshape(SIZE, SIZE),
-        contents=contents.reshape(SIZE, SIZE),
+        grid=grid.reshape(config.size, config.size),
+        contents=contents.reshape(config.size, config.size),
         agent_pos=agent_pos,
         agent_dir=agent_dir,
         agent_inv=jnp.zeros(2, jnp.int32),
@@ -251,20 +321,23 @@ def sample_levels(keys: jax.Array, config: GeneratorConfig = GeneratorConfig()) 
 
 
 def _grid_words(grids: jax.Array) -> jax.Array:
-    """uint32 (..., 13): the 49 grid bytes packed 4 to a word (zero-padded); grids are equal iff their words are."""
-    flat = jnp.asarray(grids, jnp.uint8).reshape(grids.shape[:-2] + (NUM_CELLS,))
-    padded = jnp.pad(flat, [(0, 0)] * (flat.ndim - 1) + [(0, 3)])
-    return jax.lax.bitcast_convert_type(padded.reshape(padded.shape[:-1] + (13, 4)), jnp.uint32)
+    """uint32 (..., W): the S*S grid bytes packed 4 to a word (zero-padded; 13 words at 7x7); grids are equal iff
+    their words are."""
+    cells = grids.shape[-2] * grids.shape[-1]
+    words = -(-cells // 4)
+    flat = jnp.asarray(grids, jnp.uint8).reshape(grids.shape[:-2] + (cells,))
+    padded = jnp.pad(flat, [(0, 0)] * (flat.ndim - 1) + [(0, 4 * words - cells)])
+    return jax.lax.bitcast_convert_type(padded.reshape(padded.shape[:-1] + (words, 4)), jnp.uint32)
 
 
 def _sorted_words(grids: jax.Array) -> jax.Array:
-    """uint32 (K, 13): the grids' words in lexicographic order, for `_contains`."""
+    """uint32 (K, W): the grids' words in lexicographic order, for `_contains`."""
     words = _grid_words(grids)
     return words[jnp.lexsort(words.T[::-1])]  # lexsort's last key is its primary one
 
 
 def _contains(sorted_words: jax.Array, words: jax.Array) -> jax.Array:
-    """bool (): whether `words` (uint32 (13,)) is a row of `sorted_words` (uint32 (K, 13), sorted). A binary
+    """bool (): whether `words` (uint32 (W,)) is a row of `sorted_words` (uint32 (K, W), sorted). A binary
     search, so that a large held-out set costs log2(K) row comparisons per draw rather than K."""
     num = sorted_words.shape[0]
     if num == 0:
@@ -287,7 +360,7 @@ def _contains(sorted_words: jax.Array, words: jax.Array) -> jax.Array:
 
 
 def is_heldout(grid: jax.Array, heldout: jax.Array) -> jax.Array:
-    """bool (): whether `grid` (uint8 (7, 7)) equals one of `heldout` (uint8 (K, 7, 7))."""
+    """bool (): whether `grid` (uint8 (S, S)) equals one of `heldout` (uint8 (K, S, S))."""
     return _contains(_sorted_words(heldout), _grid_words(grid))
 
 
@@ -314,7 +387,7 @@ def sample_training_levels(keys: jax.Array, config: GeneratorConfig, heldout: ja
 
 @functools.lru_cache(maxsize=8)
 def _heldout_levels_np(config: GeneratorConfig) -> State:
-    expanded = {get_layout(name).grid.tobytes() for name in EXPANDED_LAYOUTS}
+    expanded = {layout.grid.tobytes() for layout in _expanded_layouts(config.size)}
     seen: set[bytes] = set()
     kept: list[State] = []
     # The first batch is split(PRNGKey(HELDOUT_SEED), 100); a grid already taken (or equal to an expanded
@@ -334,21 +407,30 @@ def _heldout_levels_np(config: GeneratorConfig) -> State:
     return jax.tree_util.tree_map(lambda *leaves: np.stack(leaves), *kept)
 
 
+def _expanded_layouts(size: int) -> list:
+    """The classic layouts drawn inside kitchens of `size` that the held-out set holds: the 5 expanded ones at
+    7x7 (`EXPANDED_LAYOUTS`); none yet at other sizes."""
+    return [get_layout(name) for name in EXPANDED_LAYOUTS] if size == SIZE else []
+
+
 def heldout_levels(config: GeneratorConfig = GeneratorConfig()) -> State:
-    """The 100 held-out generated levels, batched: grid uint8 (100, 7, 7), ... Deterministic (HELDOUT_SEED);
-    their grids are distinct from each other and from the expanded classic layouts."""
+    """The 100 held-out generated levels of `config.size`, batched: grid uint8 (100, S, S), ... Deterministic
+    (HELDOUT_SEED); their grids are distinct from each other and from the expanded classic layouts."""
     return jax.tree_util.tree_map(jnp.asarray, _heldout_levels_np(config))
 
 
 def heldout_set(config: GeneratorConfig = GeneratorConfig()) -> State:
-    """All 105 held-out evaluation levels as start states, batched (105, ...): the 100 generated levels, then
-    the 5 expanded classic layouts (in `EXPANDED_LAYOUTS` order, agents at their start cells)."""
-    classic = [make_state(get_layout(name)) for name in EXPANDED_LAYOUTS]
+    """All held-out evaluation levels of `config.size` as start states, batched: the 100 generated levels, then,
+    at 7x7, the 5 expanded classic layouts (in `EXPANDED_LAYOUTS` order, agents at their start cells): 105."""
+    generated = heldout_levels(config)
+    classic = [make_state(layout) for layout in _expanded_layouts(config.size)]
+    if not classic:
+        return generated
     return jax.tree_util.tree_map(
-        lambda generated, *fixed: jnp.concatenate([generated, jnp.stack(fixed)]), heldout_levels(config), *classic
+        lambda generated, *fixed: jnp.concatenate([generated, jnp.stack(fixed)]), generated, *classic
     )
 
 
 def heldout_grids(config: GeneratorConfig = GeneratorConfig()) -> jax.Array:
-    """uint8 (105, 7, 7): the grids of `heldout_set`, which training never samples."""
+    """uint8 (K, S, S): the grids of `heldout_set` (105 at 7x7, 100 at 9x9), which training never samples."""
     return heldout_set(config).grid

@@ -30,6 +30,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from jax_env import EXPANDED_LAYOUTS, classify_layout, load_layout
 from jax_env.generator import NUM_HELDOUT_GENERATED
+from jax_env.generator import SIZES as GENERATOR_SIZES
 
 
 class ConfigError(ValueError):
@@ -122,6 +123,10 @@ class TrainConfig:
     # --- environment
     levels: str | list[str] = option(
         "infinite", '"infinite" (IK), a layout name or file (SK), or a list of them', group="environment"
+    )
+    kitchen_size: int = option(
+        7, 'the side of the generated kitchens ("infinite", "heldout"): 7 (the paper\'s) or 9, each with its own '
+           'held-out levels'
     )
     max_steps: int = option(256, "episode length")
     num_envs: int = option(32, "kitchens stepped together")
@@ -260,6 +265,9 @@ class TrainConfig:
             )
         if not self.levels:
             raise ConfigError("levels is empty: give a layout name or file, a list of them, or 'infinite'")
+        if self.kitchen_size not in GENERATOR_SIZES:
+            raise ConfigError(f"kitchen_size must be one of {', '.join(map(str, GENERATOR_SIZES))} (the generated "
+                              f"kitchens' side), got {self.kitchen_size}")
         if isinstance(self.levels, list):
             for level in self.levels:
                 if level in GENERATED_LEVELS:  # jax_env.Overcooked reads them only as the whole of `levels`

@@ -16,6 +16,7 @@ from torchrl.envs import Transform
 from torchrl.objectives import ClipPPOLoss
 from torchrl.record.loggers import Logger
 
+from jax_env import GeneratorConfig
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.keys import ACTION, ADVANTAGE, LOG_PROB, VALUE, VALUE_TARGET
 from torch_kitchen.models import ActorCritic, make_actor_critic
@@ -34,6 +35,7 @@ def make_env(config: TrainConfig, num_envs: int | None = None, levels=None,
         num_envs=num_envs or config.num_envs,
         levels=config.levels if levels is None else levels,
         max_steps=config.max_steps,
+        generator=GeneratorConfig(size=config.kitchen_size),
         device=config.runtime.device,
         seed=config.seed if seed is None else seed,
     )

@@ -228,7 +228,7 @@ def test_reopened_pairs_are_uniform():
 def test_config_fields_change_behaviour():
     base = levels(DEFAULT)
     for field in dataclasses.fields(GeneratorConfig):
-        if field.name in ("p_empty", "p_middle", "p_vertical", "p_horizontal"):
+        if field.name in ("size", "p_empty", "p_middle", "p_vertical", "p_horizontal"):
             continue
         changed = levels(dataclasses.replace(DEFAULT, **{field.name: 1.0 - getattr(DEFAULT, field.name) / 2}))
         same = np.array_equal(base.grid, changed.grid) and np.array_equal(base.contents, changed.contents)
@@ -240,9 +240,12 @@ def test_config_validation():
         GeneratorConfig(p_empty=0.5)
     with pytest.raises(ValueError, match="p_loose_dish"):
         GeneratorConfig(p_loose_dish=1.5)
+    for size in (5, 8, 11):
+        with pytest.raises(ValueError, match=f"7x7 or 9x9, not {size}x{size}"):
+            GeneratorConfig(size=size)
     config = GeneratorConfig(**EMPTY_ONLY)
     assert hash(config) == hash(GeneratorConfig(p_empty=1, p_middle=0, p_vertical=0, p_horizontal=0))
-    assert all(isinstance(getattr(config, f.name), float) for f in dataclasses.fields(config))
+    assert all(isinstance(getattr(config, f.name), float) for f in dataclasses.fields(config) if f.name != "size")
 
 
 def test_jit_vmap_and_static_config_agree():
@@ -335,7 +338,8 @@ def test_count_script_geometry_matches_the_generator():
     assert count_script.QUESTIONABLE == frozenset(gen.QUESTIONABLE_CELLS)
     assert count_script.BLOCK == gen.BLOCK_CELLS
     assert (count_script.VERTICAL, count_script.HORIZONTAL) == (gen.VERTICAL_CELLS, gen.HORIZONTAL_CELLS)
-    assert count_script.PAPER_PROBS == dataclasses.asdict(DEFAULT)
+    probabilities = {key: value for key, value in dataclasses.asdict(DEFAULT).items() if key != "size"}
+    assert count_script.PAPER_PROBS == probabilities
     assert count_script.NUM_AGENT_CELLS == len(gen.QUADRANT_PAIRS) * 3 * 3 * 2
 
 
@@ -358,3 +362,41 @@ def test_count_matches_sampled_support(name):
     sampled, analytic = count_script.cross_check(probs, num_samples=4 * N, batch_size=N, with_agents=with_agents)
     assert analytic <= 2_000
     assert sampled == analytic
+
+
+# --- 9x9 kitchens --------------------------------------------------------------------------------------------
+
+
+def test_9x9_training_levels_are_solvable_never_held_out_and_built_as_the_7x7_ones():
+    """The same construction in a 9x9 border (`GeneratorConfig(size=9)`): every level solvable, agents in
+    diagonally opposite quadrants, required items once each on safe border cells, every predicate drawn, and
+    none of its own 100 held-out levels (themselves solvable and distinct) drawn in training."""
+    from jax_env.generator import geometry, sample_training_levels
+    from jax_env.solvability import UNSOLVABLE, classify_levels
+
+    config = GeneratorConfig(size=9)
+    geo = geometry(9)
+    heldout = np.asarray(heldout_grids(config))
+    assert heldout.shape == (100, 9, 9) and len({grid.tobytes() for grid in heldout}) == 100
+    drawn = jax.tree_util.tree_map(np.asarray, sample_training_levels(
+        jax.random.split(jax.random.PRNGKey(9), 4_000), config, jnp.asarray(heldout)))
+    grids = drawn.grid
+    assert grids.shape == (4_000, 9, 9)
+    assert not {grid.tobytes() for grid in grids} & {grid.tobytes() for grid in heldout}
+    held_out_states = heldout_levels(config)
+    for level_grids, positions in ((grids, drawn.agent_pos), (heldout, np.asarray(held_out_states.agent_pos))):
+        cells = np.stack([positions % 9, positions // 9], axis=-1)  # (x, y) per agent
+        assert (classify_levels(level_grids, cells) != UNSOLVABLE).all()
+
+    flat = grids.reshape(-1, 81)
+    assert (flat[:, geo.flat(geo.border)] != FLOOR).all()
+    for kind in ITEM_KINDS:
+        assert ((flat[:, geo.flat(geo.safe)] == kind).sum(1) == 1).all()
+    quadrant_of = {int(cell): q for q, cells in enumerate(geo.quadrants) for cell in geo.flat(cells)}
+    quadrants = np.vectorize(lambda cell: quadrant_of.get(int(cell), -1))(drawn.agent_pos)
+    assert (quadrants >= 0).all() and (quadrants.sum(1) == 3).all()
+    interior = grids[:, 1:8, 1:8] != FLOOR
+    full_column = interior[:, :, 3].all(1) & (interior.sum((1, 2)) == 7)
+    full_row = interior[:, 3, :].all(1) & (interior.sum((1, 2)) == 7)
+    block = interior[:, 2:5, 2:5].sum((1, 2)) == interior.sum((1, 2))
+    assert full_column.any() and full_row.any() and (interior.sum((1, 2)) == 0).any() and block.any()

@@ -551,3 +551,15 @@ def test_one_standardiser_pools_every_transition_or_those_asked_for_without_read
     alone = TensorDict({("agents", "advantage"): advantage.clone()}, [3])
     standardize_advantage(alone, where=torch.tensor([[True, False], [False, False], [False, False]]))
     torch.testing.assert_close(alone.get(("agents", "advantage")), advantage - 1.0)  # one transition: scale 1
+
+
+def test_a_team_trains_on_9x9_generated_kitchens_with_networks_built_for_them(tmp_path):
+    """`kitchen_size=9`: the generator's 9x9 kitchens, the networks built for 9x9 observations (the checkpoint
+    says so), the kitchens' XLA rollout and the update as at 7x7; a 7x7 config cannot load the team."""
+    config = tiny_config(tmp_path, "levels=infinite", "kitchen_size=9")
+    run = train(config)
+    state = load_checkpoint(run / "checkpoints" / "latest.pt")
+    assert state["model"]["obs_shape"] == [9, 9, 26] and state["update"] == 2
+    assert read_metrics(run)["losses/policy"]
+    with pytest.raises(Exception, match="obs_shape"):
+        train(tiny_config(tmp_path / "small", "levels=infinite", f"init_from={run}"))
