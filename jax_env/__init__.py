@@ -20,6 +20,7 @@ from jax_env.layouts import (
     GOAL,
     ONION_PILE,
     PADDED_LAYOUTS,
+    PADDED_LAYOUTS_9X9,
     PLATE_PILE,
     POT,
     Layout,

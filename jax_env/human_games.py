@@ -33,12 +33,13 @@ from jax_env.layouts import (
     FLOOR,
     GOAL,
     ONION_PILE,
-    PADDED_LAYOUTS,
     PADDED_SIZE,
     PLATE_PILE,
     POT,
     Layout,
     load_layout,
+    padded_layouts,
+    padded_name,
     padded_offset,
 )
 from jax_env.state import DIR_VECTORS, DISH, EMPTY, ONION, PLATE, POT_EMPTY, POT_FULL, State
@@ -222,17 +223,17 @@ def check_replay(game: HumanGame, recorded_after: dict[str, np.ndarray]) -> None
         raise ValueError(f"{game.name}: {min(problems, key=lambda problem: problem[0])[1]}")
 
 
-def padded_game(game: HumanGame) -> HumanGame:
-    """`game` in its layout drawn inside a 7x7 kitchen (`jax_env.layouts.PADDED_LAYOUTS`), where 7x7 teams can
-    meet a proxy of its players: the same steps, every cell shifted."""
-    layout = f"{game.layout}_in_{PADDED_SIZE}x{PADDED_SIZE}"
-    if layout not in PADDED_LAYOUTS:
-        raise ValueError(f"{game.layout} does not fit a {PADDED_SIZE}x{PADDED_SIZE} kitchen")
-    (dx, dy), (height, width) = padded_offset(game.layout), game.contents.shape[1:]
-    contents = np.zeros((len(game), PADDED_SIZE, PADDED_SIZE), np.uint8)
+def padded_game(game: HumanGame, size: int = PADDED_SIZE) -> HumanGame:
+    """`game` in its layout drawn inside a `size` x `size` kitchen (`jax_env.layouts.padded_layouts`), where teams
+    of that size can meet a proxy of its players: the same steps, every cell shifted, every step's replay checked."""
+    layout = padded_name(game.layout, size)
+    if layout not in padded_layouts(size):
+        raise ValueError(f"{game.layout} does not fit a {size}x{size} kitchen")
+    (dx, dy), (height, width) = padded_offset(game.layout, size), game.contents.shape[1:]
+    contents = np.zeros((len(game), size, size), np.uint8)
     contents[:, dy:dy + height, dx:dx + width] = game.contents
     x, y = game.agent_pos % width, game.agent_pos // width
-    agent_pos = ((y + dy) * PADDED_SIZE + x + dx).astype(np.int32)
+    agent_pos = ((y + dy) * size + x + dx).astype(np.int32)
     padded = dataclasses.replace(game, layout=layout, contents=contents, agent_pos=agent_pos)
     check_replay(padded, {field: getattr(padded, field)[1:] for field in FIELDS})
     return padded

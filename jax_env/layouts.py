@@ -169,6 +169,7 @@ _EXPANDED = {
 CLASSIC_LAYOUTS: tuple[str, ...] = tuple(_CLASSIC)
 EXPANDED_LAYOUTS: tuple[str, ...] = tuple(_EXPANDED)
 PADDED_SIZE = 7  # the Infinite Kitchen's size
+PADDED_SIZES = (7, 9)  # the generator's kitchen sizes (`jax_env.generator.SIZES`)
 
 
 def padded_text(text: str, size: int = PADDED_SIZE) -> str:
@@ -180,24 +181,42 @@ def padded_text(text: str, size: int = PADDED_SIZE) -> str:
     return "\n".join(["W" * size] * top + middle + ["W" * size] * (size - len(rows) - top))
 
 
-# The classic layouts that fit a 7x7 kitchen (asymm_advantages and counter_circuit are 9 and 8 wide), drawn inside
-# one: where 7x7 teams meet partners that know only the classic kitchen (the human proxies).
+def _fits(name: str, size: int) -> bool:
+    rows = _CLASSIC[name][0].split("\n")
+    return max(len(rows), len(rows[0])) <= size
+
+
+# The classic layouts drawn inside a generated kitchen's size, "<layout>_in_7x7" or "_in_9x9": where teams of that
+# size meet partners that know only the classic kitchen (the human proxies). asymm_advantages (9 wide) and
+# counter_circuit (8 wide) fit 9x9 only.
 _PADDED = {
-    f"{name}_in_7x7": name for name, (text, _) in _CLASSIC.items()
-    if max(len(text.split("\n")), len(text.split("\n")[0])) <= PADDED_SIZE
+    f"{name}_in_{size}x{size}": (name, size) for size in PADDED_SIZES for name in _CLASSIC if _fits(name, size)
 }  # fmt: skip
-PADDED_LAYOUTS: tuple[str, ...] = tuple(_PADDED)
+
+
+def padded_layouts(size: int = PADDED_SIZE) -> tuple[str, ...]:
+    """The names of the classic layouts drawn inside `size` x `size` kitchens."""
+    return tuple(name for name, (_, padded_size) in _PADDED.items() if padded_size == size)
+
+
+def padded_name(layout: str, size: int = PADDED_SIZE) -> str:
+    """The name of classic `layout` drawn inside a `size` x `size` kitchen (registered where it fits)."""
+    return f"{layout}_in_{size}x{size}"
+
+
+PADDED_LAYOUTS: tuple[str, ...] = padded_layouts(PADDED_SIZE)  # the 7x7 ones
+PADDED_LAYOUTS_9X9: tuple[str, ...] = padded_layouts(9)
 
 
 def layout_names() -> tuple[str, ...]:
     """Every registered layout name."""
-    return CLASSIC_LAYOUTS + EXPANDED_LAYOUTS + PADDED_LAYOUTS
+    return CLASSIC_LAYOUTS + EXPANDED_LAYOUTS + tuple(_PADDED)
 
 
-def padded_offset(name: str) -> tuple[int, int]:
-    """(dx, dy): where cell (0, 0) of classic layout `name` lies in its 7x7 drawing."""
+def padded_offset(name: str, size: int = PADDED_SIZE) -> tuple[int, int]:
+    """(dx, dy): where cell (0, 0) of classic layout `name` lies in its `size` x `size` drawing."""
     text = _CLASSIC[name][0].split("\n")
-    return (PADDED_SIZE - len(text[0])) // 2, (PADDED_SIZE - len(text)) // 2
+    return (size - len(text[0])) // 2, (size - len(text)) // 2
 
 
 def get_layout(name: str) -> Layout:
@@ -208,8 +227,9 @@ def get_layout(name: str) -> Layout:
     if name in _EXPANDED:
         return parse_layout(_EXPANDED[name], name=name)
     if name in _PADDED:
-        text, order = _CLASSIC[_PADDED[name]]
-        return parse_layout(padded_text(text), name=name, agent_order=order)
+        classic, size = _PADDED[name]
+        text, order = _CLASSIC[classic]
+        return parse_layout(padded_text(text, size), name=name, agent_order=order)
     raise ValueError(f"unknown layout {name!r}; registered layouts: {', '.join(layout_names())}")
 
 

@@ -46,7 +46,7 @@ from jax_env.human_games import (
     read_trials,
     write_dataset,
 )
-from jax_env.layouts import PADDED_LAYOUTS, PADDED_SIZE
+from jax_env.layouts import CLASSIC_LAYOUTS, PADDED_LAYOUTS, PADDED_SIZES, padded_layouts, padded_name
 from trainers.behaviour_cloning import (
     ProxySettings,
     accuracy,
@@ -90,26 +90,29 @@ def trials_in(archive: Path) -> dict[str, object]:
 
 
 def convert(frames: dict[str, object], progress: bool = True) -> list[HumanGame]:
-    """Every game of every split, checked step by step, and again drawn inside a 7x7 kitchen where it fits."""
+    """Every game of every split, checked step by step, and again drawn inside each generated kitchen size (7x7,
+    9x9) where it fits, checked again."""
     from tqdm import tqdm
 
     games = []
     for split, frame in frames.items():
         for game in tqdm(human_games(frame, split), desc=f"{split} games", disable=not progress, leave=False):
             games.append(game)
-            if f"{game.layout}_in_{PADDED_SIZE}x{PADDED_SIZE}" in PADDED_LAYOUTS:
-                games.append(padded_game(game))
+            for size in PADDED_SIZES:
+                if padded_name(game.layout, size) in padded_layouts(size):
+                    games.append(padded_game(game, size))
     return games
 
 
 def fetch(out: Path, cache: Path, progress: bool = True) -> list[HumanGame]:
     games = convert(trials_in(download_source(cache)), progress)
     written = write_dataset(games, out)
-    recorded = [g for g in games if g.layout not in PADDED_LAYOUTS]
+    recorded = [g for g in games if g.layout in CLASSIC_LAYOUTS]
     steps = sum(len(g) for g in recorded)
-    padded = sum(len(g) for g in games) - steps
-    print(f"{len(recorded)} games, {steps:,} of {steps:,} recorded steps replayed exactly (and {padded:,} steps of "
-          f"their games drawn inside a {PADDED_SIZE}x{PADDED_SIZE} kitchen); written to {out}/:")
+    padded = {size: sum(len(g) for g in games if g.layout in padded_layouts(size)) for size in PADDED_SIZES}
+    inside = " and ".join(f"{count:,} steps inside {size}x{size} kitchens" for size, count in padded.items())
+    print(f"{len(recorded)} games, {steps:,} of {steps:,} recorded steps replayed exactly (and, their games drawn "
+          f"inside the generated kitchens' sizes, {inside}); written to {out}/:")
     for (split, layout), count in sorted(written.items()):
         file = f"{split}_{layout}.npz"
         print(f"  {file:<34} {count:>6,} steps, "
@@ -233,7 +236,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     training.add_argument("--data", type=Path, default=DATA, help=f"the fetched dataset (default {DATA})")
     training.add_argument("--runs", type=Path, default=Path("runs"), help="where the proxies go (default runs)")
     training.add_argument("--layouts", nargs="+", default=[*LAYOUTS.values(), *PADDED_LAYOUTS],
-                          help="layouts to fit (default: the 5 classic ones and those drawn inside a 7x7 kitchen)")
+                          help="layouts to fit (default: the 5 classic ones and those drawn inside a 7x7 kitchen; the "
+                               "<layout>_in_9x9 ones by name)")
     training.add_argument("--report", type=Path, help="also write the table here")
     training.add_argument("--fit-on", choices=sorted(RUN_NAMES), default="train",
                           help="the split to fit (train: runs/bc_<layout>, partners to train with; test: "

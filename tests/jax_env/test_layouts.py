@@ -7,6 +7,7 @@ from jax_env import (
     FLOOR,
     GOAL,
     PADDED_LAYOUTS,
+    PADDED_LAYOUTS_9X9,
     POT,
     get_layout,
     layout_names,
@@ -48,7 +49,8 @@ def test_malformed_grids_are_refused_with_the_place_and_reason(text, message):
 
 
 def test_registry_has_every_layout_and_jaxmarl_agent_order():
-    assert set(layout_names()) == set(CLASSIC_LAYOUTS) | set(EXPANDED_LAYOUTS) | set(PADDED_LAYOUTS)
+    padded = set(PADDED_LAYOUTS) | set(PADDED_LAYOUTS_9X9)
+    assert set(layout_names()) == set(CLASSIC_LAYOUTS) | set(EXPANDED_LAYOUTS) | padded
     # JaxMARL's agent start cells as flat indices y * W + x.
     expected = {
         "cramped_room": [6, 8],

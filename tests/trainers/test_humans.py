@@ -26,7 +26,7 @@ from jax_env.human_games import (  # noqa: E402
     padded_game,
     write_dataset,
 )
-from jax_env.layouts import POT  # noqa: E402
+from jax_env.layouts import CLASSIC_LAYOUTS, POT, padded_layouts, padded_offset  # noqa: E402
 from jax_env.state import DIR_VECTORS, DISH, ONION, PLATE, POT_EMPTY, POT_FULL  # noqa: E402
 from torch_kitchen.models import make_actor_critic  # noqa: E402
 from torch_kitchen.scripted import ScriptedCook  # noqa: E402
@@ -129,6 +129,21 @@ def test_a_game_drawn_inside_a_7x7_kitchen_replays_exactly_with_its_cells_shifte
         padded_game(dataclasses.replace(game, layout="counter_circuit"))
 
 
+def test_a_game_drawn_inside_a_9x9_kitchen_replays_exactly_and_every_classic_layout_fits_one(trials):
+    game = next(human_games(trials, "train"))
+    nine = padded_game(game, 9)  # checks every step's replay in the 9x9 kitchen
+    assert nine.layout == "cramped_room_in_9x9" and nine.contents.shape == (150, 9, 9)
+    start = [(int(p % 5), int(p // 5)) for p in game.agent_pos[0]]
+    assert [(int(p % 9), int(p // 9)) for p in nine.agent_pos[0]] == [(x + 2, y + 2) for x, y in start]
+    assert nine.deliveries == game.deliveries and np.array_equal(nine.actions, game.actions)
+    assert padded_layouts(9) == tuple(f"{layout}_in_9x9" for layout in CLASSIC_LAYOUTS)
+    for layout in CLASSIC_LAYOUTS:  # walled in: the same kitchen, its cells shifted
+        classic, drawn = load_layout(layout), load_layout(f"{layout}_in_9x9")
+        (dx, dy), (height, width) = padded_offset(layout, 9), classic.shape
+        assert drawn.shape == (9, 9)
+        assert np.array_equal(np.asarray(drawn.grid)[dy:dy + height, dx:dx + width], np.asarray(classic.grid))
+
+
 def test_a_step_that_does_not_replay_is_named_by_game_and_step(trials):
     broken = trials.copy()
     row = broken.index[(broken.workerid_num == 4) & (broken.cur_gameloop == 12.0)][0]
@@ -154,10 +169,13 @@ def test_fetch_reads_the_source_distribution_and_writes_the_dataset(trials, tmp_
     cache = tmp_path / "cache"
     study_archive(trials, cache)
     assert main(["fetch", "--cache", str(cache), "--out", str(tmp_path / "humans")]) == 0
-    assert "3 games, 230 of 230 recorded steps replayed exactly" in capsys.readouterr().out
-    assert sorted(p.name for p in (tmp_path / "humans").iterdir()) == [
-        "test_forced_coord.npz", "test_forced_coord_in_7x7.npz", "train_cramped_room.npz",
-        "train_cramped_room_in_7x7.npz", "train_forced_coord.npz", "train_forced_coord_in_7x7.npz"]
+    out = capsys.readouterr().out
+    assert "3 games, 230 of 230 recorded steps replayed exactly" in out
+    assert "230 steps inside 7x7 kitchens and 230 steps inside 9x9 kitchens" in out
+    assert sorted(p.name for p in (tmp_path / "humans").iterdir()) == sorted(
+        f"{split}_{layout}{inside}.npz" for split, layout in
+        [("test", "forced_coord"), ("train", "cramped_room"), ("train", "forced_coord")]
+        for inside in ("", "_in_7x7", "_in_9x9"))
 
 
 def test_a_failed_download_is_one_line(tmp_path, monkeypatch, capsys):
