@@ -377,6 +377,7 @@ class EvalConfig:
         list(EXPANDED_LAYOUTS), "test grids: layout names or text-grid files", group="where and how long"
     )
     heldout: int = option(NUM_HELDOUT_GENERATED, "the first N of the 100 held-out generated levels")
+    kitchen_size: int = option(7, "the side of the held-out generated levels: 7, or 9 for teams trained at 9x9")
     rollouts: int = option(100, "episodes per pair and grid, actions sampled")
     max_steps: int = option(256, "episode length")
 
@@ -396,6 +397,9 @@ class EvalConfig:
     def check(self) -> EvalConfig:
         """Refuses values no evaluation can use, before any work starts."""
         _check_types(self)
+        if self.kitchen_size not in GENERATOR_SIZES:
+            raise ConfigError(f"kitchen_size must be one of {', '.join(map(str, GENERATOR_SIZES))}, got "
+                              f"{self.kitchen_size}")
         _check_seed(self.seed)
         _at_least(self, ["rollouts", "max_steps", "max_envs"], 1)
         _at_least(self.runtime, ["threads"], 1, "runtime.")

@@ -32,7 +32,17 @@ import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm import tqdm
 
-from jax_env import EXPANDED_LAYOUTS, Layout, heldout_levels, layout_from_state, layout_name, load_layout
+from jax_env import (
+    EXPANDED_LAYOUTS,
+    GeneratorConfig,
+    Layout,
+    heldout_levels,
+    layout_from_state,
+    layout_name,
+    load_layout,
+)
+from jax_env.generator import SIZES as GENERATOR_SIZES
+from jax_env.layouts import padded_layouts
 from jax_env.render import write_gif
 from torch_kitchen.cpu_kernels import accelerate_cpu
 from torch_kitchen.env import KitchenEnv, with_transforms
@@ -230,10 +240,10 @@ def with_human_proxies(outcomes: Outcomes, proxies: dict[str, Team], rollouts: i
     return Outcomes(teams, matchups, outcomes.grids, np.concatenate(deliveries), np.concatenate(visits))
 
 
-def evaluation_grids(layouts: Sequence[str], num_heldout: int = 100) -> list[Layout]:
+def evaluation_grids(layouts: Sequence[str], num_heldout: int = 100, size: int = 7) -> list[Layout]:
     """The given layouts (names or text-grid files), then the first `num_heldout` of the 100 held-out generated
-    levels, named heldout_000, heldout_001, ..."""
-    generated = heldout_levels()
+    levels of `size` x `size`, named heldout_000, heldout_001, ..."""
+    generated = heldout_levels(GeneratorConfig(size=size))
     heldout = [
         layout_from_state(jax.tree_util.tree_map(lambda leaf, i=i: leaf[i], generated), name=f"heldout_{i:03d}")
         for i in range(min(num_heldout, int(generated.grid.shape[0])))
@@ -519,7 +529,7 @@ def evaluate(config: EvalConfig) -> Path:
     if not config.conditions:
         raise ConfigError("no conditions to evaluate: give conditions: {name: run_dir_or_glob, ...}")
     population = load_population(config.conditions, device)
-    grids = evaluation_grids(config.layouts, config.heldout)
+    grids = evaluation_grids(config.layouts, config.heldout, config.kitchen_size)
     partner = scripted_cook_team((*grids[0].shape, 26), device) if config.partner else None
     teams, matchups = make_matchups(population, config.cross, partner)
     proxies = load_human_proxies(config.human_proxies, grids, device) if config.human_proxies else {}
@@ -564,13 +574,17 @@ def report_trained_team(run: str | Path, episodes: int | None = None, num_heldou
     run = Path(run)
     team = load_team(run)
     config = team.config
-    seven_by_seven = team.obs_shape[:2] == (7, 7)  # the held-out levels are 7x7
-    layouts = sorted(team.home) if team.home else list(EXPANDED_LAYOUTS)
-    num_heldout = (config.eval_heldout if num_heldout is None else num_heldout) if seven_by_seven else 0
+    size = team.obs_shape[0] if team.obs_shape[0] == team.obs_shape[1] in GENERATOR_SIZES else None
+    if team.home:
+        layouts = sorted(team.home)
+    else:  # a team of generated kitchens: the classic layouts drawn at its size
+        layouts = list(EXPANDED_LAYOUTS) if size == 7 else list(padded_layouts(size))
+    num_heldout = (config.eval_heldout if num_heldout is None else num_heldout) if size else 0
     out = evaluate(EvalConfig(
         conditions={team.condition: str(run)},
         layouts=layouts,
         heldout=num_heldout,
+        kitchen_size=size or 7,
         rollouts=episodes or config.eval_episodes,
         max_steps=config.max_steps,
         seed=config.seed, runtime=DeviceConfig(config.runtime.device, config.runtime.threads), progress=False,
@@ -583,7 +597,7 @@ def report_trained_team(run: str | Path, episodes: int | None = None, num_heldou
     if curve := draw_learning_curve(run):
         print(f"learning curve: {curve}")
     if config.gif:
-        grid = evaluation_grids([], 1)[0] if num_heldout and not team.home else load_layout(layouts[0])
+        grid = evaluation_grids([], 1, size)[0] if num_heldout and not team.home else load_layout(layouts[0])
         print(f"gif: {record_gif(team, team, grid, run / 'team.gif', config.max_steps, config.seed)}")
     return out / "eval.md"
 

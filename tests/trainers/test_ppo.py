@@ -22,7 +22,7 @@ import trainers.ppo
 import trainers.ppo_step
 import trainers.rollout
 import trainers.training_team
-from jax_env import EXPANDED_LAYOUTS
+from jax_env import CLASSIC_LAYOUTS, EXPANDED_LAYOUTS
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
 from trainers.advantages import compute_advantages
@@ -32,7 +32,7 @@ from trainers.algorithms.e3t import EGO
 from trainers.checkpoint import load_checkpoint
 from trainers.composer import load_config
 from trainers.config import TrainConfig
-from trainers.evaluate import load_team
+from trainers.evaluate import load_team, report_trained_team
 from trainers.figures import read_scalar
 from trainers.ppo import train
 from trainers.ppo_step import team_gradients
@@ -563,3 +563,8 @@ def test_a_team_trains_on_9x9_generated_kitchens_with_networks_built_for_them(tm
     assert read_metrics(run)["losses/policy"]
     with pytest.raises(Exception, match="obs_shape"):
         train(tiny_config(tmp_path / "small", "levels=infinite", f"init_from={run}"))
+    # Its table: the 9x9 held-out levels and the five classic layouts drawn inside 9x9.
+    table = report_trained_team(run, episodes=1, num_heldout=2).read_text()
+    for layout in CLASSIC_LAYOUTS:
+        assert f"{layout}_in_9x9" in table
+    assert "held-out (2)" in table
