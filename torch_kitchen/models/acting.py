@@ -1,6 +1,6 @@
-"""How the models act: TorchRL's `ProbabilisticActor` sampling a Categorical over the logits (`sampling_actor`),
-and `ActingPass`, a feed-forward actor and critic in one pass over plain tensors for collection, sampling as the
-actor samples, bit for bit (`sample_actions`).
+"""How the models act: one distribution over the actions (`ActionDistribution`), which TorchRL's
+`ProbabilisticActor` samples (`sampling_actor`), and so does `ActingPass`, a feed-forward actor and critic in one
+pass over plain tensors for collection (`sample_actions`).
 """
 
 from __future__ import annotations
@@ -35,9 +35,7 @@ def sampling_actor(policy: TensorDictModuleBase) -> ProbabilisticActor:
         policy,
         in_keys={"logits": LOGITS},
         out_keys=[ACTION],
-        distribution_class=torch.distributions.Categorical,
-        # Validating the logits reads them back on the host at every call; NaN losses are caught once per update.
-        distribution_kwargs={"validate_args": False},
+        distribution_class=ActionDistribution,
         return_log_prob=True,
         log_prob_key=LOG_PROB,
         # The protocol samples actions in training and in evaluation alike.
@@ -82,27 +80,36 @@ class ActingPass(TensorDictModuleBase):
                      for network in (self.policy_net, self.value_net))
 
 
+class ActionDistribution(torch.distributions.Categorical):
+    """The policies' distribution over the six actions, from their logits [*B, 6]: torch's Categorical, its
+    arguments unchecked (validating them reads the logits back on the host at every call; NaN losses are caught
+    once per update). TorchRL's actor samples from it (`sampling_actor`), and so do the acting pass and the
+    stacked teams (`sample_actions`)."""
+
+    def __init__(self, logits: torch.Tensor, validate_args: bool = False):
+        super().__init__(logits=logits, validate_args=validate_args)
+
+
 def draw_categorical(probs: torch.Tensor) -> torch.Tensor:
-    """One draw per row of probs float [N, 6] from torch's current random stream: int64 [N, 1]."""
+    """One draw per row of probs float [N, 6] from torch's current random stream: int64 [N, 1], as
+    `torch.distributions.Categorical.sample` draws."""
     return torch.multinomial(probs, 1, True)
 
 
 def sample_actions(logits: torch.Tensor, draw: Callable[[torch.Tensor], torch.Tensor] = draw_categorical
                    ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Actions int64 [*B] and their log-probabilities float32 [*B] from logits [*B, 6], as `sampling_actor`'s
-    Categorical gives them, bit for bit: sampled by `draw` (interaction type RANDOM, the default), or the most
-    likely (DETERMINISTIC or MODE)."""
-    # As torch's Categorical(logits=logits) computes them: normalised logits, then their softmax.
-    log_probs = logits - logits.logsumexp(-1, keepdim=True)
-    probs = torch.softmax(log_probs, -1)
+    """Actions int64 [*B] and their log-probabilities float32 [*B] from logits [*B, 6], from the actor's
+    `ActionDistribution`: sampled by `draw` (interaction type RANDOM, the default; stacked teams draw each from
+    its own random stream), or the most likely (DETERMINISTIC or MODE)."""
+    distribution = ActionDistribution(logits)
     mode = interaction_type() or InteractionType.RANDOM  # the actor's default: sample
     if mode is InteractionType.RANDOM:
-        action = draw(probs.reshape(-1, NUM_ACTIONS)).reshape(logits.shape[:-1])
+        action = draw(distribution.probs.reshape(-1, NUM_ACTIONS)).reshape(logits.shape[:-1])
     elif mode in (InteractionType.DETERMINISTIC, InteractionType.MODE):
-        action = probs.argmax(-1)
+        action = distribution.mode
     else:
         raise ValueError(f"a categorical policy has no {mode.name.lower()} action; sample or take its mode")
-    return action, log_probs.gather(-1, action.unsqueeze(-1)).squeeze(-1)
+    return action, distribution.log_prob(action)
 
 
 def plain_network(network: TensorDictSequential) -> nn.Sequential:
