@@ -123,8 +123,8 @@ def update_teams(teams: Sequence[TrainingTeam], batches: Sequence[TensorDictBase
 
     results = []
     with set_recurrent_mode(True), set_exploration_type(teams[0].loss_module.deterministic_sampling_mode):
-        for indices, (stats, seconds) in zip(runner.indices, runner.map(learn_teams)):
-            for index, team_stats in zip(indices, stats):
+        for learner, (stats, seconds) in zip(runner.learners, runner.map(learn_teams)):
+            for index, team_stats in zip(learner.indices, stats):
                 try:
                     metrics = finish_update(teams[index], batches[index], team_stats, restore_points[index])
                 except TrainingDiverged:

@@ -181,8 +181,10 @@ class Learner:
     (`learns_stacked`). Their gradients come in the form the run options ask (a whole minibatch, shards on
     threads, or the teams stacked), and the step is compiled with `compile_update`."""
 
-    def __init__(self, config: TrainConfig, teams: Sequence[TrainingTeam], pool: ThreadPoolExecutor | None = None):
+    def __init__(self, config: TrainConfig, teams: Sequence[TrainingTeam], pool: ThreadPoolExecutor | None = None,
+                 indices: Sequence[int] | None = None):
         self.teams = list(teams)
+        self.indices = list(range(len(self.teams)) if indices is None else indices)  # the teams' places in a batch
         shards = minibatch_shards(config)
         if len(self.teams) > 1:
             gradients_of = stacked_gradients(self.teams)
@@ -260,27 +262,26 @@ class UpdateRunner:
         self.config, self.teams = config, list(teams)
         self.pool: ThreadPoolExecutor | None = None
         self.learners: list[Learner] = []
-        self.indices: list[list[int]] = []  # per learner, its teams' places among the teams
 
     def __enter__(self) -> UpdateRunner:
         self.pool = learning_pool(self.config, len(self.teams))
         if learns_stacked(self.config, self.teams):
-            self.learners, self.indices = [Learner(self.config, self.teams)], [list(range(len(self.teams)))]
+            self.learners = [Learner(self.config, self.teams, indices=list(range(len(self.teams))))]
         else:
             shard_pool = self.pool if len(self.teams) == 1 else None
-            self.learners = [Learner(self.config, [team], shard_pool) for team in self.teams]
-            self.indices = [[index] for index in range(len(self.teams))]
+            self.learners = [Learner(self.config, [team], shard_pool, indices=[index])
+                             for index, team in enumerate(self.teams)]
         return self
 
     def __exit__(self, *exc) -> None:
         if self.pool is not None:
             self.pool.shutdown()
-        self.pool, self.learners, self.indices = None, [], []
+        self.pool, self.learners = None, []
 
     def map(self, learn: Callable[[Learner, list[int]], T]) -> Iterator[T]:
         """`learn(learner, its teams' places)` of every learner, in order: on the teams' threads at once where
         there are several, else each when its result is asked for."""
-        calls = [functools.partial(learn, learner, indices) for learner, indices in zip(self.learners, self.indices)]
+        calls = [functools.partial(learn, learner, learner.indices) for learner in self.learners]
         if self.pool is None or len(calls) == 1:
             return (call() for call in calls)
         futures = [self.pool.submit(call) for call in calls]
