@@ -36,12 +36,13 @@ def _run(checkout: Path, arguments: list[str]) -> str:
                           capture_output=True, text=True, check=True).stdout
 
 
-def measure_reference(checkout: Path, settings: list[str], threads: int) -> dict[str, float]:
-    """Ours and the yardstick's steps/s, and their ratio, per setting of `train.py reference`, from `checkout`."""
+def measure_reference(checkout: Path, settings: list[str], threads: int, collector: str) -> dict[str, float]:
+    """Ours (collecting with `collector`) and the yardstick's steps/s, and their ratio, per setting of `train.py
+    reference`, from `checkout`."""
     rates = {}
     for setting in settings:
         output = _run(checkout, ["reference", "--setting", setting, "--updates", str(REFERENCE_UPDATES[setting]),
-                                 "--threads", str(threads)])
+                                 "--threads", str(threads), "--collector", collector])
         fields = output.strip().splitlines()[-1].split()  # ours, yardstick, ratio; or ours alone (no yardstick)
         rates[f"{setting}: ours"] = float(fields[0].replace(",", ""))
         if len(fields) == 3:
@@ -73,6 +74,8 @@ def main(argv=None) -> None:
     parser.add_argument("--e3t", nargs="*", default=["mlp"], help="E3T encoders (each also runs IPPO beside it)")
     parser.add_argument("--reference", nargs="*", default=[], choices=list(REFERENCE_UPDATES),
                         help="settings of `train.py reference`: ours beside the pure-JAX yardstick")
+    parser.add_argument("--collector", choices=["kitchen", "torchrl", "xla"], default="kitchen",
+                        help="ours with this runtime.collector in the reference settings")
     parser.add_argument("--envs", type=int, default=32)
     parser.add_argument("--updates", type=int, default=3, help="updates per measurement (the first is not timed)")
     parser.add_argument("--threads", type=int, default=1, help=THREADS_HELP)
@@ -90,7 +93,8 @@ def main(argv=None) -> None:
                 for side, checkout in (("earlier", earlier), ("current", ROOT)):
                     for mode, names in (("throughput", args.archs), ("e3t", args.e3t), ("reference", args.reference)):
                         if names:
-                            rates = (measure_reference(checkout, names, args.threads) if mode == "reference" else
+                            rates = (measure_reference(checkout, names, args.threads, args.collector)
+                                     if mode == "reference" else
                                      measure(checkout, mode, names, args.envs, args.updates, args.threads))
                             for name, rate in rates.items():
                                 runs[side].setdefault(name, []).append(rate)
@@ -100,7 +104,8 @@ def main(argv=None) -> None:
 
     machine = f"{machine_name()}, torch threads {args.threads}"
     shape = f"{args.envs} kitchens x 256 steps, hidden 256, Infinite Kitchen" if args.archs or args.e3t else ""
-    shape += f"{'; ' if shape else ''}reference settings {', '.join(args.reference)}" if args.reference else ""
+    shape += (f"{'; ' if shape else ''}reference settings {', '.join(args.reference)}, ours collecting with "
+              f"runtime.collector={args.collector}" if args.reference else "")
     lines = [
         f"Training steps/s ({shape}); median of {args.repeats} alternating runs per side; {machine}.",
         f"Earlier: `{args.revision}`. Command: `python benchmarks/train_revisions.py {' '.join(argv or sys.argv[1:])}`",

@@ -84,9 +84,12 @@ def plain_linear_here(x: torch.Tensor, weight: torch.Tensor) -> bool:
             or _under_vmap(weight))
 
 
-# Below this many multiply-adds a oneDNN call's fixed cost (about 20 us on a Zen 5 core) outweighs its faster
-# kernels: at 32 rows x 64 x 64 (acting in 16 kitchens) torch's product takes 5 us, at 1,024 rows oneDNN wins.
-ONEDNN_MIN_PRODUCT = 1 << 21
+# Below this many multiply-adds a oneDNN call's fixed cost (about 20 us on a Zen 5 core) and the copies its weight
+# gradient makes of transposed operands outweigh its faster kernels. At 32 rows x 64 x 64 (acting in 16 kitchens)
+# torch's product takes 5 us; at 1,024 rows x 64 x 64 (a minibatch at JaxMARL's setting, 2^22) on a Zen 4 core the
+# forward products tie (93 us) and torch's weight gradient takes 98 us against oneDNN's 140 and a 124 us copy, so
+# such minibatches learn about 8% faster with torch's (BENCHMARKS.md, "Small products in torch's kernels").
+ONEDNN_MIN_PRODUCT = 1 << 23
 
 
 class OneDNNLinear(nn.Linear):

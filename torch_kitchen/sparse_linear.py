@@ -56,36 +56,96 @@ class NonZeroEntries:
         self.values = flat_x.take(flat).to(dtype)
         self.row_offsets = _row_offsets(self.rows, self.shape[0])
         self._transposed = None
+        self._of_blocks = None  # (the whole input, blocks, block_rows) of a minibatch taken by `of_blocks`
+        self._blocks = None  # `_EntriesByBlock` of the whole input, made on a minibatch's first `transposed`
 
     def moved(self, cols: torch.Tensor, in_features: int) -> NonZeroEntries:
         """The same entries in other columns `cols` of a wider input [N, in_features] (e.g. a window around
         each row's agent)."""
         entries = copy.copy(self)
         entries.cols, entries.shape, entries._transposed = cols, (self.shape[0], in_features), None
+        entries._of_blocks = entries._blocks = None
         return entries
 
     def of_blocks(self, blocks: torch.Tensor, block_rows: int) -> NonZeroEntries:
         """The entries of the input made of these blocks of `block_rows` rows (block b: rows b * block_rows on), in
         the order given: what `NonZeroEntries` finds in that input, without searching it (a minibatch of whole
-        kitchens of a batch whose entries were found once)."""
-        starts = self.row_offsets[blocks * block_rows]
-        counts = self.row_offsets[(blocks + 1) * block_rows] - starts
-        ends = counts.cumsum(0)
-        index = torch.arange(int(ends[-1])) + torch.repeat_interleave(starts - (ends - counts), counts)
+        kitchens of a batch whose entries were found once). A block's entries are a slice of this input's, so
+        they are copied slice by slice; their x.T comes from this input's too (`_blocks_transposed`)."""
+        spans = list(zip(self.row_offsets[blocks * block_rows].tolist(),
+                         self.row_offsets[(blocks + 1) * block_rows].tolist()))
+        firsts = [self.row_offsets[block * block_rows:(block + 1) * block_rows] for block in blocks.tolist()]
         entries = copy.copy(self)
-        entries.shape = (len(blocks) * block_rows, self.shape[1])
-        shift = torch.repeat_interleave((torch.arange(len(blocks)) - blocks) * block_rows, counts)
-        entries.rows, entries.cols, entries.values = self.rows[index] + shift, self.cols[index], self.values[index]
-        entries.row_offsets = _row_offsets(entries.rows, entries.shape[0])
-        entries._transposed = None
+        entries.shape = (len(spans) * block_rows, self.shape[1])
+        entries.cols = torch.cat([self.cols[start:end] for start, end in spans])
+        entries.values = torch.cat([self.values[start:end] for start, end in spans])
+        shifts = [(place - block) * block_rows for place, block in enumerate(blocks.tolist())]
+        entries.rows = torch.cat([self.rows[start:end] + shift for (start, end), shift in zip(spans, shifts)])
+        before = torch.tensor([0, *[end - start for start, end in spans]]).cumsum(0).tolist()
+        entries.row_offsets = torch.cat([*(first - start + at for first, (start, _), at in zip(firsts, spans, before)),
+                                         torch.tensor([before[-1]])])
+        entries._transposed, entries._blocks = None, None
+        entries._of_blocks = (self, blocks, block_rows)
         return entries
 
     def transposed(self) -> torch.Tensor:
-        """x.T as a CSR matrix [in, N]: the entries by column."""
+        """x.T as a CSR matrix [in, N]: the entries by column (then by row)."""
         if self._transposed is None:
-            by_col = torch.argsort(self.cols, stable=True)
-            self._transposed = _csr(self.cols[by_col], self.rows[by_col], self.values[by_col], self.shape[::-1])
+            if self._of_blocks is not None:
+                whole, blocks, block_rows = self._of_blocks
+                self._transposed = whole._blocks_transposed(blocks, block_rows)
+            else:
+                by_col = torch.argsort(self.cols, stable=True)
+                self._transposed = _csr(self.cols[by_col], self.rows[by_col], self.values[by_col], self.shape[::-1])
         return self._transposed
+
+    def _blocks_transposed(self, blocks: torch.Tensor, block_rows: int) -> torch.Tensor:
+        """x.T of the input `of_blocks(blocks, block_rows)`, merged from its blocks' own entries sorted by column
+        (sorted once per block size, `_by_block`), instead of a sort of its entries: within a column an entry of
+        the block in place j comes after those of the blocks before it, in the order of its rows."""
+        by_block = self._by_block(block_rows)
+        in_features = self.shape[1]
+        counts = by_block.counts[blocks]  # [blocks, in]: each block's entries per column
+        col_offsets = torch.zeros(in_features + 1, dtype=torch.int64)
+        torch.cumsum(counts.sum(0), 0, out=col_offsets[1:])
+        # Where block j's entries of column c start in the merged order; each entry goes there plus its rank.
+        starts = (col_offsets[:-1] + counts.cumsum(0) - counts).reshape(-1)
+        spans = list(zip(by_block.starts[blocks].tolist(), by_block.starts[blocks + 1].tolist()))
+        places = torch.cat([self.cols.new_full((end - start,), place * in_features)
+                            for place, (start, end) in enumerate(spans)])
+        cols = torch.cat([by_block.cols[start:end] for start, end in spans])
+        # index_select and scatter_: 4x the speed of indexing with [] on a CPU.
+        destination = starts.index_select(0, places + cols)
+        destination += torch.cat([by_block.ranks[start:end] for start, end in spans])
+        shifts = [(place - block) * block_rows for place, block in enumerate(blocks.tolist())]
+        rows = torch.cat([by_block.rows[start:end] + shift for (start, end), shift in zip(spans, shifts)])
+        values = torch.cat([by_block.values[start:end] for start, end in spans])
+        merged_rows = torch.empty_like(rows).scatter_(0, destination, rows)
+        merged_values = torch.empty_like(values).scatter_(0, destination, values)
+        return torch.sparse_csr_tensor(col_offsets, merged_rows, merged_values,
+                                       (in_features, len(blocks) * block_rows), check_invariants=False)
+
+    def _by_block(self, block_rows: int) -> _EntriesByBlock:
+        if self._blocks is None or self._blocks.block_rows != block_rows:
+            self._blocks = _EntriesByBlock(self, block_rows)
+        return self._blocks
+
+
+class _EntriesByBlock:
+    """An input's entries ordered by block of `block_rows` rows, then column, then row (one sort for the PPO
+    epochs): each block's its count per column, and each entry's rank among its block's entries of its column."""
+
+    def __init__(self, entries: NonZeroEntries, block_rows: int):
+        self.block_rows = block_rows
+        in_features, num_blocks = entries.shape[1], entries.shape[0] // block_rows
+        key = torch.div(entries.rows, block_rows, rounding_mode="floor") * in_features + entries.cols
+        order = torch.argsort(key, stable=True)
+        self.rows, self.cols, self.values = (entries.rows.index_select(0, order), entries.cols.index_select(0, order),
+                                             entries.values.index_select(0, order))
+        self.counts = torch.bincount(key, minlength=num_blocks * in_features).reshape(num_blocks, in_features)
+        self.starts = entries.row_offsets[torch.arange(num_blocks + 1) * block_rows]
+        group_starts = torch.cat([torch.zeros(1, dtype=torch.int64), self.counts.reshape(-1).cumsum(0)[:-1]])
+        self.ranks = torch.arange(len(order)) - group_starts.index_select(0, key.index_select(0, order))
 
 
 class _LastInput(threading.local):

@@ -64,7 +64,6 @@ PPO_METRICS = {
     "mean_ratio": "losses/mean_ratio",
     "max_ratio": "losses/max_ratio",
     "grad_norm": "losses/grad_norm",
-    "explained_variance": None,  # per minibatch; the trainer logs it over the whole batch instead
 }
 
 

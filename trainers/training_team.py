@@ -68,6 +68,7 @@ def make_loss(config: TrainConfig, actor_critic: ActorCritic, algorithm: Algorit
         normalize_advantage=False,
         clip_value=True,
         functional=False,  # PPO keeps no target networks: the modules run as they are
+        log_explained_variance=False,  # the trainer logs it over the whole batch (`finish_update`), not a minibatch
     )
     loss.set_keys(action=ACTION, sample_log_prob=LOG_PROB, value=VALUE, advantage=ADVANTAGE, value_target=VALUE_TARGET)
     hold_value_clip_on_host(loss)

@@ -25,6 +25,10 @@ def test_a_minibatchs_entries_taken_from_the_batchs_are_those_a_search_finds():
         assert taken.shape == found.shape
         for name in ("rows", "cols", "values", "row_offsets"):
             assert torch.equal(getattr(taken, name), getattr(found, name)), name
+        # x.T, merged from the batch's entries by kitchen, is the CSR matrix a sort of the minibatch's makes.
+        merged, sorted_ = taken.transposed(), found.transposed()
+        for part in ("crow_indices", "col_indices", "values"):
+            assert torch.equal(getattr(merged, part)(), getattr(sorted_, part)()), part
 
 
 def test_the_layer_reading_a_minibatch_uses_the_entries_handed_to_it_and_computes_the_same():

@@ -89,6 +89,13 @@ class ActionDistribution(torch.distributions.Categorical):
     def __init__(self, logits: torch.Tensor, validate_args: bool = False):
         super().__init__(logits=logits, validate_args=validate_args)
 
+    @property
+    def probs(self) -> torch.Tensor:
+        """The probabilities as exp of the normalised logits (the log-probabilities): what torch's softmax gives, to
+        float32 rounding, at half the cost of a loss's forward and backward, since torch's CPU softmax is slow over
+        rows of six."""
+        return self.logits.exp()
+
 
 def draw_categorical(probs: torch.Tensor) -> torch.Tensor:
     """One draw per row of probs float [N, 6] from torch's current random stream: int64 [N, 1], as
