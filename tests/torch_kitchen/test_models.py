@@ -8,6 +8,7 @@ from torchrl.envs.utils import check_env_specs
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import ClipPPOLoss
 
+from jax_env import GeneratorConfig
 from torch_kitchen import models
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.graph import batched_edges, build_graph, graph_edges
@@ -21,7 +22,9 @@ STATE_KEYS = [("agents", f"{net}_{part}") for net in ("actor", "critic") for par
 @pytest.fixture(scope="module")
 def envs():
     """Infinite Kitchen envs by batch size, made once: every KitchenEnv jit-compiles its own step."""
-    return {n: KitchenEnv(num_envs=n, levels="infinite", max_steps=5, seed=n) for n in (1, 3)}
+    envs = {n: KitchenEnv(num_envs=n, levels="infinite", max_steps=5, seed=n) for n in (1, 3)}
+    envs["9x9"] = KitchenEnv(num_envs=3, levels="infinite", max_steps=5, generator=GeneratorConfig(size=9), seed=9)
+    return envs
 
 
 def _env(base, ac):
@@ -231,8 +234,20 @@ def test_collector_carries_the_state_and_zeroes_it_at_is_init(envs, architecture
 @pytest.mark.parametrize("share_params", [True, False])
 @pytest.mark.parametrize("architecture", ARCHITECTURES)
 def test_ppo_gradient_step(envs, architecture, share_params):
-    ac = make_actor_critic(architecture, hidden=HIDDEN, share_params=share_params)
-    data = _rollout(envs[3], ac, 4)
+    _assert_ppo_step_moves_every_parameter(make_actor_critic(architecture, hidden=HIDDEN, share_params=share_params),
+                                           envs[3])
+
+
+@pytest.mark.parametrize("architecture", ARCHITECTURES)
+def test_every_architecture_is_built_for_9x9_kitchens_and_learns_there(envs, architecture):
+    ac = make_actor_critic(architecture, obs_shape=(9, 9, 26), hidden=HIDDEN)
+    _assert_ppo_step_moves_every_parameter(ac, envs["9x9"])
+    with pytest.raises(ValueError, match=r"9, 9, 26"):  # and refuses 7x7 observations
+        ac.actor(envs[3].reset())
+
+
+def _assert_ppo_step_moves_every_parameter(ac, base):
+    data = _rollout(base, ac, 4)
     data["agents", "advantage"] = torch.randn(3, 4, 2, 1)
     data["agents", "value_target"] = torch.randn(3, 4, 2, 1)
     loss = ClipPPOLoss(ac.actor, ac.critic, clip_epsilon=0.2, entropy_coeff=0.01, critic_coeff=0.5)

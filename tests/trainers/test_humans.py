@@ -194,11 +194,12 @@ def test_human_proxies_are_fitted_measured_and_saved_as_teams_that_play(trials, 
     assert main(["fetch", "--cache", str(tmp_path / "cache"), "--out", str(tmp_path / "humans")]) == 0
     report = tmp_path / "proxies.md"
     assert main(["train", "--data", str(tmp_path / "humans"), "--runs", str(tmp_path / "runs"), "--layouts",
-                 "forced_coord", "forced_coord_in_7x7", "--hidden", "32", "--epochs", "40", "--minibatch", "8",
+                 "forced_coord", "forced_coord_in_7x7", "forced_coord_in_9x9", "--hidden", "32", "--epochs", "40",
+                 "--minibatch", "8",
                  "--episodes", "2", "--game-steps", "30", "--candidates", "2", "--fine-tune-below", "1e9",
                  "--fine-tune-steps", "1", "--report", str(report)]) == 0
     rows = [line.split("|")[1:-1] for line in report.read_text().splitlines() if line.startswith("| forced")]
-    assert [row[0].strip() for row in rows] == ["forced_coord", "forced_coord_in_7x7"]
+    assert [row[0].strip() for row in rows] == ["forced_coord", "forced_coord_in_7x7", "forced_coord_in_9x9"]
     games = load_dataset(tmp_path / "humans", "test", "forced_coord")
     stays = np.mean(np.concatenate([g.actions for g in games]) == 4)
     for row in rows:
@@ -216,6 +217,8 @@ def test_human_proxies_are_fitted_measured_and_saved_as_teams_that_play(trials, 
     # Saved as trained teams: evaluation and kitchen-play load them like any run.
     team = load_team(tmp_path / "runs" / "bc_forced_coord_in_7x7" / "seed0")  # fitted on the train split
     assert team.obs_shape == (7, 7, 26) and team.config.levels == "forced_coord_in_7x7"
+    inside_9x9 = load_team(tmp_path / "runs" / "bc_forced_coord_in_9x9" / "seed0")  # a partner for 9x9 teams
+    assert inside_9x9.obs_shape == (9, 9, 26) and inside_9x9.config.levels == "forced_coord_in_9x9"
     assert team.config.seed == int(rows[1][10])  # the fit kept, in the run of the base seed
     game = Game(load_layout("forced_coord_in_7x7"), Partner(team.name, team.actor_critic, team.obs_shape), 0,
                 tmp_path / "game.jsonl", max_steps=5)
