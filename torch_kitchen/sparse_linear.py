@@ -96,7 +96,8 @@ class NonZeroEntries:
                 self._transposed = whole._blocks_transposed(blocks, block_rows)
             else:
                 by_col = torch.argsort(self.cols, stable=True)
-                self._transposed = _csr(self.cols[by_col], self.rows[by_col], self.values[by_col], self.shape[::-1])
+                self._transposed = _csr(*(part.index_select(0, by_col) for part in (self.cols, self.rows, self.values)),
+                                        self.shape[::-1])
         return self._transposed
 
     def _blocks_transposed(self, blocks: torch.Tensor, block_rows: int) -> torch.Tensor:
