@@ -1,5 +1,5 @@
-"""The Infinite Kitchen level generator: random solvable 7x7 kitchens (or 9x9: `GeneratorConfig.size`), in pure
-JAX.
+"""The Infinite Kitchen level generator: random solvable 7x7 kitchens (or 9x9: `GeneratorConfig.size`, a share of
+them 7x7 kitchens drawn inside: `p_smaller`), in pure JAX.
 
 Every level is a border of counters around a 5x5 interior (7x7 at size 9; the numbers below are those of 7x7,
 their 9x9 counterparts in `Geometry`: middle row and column 4, walls of 7 interior cells, 8-cell quadrants).
@@ -184,6 +184,9 @@ class GeneratorConfig:
     """probability of a loose plate on a plain counter"""
     p_loose_dish: float = 0.5
     """probability of a loose dish (plated soup) on a plain counter"""
+    p_smaller: float = dataclasses.field(default=0.0, metadata={"static": True})
+    """larger kitchens only: probability that a level is a 7x7 kitchen drawn inside, at a uniform offset, with
+    counters around it, as the classic layouts' small rooms are (static: 0 costs nothing)"""
 
     def __post_init__(self):
         geometry(self.size)  # ValueError for a size the construction does not keep solvable
@@ -197,6 +200,8 @@ class GeneratorConfig:
             object.__setattr__(self, field.name, value)
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"GeneratorConfig.{field.name} = {value} is not a probability in [0, 1]")
+        if self.size == SIZE and self.p_smaller:
+            raise ValueError(f"GeneratorConfig.p_smaller = {self.p_smaller}: {SIZE}x{SIZE} kitchens are the smallest")
         total = sum(self.predicate_probs)
         if abs(total - 1.0) > 1e-6:
             raise ValueError(
@@ -266,7 +271,32 @@ def _interior_walls(u: jax.Array, config: GeneratorConfig) -> jax.Array:
 def sample_level(key: jax.Array, config: GeneratorConfig = GeneratorConfig()) -> State:
     """One random Infinite Kitchen level of `config.size` (S = 7 by default): grid uint8 (S, S), contents uint8
     (S, S) with loose items and empty pots, agent_pos/agent_dir/agent_inv int32 (2,), step int32 (). Jittable and
-    vmappable over `key`."""
+    vmappable over `key`. With `config.p_smaller`, a 7x7 level drawn inside instead, from keys of its own, so that
+    the full-size levels of a key stay those drawn without it."""
+    level = _full_size_level(key, config)
+    if not config.p_smaller:
+        return level
+    smaller = _smaller_level(jax.random.fold_in(key, 1), config)
+    drawn_smaller = jax.random.uniform(jax.random.fold_in(key, 2)) < config.p_smaller
+    return jax.tree_util.tree_map(lambda inside, full: jnp.where(drawn_smaller, inside, full), smaller, level)
+
+
+def _smaller_level(key: jax.Array, config: GeneratorConfig) -> State:
+    """A 7x7 level of `config`'s probabilities inside a `config.size` kitchen of counters, at a uniform offset:
+    solvable as the 7x7 level is, since the agents never leave it."""
+    inner_key, offset_key = jax.random.split(key)
+    inner = _full_size_level(inner_key, dataclasses.replace(config, size=SIZE, p_smaller=0.0))
+    row, col = jax.random.randint(offset_key, (2,), 0, config.size - SIZE + 1)
+    counters = jnp.full((config.size, config.size), COUNTER, jnp.uint8)
+    return inner.replace(
+        grid=jax.lax.dynamic_update_slice(counters, inner.grid, (row, col)),
+        contents=jax.lax.dynamic_update_slice(jnp.zeros_like(counters), inner.contents, (row, col)),
+        agent_pos=((inner.agent_pos // SIZE + row) * config.size + inner.agent_pos % SIZE + col).astype(jnp.int32),
+    )
+
+
+def _full_size_level(key: jax.Array, config: GeneratorConfig) -> State:
+    """`sample_level`'s construction at `config.size` itself."""
     geo, num_cells = geometry(config.size), config.size * config.size
     # Every draw has its own key. The draws are vmapped over their keys, in two widths, so that the program
     # holds 2 random kernels instead of 13 (XLA compiles it several times faster); one row per draw.
@@ -416,7 +446,8 @@ def _expanded_layouts(size: int) -> list:
 def heldout_levels(config: GeneratorConfig = GeneratorConfig()) -> State:
     """The 100 held-out generated levels of `config.size`, batched: grid uint8 (100, S, S), ... Deterministic
     (HELDOUT_SEED); their grids are distinct from each other and from the expanded classic layouts."""
-    return jax.tree_util.tree_map(jnp.asarray, _heldout_levels_np(config))
+    # Full-size kitchens only, whatever share of smaller ones training draws.
+    return jax.tree_util.tree_map(jnp.asarray, _heldout_levels_np(dataclasses.replace(config, p_smaller=0.0)))
 
 
 def heldout_set(config: GeneratorConfig = GeneratorConfig()) -> State:

@@ -54,6 +54,8 @@ from trainers.machine import machine_name
 from trainers.resume import RunStopped
 from trainers.train_command import train_config_file
 
+ROOT = Path(__file__).resolve().parents[1]
+MAIN_JOB = ROOT / "configs" / "main.yaml"  # the README's planner-guided team, whose budget a section is set beside
 HELDOUT = "held-out"
 PAPER_STEPS = 2e9  # env steps per team in the paper
 # Deliveries in cross-play on held-out levels the paper reports for IK teams at 2e9 steps (Fig. 7), per family.
@@ -241,6 +243,20 @@ def shared_teacher(summary: dict, family: str, learner: str, pairs: list[list[st
     return rows
 
 
+def beyond_teacher(summary: dict, family: str, learner: str, ik: str) -> list[str]:
+    """Claims row for a family that imitated the scripted cook first: whether its IK teams outplay their teacher on
+    the held-out levels, in self-play and in cross-play, against the cook's own self-play there."""
+    heldout = heldout_grids(summary)
+    sp, xp = (value(summary, ik, heldout, key) for key in ("sp", "xp")) if heldout else (math.nan, math.nan)
+    cook = value(summary, SCRIPTED_CONDITION, heldout, "sp") if heldout else math.nan
+    if math.isnan(cook) or math.isnan(sp):
+        return []
+    beyond = [name for name, score in (("self-play", sp), ("cross-play", xp)) if score > cook]
+    return [f"| {family} | {learner} | A team beyond its teacher: IK above the scripted cook's own self-play on "
+            f"held-out levels | {heldout}: IK self-play {sp:.2f}, cross-play {xp:.2f}; the cook {cook:.2f} | "
+            f"{'holds in ' + ' and '.join(beyond) if beyond else 'does not hold'} |"]
+
+
 def cross_pairs(summary: dict, pairs: list[list[str]]) -> list[str]:
     """Markdown rows: each pair a protocol adds, its cross-play beside each side's cross-play between its own
     seeds, on every grid group where the pair was measured (n/a where a side has no cross-play there)."""
@@ -343,9 +359,12 @@ class RunFacts:
 
 def budget(config: TrainConfig, teams: int) -> str:
     """The budget line of a section whose conditions train as `config` does."""
+    main_job = load_config(MAIN_JOB, [])
     distilled = (f", after the scripted cook is distilled into it ({config.distill_rounds} DAgger rounds of "
                  f"{config.distill_kitchens} kitchens x {config.rollout_steps} steps, {config.distill_epochs} passes "
-                 "over the rounds' data after each)" if config.init_from == PLANNER_START else "")
+                 f"over the rounds' data after each; the main job, `{MAIN_JOB.relative_to(ROOT)}`, trains "
+                 f"{main_job.total_steps:,} steps after {main_job.distill_rounds} such rounds, "
+                 f"{main_job.total_steps / config.total_steps:.2g}x this)" if config.init_from == PLANNER_START else "")
     return (f"- **Budget:** {config.total_steps:,} env steps per team ({config.num_updates} updates of "
             f"{config.num_envs} kitchens x {config.rollout_steps} steps){distilled}, {teams} teams (seeds "
             f"{config.seed}..{config.seed + teams - 1}) per condition; the paper trains {PAPER_STEPS:.0e} steps per "
@@ -392,6 +411,8 @@ def section_markdown(section: Section, facts: RunFacts, config: TrainConfig, eva
           for row in claims(summary, family, ik, sk, config.total_steps, learner, paper)),
         *(row for family, (ik, _, learner, _) in section.families.items()
           for row in shared_teacher(summary, family, learner, [pair for pair in section.cross if pair[0] == ik])),
+        *(row for family, (ik, _, learner, _) in section.families.items()
+          for row in (beyond_teacher(summary, family, learner, ik) if config.init_from == PLANNER_START else [])),
         CLAIMS_END,
         "",
         *([

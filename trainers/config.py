@@ -128,6 +128,10 @@ class TrainConfig:
         7, 'the side of the generated kitchens ("infinite", "heldout"): 7 (the paper\'s) or 9, each with its own '
            'held-out levels'
     )
+    smaller_kitchens: float = option(
+        0.0, "kitchen_size 9 only: the share of generated training kitchens drawn as a 7x7 kitchen inside the 9x9, "
+             "counters around it, as the classic layouts' small rooms are (the held-out levels stay full size)"
+    )
     max_steps: int = option(256, "episode length")
     num_envs: int = option(32, "kitchens stepped together")
     rollout_steps: int = option(256, "steps of every kitchen per update (one full episode by default)")
@@ -268,6 +272,9 @@ class TrainConfig:
         if self.kitchen_size not in GENERATOR_SIZES:
             raise ConfigError(f"kitchen_size must be one of {', '.join(map(str, GENERATOR_SIZES))} (the generated "
                               f"kitchens' side), got {self.kitchen_size}")
+        if not 0.0 <= self.smaller_kitchens <= 1.0 or (self.smaller_kitchens and self.kitchen_size == 7):
+            raise ConfigError(f"smaller_kitchens is a share in [0, 1] of 9x9 kitchens drawn 7x7 inside, got "
+                              f"{self.smaller_kitchens} at kitchen_size {self.kitchen_size}")
         if isinstance(self.levels, list):
             for level in self.levels:
                 if level in GENERATED_LEVELS:  # jax_env.Overcooked reads them only as the whole of `levels`

@@ -35,7 +35,7 @@ def make_env(config: TrainConfig, num_envs: int | None = None, levels=None,
         num_envs=num_envs or config.num_envs,
         levels=config.levels if levels is None else levels,
         max_steps=config.max_steps,
-        generator=GeneratorConfig(size=config.kitchen_size),
+        generator=GeneratorConfig(size=config.kitchen_size, p_smaller=config.smaller_kitchens),
         device=config.runtime.device,
         seed=config.seed if seed is None else seed,
     )

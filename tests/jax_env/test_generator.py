@@ -400,3 +400,42 @@ def test_9x9_training_levels_are_solvable_never_held_out_and_built_as_the_7x7_on
     full_row = interior[:, 3, :].all(1) & (interior.sum((1, 2)) == 7)
     block = interior[:, 2:5, 2:5].sum((1, 2)) == interior.sum((1, 2))
     assert full_column.any() and full_row.any() and (interior.sum((1, 2)) == 0).any() and block.any()
+
+
+def test_smaller_kitchens_inside_9x9_are_7x7_levels_with_counters_around_and_change_no_full_size_level():
+    """`p_smaller`: a share of 9x9 levels is a 7x7 level drawn inside at any offset (the classic layouts' small
+    rooms), solvable and never held out; the full-size levels of the same keys and the held-out set are unchanged."""
+    from jax_env.generator import geometry, sample_training_levels
+    from jax_env.solvability import UNSOLVABLE, classify_levels
+
+    config = GeneratorConfig(size=9, p_smaller=0.5)
+    assert (np.asarray(heldout_grids(config)) == np.asarray(heldout_grids(GeneratorConfig(size=9)))).all()
+    keys = jax.random.split(jax.random.PRNGKey(5), 2_000)
+    drawn = jax.tree_util.tree_map(np.asarray, sample_training_levels(keys, config, heldout_grids(config)))
+    full = jax.tree_util.tree_map(np.asarray, sample_levels(keys, GeneratorConfig(size=9)))
+    assert not {grid.tobytes() for grid in drawn.grid} & {grid.tobytes() for grid in np.asarray(heldout_grids(config))}
+    cells = np.stack([drawn.agent_pos % 9, drawn.agent_pos // 9], axis=-1)
+    assert (classify_levels(drawn.grid, cells) != UNSOLVABLE).all()
+
+    inside = drawn.grid[:, 1:8, 1:8].reshape(len(keys), -1)
+    smaller = (inside == FLOOR).sum(1) < 25  # a full-size interior has at least 49 - 9 floor cells
+    assert 0.45 < smaller.mean() < 0.55
+    mixed = jax.tree_util.tree_map(np.asarray, sample_levels(keys, config))  # the same keys, full size or smaller
+    kept = (mixed.grid == full.grid).all((1, 2))
+    assert 0.45 < kept.mean() < 0.55 and (mixed.agent_pos[kept] == full.agent_pos[kept]).all()
+    geo, offsets = geometry(7), set()
+    for grid, contents, positions in zip(drawn.grid[smaller], drawn.contents[smaller], drawn.agent_pos[smaller]):
+        floor = np.argwhere(grid == FLOOR)  # a 7x7 level's four interior corners are floor (quadrant cells)
+        (row, col), (last_row, last_col) = floor.min(0) - 1, floor.max(0) + 1
+        assert (last_row - row, last_col - col) == (6, 6)
+        offsets.add((row, col))
+        window = grid[row : row + 7, col : col + 7].reshape(-1)
+        outside = np.ones((9, 9), bool)
+        outside[row : row + 7, col : col + 7] = False
+        assert (grid[outside] == COUNTER).all() and (contents[outside] == 0).all()
+        for kind in ITEM_KINDS:
+            assert (window[geo.flat(geo.safe)] == kind).sum() == 1
+        assert all(grid[cell // 9, cell % 9] == FLOOR for cell in positions)
+    assert offsets == {(r, c) for r in range(3) for c in range(3)}
+    with pytest.raises(ValueError, match="7x7 kitchens are the smallest"):
+        GeneratorConfig(p_smaller=0.5)

@@ -173,6 +173,7 @@ def test_the_claims_on_outside_partners_and_a_shared_teacher_read_the_summary():
         ("human_proxy_cramped_room_in_7x7", "cramped_room_in_7x7"): row(sp="1.20"),
         ("ik", "held-out (100)"): row(sp="4.10", xp="4.00"),
         ("ewsn x ik", "held-out (100)"): row(xp="3.50"),  # the pair named in sorted order
+        ("scripted cook", "held-out (100)"): row(sp="4.05"),
     }  # fmt: skip
     sk = {"cramped_room_7x7": "sk_a", "coord_ring_7x7": "sk_b"}
     cook, proxy = reproduce.outside_partners(summary, "ik", sk)
@@ -181,3 +182,17 @@ def test_the_claims_on_outside_partners_and_a_shared_teacher_read_the_summary():
     [teacher] = reproduce.shared_teacher(summary, "MLP", "planner", [["ik", "ewsn"]])
     assert teacher.endswith("| held-out (100): 4.00 against 3.50 | inflated by +0.50 |")
     assert reproduce.shared_teacher({}, "MLP", "planner", [["ik", "ewsn"]]) == []
+    [beyond] = reproduce.beyond_teacher(summary, "MLP", "planner", "ik")  # IK's 4.10 in self-play, 4.00 across
+    assert beyond.endswith("| held-out (100): IK self-play 4.10, cross-play 4.00; the cook 4.05 | holds in self-play |")
+    summary[("scripted cook", "held-out (100)")] = row(sp="4.20")
+    assert reproduce.beyond_teacher(summary, "MLP", "planner", "ik")[0].endswith("| does not hold |")
+    assert reproduce.beyond_teacher({}, "MLP", "planner", "ik") == []
+
+
+def test_a_distilled_sections_budget_is_set_beside_the_main_jobs():
+    config = load_config(ROOT / "configs/ippo/ego_mlp_ik.yaml",
+                         ["init_from=scripted_cook", "num_envs=32", "rollout_steps=256", "total_steps=393216"])
+    line = reproduce.budget(config, teams=3)
+    assert "393,216 env steps per team (48 updates of 32 kitchens x 256 steps)" in line
+    assert "the main job, `configs/main.yaml`, trains 1,572,864 steps after 6 such rounds, 4x this" in line
+    assert "main job" not in reproduce.budget(load_config(ROOT / "configs/ippo/mlp_ik.yaml"), teams=3)

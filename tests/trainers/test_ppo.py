@@ -31,7 +31,7 @@ from trainers.algorithms.base import standardize_advantage
 from trainers.algorithms.e3t import EGO
 from trainers.checkpoint import load_checkpoint
 from trainers.composer import load_config
-from trainers.config import TrainConfig
+from trainers.config import ConfigError, TrainConfig
 from trainers.evaluate import load_team, report_trained_team
 from trainers.figures import read_scalar
 from trainers.ppo import train
@@ -554,15 +554,18 @@ def test_one_standardiser_pools_every_transition_or_those_asked_for_without_read
 
 
 def test_a_team_trains_on_9x9_generated_kitchens_with_networks_built_for_them(tmp_path):
-    """`kitchen_size=9`: the generator's 9x9 kitchens, the networks built for 9x9 observations (the checkpoint
-    says so), the kitchens' XLA rollout and the update as at 7x7; a 7x7 config cannot load the team."""
-    config = tiny_config(tmp_path, "levels=infinite", "kitchen_size=9")
+    """`kitchen_size=9`: the generator's 9x9 kitchens (a share of them 7x7 inside), the networks built for 9x9
+    observations (the checkpoint says so), the kitchens' XLA rollout and the update as at 7x7; a 7x7 config cannot
+    load the team, nor draw smaller kitchens."""
+    config = tiny_config(tmp_path, "levels=infinite", "kitchen_size=9", "smaller_kitchens=0.5")
     run = train(config)
     state = load_checkpoint(run / "checkpoints" / "latest.pt")
     assert state["model"]["obs_shape"] == [9, 9, 26] and state["update"] == 2
     assert read_metrics(run)["losses/policy"]
     with pytest.raises(Exception, match="obs_shape"):
         train(tiny_config(tmp_path / "small", "levels=infinite", f"init_from={run}"))
+    with pytest.raises(ConfigError, match="smaller_kitchens is a share in"):
+        tiny_config(tmp_path / "small", "levels=infinite", "smaller_kitchens=0.5")
     # Its table: the 9x9 held-out levels and the five classic layouts drawn inside 9x9.
     table = report_trained_team(run, episodes=1, num_heldout=2).read_text()
     for layout in CLASSIC_LAYOUTS:
