@@ -446,8 +446,9 @@ def _expanded_layouts(size: int) -> list:
 def heldout_levels(config: GeneratorConfig = GeneratorConfig()) -> State:
     """The 100 held-out generated levels of `config.size`, batched: grid uint8 (100, S, S), ... Deterministic
     (HELDOUT_SEED); their grids are distinct from each other and from the expanded classic layouts."""
-    # Full-size kitchens only, whatever share of smaller ones training draws.
-    return jax.tree_util.tree_map(jnp.asarray, _heldout_levels_np(dataclasses.replace(config, p_smaller=0.0)))
+    # Drawn by the construction's own probabilities, full size, whatever mix of kitchens training draws: one
+    # held-out set per size, which training under any probabilities rejects.
+    return jax.tree_util.tree_map(jnp.asarray, _heldout_levels_np(GeneratorConfig(size=config.size)))
 
 
 def heldout_set(config: GeneratorConfig = GeneratorConfig()) -> State:

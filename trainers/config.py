@@ -29,7 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from jax_env import EXPANDED_LAYOUTS, classify_layout, load_layout
-from jax_env.generator import NUM_HELDOUT_GENERATED
+from jax_env.generator import NUM_HELDOUT_GENERATED, GeneratorConfig
 from jax_env.generator import SIZES as GENERATOR_SIZES
 
 
@@ -131,6 +131,10 @@ class TrainConfig:
     smaller_kitchens: float = option(
         0.0, "kitchen_size 9 only: the share of generated training kitchens drawn as a 7x7 kitchen inside the 9x9, "
              "counters around it, as the classic layouts' small rooms are (the held-out levels stay full size)"
+    )
+    intact_walls: float = option(
+        GeneratorConfig.p_wall_intact, "the probability that a generated kitchen's continuous wall stays whole "
+        "(the generator's p_wall_intact): more whole walls, more kitchens where items must pass over a counter"
     )
     max_steps: int = option(256, "episode length")
     num_envs: int = option(32, "kitchens stepped together")
@@ -272,6 +276,8 @@ class TrainConfig:
         if self.kitchen_size not in GENERATOR_SIZES:
             raise ConfigError(f"kitchen_size must be one of {', '.join(map(str, GENERATOR_SIZES))} (the generated "
                               f"kitchens' side), got {self.kitchen_size}")
+        if not 0.0 <= self.intact_walls <= 1.0:
+            raise ConfigError(f"intact_walls is a probability in [0, 1], got {self.intact_walls}")
         if not 0.0 <= self.smaller_kitchens <= 1.0 or (self.smaller_kitchens and self.kitchen_size == 7):
             raise ConfigError(f"smaller_kitchens is a share in [0, 1] of 9x9 kitchens drawn 7x7 inside, got "
                               f"{self.smaller_kitchens} at kitchen_size {self.kitchen_size}")

@@ -2,6 +2,7 @@
 
     kitchen-levels sample --n 16 --seed 0 --print --sheet outputs/levels.png
     kitchen-levels sample --n 1000 --training --export outputs/levels/
+    kitchen-levels sample --n 4000 --training --kitchen-size 9 --smaller-kitchens 0.75 --intact-walls 0.5
     kitchen-levels heldout --sheet outputs/heldout.png
     kitchen-levels show outputs/levels/level_0003.txt cramped_room_7x7 --sheet outputs/show.png
     python -m trainers.levels sample --n 4 --print
@@ -24,6 +25,7 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
+from jax_env.generator import SIZES as GENERATOR_SIZES
 from jax_env.generator import GeneratorConfig, heldout_grids, heldout_set, sample_levels, sample_training_levels
 from jax_env.layouts import EXPANDED_LAYOUTS, Layout, load_layout, save_layout
 from jax_env.render import MIN_TILE_SIZE, render_contact_sheet
@@ -106,11 +108,12 @@ def emit_batch(args: argparse.Namespace, levels: State, names: Mapping[int, str]
 
 
 def run_sample(args: argparse.Namespace) -> None:
-    emit_batch(args, sample_batch(args.seed, args.n, training=args.training))
+    config = GeneratorConfig(size=args.kitchen_size, p_smaller=args.smaller_kitchens, p_wall_intact=args.intact_walls)
+    emit_batch(args, sample_batch(args.seed, args.n, training=args.training, config=config))
 
 
 def run_heldout(args: argparse.Namespace) -> None:
-    levels = heldout_set()
+    levels = heldout_set(GeneratorConfig(size=args.kitchen_size))
     # The last levels of the set are the expanded classic layouts, in EXPANDED_LAYOUTS order.
     generated = int(levels.step.shape[0]) - len(EXPANDED_LAYOUTS)
     emit_batch(args, levels, names={generated + i: name for i, name in enumerate(EXPANDED_LAYOUTS)})
@@ -138,6 +141,8 @@ def build_parser() -> argparse.ArgumentParser:
         command.add_argument("--tile-size", type=int, default=24, help="pixels per grid cell on the sheet")
 
     def add_batch_options(command: argparse.ArgumentParser) -> None:
+        command.add_argument("--kitchen-size", type=int, default=GENERATOR_SIZES[0], choices=GENERATOR_SIZES,
+                             help="the generated kitchens' side (training's kitchen_size)")
         command.add_argument("--print", action="store_true", help="print each level's text grid under a header")
         add_sheet_options(command)
         command.add_argument("--export", metavar="DIR", help="write one text file per level, level_0000.txt, ...")
@@ -146,10 +151,14 @@ def build_parser() -> argparse.ArgumentParser:
     sample.add_argument("--n", type=int, default=16, help="number of levels")
     sample.add_argument("--seed", type=int, default=0, help="level i uses key i of split(PRNGKey(seed), n)")
     sample.add_argument("--training", action="store_true", help="sample as training does: no held-out grid")
+    sample.add_argument("--smaller-kitchens", type=float, default=0.0,
+                        help="at --kitchen-size 9: the share of 7x7 kitchens drawn inside (smaller_kitchens)")
+    sample.add_argument("--intact-walls", type=float, default=GeneratorConfig.p_wall_intact,
+                        help="the probability that a continuous wall stays whole (training's intact_walls)")
     add_batch_options(sample)
     sample.set_defaults(run=run_sample)
 
-    heldout = commands.add_parser("heldout", help="the 105 held-out evaluation levels")
+    heldout = commands.add_parser("heldout", help="the held-out evaluation levels (105 at 7x7, 100 at 9x9)")
     add_batch_options(heldout)
     heldout.set_defaults(run=run_heldout)
 
@@ -168,6 +177,12 @@ def check_args(args: argparse.Namespace) -> None:
         raise ValueError(f"--tile-size must be at least {MIN_TILE_SIZE}, got {args.tile_size}")
     if args.columns is not None and args.columns < 1:
         raise ValueError(f"--columns must be at least 1, got {args.columns}")
+    for flag in ("smaller_kitchens", "intact_walls"):
+        if not 0.0 <= getattr(args, flag, 0.0) <= 1.0:
+            raise ValueError(f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}")
+    if getattr(args, "smaller_kitchens", 0.0) and args.kitchen_size == GENERATOR_SIZES[0]:
+        raise ValueError(f"--smaller-kitchens draws smaller kitchens inside larger ones: set --kitchen-size "
+                         f"{GENERATOR_SIZES[-1]}")
     if args.sheet and not args.sheet.lower().endswith(".png"):
         raise ValueError(f"--sheet must name a .png file, got {args.sheet!r}")
     export = getattr(args, "export", None)

@@ -283,6 +283,9 @@ def test_heldout_grids():
 
     gen._heldout_levels_np.cache_clear()
     np.testing.assert_array_equal(np.asarray(heldout_grids()), grids)
+    # One held-out set per size, whatever probabilities training draws with (and so rejects).
+    other = GeneratorConfig(p_wall_intact=1.0, p_block_reopen=0.1)
+    np.testing.assert_array_equal(np.asarray(heldout_grids(other)), grids)
 
 
 def test_heldout_skips_repeated_grids(monkeypatch):

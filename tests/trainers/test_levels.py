@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from jax_env.generator import HELDOUT_SEED, GeneratorConfig, heldout_grids, sample_levels
+from jax_env.generator import HELDOUT_SEED, GeneratorConfig, heldout_grids, sample_levels, sample_training_levels
 from jax_env.layouts import load_layout, parse_layout
 from jax_env.render import render_contact_sheet
 from jax_env.solvability import classify_layout
@@ -102,6 +102,24 @@ def test_training_sample_never_shows_a_heldout_grid(capsys):
     assert not any(grid in heldout for grid in training)
 
 
+def test_sample_draws_the_kitchens_a_training_config_names(capsys):
+    """--kitchen-size, --smaller-kitchens and --intact-walls: the levels training draws with kitchen_size,
+    smaller_kitchens and intact_walls, none held out, counted by class."""
+    config = GeneratorConfig(size=9, p_smaller=0.5, p_wall_intact=1.0)
+    args = ["sample", "--n", str(N), "--training", "--kitchen-size", "9", "--smaller-kitchens", "0.5",
+            "--intact-walls", "1", "--print"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    keys = jax.random.split(jax.random.PRNGKey(0), N)
+    drawn = np.asarray(sample_training_levels(keys, config, heldout_grids(config)).grid)
+    printed = np.stack([parse_layout(text).grid for _, text in printed_levels(out)])
+    np.testing.assert_array_equal(printed, drawn)
+    forced = sum(header.endswith("(forced_coordination)") for header, _ in printed_levels(out))
+    assert 10 < forced < 60 and f"{N - forced} solo, {forced} forced_coordination" in out  # 39% of 4,000 draws
+    assert main(["heldout", "--kitchen-size", "9"]) == 0
+    assert "100 levels:" in capsys.readouterr().out
+
+
 def test_heldout_export_writes_the_105_heldout_grids(tmp_path, capsys):
     out_dir = tmp_path / "heldout"
     assert main(["heldout", "--export", str(out_dir), "--print"]) == 0
@@ -145,6 +163,8 @@ def write(tmp_path, name, text):
         (lambda tmp: ["show", "cramped_room", write(tmp, "ragged.txt", "WWPWW\nOA AO\nW  W\nWBWXW\n")], "row 2"),
         (lambda tmp: ["show", write(tmp, "symbol.txt", "WWPWW\nOA AO\nW ? W\nWBWXW\n")], "unknown symbol"),
         (lambda tmp: ["sample", "--sheet", str(tmp / "levels.jpg")], ".png"),
+        (lambda tmp: ["sample", "--intact-walls", "1.5"], "--intact-walls must be in [0, 1], got 1.5"),
+        (lambda tmp: ["sample", "--smaller-kitchens", "0.5"], "--smaller-kitchens draws smaller kitchens inside"),
     ],
 )
 def test_errors_are_one_line_with_exit_status_2(tmp_path, capsys, argv, expected):

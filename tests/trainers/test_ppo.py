@@ -23,6 +23,7 @@ import trainers.ppo_step
 import trainers.rollout
 import trainers.training_team
 from jax_env import CLASSIC_LAYOUTS, EXPANDED_LAYOUTS
+from jax_env.generator import GeneratorConfig
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
 from trainers.advantages import compute_advantages
@@ -556,8 +557,9 @@ def test_one_standardiser_pools_every_transition_or_those_asked_for_without_read
 def test_a_team_trains_on_9x9_generated_kitchens_with_networks_built_for_them(tmp_path):
     """`kitchen_size=9`: the generator's 9x9 kitchens (a share of them 7x7 inside), the networks built for 9x9
     observations (the checkpoint says so), the kitchens' XLA rollout and the update as at 7x7; a 7x7 config cannot
-    load the team, nor draw smaller kitchens."""
-    config = tiny_config(tmp_path, "levels=infinite", "kitchen_size=9", "smaller_kitchens=0.5")
+    load the team, nor draw smaller kitchens. Its kitchens keep every continuous wall whole (`intact_walls`)."""
+    config = tiny_config(tmp_path, "levels=infinite", "kitchen_size=9", "smaller_kitchens=0.5", "intact_walls=1")
+    assert make_env(config).jax_env.generator == GeneratorConfig(size=9, p_smaller=0.5, p_wall_intact=1.0)
     run = train(config)
     state = load_checkpoint(run / "checkpoints" / "latest.pt")
     assert state["model"]["obs_shape"] == [9, 9, 26] and state["update"] == 2
@@ -566,6 +568,8 @@ def test_a_team_trains_on_9x9_generated_kitchens_with_networks_built_for_them(tm
         train(tiny_config(tmp_path / "small", "levels=infinite", f"init_from={run}"))
     with pytest.raises(ConfigError, match="smaller_kitchens is a share in"):
         tiny_config(tmp_path / "small", "levels=infinite", "smaller_kitchens=0.5")
+    with pytest.raises(ConfigError, match=r"^intact_walls is a probability in \[0, 1\], got 1.5$"):
+        tiny_config(tmp_path / "small", "levels=infinite", "intact_walls=1.5")
     # Its table: the 9x9 held-out levels and the five classic layouts drawn inside 9x9.
     table = report_trained_team(run, episodes=1, num_heldout=2).read_text()
     for layout in CLASSIC_LAYOUTS:
