@@ -362,12 +362,12 @@ def budget(config: TrainConfig, teams: int) -> str:
     distilled = ""
     if config.init_from == PLANNER_START:
         main_job = load_config(MAIN_JOB, [])
-        ratio = main_job.total_steps / config.total_steps
+        same, multiple = "the same budget", f"{main_job.total_steps / config.total_steps:.2g}x this"
         distilled = (f", after the scripted cook is distilled into it ({config.distill_rounds} DAgger rounds of "
                      f"{config.distill_kitchens} kitchens x {config.rollout_steps} steps, {config.distill_epochs} "
                      f"passes over the rounds' data after each; the main job, `{MAIN_JOB.relative_to(ROOT)}`, trains "
                      f"{main_job.total_steps:,} steps after {main_job.distill_rounds} such rounds, "
-                     f"{'the same budget' if ratio == 1 else f'{ratio:.2g}x this'})")
+                     f"{same if main_job.total_steps == config.total_steps else multiple})")
     return (f"- **Budget:** {config.total_steps:,} env steps per team ({config.num_updates} updates of "
             f"{config.num_envs} kitchens x {config.rollout_steps} steps){distilled}, {teams} teams (seeds "
             f"{config.seed}..{config.seed + teams - 1}) per condition; the paper trains {PAPER_STEPS:.0e} steps per "

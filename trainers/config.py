@@ -246,6 +246,11 @@ class TrainConfig:
         """What the run is, without how it ran (`runtime`): what its checkpoints hold."""
         return {key: value for key, value in self.to_dict().items() if key != "runtime"}
 
+    @property
+    def generator(self) -> GeneratorConfig:
+        """The Infinite Kitchen generator's config that the environment keys name."""
+        return GeneratorConfig(size=self.kitchen_size, p_smaller=self.smaller_kitchens, p_wall_intact=self.intact_walls)
+
     def check(self) -> TrainConfig:
         """Refuses values no run can use, before any work starts. Touches neither the file system nor the levels:
         the trainer also calls `check_run_location` and `check_levels`; nor the algorithm's own settings, which

@@ -16,7 +16,6 @@ from torchrl.envs import Transform
 from torchrl.objectives import ClipPPOLoss
 from torchrl.record.loggers import Logger
 
-from jax_env import GeneratorConfig
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.keys import ACTION, ADVANTAGE, LOG_PROB, VALUE, VALUE_TARGET
 from torch_kitchen.models import ActorCritic, make_actor_critic
@@ -35,8 +34,7 @@ def make_env(config: TrainConfig, num_envs: int | None = None, levels=None,
         num_envs=num_envs or config.num_envs,
         levels=config.levels if levels is None else levels,
         max_steps=config.max_steps,
-        generator=GeneratorConfig(size=config.kitchen_size, p_smaller=config.smaller_kitchens,
-                                  p_wall_intact=config.intact_walls),
+        generator=config.generator,
         device=config.runtime.device,
         seed=config.seed if seed is None else seed,
     )
