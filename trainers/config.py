@@ -104,8 +104,8 @@ class RuntimeConfig(DeviceConfig):
 
 @dataclass
 class TrainConfig:
-    """Everything a self-play run (IPPO, E3T, anchored IPPO or a registered algorithm) depends on. Defaults: the
-    paper's Infinite Kitchen setting, an MLP."""
+    """Everything a self-play run (IPPO, E3T, anchored or kickstarted IPPO, or a registered algorithm) depends on.
+    Defaults: the paper's Infinite Kitchen setting, an MLP."""
 
     # --- run
     name: str = option("ippo_mlp_ik", "the run directory is {run_dir}/{name}/seed{seed}", group="run")
@@ -113,7 +113,8 @@ class TrainConfig:
     seed: int = option(0, "seeds torch, the levels and the resets; the 6 teams of a condition are seeds 0..5")
     algorithm: str = option(
         "ippo", '"ippo" (self-play), "e3t" (mixed partner + partner model; e3t_* architectures), "anchored_ippo" '
-                '(IPPO kept near its init_from policy by a KL penalty), or a registered one'
+                '(IPPO kept near its init_from policy by a KL penalty), "kickstarted_ippo" (IPPO with the scripted '
+                'cook as a teacher throughout), or a registered one'
     )
     algorithm_config: dict[str, typing.Any] = option(
         {}, "the algorithm's own settings (algorithm_config.<key>, each algorithm's listed below; empty: its "

@@ -72,7 +72,7 @@ def test_bad_overrides_are_refused_before_any_work(override, message):
 @pytest.mark.parametrize(
     "overrides, message",
     [
-        (["algorithm=ppo"], r"^algorithm must be one of ippo, e3t, anchored_ippo, got 'ppo'$"),
+        (["algorithm=ppo"], r"^algorithm must be one of ippo, e3t, anchored_ippo, kickstarted_ippo, got 'ppo'$"),
         (["algorithm=e3t", "algorithm_config.partner_epsilon=1.5"],
          r"^algorithm_config.partner_epsilon must lie in \[0, 1\], got 1.5$"),
         (["algorithm=e3t", "algorithm_config.partner_copy_rate=-0.1"],
@@ -351,11 +351,13 @@ def test_config_help_lists_every_key_with_type_default_and_meaning():
     assert "    levels: str | list[str] = infinite\n" in text and "    share_params: bool = true\n" in text
     assert "    runtime.threads: int = 1\n" in text and "    algorithm_config.partner_policy: str = ego\n" in text
     assert "    algorithm_config.anchor_coef: float = 0.1\n" in text
+    assert "    algorithm_config.teacher_anneal_steps: int = 0\n" in text
     groups = [line.strip() for line in text.splitlines() if line.startswith("  ") and not line.startswith("   ")]
     assert groups == ["run:", "environment:", "model:", "PPO:",
                       "planner-guided start (kitchen-distill, then init_from):",
                       "logging, checkpoints, final evaluation:", "runtime:",
-                      "algorithm_config (algorithm: e3t):", "algorithm_config (algorithm: anchored_ippo):"]  # fmt: skip
+                      "algorithm_config (algorithm: e3t):", "algorithm_config (algorithm: anchored_ippo):",
+                      "algorithm_config (algorithm: kickstarted_ippo):"]  # fmt: skip
     assert "    layouts: list[str] = [cramped_room_7x7, " in config_help(EvalConfig)
 
     # As an epilog, argparse keeps its lines.

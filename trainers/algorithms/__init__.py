@@ -3,6 +3,7 @@
     ippo   independent PPO in self-play (`trainers.algorithms.ippo`)
     e3t    E3T's mixed partner and partner predictor (`trainers.algorithms.e3t`)
     anchored_ippo   IPPO kept near its starting policy by a KL penalty (`trainers.algorithms.anchored`)
+    kickstarted_ippo   IPPO with the scripted cook as a teacher all through training (`trainers.algorithms.kickstarted`)
 
 Add one by subclassing `Algorithm` (its docstring lists the hooks; its `Settings` dataclass holds its own settings)
 and calling `register_algorithm(name, cls)` before the config is checked; `examples/` and docs/extending.md show how.
@@ -16,9 +17,11 @@ from trainers.algorithms.anchored import AnchoredIPPO
 from trainers.algorithms.base import Algorithm
 from trainers.algorithms.e3t import E3T
 from trainers.algorithms.ippo import IPPO
+from trainers.algorithms.kickstarted import KickstartedIPPO
 from trainers.config import ConfigError, TrainConfig
 
-ALGORITHMS: dict[str, type[Algorithm]] = {"ippo": IPPO, "e3t": E3T, "anchored_ippo": AnchoredIPPO}
+ALGORITHMS: dict[str, type[Algorithm]] = {"ippo": IPPO, "e3t": E3T, "anchored_ippo": AnchoredIPPO,
+                                       "kickstarted_ippo": KickstartedIPPO}
 
 
 def register_algorithm(name: str, algorithm: type[Algorithm]) -> None:
@@ -49,5 +52,5 @@ def algorithm_settings() -> dict[str, type]:
             if dataclasses.fields(algorithm.Settings)}
 
 
-__all__ = ["ALGORITHMS", "Algorithm", "AnchoredIPPO", "E3T", "IPPO", "algorithm_settings", "check_algorithm",
-           "register_algorithm"]
+__all__ = ["ALGORITHMS", "Algorithm", "AnchoredIPPO", "E3T", "IPPO", "KickstartedIPPO", "algorithm_settings",
+           "check_algorithm", "register_algorithm"]
