@@ -1,7 +1,7 @@
 """The paper's experiment as one command: train the conditions of a protocol, evaluate them, write RESULTS.md with
 the numbers beside the paper's claims, one section per family of conditions.
 
-    python scripts/reproduce.py configs/protocols/reduced.yaml --sections planner --jobs 4   # about 130 min, 2 cores
+    python scripts/reproduce.py configs/protocols/reduced.yaml --sections planner --jobs 4   # about 125 min, 2 cores
     python scripts/reproduce.py configs/protocols/reduced.yaml --sections scratch           # several hours
     python scripts/reproduce.py configs/protocols/paper.yaml                                # the paper's budget, a GPU
 
@@ -366,7 +366,8 @@ def budget(config: TrainConfig, teams: int) -> str:
         distilled = (f", after the scripted cook is distilled into it ({config.distill_rounds} DAgger rounds of "
                      f"{config.distill_kitchens} kitchens x {config.rollout_steps} steps, {config.distill_epochs} "
                      f"passes over the rounds' data after each; the main job, `{MAIN_JOB.relative_to(ROOT)}`, trains "
-                     f"{main_job.total_steps:,} steps after {main_job.distill_rounds} such rounds, "
+                     f"{main_job.total_steps:,} steps after {main_job.distill_rounds} rounds of "
+                     f"{main_job.distill_epochs} passes, "
                      f"{same if main_job.total_steps == config.total_steps else multiple})")
     return (f"- **Budget:** {config.total_steps:,} env steps per team ({config.num_updates} updates of "
             f"{config.num_envs} kitchens x {config.rollout_steps} steps){distilled}, {teams} teams (seeds "
