@@ -64,10 +64,7 @@ class AnchoredIPPO(IPPO):
 
     def check(self) -> None:
         super().check()
-        if self.actor_critic.recurrent:
-            raise ConfigError(f"algorithm=anchored_ippo compares the policy with its start at stored steps, which a "
-                              f"recurrent model's start has no state for: choose a feed-forward architecture, not "
-                              f"{self.config.architecture!r}")
+        self.check_feed_forward("its start")
 
     def process_batch(self, batch: TensorDictBase) -> None:
         if self.anchor is None:

@@ -114,6 +114,14 @@ class Algorithm:
     def check(self) -> None:
         """Raises a ConfigError if the model cannot be trained by this algorithm."""
 
+    def check_feed_forward(self, compared_with: str) -> None:
+        """Refuses a recurrent model (ConfigError) where a loss compares the policy with `compared_with` at the
+        batch's stored steps, for which a recurrent model has no hidden state."""
+        if self.actor_critic.recurrent:
+            raise ConfigError(f"algorithm={self.config.algorithm} compares the policy with {compared_with} at stored "
+                              f"steps, which a recurrent model has no state for: choose a feed-forward architecture, "
+                              f"not {self.config.architecture!r}")
+
     def env_transforms(self) -> list[Transform]:
         return []
 

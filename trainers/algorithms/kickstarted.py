@@ -61,10 +61,7 @@ class KickstartedIPPO(IPPO):
 
     def check(self) -> None:
         super().check()
-        if self.actor_critic.recurrent:
-            raise ConfigError(f"algorithm=kickstarted_ippo compares the policy with the cook at stored steps, which a "
-                              f"recurrent model has no state for: choose a feed-forward architecture, not "
-                              f"{self.config.architecture!r}")
+        self.check_feed_forward("the cook")
 
     def process_batch(self, batch: TensorDictBase) -> None:
         self.weight.fill_(teacher_weight(self.settings, self.env_steps))
