@@ -46,7 +46,7 @@ import yaml
 
 from jax_env import EXPANDED_LAYOUTS, PADDED_LAYOUTS
 from trainers.composer import load_config
-from trainers.config import PLANNER_START, DeviceConfig, EvalConfig, TrainConfig
+from trainers.config import PLANNER_START, ConfigError, DeviceConfig, EvalConfig, TrainConfig
 from trainers.evaluate import HUMAN_PROXY_RUN, SCRIPTED_CONDITION, cross_condition, evaluate
 from trainers.humans import CACHE, fetch
 from trainers.humans import train as train_proxies
@@ -532,6 +532,9 @@ def main(argv=None) -> int:
     except RunStopped as error:
         print(f"reproduce: {error}; run the same command again to continue", file=sys.stderr)
         return error.exit_code
+    except ConfigError as error:  # e.g. a condition's runs trained with other settings than the protocol's now
+        print(f"reproduce: error: {error}", file=sys.stderr)
+        return 2
     evaluation = {**protocol.get("evaluation", {}),
                   **{key: getattr(args, key) for key in ("rollouts", "heldout") if getattr(args, key) is not None}}
     device = load_config(next(iter(entries.values()))[0], overrides).runtime.device  # shared by every condition

@@ -102,6 +102,11 @@ class RuntimeConfig(DeviceConfig):
     )
 
 
+# What a resumed run may change besides its run options: where it is kept, how long it runs, what it writes.
+RESUMABLE = ("name", "run_dir", "total_steps", "checkpoint_every", "loggers", "progress", "eval_episodes",
+             "eval_heldout", "gif")
+
+
 @dataclass
 class TrainConfig:
     """Everything a self-play run (IPPO, E3T, anchored or kickstarted IPPO, or a registered algorithm) depends on.
@@ -246,6 +251,15 @@ class TrainConfig:
     def identity(self) -> dict:
         """What the run is, without how it ran (`runtime`): what its checkpoints hold."""
         return {key: value for key, value in self.to_dict().items() if key != "runtime"}
+
+    def changes_to_learning(self, trained: dict) -> dict[str, tuple]:
+        """The keys where this config would change what a run with the identity `trained` (its checkpoint's config)
+        learns, each as (trained value, this value). A resume may change only where the run is kept, how long it
+        runs, its checkpoints, logs and final evaluation (`RESUMABLE`), and its run options. Keys the checkpoint
+        predates are not compared."""
+        asked = self.identity()
+        return {key: (value, asked[key]) for key, value in trained.items()
+                if key in asked and key not in RESUMABLE and value != asked[key]}
 
     @property
     def generator(self) -> GeneratorConfig:

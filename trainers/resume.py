@@ -10,6 +10,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from trainers.checkpoint import check_identity, load_checkpoint
+from trainers.config import RESUMABLE, ConfigError
 from trainers.training_team import TrainingTeam
 
 
@@ -40,6 +41,12 @@ def restore(team: TrainingTeam) -> dict:
     sets its counters; returns the checkpoint (for its RNG states)."""
     state = load_checkpoint(team.checkpoint_path, map_location=team.config.runtime.device)
     check_identity(state, team.identity)
+    if changed := team.config.changes_to_learning(state["config"]):
+        trained = ", ".join(f"{key}={was!r}" for key, (was, _) in changed.items())
+        asked = ", ".join(f"{key}={now!r}" for key, (_, now) in changed.items())
+        raise ConfigError(f"{team.run} was trained with {trained}, not {asked}: a resume keeps what the run learns "
+                          f"(only {', '.join(RESUMABLE)} and runtime.* may change); train these settings under "
+                          "another name= or run_dir=")
     for name, part in team.parts.items():
         part.load_state_dict(state[name])
     team.algorithm.load_state_dict(state["algorithm"])

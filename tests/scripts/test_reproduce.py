@@ -17,7 +17,7 @@ TINY = ["hidden=8", "num_envs=4", "rollout_steps=16", "max_steps=16", "total_ste
 
 
 @pytest.mark.slow
-def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp_path, monkeypatch):
+def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp_path, monkeypatch, capsys):
     def scripted_proxy(out):  # a stand-in for the human proxies (fetching and fitting them is kitchen-humans' test)
         save_scripted_team(out / "runs" / "human_proxy_cramped_room_in_7x7" / "seed0" / "checkpoints" / "latest.pt",
                            "scripted_cooks", levels="cramped_room_in_7x7", shape=(7, 7))
@@ -65,6 +65,12 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     stamps = {p: p.stat().st_mtime_ns for p in out.glob("runs/*/seed*/checkpoints/latest.pt")}
     assert reproduce.main(argv) == 0
     assert {p: p.stat().st_mtime_ns for p in out.glob("runs/*/seed*/checkpoints/latest.pt")} == stamps
+    # Run again with a setting changed: the runs trained with the old one are refused in one line, not reused.
+    capsys.readouterr()
+    assert reproduce.main([argv[0], "lr=0.1", *argv[1:]]) == 2
+    error = capsys.readouterr().err
+    assert "was trained with lr=0.00025, not lr=0.1: a resume keeps what the run learns" in error
+    assert error.count("\n") == 1
 
     # Part of the protocol: the conditions named, their family and the report saying what it left out.
     assert reproduce.main([*argv, "--conditions", "ik", "sk_cramped"]) == 0

@@ -170,6 +170,13 @@ def test_bad_runs_and_checkpoints_get_a_clear_message(tmp_path, capsys):
     assert main(["--resume", str(run), "architecture=gnn"]) == 2
     assert "holds another model (architecture: checkpoint 'mlp', expected 'gnn')" in capsys.readouterr().err
 
+    # A resume that would change what the run learns is refused, its record kept; one that runs longer is not.
+    saved = (run / "config.yaml").read_text()
+    assert main(["--resume", str(run), "lr=0.1", "distill_epochs=16"]) == 2
+    err = capsys.readouterr().err
+    assert f"{run} was trained with lr={config.lr!r}, distill_epochs=8, not lr=0.1, distill_epochs=16" in err
+    assert err.count("\n") == 1 and (run / "config.yaml").read_text() == saved
+
     assert main([MAIN_CONFIG, "lrr=0.1"]) == 2
     assert "unknown config key 'lrr' in the command line (did you mean 'lr'?)" in capsys.readouterr().err
 
