@@ -1,7 +1,7 @@
 """The paper's experiment as one command: train the conditions of a protocol, evaluate them, write RESULTS.md with
 the numbers beside the paper's claims, one section per family of conditions.
 
-    python scripts/reproduce.py configs/protocols/reduced.yaml --sections planner --jobs 4   # about 125 min, 2 cores
+    python scripts/reproduce.py configs/protocols/reduced.yaml --sections planner --jobs 4   # 129 min, 2 cores
     python scripts/reproduce.py configs/protocols/reduced.yaml --sections scratch           # several hours
     python scripts/reproduce.py configs/protocols/paper.yaml                                # the paper's budget, a GPU
 
