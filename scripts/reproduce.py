@@ -1,7 +1,7 @@
 """The paper's experiment as one command: train the conditions of a protocol, evaluate them, write RESULTS.md with
 the numbers beside the paper's claims, one section per family of conditions.
 
-    python scripts/reproduce.py configs/protocols/reduced.yaml --sections planner --jobs 4   # 129 min, 2 cores
+    python scripts/reproduce.py configs/protocols/reduced.yaml --sections planner --jobs 4   # 89 min, 2 cores
     python scripts/reproduce.py configs/protocols/reduced.yaml --sections scratch           # several hours
     python scripts/reproduce.py configs/protocols/paper.yaml                                # the paper's budget, a GPU
 
@@ -32,6 +32,7 @@ import datetime
 import functools
 import math
 import multiprocessing
+import os
 import re
 import shutil
 import sys
@@ -322,16 +323,17 @@ def human_proxies(out: Path) -> Path:
     return runs
 
 
-def evaluate_section(section: Section, out: Path, evaluation: dict, device: str, proxies: Path | None) -> Path:
-    """Plays the section's teams (`kitchen-eval`'s code): self-play, cross-play between each condition's seeds,
-    each family's IK against its SK conditions and the section's cross pairs, beside the scripted cook and the
-    human proxies; returns the folder of its tables and figures."""
+def evaluate_section(section: Section, out: Path, evaluation: dict, device: str, proxies: Path | None,
+                     workers: int) -> Path:
+    """Plays the section's teams (`kitchen-eval`'s code, in `workers` processes): self-play, cross-play between
+    each condition's seeds, each family's IK against its SK conditions and the section's cross pairs, beside the
+    scripted cook and the human proxies; returns the folder of its tables and figures."""
     config = EvalConfig(
         conditions={name: str(out / "runs" / name / "seed*") for name in section.evaluated},
         cross=[*([ik, name] for ik, sk, _, _ in section.families.values() for name in sk.values()), *section.cross],
         layouts=[*EXPANDED_LAYOUTS, *(PADDED_LAYOUTS if proxies else [])], heldout=evaluation["heldout"],
         human_proxies=str(proxies or ""),
-        rollouts=evaluation["rollouts"], max_steps=evaluation.get("max_steps", 256),
+        rollouts=evaluation["rollouts"], max_steps=evaluation.get("max_steps", 256), workers=workers,
         heatmaps=evaluation.get("heatmaps", []), runtime=DeviceConfig(device=device),
         out_dir=str(out / "eval" / section.name), progress=False,
     ).check()  # fmt: skip
@@ -351,6 +353,7 @@ class RunFacts:
     overrides: list[str]
     own_overrides: dict[str, list[str]]
     jobs: int
+    eval_workers: int  # the processes playing each section's evaluation
     training_seconds: float  # wall time of all the command's training
     condition_seconds: dict[str, float]  # each condition's, in its own process
     evaluation: dict
@@ -398,7 +401,8 @@ def section_markdown(section: Section, facts: RunFacts, config: TrainConfig, eva
         f"- **Machine:** {facts.machine}. **Time:** training {facts.training_seconds / 60:.0f} min of wall time for "
         f"the command's {len(facts.condition_seconds)} conditions, {facts.jobs} at a time ("
         + ", ".join(f"{name} {facts.condition_seconds[name] / 60:.1f} min" for name in section.conditions)
-        + f", each in its own process: distillation, collection and updates); evaluation {eval_seconds / 60:.1f} min.",
+        + f", each in its own process: distillation, collection and updates); evaluation {eval_seconds / 60:.1f} min "
+        f"({facts.eval_workers} process{'es' if facts.eval_workers > 1 else ''}).",
         f"- **Evaluation:** the 5 expanded layouts and {facts.evaluation['heldout']} held-out levels, "
         f"{facts.evaluation['rollouts']} rollouts per pair and grid; the scripted cook "
         f"(`torch_kitchen/scripted.py`) beside every team; \"{SCRIPTED_CONDITION}\" is its own self-play."
@@ -545,13 +549,14 @@ def main(argv=None) -> int:
         command=" ".join(["python scripts/reproduce.py", *(argv if argv is not None else sys.argv[1:])]),
         protocol=args.protocol, date=datetime.date.today().isoformat(), machine=machine, teams=teams,
         overrides=overrides, own_overrides={name: own for name, (_, own) in entries.items()}, jobs=args.jobs,
+        eval_workers=min(args.jobs, os.cpu_count() or 1) if device == "cpu" else 1,
         training_seconds=time.perf_counter() - started, condition_seconds=seconds, evaluation=evaluation,
         proxies=human_proxies(out / "humans") if evaluation.get("human_proxies") else None,
     )  # fmt: skip
     written = {}
     for section in sections_run(full, protocol, entries):
         evaluated = time.perf_counter()
-        eval_dir = evaluate_section(section, out, evaluation, device, facts.proxies)
+        eval_dir = evaluate_section(section, out, evaluation, device, facts.proxies, facts.eval_workers)
         config = load_config(*trained[section.conditions[0]])
         written[section.name] = section_markdown(section, facts, config, eval_dir,
                                                  time.perf_counter() - evaluated,

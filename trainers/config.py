@@ -252,14 +252,14 @@ class TrainConfig:
         """What the run is, without how it ran (`runtime`): what its checkpoints hold."""
         return {key: value for key, value in self.to_dict().items() if key != "runtime"}
 
-    def changes_to_learning(self, trained: dict) -> dict[str, tuple]:
+    def changes_to_learning(self, trained: dict, resumable: tuple[str, ...] = RESUMABLE) -> dict[str, tuple]:
         """The keys where this config would change what a run with the identity `trained` (its checkpoint's config)
         learns, each as (trained value, this value). A resume may change only where the run is kept, how long it
-        runs, its checkpoints, logs and final evaluation (`RESUMABLE`), and its run options. Keys the checkpoint
+        runs, its checkpoints, logs and final evaluation (`resumable`), and its run options. Keys the checkpoint
         predates are not compared."""
         asked = self.identity()
         return {key: (value, asked[key]) for key, value in trained.items()
-                if key in asked and key not in RESUMABLE and value != asked[key]}
+                if key in asked and key not in resumable and value != asked[key]}
 
     @property
     def generator(self) -> GeneratorConfig:
@@ -418,6 +418,8 @@ class EvalConfig:
     max_envs: int = option(
         8192, "kitchens stepped together (pairs x rollouts x grids are cut into batches of this)", group="execution"
     )
+    workers: int = option(1, "processes that play the batches at once, each on a core of its own (the same numbers "
+                          "with any)")
     seed: int = option(0, "the same seed gives the same numbers")
     progress: bool = option(True, "a progress bar")
     runtime: DeviceConfig = option(DeviceConfig(), "where it runs: the same numbers on any threads", group="runtime")
@@ -434,7 +436,7 @@ class EvalConfig:
             raise ConfigError(f"kitchen_size must be one of {', '.join(map(str, GENERATOR_SIZES))}, got "
                               f"{self.kitchen_size}")
         _check_seed(self.seed)
-        _at_least(self, ["rollouts", "max_steps", "max_envs"], 1)
+        _at_least(self, ["rollouts", "max_steps", "max_envs", "workers"], 1)
         _at_least(self.runtime, ["threads"], 1, "runtime.")
         if not 0 <= self.heldout <= NUM_HELDOUT_GENERATED:
             raise ConfigError(

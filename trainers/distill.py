@@ -50,10 +50,10 @@ from trainers.checkpoint import (
     save_checkpoint,
 )
 from trainers.composer import load_config, save_config, train_config_parser
-from trainers.config import ConfigError, TrainConfig
+from trainers.config import RESUMABLE, ConfigError, TrainConfig
 from trainers.loggers import make_loggers
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
-from trainers.resume import start_fresh
+from trainers.resume import check_same_learning, start_fresh
 from trainers.rollout import finished_episode_deliveries, make_collector, select_kitchens
 from trainers.runtime import place_networks
 from trainers.training_team import TeamKitchens, make_env, with_model_transforms
@@ -118,29 +118,37 @@ def minibatches(data: TensorDictBase, size: int, device: str | torch.device) -> 
 
 def fit(actor_critic: ActorCritic, optimizer: torch.optim.Optimizer, data: TensorDictBase,
         batch: TensorDictBase, config: TrainConfig) -> dict[str, float]:
-    """`distill_epochs` passes of the actor's cross-entropy to the teacher over all the `data` [K, T], and of the
-    critic's squared error to the value targets of this round's `batch` [distill_kitchens, T]; returns their
-    means and the actor's agreement with the teacher's most likely action."""
+    """`distill_epochs` passes of the actor's cross-entropy to the teacher over all the `data` [K, T], each with
+    one pass of the critic's squared error to the value targets of this round's `batch` [distill_kitchens, T]
+    (in its first steps); returns their means and the actor's agreement with the teacher's most likely action."""
     size, device = config.distill_minibatch, config.runtime.device
     parameters = [parameter for group in optimizer.param_groups for parameter in group["params"]]
-    sums = []  # on the device, read once at the end
+    imitations, value_errors = [], []  # on the device, read once at the end
     with set_recurrent_mode(True):
         for _ in range(config.distill_epochs):
-            for own, current in zip(minibatches(data, size, device), itertools.cycle(minibatches(batch, size, device))):
+            # One pass over the round's batch per pass over all the data: the critic learns the current policy's
+            # values, and the later rounds' fitting does not revisit one batch for every earlier round's data.
+            pairs = itertools.zip_longest(minibatches(data, size, device), minibatches(batch, size, device))
+            for own, current in pairs:
                 if config.distill_symmetries:
                     own = under_random_symmetry(own)
                 logits = actor_critic.actor(own.clone(False)).get(LOGITS)
                 probs = own.get(TEACHER_PROBS)
                 imitation = cross_entropy(logits, probs)
-                value = actor_critic.critic(current.clone(False)).get(VALUE)
-                value_error = (value - current.get(VALUE_TARGET)).pow(2).mean()
+                loss = imitation
+                if current is not None:
+                    value = actor_critic.critic(current.clone(False)).get(VALUE)
+                    value_error = (value - current.get(VALUE_TARGET)).pow(2).mean()
+                    loss = loss + config.value_coef * value_error
+                    value_errors.append(value_error.detach())
                 optimizer.zero_grad()
-                (imitation + config.value_coef * value_error).backward()
+                loss.backward()
                 nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
                 optimizer.step()
                 agreement = (logits.argmax(-1) == probs.argmax(-1)).float().mean()
-                sums.append(torch.stack([imitation.detach(), value_error.detach(), agreement]))
-    imitation, value_error, agreement = torch.stack(sums).mean(0).tolist()
+                imitations.append(torch.stack([imitation.detach(), agreement]))
+    imitation, agreement = torch.stack(imitations).mean(0).tolist()
+    value_error = torch.stack(value_errors).mean().item()
     return {"distill/cross_entropy": imitation, "distill/value_error": value_error, "distill/agreement": agreement}
 
 
@@ -188,7 +196,8 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
     actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
     place_networks(config, actor_critic, own_kernels=True)
     parameters = [*actor_critic.actor.parameters(), *actor_critic.critic.parameters()]
-    optimizer = torch.optim.Adam(parameters, lr=config.distill_lr, eps=config.adam_eps)
+    # Fused: one kernel for all the parameters at each of the thousands of fitting steps.
+    optimizer = torch.optim.Adam(parameters, lr=config.distill_lr, eps=config.adam_eps, fused=True)
     identity = model_identity(config.architecture, obs_shape, config.hidden, config.share_params)
     parts = {"actor": actor_critic.actor, "critic": actor_critic.critic, "optimizer": optimizer,
              "env": TeamKitchens(kitchen, 0)}
@@ -198,6 +207,7 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
     if resume:
         state = load_checkpoint(checkpoint, map_location=config.runtime.device)
         check_identity(state, identity)
+        check_same_learning(run, config, state["config"], (*RESUMABLE, "distill_rounds"))  # more rounds go on
         for name, part in parts.items():
             part.load_state_dict(state[name])
         done_rounds, env_steps, rng = state["update"], state["env_steps"], state["rng"]

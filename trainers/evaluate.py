@@ -12,7 +12,8 @@ training population, in both seats; the cook's own self-play is the reference ro
 
 All pairs x grids x rollouts run as batches of up to `max_envs` kitchens through the rollout routine that
 training uses (`trainers.rollout`): kitchen b of a batch is pinned to grid b % G, and a `SeatedPolicy` gives
-each kitchen's two seats to the teams of its pair. Actions are sampled, recurrent teams carry their state.
+each kitchen's two seats to the teams of its pair. Actions are sampled, recurrent teams carry their state. Batch b
+plays with seed + b, so `workers` processes share the batches and give the numbers of one.
 """
 
 from __future__ import annotations
@@ -21,8 +22,10 @@ import argparse
 import csv
 import glob
 import math
+import multiprocessing
 import sys
 from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -273,6 +276,72 @@ class Outcomes:
     visits: np.ndarray
 
 
+@dataclass(frozen=True)
+class Batches:
+    """How `play` cuts every matchup's rollouts on every grid into batches of kitchens: a unit is one matchup's
+    one rollout on every grid, `per_batch` units a batch; batch b plays with seed `seed + b`, whichever process
+    plays it, so that the numbers do not depend on how many do."""
+
+    teams: list[Team]
+    matchups: list[Matchup]
+    grids: list[Layout]
+    rollouts: int
+    max_steps: int
+    per_batch: int
+    seed: int
+    device: str
+
+    @property
+    def units(self) -> int:
+        return len(self.matchups) * self.rollouts
+
+    def __len__(self) -> int:
+        return math.ceil(self.units / self.per_batch)
+
+
+class BatchPlayer:
+    """Plays the batches of a `Batches` one at a time in one kitchen env of `per_batch` x grids kitchens."""
+
+    def __init__(self, batches: Batches):
+        self.batches = batches
+        num_kitchens = batches.per_batch * len(batches.grids)
+        self.kitchen = KitchenEnv(num_kitchens, levels=batches.grids, max_steps=batches.max_steps,
+                                  device=batches.device, seed=batches.seed, pin_levels=True)
+        self.actor = make_seated_actor([team.actor_critic.actor for team in batches.teams])
+        self.seated = self.actor.module[0]
+        self.env = with_transforms(self.kitchen, self.seated.env_transforms())
+        self.seat_of_matchup = torch.tensor([[m.seat0, m.seat1] for m in batches.matchups], device=batches.device)
+
+    def __call__(self, batch: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Batch `batch`'s units [n], their deliveries [n, G] and the cells their seats visited [n, G, 2, H, W]."""
+        b = self.batches
+        num_grids = len(b.grids)
+        torch.manual_seed(b.seed + batch)
+        self.kitchen.set_seed(b.seed + batch)
+        # Kitchen k plays unit first + k // G on grid k % G; the last batch repeats its last unit to stay full.
+        unit = (torch.arange(b.per_batch, device=b.device) + batch * b.per_batch).clamp(max=b.units - 1)
+        self.seated.seat(self.seat_of_matchup[unit.repeat_interleave(num_grids) // b.rollouts])
+        with torch.no_grad():
+            outcome = play_episodes(self.env, self.actor, b.max_steps)
+        fresh = min(b.per_batch, b.units - batch * b.per_batch)
+        deliveries = outcome.deliveries.reshape(b.per_batch, num_grids)[:fresh]
+        visits = outcome.visits.reshape(b.per_batch, num_grids, *outcome.visits.shape[1:])[:fresh]
+        return unit[:fresh].cpu().numpy(), deliveries.cpu().numpy(), visits.cpu().numpy()
+
+
+_worker_player: BatchPlayer | None = None  # a worker process's player (`play` with workers > 1)
+
+
+def _start_worker(batches: Batches) -> None:
+    global _worker_player
+    torch.set_num_threads(1)
+    _worker_player = BatchPlayer(batches)
+
+
+def _play_in_worker(batch: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return _worker_player(batch)
+
+
 def play(
     teams: list[Team],
     matchups: list[Matchup],
@@ -283,8 +352,10 @@ def play(
     seed: int = 0,
     device: str = "cpu",
     progress: bool = False,
+    workers: int = 1,
 ) -> Outcomes:
-    """Every matchup plays `rollouts` episodes on every grid, in batches of at most `max_envs` kitchens."""
+    """Every matchup plays `rollouts` episodes on every grid, in batches of at most `max_envs` kitchens, played by
+    `workers` processes at once (the same numbers with any)."""
     shapes = {(*grid.shape, 26) for grid in grids}
     if len(shapes) != 1:
         raise ValueError(f"the test grids must share one size, got {sorted(shapes)}")
@@ -296,35 +367,29 @@ def play(
                 f"the test grids are {obs_shape[0]}x{obs_shape[1]}: evaluate it on grids of its own size"
             )
     num_grids = len(grids)
-    units = len(matchups) * rollouts  # a unit: one matchup's one rollout on every grid
-    per_batch = max(1, min(max_envs // num_grids, units))
-    batches = math.ceil(units / per_batch)
-    torch.manual_seed(seed)
-    kitchen = KitchenEnv(per_batch * num_grids, levels=grids, max_steps=max_steps, device=device, seed=seed,
-                         pin_levels=True)
-    actor = make_seated_actor([team.actor_critic.actor for team in teams])
-    seated = actor.module[0]
-    env = with_transforms(kitchen, seated.env_transforms())
-    seat_of_matchup = torch.tensor([[m.seat0, m.seat1] for m in matchups], device=device)
-
+    units = len(matchups) * rollouts
+    batches = Batches(teams, matchups, grids, rollouts, max_steps, max(1, min(max_envs // num_grids, units)), seed,
+                      device)
     height, width = obs_shape[:2]
     deliveries = np.zeros((units, num_grids), np.float32)
     visits = np.zeros((len(matchups), num_grids, 2, height, width), np.float32)
     bar = tqdm(total=units * num_grids, unit="episode", unit_scale=True, disable=not progress, desc="evaluating")
-    for batch in range(batches):
-        # Kitchen b plays unit first + b // G on grid b % G; the last batch repeats its last unit to stay full.
-        unit = torch.arange(per_batch, device=device) + batch * per_batch
-        unit = unit.clamp(max=units - 1).repeat_interleave(num_grids)
-        seated.seat(seat_of_matchup[unit // rollouts])
-        with torch.no_grad():
-            outcome = play_episodes(env, actor, max_steps)
-        fresh = slice(0, min(per_batch, units - batch * per_batch) * num_grids)
-        unit, got = unit[fresh].cpu().numpy(), outcome.deliveries[fresh].cpu().numpy()
-        grid = np.arange(len(unit)) % num_grids
-        deliveries[unit, grid] = got
-        np.add.at(visits, (unit // rollouts, grid), outcome.visits[fresh].cpu().numpy())
-        bar.update(len(unit))
-    bar.close()
+    workers = min(workers, len(batches))
+    if workers > 1:
+        # Spawned, not forked: a fork of a process that has started JAX's threads may hang.
+        pool = ProcessPoolExecutor(workers, multiprocessing.get_context("spawn"), _start_worker, (batches,))
+        played = pool.map(_play_in_worker, range(len(batches)))
+    else:
+        pool, played = None, map(BatchPlayer(batches), range(len(batches)))
+    try:
+        for unit, got, seen in played:
+            deliveries[unit] = got
+            np.add.at(visits, unit // rollouts, seen)
+            bar.update(got.size)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+        bar.close()
     deliveries = deliveries.reshape(len(matchups), rollouts, num_grids).transpose(0, 2, 1)
     return Outcomes(teams, matchups, grids, deliveries, visits)
 
@@ -545,7 +610,7 @@ def evaluate(config: EvalConfig) -> Path:
           f"{len(matchups) * len(grids) * config.rollouts:,} episodes")
 
     outcomes = play(teams, matchups, grids, config.rollouts, config.max_steps, config.max_envs, config.seed,
-                    device, config.progress)
+                    device, config.progress, config.workers)
     if proxies:
         outcomes = with_human_proxies(outcomes, proxies, config.rollouts, config.max_steps, config.max_envs,
                                       config.seed, device)

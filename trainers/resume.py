@@ -10,7 +10,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from trainers.checkpoint import check_identity, load_checkpoint
-from trainers.config import RESUMABLE, ConfigError
+from trainers.config import RESUMABLE, ConfigError, TrainConfig
 from trainers.training_team import TrainingTeam
 
 
@@ -36,17 +36,23 @@ def start_fresh(run: Path) -> None:
         shutil.rmtree(run / logs, ignore_errors=True)
 
 
+def check_same_learning(run: Path, config: TrainConfig, trained: dict, resumable: tuple[str, ...] = RESUMABLE) -> None:
+    """Refuses, in one line, to resume `run` (trained with the config `trained`) with a `config` that would change
+    what it learns: only `resumable` and runtime.* may change."""
+    if changed := config.changes_to_learning(trained, resumable):
+        was = ", ".join(f"{key}={value!r}" for key, (value, _) in changed.items())
+        asked = ", ".join(f"{key}={value!r}" for key, (_, value) in changed.items())
+        raise ConfigError(f"{run} was trained with {was}, not {asked}: a resume keeps what the run learns "
+                          f"(only {', '.join(resumable)} and runtime.* may change); train these settings under "
+                          "another name= or run_dir=")
+
+
 def restore(team: TrainingTeam) -> dict:
     """Loads `team`'s latest checkpoint into its parts (networks, optimizer, its kitchens) and its algorithm, and
     sets its counters; returns the checkpoint (for its RNG states)."""
     state = load_checkpoint(team.checkpoint_path, map_location=team.config.runtime.device)
     check_identity(state, team.identity)
-    if changed := team.config.changes_to_learning(state["config"]):
-        trained = ", ".join(f"{key}={was!r}" for key, (was, _) in changed.items())
-        asked = ", ".join(f"{key}={now!r}" for key, (_, now) in changed.items())
-        raise ConfigError(f"{team.run} was trained with {trained}, not {asked}: a resume keeps what the run learns "
-                          f"(only {', '.join(RESUMABLE)} and runtime.* may change); train these settings under "
-                          "another name= or run_dir=")
+    check_same_learning(team.run, team.config, state["config"])
     for name, part in team.parts.items():
         part.load_state_dict(state[name])
     team.algorithm.load_state_dict(state["algorithm"])

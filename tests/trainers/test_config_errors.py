@@ -143,6 +143,7 @@ def test_values_at_the_edges_are_accepted():
         ({"rollouts": 0}, r"^rollouts must be at least 1, got 0$"),
         ({"max_steps": 0}, r"^max_steps must be at least 1, got 0$"),
         ({"max_envs": -5}, r"^max_envs must be at least 1, got -5$"),
+        ({"workers": 0}, r"^workers must be at least 1, got 0$"),
         ({"runtime": DeviceConfig(threads=0)}, r"^runtime.threads must be at least 1, got 0$"),
         ({"heldout": 101}, r"^heldout must be between 0 and 100 \(the held-out levels\), got 101$"),
         ({"heldout": -1}, r"^heldout must be between 0 and 100"),

@@ -6,9 +6,11 @@ from tensordict import TensorDict
 from test_ppo import MAIN_CONFIG, read_metrics, tiny_config
 from tiny import TINY
 
+from torch_kitchen.keys import VALUE_TARGET
+from torch_kitchen.models import make_actor_critic
 from torch_kitchen.scripted import ScriptedCook
 from trainers.checkpoint import load_checkpoint
-from trainers.distill import DATA, TEACHER_PROBS, distill, main
+from trainers.distill import DATA, TEACHER_PROBS, distill, fit, main
 from trainers.ppo import train
 from trainers.train_command import main as train_main
 
@@ -31,10 +33,27 @@ def test_dagger_labels_every_visited_state_with_the_cooks_distribution_and_keeps
     state = load_checkpoint(run)
     assert (state["update"], state["env_steps"]) == (3, 192)
 
+    # Each pass fits the actor on every round's kitchens and the critic on the last round's batch, once.
+    config = tiny_config(tmp_path, "distill_epochs=2", "distill_minibatch=1")
+    actor_critic = make_actor_critic(config.architecture, (7, 7, 26), config.hidden, config.share_params)
+    calls = {"actor": 0, "critic": 0}
+    for name in calls:
+        getattr(actor_critic, name).register_forward_hook(lambda *_, name=name: calls.update({name: calls[name] + 1}))
+    batch = rounds[2].select(("agents", "observation")).clone()
+    batch[VALUE_TARGET] = torch.zeros(4, 16, 2, 1)
+    optimizer = torch.optim.Adam([*actor_critic.actor.parameters(), *actor_critic.critic.parameters()])
+    metrics = fit(actor_critic, optimizer, torch.cat(rounds), batch, config)
+    assert calls == {"actor": 2 * 12, "critic": 2 * 4}
+    assert metrics["distill/value_error"] > 0
 
-def test_a_distillation_resumed_after_a_round_ends_as_one_run_straight_through(tmp_path):
+
+def test_a_distillation_resumed_after_a_round_ends_as_one_run_straight_through(tmp_path, capsys):
     straight = distill(tiny_config(tmp_path / "straight", *ROUNDS))
     stopped = distill(tiny_config(tmp_path / "stopped", *ROUNDS), on_round=lambda round_, metrics: round_ == 2)
+    assert load_checkpoint(stopped)["update"] == 2
+    assert main(["--resume", str(stopped), "distill_lr=0.1"]) == 2  # another lesson: refused, nothing changed
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "was trained with distill_lr=0.003, not distill_lr=0.1" in error
     assert load_checkpoint(stopped)["update"] == 2
     assert main(["--resume", str(stopped)]) == 0
     for part in ("actor", "critic", "optimizer", "env"):

@@ -176,7 +176,7 @@ def _save_model_team(path, architecture, seed, hidden=8, share_params=True):
     return str(path)
 
 
-def test_the_same_seed_gives_the_same_numbers_with_recurrent_and_mixed_teams(tmp_path):
+def test_the_same_seed_gives_the_same_numbers_with_recurrent_and_mixed_teams_and_any_workers(tmp_path):
     population = load_population({
         "lstm": [_save_model_team(tmp_path / "l0.pt", "mlp_lstm", 0, share_params=False),
                  _save_model_team(tmp_path / "l1.pt", "mlp_lstm", 1)],
@@ -185,10 +185,10 @@ def test_the_same_seed_gives_the_same_numbers_with_recurrent_and_mixed_teams(tmp
     teams, matchups = make_matchups(population, cross=[["lstm", "gnn"]])
     grids = [get_layout("cramped_room_7x7"), get_layout("coord_ring_7x7")]
 
-    def run(seed):
-        return play(teams, matchups, grids, rollouts=2, max_steps=32, max_envs=12, seed=seed)
+    def run(seed, workers=1):
+        return play(teams, matchups, grids, rollouts=2, max_steps=32, max_envs=12, seed=seed, workers=workers)
 
-    first, again, other = run(0), run(0), run(1)
+    first, again, other = run(0), run(0, workers=2), run(1)  # the batches shared by two processes
     assert first.deliveries.shape == (len(matchups), 2, 2)
     np.testing.assert_array_equal(first.deliveries, again.deliveries)
     np.testing.assert_array_equal(first.visits, again.visits)
