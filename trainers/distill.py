@@ -55,7 +55,7 @@ from trainers.loggers import make_loggers
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.resume import check_same_learning, start_fresh
 from trainers.rollout import finished_episode_deliveries, make_collector, select_kitchens
-from trainers.runtime import place_networks
+from trainers.runtime import make_optimizer, place_networks, set_learning_rate
 from trainers.training_team import TeamKitchens, make_env, with_model_transforms
 
 TEACHER_PROBS = ("agents", "teacher_probs")  # the scripted cook's action distribution in the visited state
@@ -196,8 +196,7 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
     actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
     place_networks(config, actor_critic, own_kernels=True)
     parameters = [*actor_critic.actor.parameters(), *actor_critic.critic.parameters()]
-    # Fused: one kernel for all the parameters at each of the thousands of fitting steps.
-    optimizer = torch.optim.Adam(parameters, lr=config.distill_lr, eps=config.adam_eps, fused=True)
+    optimizer = make_optimizer(config, parameters)  # the trainer's Adam; its rate set at every round
     identity = model_identity(config.architecture, obs_shape, config.hidden, config.share_params)
     parts = {"actor": actor_critic.actor, "critic": actor_critic.critic, "optimizer": optimizer,
              "env": TeamKitchens(kitchen, 0)}
@@ -263,8 +262,7 @@ def learn_round(config: TrainConfig, round_: int, batch: TensorDictBase, env_ste
     deliveries = finished_episode_deliveries(batch)
     compute_advantages(batch, actor_critic.critic, config, shaping_weight_at(config, env_steps))
     data.append(kept(batch, actor_critic).memmap_(round_path(run, round_)))
-    for group in optimizer.param_groups:
-        group["lr"] = learning_rate(config, round_)
+    set_learning_rate(config, optimizer, learning_rate(config, round_))
     # Every round's data, from the memory-mapped files to the networks' device.
     every_round = torch.cat(data).to(config.runtime.device)
     metrics = fit(actor_critic, optimizer, every_round,

@@ -366,8 +366,7 @@ def play(
                 f"{team.name} ({team.checkpoint}) was built for {team.obs_shape[0]}x{team.obs_shape[1]} kitchens, "
                 f"the test grids are {obs_shape[0]}x{obs_shape[1]}: evaluate it on grids of its own size"
             )
-    num_grids = len(grids)
-    units = len(matchups) * rollouts
+    num_grids, units = len(grids), len(matchups) * rollouts
     batches = Batches(teams, matchups, grids, rollouts, max_steps, max(1, min(max_envs // num_grids, units)), seed,
                       device)
     height, width = obs_shape[:2]
