@@ -22,7 +22,7 @@ from torch_kitchen.env import KitchenEnv
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.pairing import make_seated_actor
 from trainers.config import TrainConfig
-from trainers.evaluate import Team, evaluation_grids, make_matchups
+from trainers.evaluation import Team, evaluation_grids, make_matchups
 from trainers.machine import THREADS_HELP, machine_name
 from trainers.rollout import play_episodes
 

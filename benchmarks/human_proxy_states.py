@@ -23,7 +23,7 @@ from jax_env.human_games import LAYOUTS, load_dataset
 from jax_env.observation import Channel
 from torch_kitchen.keys import OBSERVATION
 from trainers.behaviour_cloning import human_batch, play_together
-from trainers.evaluate import load_team
+from trainers.evaluation import load_team
 from trainers.humans import DATA
 
 COLUMNS = ("soups per game", "holding an onion", "holding a plate", "holding a soup", "pots cooking or ready",

@@ -28,7 +28,7 @@ import numpy as np
 from trainers.composer import load_config
 from trainers.config import DeviceConfig, EvalConfig
 from trainers.distill import distill
-from trainers.evaluate import evaluate
+from trainers.evaluation import evaluate
 from trainers.machine import machine_name
 from trainers.ppo import train
 

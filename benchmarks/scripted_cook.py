@@ -16,7 +16,7 @@ from jax_env import EXPANDED_LAYOUTS
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.scripted import ScriptedCook
-from trainers.evaluate import evaluation_grids
+from trainers.evaluation import evaluation_grids
 from trainers.machine import machine_name
 
 

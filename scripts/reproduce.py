@@ -48,7 +48,7 @@ import yaml
 from jax_env import EXPANDED_LAYOUTS, PADDED_LAYOUTS
 from trainers.composer import load_config
 from trainers.config import PLANNER_START, ConfigError, DeviceConfig, EvalConfig, TrainConfig
-from trainers.evaluate import HUMAN_PROXY_RUN, SCRIPTED_CONDITION, cross_condition, evaluate
+from trainers.evaluation import HUMAN_PROXY_RUN, SCRIPTED_CONDITION, cross_condition, evaluate
 from trainers.humans import CACHE, fetch
 from trainers.humans import train as train_proxies
 from trainers.machine import machine_name

@@ -20,12 +20,18 @@ and loaded like a trained team (it has no weights); `kitchen-eval` seats it besi
 
 from __future__ import annotations
 
+import math
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
 from jax_env import INTERACT, NUM_ACTIONS, STAY, Channel
 from jax_env.state import DIR_VECTORS
+from torch_kitchen.conventions import MOVE_ORDER, Convention
 from torch_kitchen.keys import LOGITS, OBSERVATION, VALUE
 from torch_kitchen.models import ActorCritic, register_architecture
 from torch_kitchen.models.acting import sampling_actor
@@ -69,31 +75,132 @@ def distance_from(sources: torch.Tensor, walkable: torch.Tensor) -> torch.Tensor
     return distance
 
 
-def distance_to(targets: torch.Tensor, walkable: torch.Tensor) -> torch.Tensor:
-    """float [N, H, W]: steps from each walkable cell to the nearest walkable cell beside a target tile
-    (`UNREACHABLE` where none can be reached); targets, walkable: bool [N, H, W]."""
-    return distance_from(walkable & _beside(targets), walkable)
+class FloorDistances:
+    """Steps between every two cells of a kitchen over its floor. A kitchen's walls, counters, piles and pots never
+    move (items lie on counters), so the table of a floor plan is computed once, a breadth-first wave from each of
+    its cells, and kept (the last `capacity` plans, per device); cooks then read distances as rows of it."""
+
+    def __init__(self, capacity: int = 4096):
+        self.capacity = capacity
+        self._tables: OrderedDict[tuple, torch.Tensor] = OrderedDict()
+
+    def __call__(self, walkable: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The tables of the floor plans of walkable bool [N, H, W], float [P, H * W, H * W] (row c: the steps from
+        cell c, a flat index, to every cell; `UNREACHABLE` from or to a cell off the floor or cut off from it), and
+        each kitchen's plan long [N]."""
+        n, height, width = walkable.shape
+        plans, inverse = np.unique(np.packbits(walkable.flatten(1).cpu().numpy(), axis=1), axis=0,
+                                   return_inverse=True)
+        keys = [(plan.tobytes(), height, width, str(walkable.device)) for plan in plans]
+        missing = [i for i, key in enumerate(keys) if key not in self._tables]
+        if missing:
+            cells = height * width
+            floors = np.unpackbits(plans[missing], axis=1, count=cells).astype(bool)
+            floors = torch.as_tensor(floors, device=walkable.device).view(-1, 1, height, width)
+            starts = torch.eye(cells, dtype=torch.bool, device=walkable.device).view(1, cells, height, width)
+            floors, starts = torch.broadcast_tensors(floors, starts)
+            computed = distance_from(starts.flatten(0, 1), floors.flatten(0, 1)).view(len(missing), cells, cells)
+            for i, table in zip(missing, computed):
+                self._tables[keys[i]] = table
+        for key in keys:
+            self._tables.move_to_end(key)
+        tables = torch.stack([self._tables[key] for key in keys])
+        while len(self._tables) > self.capacity:
+            self._tables.popitem(last=False)
+        return tables, torch.as_tensor(inverse.reshape(-1), device=walkable.device)
 
 
-MOVE_ORDER = "NSEW"  # the move a cook takes where several are equally short: the first of them in this order
+FLOOR_DISTANCES = FloorDistances()  # every cook's: the floor plans seen in this process
+
+
+def distance_rows(tables: torch.Tensor, plan: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+    """float [N, ..., H * W]: the steps from the cell of each bool mask cells [N, ..., H, W] (one cell at most) to
+    every cell, read off the floor tables (`FloorDistances`); `UNREACHABLE` where a mask is empty."""
+    flat = cells.flatten(-2)
+    index = flat.float().argmax(-1)  # [N, ...]
+    row = plan.view(-1, *[1] * (index.ndim - 1)) * tables.shape[1] + index
+    rows = tables.flatten(0, 1)[row]
+    return torch.where(flat.any(-1, keepdim=True), rows, UNREACHABLE)
+
+
+OPPOSITE = (1, 0, 3, 2)  # the direction opposite each of NORTH, SOUTH, EAST, WEST
+ROLE_PENALTY = 100.0  # a goal off a cook's role scores below every goal on it
+PREFERENCE_SCALE = 11.0  # a weight of 1 lifts a goal above the other ten
+
+
+def _shifted(grid: torch.Tensor, direction: int) -> torch.Tensor:
+    """[N, H, W] -> [N, H, W]: the cells one step in `direction` from each True cell of `grid`."""
+    return _neighbour(grid, OPPOSITE[direction], False)
+
+
+@dataclass(frozen=True)
+class Goal:
+    """One goal of the cook's list: the event it leads to, the role it belongs to ("loader", "server" or None
+    for both), and the action on arrival beside its tile."""
+
+    event: str
+    role: str | None
+    on_arrival: int
+
+
+# The cook's goals, in order of preference by default; which of them apply depends on what it holds (`goals`).
+GOALS = (
+    Goal("serve", "server", INTERACT),  # holding a soup: the serving counter
+    Goal("onion_in_pot", "loader", INTERACT),  # holding an onion: a pot that takes onions
+    Goal("soup_pickup", "server", INTERACT),  # holding a plate: a ready pot
+    Goal("soup_pickup", "server", STAY),  # holding a plate: wait beside a cooking pot until it is done
+    Goal("counter_place", None, INTERACT),  # holding anything: a counter the partner can reach (a hand-over)
+    Goal("serve", "server", INTERACT),  # empty hands: a soup on a counter
+    Goal("plate_pickup", "server", INTERACT),  # empty: a plate, where a pot cooks and the partner holds none
+    Goal("onion_pickup", "loader", INTERACT),  # empty: an onion, where a pot takes onions
+    Goal("plate_pickup", "server", INTERACT),  # empty: a plate
+    Goal("onion_pickup", "loader", INTERACT),  # empty: an onion
+    Goal("idle", None, STAY),  # stay where it is: only for a convention with a weight on idling
+)
+IDLE, HANDOVER = len(GOALS) - 1, 4
+PRODUCTIVE = (0, 1, 2, 3, 5, 6, 7)  # the goals that bring a soup nearer (not a plate or an onion for later)
+
+
+def goal_scores(convention: Convention) -> tuple[torch.Tensor, torch.Tensor]:
+    """float [K], [K]: each goal's score under `convention`, and what its role takes off the score while the cook's
+    own part of the work waits for it; a cook takes the best goal it can reach (or draws one by the scores)."""
+    scores, off_role = [], []
+    for rank, goal in enumerate(GOALS):
+        score = -rank + PREFERENCE_SCALE * convention.weight(goal.event)
+        if (goal.event == "idle" and not convention.weight("idle")) or (
+                goal.event == "counter_place" and convention.handover == "avoid"):
+            score = -math.inf  # never taken
+        scores.append(score)
+        off_role.append(ROLE_PENALTY if convention.role != "both" and goal.role not in (None, convention.role) else 0)
+    return torch.tensor(scores), torch.tensor(off_role, dtype=torch.float32)
 
 
 class ScriptedCook(nn.Module):
-    """uint8 observations [..., 2, H, W, 26] -> logits [..., 2, 6]: each seat's planned action with certainty, or
-    uniform logits where it is stuck. `move_order`: its preference among equally short moves, a permutation of
-    "NSEW" (cooks with different orders keep different conventions, e.g. which way round a table)."""
+    """uint8 observations [..., 2, H, W, 26] -> logits [..., 2, 6]: each seat's action distribution under a
+    `convention` (the default: its planned action with certainty, a coin flip between a step and a wait where
+    the partner may take the cell, uniform where it is stuck). Any other object than a `Convention` is read as a
+    move order, e.g. `ScriptedCook("EWSN")`."""
 
-    def __init__(self, move_order: str = MOVE_ORDER):
+    def __init__(self, convention: Convention | str = Convention()):
         super().__init__()
-        if sorted(move_order) != sorted(MOVE_ORDER):
-            raise ValueError(f"move_order must be a permutation of {MOVE_ORDER!r}, got {move_order!r}")
-        self.move_order = [MOVE_ORDER.index(direction) for direction in move_order]
+        if not isinstance(convention, Convention):
+            convention = Convention(move_order=convention)
+        self.convention = convention
+        self.move_order = [MOVE_ORDER.index(direction) for direction in convention.move_order]
+        scores, off_role = goal_scores(convention)
+        self.register_buffer("scores", scores, persistent=False)
+        self.register_buffer("off_role", off_role, persistent=False)
+        own = [goal.role == convention.role for goal in GOALS]
+        # The goals that move the cook's own part of the work on: while one is in reach, goals off its role wait.
+        self.register_buffer("own_work", torch.tensor([mine and i in PRODUCTIVE for i, mine in enumerate(own)]),
+                             persistent=False)
 
     @staticmethod
-    def goals(obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list]:
+    def goals(obs: torch.Tensor, floor: FloorDistances) -> tuple[torch.Tensor, ...]:
         """What the cook reads of its kitchens, obs float [N, H, W, C]: where it and its partner stand, the cells
-        it may walk, and its goals in order of preference (the tiles to reach [N, H, W], and the action on
-        arrival), by what it holds."""
+        it may walk, the tiles of each of `GOALS` where it applies (bool [N, K, H, W]: none where it does not, by
+        what the cook holds), whether the partner's hands are empty [N], and the kitchens' floor tables and plans
+        (`FloorDistances`)."""
         present = obs > 0  # [N, H, W, C]
 
         def channel(c):
@@ -112,13 +219,15 @@ class ScriptedCook(nn.Module):
         blocked = pot | counter | channel(Channel.ONION_PILE) | channel(Channel.PLATE_PILE) | channel(Channel.GOAL) | (
             (channel(Channel.SOUP) | channel(Channel.PLATE) | channel(Channel.ONION)) & loose)
         walkable = ~blocked  # the partner moves: it counts only where it is in the way
+        tables, plan = floor(walkable)
         # Hand-overs go on counters the partner can reach.
-        partner_side = partner | (distance_to(partner, walkable) < UNREACHABLE)
+        partner_side = partner | (distance_rows(tables, plan, partner) < UNREACHABLE).view_as(partner)
         handover = counter & _beside(partner_side)
 
-        def held(item):
-            return (channel(item) & me).flatten(1).any(1)
+        def held(item, who=me):
+            return (channel(item) & who).flatten(1).any(1)
 
+        partner_empty = ~(held(Channel.PLATE, partner) | held(Channel.SOUP, partner) | held(Channel.ONION, partner))
         partner_has_plate = ((channel(Channel.PLATE) | channel(Channel.SOUP)) & partner).flatten(1).any(1)
         plate_wanted = cooking_pot.flatten(1).any(1) & ~partner_has_plate
         onion_wanted = open_pot.flatten(1).any(1)
@@ -127,77 +236,136 @@ class ScriptedCook(nn.Module):
         def when(condition, targets):
             return torch.where(condition[:, None, None], targets, nothing)
 
-        # Goals in order of preference, by what the cook holds; the first reachable one is chosen.
         holding_soup, holding_onion, holding_plate = held(Channel.SOUP), held(Channel.ONION), held(Channel.PLATE)
         empty = ~(holding_soup | holding_onion | holding_plate)
-        goals = [
-            (when(holding_soup, channel(Channel.GOAL)), INTERACT),
-            (when(holding_onion, open_pot), INTERACT),
-            (when(holding_plate, ready_pot), INTERACT),
-            (when(holding_plate, cooking_pot & ~ready_pot), STAY),  # wait beside it until it is done
-            (when(~empty, handover), INTERACT),  # put it down where the partner can take it
-            (when(empty, soup_on_counter), INTERACT),
-            (when(empty & plate_wanted, plates), INTERACT),
-            (when(empty & onion_wanted, onions), INTERACT),
-            (when(empty, plates), INTERACT),
-            (when(empty, onions), INTERACT),
-        ]
-        return me, partner, walkable, goals
+        targets = torch.stack([
+            when(holding_soup, channel(Channel.GOAL)),
+            when(holding_onion, open_pot),
+            when(holding_plate, ready_pot),
+            when(holding_plate, cooking_pot & ~ready_pot),
+            when(~empty, handover),
+            when(empty, soup_on_counter),
+            when(empty & plate_wanted, plates),
+            when(empty & onion_wanted, onions),
+            when(empty, plates),
+            when(empty, onions),
+            nothing,  # idling needs no tile
+        ], dim=1)  # fmt: skip
+        return me, partner, walkable, targets, partner_empty, tables, plan
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         batch_shape = observation.shape[:-3]
         obs = observation.reshape(-1, *observation.shape[-3:]).float()  # [N, H, W, C]: one seat's view each
-        me, partner, walkable, goals = self.goals(obs)
-        targets = torch.stack([targets for targets, _ in goals], dim=1)  # [N, K, H, W]
-        n = targets.shape[0]
-        # A goal is reachable where a walkable cell beside its tiles is: one wave from the cook serves all goals.
-        ends = walkable[:, None] & _beside(targets)  # [N, K, H, W]
-        reached = distance_from(me, walkable) < UNREACHABLE
-        reachable = (ends & reached[:, None]).flatten(2).any(2)  # [N, K]
-        choice = reachable.float().argmax(1)  # the first reachable goal
-        pick = choice[:, None, None, None].expand(n, 1, *me.shape[1:])
-        goal = targets.gather(1, pick)[:, 0]
-        goal_distance = distance_from(ends.gather(1, pick)[:, 0], walkable)
-        on_arrival = torch.tensor([action for _, action in goals], device=observation.device)[choice]
+        me, partner, walkable, targets, partner_empty, tables, plan = self.goals(obs, FLOOR_DISTANCES)
+        n, k = targets.shape[:2]
+        device = observation.device
+        # Steps to every goal from the cook's cell and from each cell around it, with the partner in the way or not
+        # (a way around it, where the partner stands beside the cook: elsewhere it is never asked for).
+        starts = torch.stack([me, *(_shifted(me, direction) for direction in range(4))], dim=1)  # [N, 5, H, W]
+        ends = (walkable[:, None] & _beside(targets)).flatten(2)  # [N, K, H * W]: where a cook stands to reach a goal
+        free = distance_rows(tables, plan, starts)  # [N, 5, H * W]
+        steps = torch.where(ends[:, :, None], free[:, None], UNREACHABLE).amin(-1)  # [N, K, 5]
+        detours = steps.clone()
+        beside_partner = (starts[:, 1:] & partner[:, None]).flatten(1).any(1)
+        if beside_partner.any():
+            rows = beside_partner.nonzero()[:, 0]
+            open_floor = (walkable & ~partner)[rows]
+            around = distance_from(starts[rows].flatten(0, 1), open_floor.repeat_interleave(5, 0))
+            around = around.view(len(rows), 1, 5, -1)
+            detours[rows] = torch.where(ends[rows][:, :, None], around, UNREACHABLE).amin(-1)
+        here, next_cells = steps[..., 0], steps[..., 1:]  # [N, K], [N, K, 4]
+        reachable = here < UNREACHABLE
+        reachable[:, IDLE] = True
 
-        def around_me(grid, fill):  # [N, 4]: the four cells around each cook, in the order of the moves
-            return (_neighbours(grid, fill) * me[:, None]).sum((-2, -1))
+        # Which goal: the best one it can reach, or one drawn by its score; a loader leaves plates and soups while an
+        # onion can go in a pot, a server onions while a plate or a soup can be taken.
+        busy = (reachable & self.own_work).any(1, keepdim=True)
+        scores = torch.where(reachable, self.scores - busy * self.off_role, -math.inf)
+        temperature = self.convention.goal_temperature
+        if temperature > 0:
+            goal_weights = torch.softmax(scores / temperature, 1)
+        else:
+            goal_weights = nn.functional.one_hot(scores.argmax(1), k).float()
+        goal_weights = torch.where(torch.isinf(scores).all(1, keepdim=True), 0.0, goal_weights)
+        if self.convention.handover == "prefer":
+            goal_weights = self.prefer_handover(goal_weights, here, reachable, ends, partner_empty,
+                                                distance_rows(tables, plan, partner))
 
-        def next_step(distance):  # the move towards a lower distance, and whether there is one
-            here = (distance * me).sum((-2, -1), keepdim=True)[:, :, 0]
-            downhill = around_me(distance, UNREACHABLE) == here - 1
-            order = torch.tensor(self.move_order, device=distance.device)
-            move = order[downhill[:, order].float().argmax(1)]  # the first downhill move in the cook's order
-            return move, (here[:, 0] < UNREACHABLE) & downhill.any(1)
+        # For each goal, the action towards it.
+        order = torch.tensor(self.move_order, device=device)
 
-        tile = around_me(goal.float(), 0.0).argmax(1)  # where the goal's tile lies, once beside it
+        def first_downhill(here, next_cells):  # [N, K]: the first move in the cook's order that gets nearer
+            downhill = next_cells == here[..., None] - 1
+            return order[downhill[..., order].float().argmax(-1)], (here < UNREACHABLE) & downhill.any(-1)
+
+        def around_me(grid):  # [N, 4] of any [N, H, W]: the four cells around each cook, in the order of the moves
+            return (_neighbours(grid.float(), 0.0) * me[:, None]).sum((-2, -1))
+
+        step, _ = first_downhill(here, next_cells)
+        tiles_around = torch.einsum("nkc,ndc->nkd", targets.flatten(2).float(),
+                                    torch.stack([_shifted(me, d) for d in range(4)], 1).flatten(2).float())
+        tile = tiles_around.argmax(-1)  # [N, K]: where the goal's tile lies, once beside it
         facing = (obs[..., Channel.SELF_FACING:Channel.SELF_FACING + 4] * me[..., None]).sum((1, 2)).argmax(1)
-        arrived = reachable.any(1) & (goal_distance * me).sum((-2, -1)).eq(0)
-        step, _ = next_step(goal_distance)
-        action = torch.where(arrived, torch.where(facing == tile, on_arrival, tile), step)
+        arrived = reachable & here.eq(0)
+        on_arrival = torch.tensor([goal.on_arrival for goal in GOALS], device=device).expand(n, k)
+        action = torch.where(arrived, torch.where(facing[:, None] == tile, on_arrival, tile), step)
+        action[:, IDLE] = STAY
         # The partner in the way: half the time a way around it (if any), half the time wait for it to move; where
         # both may step into one cell (the step fails for both), half the time step, half the time wait.
-        ahead = around_me(partner.float(), 0.0).gather(1, step[:, None])[:, 0] > 0
-        near_partner = partner | _beside(partner)
-        contested = ~arrived & ~ahead & (around_me(near_partner.float(), 0.0).gather(1, step[:, None])[:, 0] > 0)
+        ahead = around_me(partner).gather(1, step) > 0
+        contested = ~arrived & ~ahead & (around_me(partner | _beside(partner)).gather(1, step) > 0)
         blocked = ~arrived & ahead
-        detour, has_detour = next_step(distance_to(goal, walkable & ~partner))
+        detour, has_detour = first_downhill(detours[..., 0], detours[..., 1:])
         detour = torch.where(blocked, detour, action)
 
         def one_hot(actions):
             return nn.functional.one_hot(actions, NUM_ACTIONS).bool()
 
-        allowed = one_hot(action)
-        yielding = contested | (blocked & has_detour)
-        allowed = torch.where(yielding[:, None], one_hot(detour) | one_hot(torch.full_like(action, STAY)), allowed)
-        allowed |= (~reachable.any(1) | (blocked & ~has_detour))[:, None]  # stuck: any action
-        logits = torch.where(allowed, 0.0, -1e9)
+        moving = ~arrived
+        moving[:, IDLE] = False
+        allowed = one_hot(action)  # [N, K, 6]
+        yielding = (contested | (blocked & has_detour)) & moving
+        allowed = torch.where(yielding[..., None], one_hot(detour) | one_hot(torch.full_like(action, STAY)), allowed)
+        allowed |= (blocked & ~has_detour & moving)[..., None]  # stuck: any action
+        chances = allowed.float() / allowed.sum(-1, keepdim=True)
+        if self.convention.move_temperature > 0:
+            chances = torch.where((moving & reachable)[..., None], self.boltzmann_moves(detours, chances), chances)
+
+        probs = (goal_weights[..., None] * chances).sum(1)  # [N, 6]
+        probs = torch.where(goal_weights.sum(1, keepdim=True) > 0, probs, 1.0 / NUM_ACTIONS)  # nothing to do
+        if self.convention.noise > 0:
+            probs = (1 - self.convention.noise) * probs + self.convention.noise / NUM_ACTIONS
+        # Logits with the likeliest action at 0: a certain plan is 0 / -1e9, as a team's logits can be read.
+        logits = torch.where(probs > 0, probs.log() - probs.amax(-1, keepdim=True).log(), -1e9)
         return logits.view(*batch_shape, NUM_ACTIONS)
 
+    def boltzmann_moves(self, steps_around: torch.Tensor, planned: torch.Tensor) -> torch.Tensor:
+        """[N, K, 6]: moves drawn by the steps left after each (the partner's cell closed), a wait where no move
+        is open; steps_around [N, K, 5] from the cook's cell and the four around it."""
+        here, after = steps_around[..., :1], steps_around[..., 1:]
+        open_moves = after < UNREACHABLE
+        logits = torch.where(open_moves, -(after - here) / self.convention.move_temperature, -math.inf)
+        moves = torch.softmax(torch.where(open_moves.any(-1, keepdim=True), logits, 0.0), -1)
+        chances = torch.cat([moves, torch.zeros_like(planned[..., 4:])], -1)
+        return torch.where(open_moves.any(-1, keepdim=True), chances, planned)
 
-def scripted_actor_critic() -> ActorCritic:
-    """Both seats the scripted cook; its "critic" says 0 everywhere (it learns nothing)."""
-    policy = TensorDictModule(ScriptedCook(), in_keys=[OBSERVATION], out_keys=[LOGITS])
+    @staticmethod
+    def prefer_handover(goal_weights, here, reachable, ends, partner_empty, from_partner):
+        """A cook that prefers hand-overs puts its item on a counter the partner can reach where the partner's hands
+        are empty and the partner stands nearer the goal the cook carries it to; from_partner [N, H * W]: the steps
+        from the partner's cell."""
+        partner_steps = torch.where(ends, from_partner[:, None], UNREACHABLE).amin(-1)  # [N, K]
+        carried = goal_weights[:, :HANDOVER].argmax(1, keepdim=True)  # the goal of the item it holds, if any
+        carrying = goal_weights[:, :HANDOVER].sum(1) > 0
+        nearer = partner_steps.gather(1, carried)[:, 0] + 1 < here.gather(1, carried)[:, 0]
+        hand_over = carrying & nearer & partner_empty & reachable[:, HANDOVER]
+        return torch.where(hand_over[:, None], nn.functional.one_hot(torch.full_like(carried[:, 0], HANDOVER),
+                                                                     goal_weights.shape[1]).float(), goal_weights)
+
+
+def scripted_actor_critic(convention: Convention = Convention()) -> ActorCritic:
+    """Both seats the scripted cook of `convention`; its "critic" says 0 everywhere (it learns nothing)."""
+    policy = TensorDictModule(ScriptedCook(convention), in_keys=[OBSERVATION], out_keys=[LOGITS])
     critic = TensorDictModule(
         lambda observation: torch.zeros(*observation.shape[:-3], 1, device=observation.device),
         in_keys=[OBSERVATION], out_keys=[VALUE],

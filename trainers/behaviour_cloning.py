@@ -236,7 +236,7 @@ def fine_tuned(chosen: Chosen, layout: str, settings: ProxySettings, steps: int,
     cloned_soups = chosen.soups[chosen.seed]
     if not settings.fine_tune_steps or cloned_soups >= settings.fine_tune_below * humans:
         return chosen
-    from trainers.evaluate import load_team
+    from trainers.evaluation.teams import load_team
 
     start = team / "cloned"
     save_proxy(chosen.actor_critic, dataclasses.replace(settings, seed=chosen.seed), layout, start)

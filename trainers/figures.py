@@ -1,4 +1,4 @@
-"""The paper's evaluation figures (matplotlib, PNG) from `trainers.evaluate` outcomes and summary rows.
+"""The paper's evaluation figures (matplotlib, PNG) from `trainers.evaluation` outcomes and summary rows.
 
     fig3a_xp_layouts.png    cross-play per family (e.g. "IPPO MLP IK") on each classic layout
     fig3b_gap.png           SP - XP gap per family, averaged over the classic layouts

@@ -16,6 +16,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
 from jax_env import Channel
+from torch_kitchen.events import kitchen_events
 from torch_kitchen.rollout import KitchenCollector
 from torch_kitchen.xla_rollout import XlaCollector, xla_chains
 
@@ -54,11 +55,13 @@ def finished_episode_deliveries(batch: TensorDictBase) -> torch.Tensor:
 
 @dataclass
 class EpisodeOutcomes:
-    """One episode of every kitchen: deliveries float32 [B], and visits float32 [B, 2, H, W], the steps each
-    agent spent on each cell."""
+    """One episode of every kitchen: deliveries float32 [B], visits float32 [B, 2, H, W], the steps each agent spent
+    on each cell, and events float32 [B, 2, E], how often each agent made each of `torch_kitchen.events.EVENTS`
+    happen."""
 
     deliveries: torch.Tensor
     visits: torch.Tensor
+    events: torch.Tensor
 
 
 def play_episodes(env: EnvBase, policy, max_steps: int, max_frames: int = 1 << 17) -> EpisodeOutcomes:
@@ -70,11 +73,13 @@ def play_episodes(env: EnvBase, policy, max_steps: int, max_frames: int = 1 << 1
     num_envs = env.batch_size[0]
     steps = max(d for d in range(1, max_steps + 1) if max_steps % d == 0 and d * num_envs <= max(max_frames, num_envs))
     collector = make_collector(env, policy, frames_per_batch=num_envs * steps, total_frames=num_envs * max_steps)
-    deliveries, visits = None, None
+    deliveries, visits, events = None, 0, 0
     try:
         for batch in collector:
-            position = batch["agents", "observation"][..., Channel.SELF].sum(1, dtype=torch.float32)
-            visits = position if visits is None else visits + position
+            observation = batch["agents", "observation"]
+            visits = visits + observation[..., Channel.SELF].sum(1, dtype=torch.float32)
+            events = events + kitchen_events(observation, batch["agents", "action"],
+                                             batch["next", "agents", "observation"]).sum(1)
             done = batch["next", "done"].squeeze(-1)
             if deliveries is None:
                 deliveries = torch.full((num_envs,), float("nan"), device=done.device)
@@ -82,7 +87,7 @@ def play_episodes(env: EnvBase, policy, max_steps: int, max_frames: int = 1 << 1
             deliveries[ended] = batch["next", "episode_deliveries"].squeeze(-1)[done].to(deliveries.dtype)
     finally:
         collector.shutdown()
-    return EpisodeOutcomes(deliveries, visits)
+    return EpisodeOutcomes(deliveries, visits, events)
 
 
 def select_kitchens(batch: TensorDictBase, kitchens: torch.Tensor) -> TensorDictBase:

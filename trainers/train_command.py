@@ -102,7 +102,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"kitchen-train: {error}; continue with `kitchen-train --resume {' '.join(map(str, runs))}`",
                   file=sys.stderr)
         if configs[0].eval_episodes > 0 and (stopped is None or args.eval_on_stop):
-            from trainers.evaluate import report_trained_team
+            from trainers.evaluation import report_trained_team
 
             for run in runs:
                 report_trained_team(run)

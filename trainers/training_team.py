@@ -93,7 +93,7 @@ class TeamKitchens:
 class TrainingTeam:
     """One seed's run as it trains: its config and run directory, the team's networks, algorithm, loss and
     optimizer, random stream, counters and loggers. A process trains one, or several in one batch of kitchens
-    (`train_teams`); a finished run's team is loaded for play as a `trainers.evaluate.Team`."""
+    (`train_teams`); a finished run's team is loaded for play as a `trainers.evaluation.Team`."""
 
     config: TrainConfig
     run: Path

@@ -5,32 +5,45 @@ from tiny import infinite_observations
 from jax_env import EXPANDED_LAYOUTS
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.models import make_actor_critic
-from torch_kitchen.scripted import SCRIPTED_COOK, UNREACHABLE, ScriptedCook, distance_to, scripted_actor_critic
+from torch_kitchen.scripted import (
+    SCRIPTED_COOK,
+    UNREACHABLE,
+    FloorDistances,
+    ScriptedCook,
+    distance_from,
+    distance_rows,
+    scripted_actor_critic,
+)
 from trainers.rollout import play_episodes
 
 
-def test_distances_are_shortest_paths_to_a_cell_beside_a_target():
+def test_floor_tables_hold_the_shortest_paths_between_every_two_cells_once_per_floor_plan():
     walkable = torch.tensor([
         [1, 1, 1, 1],
         [1, 0, 0, 1],
         [1, 1, 0, 1],
         [0, 0, 0, 1],
     ], dtype=torch.bool)[None]  # fmt: skip
-    targets = torch.zeros_like(walkable)
-    targets[0, 3, 0] = True  # a tile in the bottom-left corner: beside it only (2, 0)
+    start = torch.zeros_like(walkable)
+    start[0, 2, 0] = True
     expected = torch.tensor([
         [2, 3, 4, 5],
         [1, -1, -1, 6],
         [0, 1, -1, 7],
         [-1, -1, -1, 8],
     ], dtype=torch.float32)  # fmt: skip
-    distance = distance_to(targets, walkable)[0]
     expected = torch.where(expected < 0, UNREACHABLE, expected)
-    assert torch.equal(distance, expected)
+    assert torch.equal(distance_from(start, walkable)[0], expected)
     walled = walkable.clone()
-    walled[0, 1, 0] = walled[0, 2, 1] = False  # the cell beside the tile is cut off from the rest
-    distance = distance_to(targets, walled)[0]
-    assert distance[2, 0] == 0 and distance[0, 0] == UNREACHABLE
+    walled[0, 1, 0] = walled[0, 2, 1] = False  # (2, 0) is cut off from the rest
+    floor = FloorDistances()
+    tables, plan = floor(torch.cat([walkable, walled, walkable]))
+    assert tables.shape == (2, 16, 16) and plan[0] == plan[2] != plan[1]  # two plans, each computed once
+    assert torch.equal(distance_rows(tables, plan, start.expand(3, -1, -1))[0].view(4, 4), expected)
+    cut_off = distance_rows(tables, plan, start.expand(3, -1, -1))[1].view(4, 4)
+    assert cut_off[2, 0] == 0 and (cut_off.flatten().sort().values[1:] == UNREACHABLE).all()
+    every_cell = torch.eye(16, dtype=torch.bool).view(16, 4, 4)
+    assert torch.equal(tables[plan[0]], distance_from(every_cell, walkable.expand(16, -1, -1)).flatten(1))
 
 
 def _episodes(levels, num_envs=4, seed=0):

@@ -13,7 +13,7 @@ from torch_kitchen.models import make_actor_critic
 from trainers.algorithms.anchored import action_log_probs, policy_kl
 from trainers.checkpoint import load_checkpoint
 from trainers.config import ConfigError
-from trainers.evaluate import load_team
+from trainers.evaluation import load_team
 from trainers.ppo import train
 from trainers.train_command import main as train_main
 

@@ -67,7 +67,7 @@ def test_a_bare_pickle_that_runs_code_is_refused(tmp_path):
 
 
 def test_kitchen_eval_refuses_a_crafted_checkpoint(tmp_path, capsys):
-    from trainers.evaluate import main
+    from trainers.evaluation import main
 
     marker = tmp_path / "marker"
     crafted = craft(tmp_path / "crafted.pt", marker)

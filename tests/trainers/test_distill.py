@@ -95,7 +95,7 @@ def test_a_run_from_the_scripted_cook_distils_its_start_into_its_own_folder_firs
 @pytest.mark.parametrize("architecture", ["mlp_lstm", "gnn", "ego_mlp"])
 def test_any_architecture_distils_and_its_team_plays_as_a_trained_one(tmp_path, architecture):
     """Recurrent models fit whole sequences; the checkpoint is a trained team's (`kitchen-eval`, `kitchen-play`)."""
-    from trainers.evaluate import load_team
+    from trainers.evaluation import load_team
 
     run = distill(tiny_config(tmp_path, f"architecture={architecture}", "distill_rounds=2", "distill_epochs=1"))
     team = load_team(run)

@@ -16,7 +16,7 @@ from torch_kitchen.models import make_actor_critic
 from trainers.checkpoint import CheckpointError, model_identity, save_checkpoint
 from trainers.composer import load_config
 from trainers.config import ConfigError, EvalConfig, TrainConfig
-from trainers.evaluate import (
+from trainers.evaluation import (
     CROSS,
     HUMAN,
     PARTNER,

@@ -31,7 +31,7 @@ from jax_env.state import DIR_VECTORS, DISH, ONION, PLATE, POT_EMPTY, POT_FULL  
 from torch_kitchen.models import make_actor_critic  # noqa: E402
 from torch_kitchen.scripted import ScriptedCook  # noqa: E402
 from trainers.checkpoint import load_checkpoint  # noqa: E402
-from trainers.evaluate import load_team  # noqa: E402
+from trainers.evaluation import load_team  # noqa: E402
 from trainers.humans import main  # noqa: E402
 from trainers.play.game import Game, Partner, replay  # noqa: E402
 
@@ -286,7 +286,7 @@ def test_the_proxy_kept_is_the_candidate_that_delivers_closest_to_the_humans(mon
 def test_a_proxy_that_delivers_far_less_than_the_humans_is_fine_tuned_until_it_delivers_about_as_much(monkeypatch,
                                                                                                        tmp_path):
     import trainers.behaviour_cloning as cloning
-    import trainers.evaluate as evaluate
+    import trainers.evaluation.teams as teams
 
     # Soups by KL weight (the humans delivered 10): too few, too many, then about as many between the two.
     tuned_soups = {0.1: 4.0, 0.025: 14.0, 0.05: 9.5, 0.035: 11.0}
@@ -294,7 +294,7 @@ def test_a_proxy_that_delivers_far_less_than_the_humans_is_fine_tuned_until_it_d
     monkeypatch.setattr(cloning, "save_proxy", lambda proxy, settings, layout, run: run)
     monkeypatch.setattr(cloning, "fine_tune", lambda start, layout, settings, coef, steps, seed, run_dir:
                         runs.append((start, coef, steps, seed, run_dir)) or coef)
-    monkeypatch.setattr(evaluate, "load_team", lambda coef: type("Team", (), {"actor_critic": f"tuned {coef}"}))
+    monkeypatch.setattr(teams, "load_team", lambda coef: type("Team", (), {"actor_critic": f"tuned {coef}"}))
     monkeypatch.setattr(cloning, "deliveries_together", lambda proxy, layout, steps, episodes, seed:
                         games.append(seed) or tuned_soups[float(proxy.removeprefix("tuned "))])
     settings = cloning.ProxySettings(fine_tunes=4)

@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 from tiny import TINY
 
-from trainers.evaluate import main as eval_main
+from trainers.evaluation import main as eval_main
 from trainers.plugins import PLUGINS_VARIABLE, import_plugins
 from trainers.train_command import main as train_main
 

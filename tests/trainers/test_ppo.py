@@ -33,7 +33,7 @@ from trainers.algorithms.e3t import EGO
 from trainers.checkpoint import load_checkpoint
 from trainers.composer import load_config
 from trainers.config import ConfigError, TrainConfig
-from trainers.evaluate import load_team, report_trained_team
+from trainers.evaluation import load_team, report_trained_team
 from trainers.figures import read_scalar
 from trainers.ppo import train
 from trainers.ppo_step import team_gradients

@@ -35,7 +35,7 @@ from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.models import ActorCritic
 from torch_kitchen.models.acting import sampling_actor
 from torch_kitchen.scripted import scripted_actor_critic
-from trainers.evaluate import load_team
+from trainers.evaluation import load_team
 
 ACTIONS = {"up": NORTH, "down": SOUTH, "right": EAST, "left": WEST, "stay": STAY, "interact": INTERACT}
 SCRIPTED, RANDOM = "scripted cook", "random agent"

@@ -48,7 +48,7 @@ from jax_env import (
 )
 from jax_env.generator import sample_training_level
 from trainers.checkpoint import CheckpointError
-from trainers.evaluate import evaluation_grids
+from trainers.evaluation import evaluation_grids
 from trainers.play.game import ACTIONS, RANDOM, SCRIPTED, Game, load_partner, replay
 
 try:

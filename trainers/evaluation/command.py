@@ -1,0 +1,131 @@
+"""The whole evaluation job (`evaluate`), the report of a finished training run, and the command line
+`kitchen-eval`."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+
+from jax_env import EXPANDED_LAYOUTS, load_layout
+from jax_env.generator import SIZES as GENERATOR_SIZES
+from jax_env.layouts import padded_layouts
+from trainers.checkpoint import CheckpointError
+from trainers.composer import config_help, load_config, save_config
+from trainers.config import ConfigError, DeviceConfig, EvalConfig
+from trainers.evaluation.gifs import parse_gif_request, record_gif
+from trainers.evaluation.pairs import evaluation_grids, make_matchups, play
+from trainers.evaluation.partners import load_human_proxies, with_human_proxies
+from trainers.evaluation.tables import markdown_summary, pair_rows, summary_rows, visit_shares, write_csv
+from trainers.evaluation.teams import load_population, load_team, scripted_cook_team
+from trainers.figures import draw_figures, draw_heatmap, draw_learning_curve
+from trainers.plugins import PluginError, add_plugin_option, import_plugins
+
+
+def evaluate(config: EvalConfig) -> Path:
+    """Loads the population, plays every matchup, writes tables, figures and GIFs to `config.out_dir`."""
+    device = config.runtime.device
+    torch.set_num_threads(config.runtime.threads)
+    if not config.conditions:
+        raise ConfigError("no conditions to evaluate: give conditions: {name: run_dir_or_glob, ...}")
+    population = load_population(config.conditions, device)
+    grids = evaluation_grids(config.layouts, config.heldout, config.kitchen_size)
+    partner = scripted_cook_team((*grids[0].shape, 26), device) if config.partner else None
+    teams, matchups = make_matchups(population, config.cross, partner)
+    proxies = load_human_proxies(config.human_proxies, grids, device) if config.human_proxies else {}
+    by_name = {grid.name: grid for grid in grids}
+    for heatmap in config.heatmaps:
+        if heatmap not in by_name:
+            raise ConfigError(f"heatmaps names {heatmap!r}, which is not a test grid: {', '.join(by_name)}")
+    gifs = [parse_gif_request(request, teams, by_name) for request in config.gifs]
+    out = Path(config.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    save_config(config, out / "eval_config.yaml")
+    print(f"{len(teams)} teams, {len(matchups)} pairs, {len(grids)} grids, {config.rollouts} rollouts: "
+          f"{len(matchups) * len(grids) * config.rollouts:,} episodes")
+
+    outcomes = play(teams, matchups, grids, config.rollouts, config.max_steps, config.max_envs, config.seed,
+                    device, config.progress, config.workers)
+    if proxies:
+        outcomes = with_human_proxies(outcomes, proxies, config.rollouts, config.max_steps, config.max_envs,
+                                      config.seed, device)
+    write_csv(pair_rows(outcomes), out / "pairs.csv")
+    summary = summary_rows(outcomes)
+    write_csv(summary, out / "summary.csv")
+    table = markdown_summary(summary, config.rollouts)
+    (out / "eval.md").write_text(table)
+    print(table)
+    written = draw_figures(outcomes, summary, out)
+    for grid_name in config.heatmaps:
+        panels = visit_shares(outcomes, grid_name)
+        if panels:
+            written.append(draw_heatmap(by_name[grid_name], panels, out / f"heatmap_{grid_name}.png"))
+    for first, second, grid in gifs:
+        name = f"{first.name}+{second.name}@{grid.name}".replace("/", "-")
+        written.append(record_gif(first, second, grid, out / f"{name}.gif", config.max_steps, config.seed))
+    for path in written:
+        print(f"wrote {path}")
+    return out
+
+
+def report_trained_team(run: str | Path, episodes: int | None = None, num_heldout: int | None = None) -> Path:
+    """The self-play evaluation of a finished run, into the run directory: eval.md, pairs.csv, learning_curve.png, a
+    team.gif (at home; a held-out level for a team of generated kitchens, where the table has one)."""
+    run = Path(run)
+    team = load_team(run)
+    config = team.config
+    size = team.obs_shape[0] if team.obs_shape[0] == team.obs_shape[1] in GENERATOR_SIZES else None
+    if team.home:
+        layouts = sorted(team.home)
+    else:  # a team of generated kitchens: the classic layouts drawn at its size
+        layouts = list(EXPANDED_LAYOUTS) if size == 7 else list(padded_layouts(size))
+    num_heldout = (config.eval_heldout if num_heldout is None else num_heldout) if size else 0
+    out = evaluate(EvalConfig(
+        conditions={team.condition: str(run)},
+        layouts=layouts,
+        heldout=num_heldout,
+        kitchen_size=size or 7,
+        rollouts=episodes or config.eval_episodes,
+        max_steps=config.max_steps,
+        seed=config.seed, runtime=DeviceConfig(config.runtime.device, config.runtime.threads), progress=False,
+        out_dir=str(run),
+    ).check())  # fmt: skip
+    if not team.fully_trained:
+        note = f"Partly trained: {team.env_steps:,} of {config.planned_steps:,} env steps (the run stopped early).\n\n"
+        (out / "eval.md").write_text(note + (out / "eval.md").read_text())
+        print(note.strip())
+    if curve := draw_learning_curve(run):
+        print(f"learning curve: {curve}")
+    if config.gif:
+        grid = evaluation_grids([], 1, size)[0] if num_heldout and not team.home else load_layout(layouts[0])
+        print(f"gif: {record_gif(team, team, grid, run / 'team.gif', config.max_steps, config.seed)}")
+    return out / "eval.md"
+
+
+# -------------------------------------------------------------------------------------------- command line
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="kitchen-eval",
+        description="Self-play and cross-play evaluation of trained teams: tables, figures, heat maps and GIFs.",
+        epilog="Overrides: any config key as key=value, e.g. rollouts=5 heldout=10 out_dir=results/quick.\n\n"
+               + config_help(EvalConfig),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("config", help="an evaluation config (configs/eval/...)")
+    parser.add_argument("overrides", nargs="*", help="key=value config overrides")
+    add_plugin_option(parser)
+    args = parser.parse_args(argv)
+    try:
+        import_plugins(args.plugins)
+        evaluate(load_config(args.config, args.overrides, schema=EvalConfig))
+    except (ConfigError, CheckpointError, ValueError, PluginError) as error:
+        print(f"kitchen-eval: error: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

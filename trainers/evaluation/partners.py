@@ -1,0 +1,60 @@
+"""Partners from outside the population: teams that were trained apart from the conditions evaluated, played
+with every team of theirs in either seat. Today: the human proxies of the test grids (`kitchen-humans train`),
+each played on its own grid only. The scripted cook, the `partner` of a config, is a team of `teams`
+(`scripted_cook_team`) played by `make_matchups`."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from jax_env import Layout
+from trainers.config import ConfigError
+from trainers.evaluation.pairs import HUMAN, SP, Matchup, Outcomes, play
+from trainers.evaluation.teams import Team, load_team
+
+HUMAN_PROXY_RUN = "human_proxy_{grid}/seed0"  # a test grid's human proxy in the `human_proxies` folder
+
+
+def load_human_proxies(folder: str | Path, grids: Sequence[Layout], device: str = "cpu") -> dict[str, Team]:
+    """{grid name: its human proxy} for the test grids that have one in `folder` (`kitchen-humans train`)."""
+    found = {grid.name: Path(folder) / HUMAN_PROXY_RUN.format(grid=grid.name) for grid in grids}
+    proxies = {name: load_team(run, device) for name, run in found.items() if (run / "checkpoints").is_dir()}
+    if not proxies:
+        raise ConfigError(f"human_proxies: {folder} holds no human proxy of a test grid "
+                          f"({', '.join(HUMAN_PROXY_RUN.format(grid=g.name) for g in grids[:3])}, ...): "
+                          "`kitchen-humans train` makes them")
+    return proxies
+
+
+def with_human_proxies(outcomes: Outcomes, proxies: dict[str, Team], rollouts: int, max_steps: int, max_envs: int,
+                       seed: int, device: str) -> Outcomes:
+    """`outcomes` and, on each grid with a proxy, every team of theirs with the proxy in either seat (kind HUMAN)
+    and the proxy with itself (SP): played on that grid only, absent (NaN) on the others."""
+    teams, matchups = list(outcomes.teams), list(outcomes.matchups)
+    grid_names = [grid.name for grid in outcomes.grids]
+    deliveries, visits, events = [outcomes.deliveries], [outcomes.visits], [outcomes.events]
+    population = len(outcomes.teams)  # the proxy's seat among the teams its grid is played with
+    with_proxy = [m for team in range(population) for m in (Matchup(team, population, HUMAN),
+                                                           Matchup(population, team, HUMAN))]
+    with_proxy.append(Matchup(population, population, SP))
+    for grid_name, proxy in proxies.items():
+        g = grid_names.index(grid_name)
+        played = play([*outcomes.teams, proxy], with_proxy, [outcomes.grids[g]], rollouts, max_steps, max_envs,
+                      seed, device)
+        on_grid = np.full((len(with_proxy), len(grid_names), rollouts), np.nan, np.float32)
+        on_grid[:, g] = played.deliveries[:, 0]
+        seen = np.zeros((len(with_proxy), *outcomes.visits.shape[1:]), np.float32)
+        seen[:, g] = played.visits[:, 0]
+        happened = np.zeros((len(with_proxy), *outcomes.events.shape[1:]), np.float32)
+        happened[:, g] = played.events[:, 0]
+        seat = {population: len(teams)}  # the proxy's seat among all the teams; the others keep theirs
+        matchups += [Matchup(seat.get(m.seat0, m.seat0), seat.get(m.seat1, m.seat1), m.kind) for m in with_proxy]
+        teams.append(proxy)
+        deliveries.append(on_grid)
+        visits.append(seen)
+        events.append(happened)
+    return Outcomes(teams, matchups, outcomes.grids, np.concatenate(deliveries), np.concatenate(visits),
+                    np.concatenate(events))

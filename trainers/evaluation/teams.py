@@ -1,0 +1,135 @@
+"""Trained teams for evaluation: a run's team loaded from its checkpoint, a population of them by condition, and
+the scripted cook as a team."""
+
+from __future__ import annotations
+
+import glob
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from jax_env import layout_name
+from torch_kitchen.conventions import Convention
+from torch_kitchen.cpu_kernels import accelerate_cpu
+from torch_kitchen.models import ActorCritic, make_actor_critic
+from torch_kitchen.scripted import SCRIPTED_COOK, scripted_actor_critic
+from trainers.checkpoint import CheckpointError, load_checkpoint
+from trainers.composer import load_config
+from trainers.config import ConfigError, RuntimeConfig, TrainConfig
+
+SCRIPTED_CONDITION = "scripted cook"
+
+
+@dataclass
+class Team:
+    """A trained team: its name ("<condition>/seed<k>"), training config, networks, kitchen size, and the env steps
+    it was trained for (None where its file does not say, e.g. a team saved by hand)."""
+
+    name: str
+    condition: str
+    config: TrainConfig
+    actor_critic: ActorCritic
+    obs_shape: tuple[int, int, int]
+    checkpoint: str
+    env_steps: int | None = None
+
+    @property
+    def fully_trained(self) -> bool:
+        """Whether the team ran its config's whole budget (False for a run stopped early)."""
+        return self.env_steps is None or self.env_steps >= self.config.planned_steps
+
+    @property
+    def regime(self) -> str:
+        """"IK" (trained on the Infinite Kitchen) or "SK" (on fixed layouts)."""
+        return "IK" if self.config.levels == "infinite" else "SK"
+
+    @property
+    def home(self) -> set[str] | None:
+        """The names of the layouts a Single Kitchen team was trained on (None: an Infinite Kitchen team, at home
+        anywhere); a layout file counts by its name, as the grids are named."""
+        if self.regime == "IK":
+            return None
+        levels = self.config.levels
+        return {layout_name(level) for level in ([levels] if isinstance(levels, str) else levels)}
+
+    @property
+    def label(self) -> str:
+        """The team's family in the paper's figures, e.g. "IPPO MLP IK", "E3T GNN SK"."""
+        if self.config.architecture == SCRIPTED_COOK:
+            return SCRIPTED_CONDITION
+        algorithm = self.config.algorithm
+        architecture = self.config.architecture.removeprefix(f"{algorithm}_")  # e3t_gnn -> GNN
+        return f"{algorithm.upper()} {architecture.upper().replace('_', '+')} {self.regime}"
+
+
+def load_team(checkpoint: str | Path, device: str = "cpu", condition: str = "") -> Team:
+    """The trained team of a checkpoint file or run directory (a CheckpointError says why one is unusable)."""
+    state = load_checkpoint(checkpoint, map_location=device)
+    where = state["path"]
+    try:
+        config = load_config(base=state["config"], overrides=[f"runtime.device={device}"])
+    except ConfigError as error:
+        raise CheckpointError(f"{where} was saved with a config this version cannot read ({error})") from None
+    model = state["model"]
+    try:
+        actor_critic = make_actor_critic(
+            model["architecture"], tuple(model["obs_shape"]), model["hidden"], model["share_params"]
+        )
+    except ValueError as error:
+        raise CheckpointError(
+            f"{where} holds a {model['architecture']!r} model that cannot be built here ({error}); import the "
+            "module that registers that architecture before loading it"
+        ) from None
+    if torch.device(device).type == "cpu":
+        accelerate_cpu(actor_critic.actor, actor_critic.critic)
+    try:
+        actor_critic.actor.load_state_dict(state["actor"])
+        actor_critic.critic.load_state_dict(state["critic"])
+    except RuntimeError as error:
+        raise CheckpointError(
+            f"{where}: the weights do not fit the {model['architecture']!r} model its header describes "
+            f"({str(error).splitlines()[0][:200]}); the file was written by another version or altered"
+        ) from None
+    actor_critic.actor.to(device).eval()
+    actor_critic.critic.to(device).eval()
+    condition = condition or config.name
+    return Team(f"{condition}/seed{config.seed}", condition, config, actor_critic, tuple(model["obs_shape"]), where,
+                state.get("env_steps"))
+
+
+def scripted_cook_team(obs_shape: tuple[int, int, int], device: str = "cpu") -> Team:
+    """The scripted cook as a team (both seats), for kitchens of `obs_shape`; at home on every grid."""
+    return convention_team(Convention(), obs_shape, device, name="scripted cook", condition=SCRIPTED_CONDITION)
+
+
+def convention_team(convention: Convention, obs_shape: tuple[int, int, int], device: str = "cpu", name: str = "",
+                    condition: str = "") -> Team:
+    """The scripted cook of `convention` as a team (both seats), named after the convention; at home anywhere."""
+    config = TrainConfig(name=convention.name, architecture=SCRIPTED_COOK, runtime=RuntimeConfig(device=device))
+    return Team(name or convention.name, condition or convention.name, config, scripted_actor_critic(convention),
+                tuple(obs_shape), "(scripted)")
+
+
+def load_population(conditions: dict[str, str | list[str]], device: str = "cpu") -> dict[str, list[Team]]:
+    """Condition name -> its teams, from run directories, checkpoint files or glob patterns of them."""
+    population = {}
+    for condition, patterns in conditions.items():
+        paths = []
+        for pattern in [patterns] if isinstance(patterns, str) else patterns:
+            matched = sorted(glob.glob(pattern)) if glob.has_magic(pattern) else [pattern]
+            if not matched:
+                raise CheckpointError(f"condition {condition!r}: no run matches {pattern!r}")
+            paths += matched
+        teams = []
+        for path in paths:
+            try:
+                teams.append(load_team(path, device, condition))
+            except CheckpointError as error:
+                raise CheckpointError(f"condition {condition!r}: {error}") from None
+        names = [team.name for team in teams]
+        for team in teams:  # two runs with one seed: tell them apart by position
+            if names.count(team.name) > 1:
+                team.name = f"{team.name}#{teams.index(team)}"
+        population[condition] = teams
+    return population

@@ -1,0 +1,321 @@
+"""`kitchen-zoo`: scripted cooks with conventions of their own, and the held-out strangers among them.
+
+    kitchen-zoo draw --seed 0 --out configs/zoo          # draw, play, keep a diverse set, split, write
+    kitchen-zoo draw --candidates 8 --keep 4 --strangers 2 --levels 8 --table-heldout 4 --out /tmp/zoo   # tiny
+    kitchen-zoo show configs/zoo/zoo.yaml                # the zoo's table
+
+`draw` draws `candidates` conventions from `seed` (`torch_kitchen.conventions.draw_convention`), plays each with
+itself on `levels` generated *training* levels of the zoo's seed (never a held-out one), and drops those that do
+not cook: two of a convention must deliver in at least `min_cooked` of the levels (ZSC-Eval drops its partners of
+low return). Each cook's event counts per episode (`torch_kitchen.events`) make its profile; of the cooks, `keep`
+are chosen whose profiles lie apart, greedily by the determinant of their similarity (an RBF kernel over the
+profiles scaled per event, as ZSC-Eval keeps its partners by the determinant of their event-count similarity),
+and one in every `keep // strangers` of them in the order chosen becomes a held-out *stranger*: no shipped config
+trains with one (`tests/trainers/test_zoo.py`), and a training config that names one is refused. The rest are the
+conventions to train with. The zoo file (`zoo.yaml`) holds the conventions, their split and their measurements,
+and the generator and kitchen size the levels came from; its table (`zoo.md`) shows each convention's self-play on
+the 5 expanded layouts and the held-out levels, its events and its role, written by the same command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import random
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import jax
+import numpy as np
+import yaml
+
+from jax_env import EXPANDED_LAYOUTS, GeneratorConfig, layout_from_state
+from jax_env.generator import SIZES as GENERATOR_SIZES
+from jax_env.layouts import padded_layouts
+from torch_kitchen.conventions import Convention, ConventionError, draw_convention
+from torch_kitchen.events import EVENTS
+from trainers.config import ConfigError
+from trainers.evaluation.pairs import SP, Matchup, evaluation_grids, is_heldout, play
+from trainers.evaluation.teams import convention_team
+from trainers.levels import sample_batch
+
+ZOO_FILE = "configs/zoo/zoo.yaml"  # the zoo the project ships: its strangers are held out of every shipped config
+TRAIN, STRANGER = "train", "stranger"
+
+
+@dataclass
+class ZooMember:
+    """One convention of a zoo: its split ("train" or "stranger") and what it did with itself on the zoo's levels:
+    mean deliveries, the share of levels it cooked on, mean events per episode and seat."""
+
+    convention: Convention
+    split: str
+    self_play: float
+    cooked: float
+    events: dict[str, float]
+
+    @property
+    def name(self) -> str:
+        return self.convention.name
+
+
+@dataclass
+class Zoo:
+    """Conventions drawn from `seed` and kept for their diversity, with the kitchens they were measured in."""
+
+    seed: int
+    kitchen_size: int
+    generator: dict
+    members: list[ZooMember]
+    drawn: int = 0
+    levels: int = 0
+    similarity: dict[str, float] = field(default_factory=dict)
+
+    def split(self, split: str) -> list[Convention]:
+        return [member.convention for member in self.members if member.split == split]
+
+    @property
+    def strangers(self) -> list[Convention]:
+        """The held-out strangers: evaluation partners only."""
+        return self.split(STRANGER)
+
+    @property
+    def training(self) -> list[Convention]:
+        """The conventions a team may train with."""
+        return self.split(TRAIN)
+
+    def convention(self, name: str, splits: Sequence[str] = (TRAIN, STRANGER)) -> Convention:
+        """The member named `name` among `splits` (a ConfigError names what there is)."""
+        for member in self.members:
+            if member.name == name and member.split in splits:
+                return member.convention
+        if any(member.name == name for member in self.members):
+            raise ConfigError(f"{name!r} is a held-out stranger of the zoo: it evaluates teams and never trains "
+                              f"one; train with one of {', '.join(c.name for c in self.training)}")
+        raise ConfigError(f"the zoo has no convention {name!r}; its conventions: "
+                          f"{', '.join(member.name for member in self.members if member.split in splits)}")
+
+
+def generator_settings(kitchen_size: int) -> dict:
+    """The generator's settings the zoo's levels are drawn with (a zoo file records them; another is refused)."""
+    return {key: value for key, value in dataclasses.asdict(GeneratorConfig(size=kitchen_size)).items()}
+
+
+def save_zoo(zoo: Zoo, path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    document = {
+        "seed": zoo.seed, "kitchen_size": zoo.kitchen_size, "drawn": zoo.drawn, "levels": zoo.levels,
+        "generator": zoo.generator, "similarity": zoo.similarity,
+        "members": [{"split": m.split, "self_play": round(m.self_play, 3), "cooked": round(m.cooked, 3),
+                     "events": {k: round(v, 2) for k, v in m.events.items()}, "convention": m.convention.as_dict()}
+                    for m in zoo.members],
+    }  # fmt: skip
+    header = "# Written by `kitchen-zoo draw` (trainers/zoo.py): the conventions, their split and what they did.\n"
+    path.write_text(header + yaml.safe_dump(document, sort_keys=False, width=120))
+    return path
+
+
+def load_zoo(path: str | Path, kitchen_size: int | None = None) -> Zoo:
+    """The zoo of a file; with `kitchen_size`, one drawn for kitchens of that size by this generator (else a
+    ConfigError in one line)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"zoo file {path} does not exist: `kitchen-zoo draw` writes one ({ZOO_FILE} is shipped)")
+    try:
+        document = yaml.safe_load(path.read_text())
+        members = [ZooMember(Convention.from_dict(m["convention"]), m["split"], float(m["self_play"]),
+                             float(m["cooked"]), dict(m["events"])) for m in document["members"]]
+        zoo = Zoo(int(document["seed"]), int(document["kitchen_size"]), dict(document["generator"]), members,
+                  int(document.get("drawn", 0)), int(document.get("levels", 0)), dict(document.get("similarity", {})))
+    except ConventionError as error:
+        raise ConfigError(f"zoo file {path}: {error}") from None
+    except (yaml.YAMLError, KeyError, TypeError, ValueError) as error:
+        raise ConfigError(f"{path} is not a zoo file ({type(error).__name__}: {error}); `kitchen-zoo draw` "
+                          "writes one") from None
+    if kitchen_size is not None:
+        if zoo.kitchen_size != kitchen_size:
+            raise ConfigError(f"zoo file {path} was drawn for {zoo.kitchen_size}x{zoo.kitchen_size} kitchens, not "
+                              f"{kitchen_size}x{kitchen_size}: draw one at this size with `kitchen-zoo draw "
+                              f"--kitchen-size {kitchen_size}`")
+        expected = generator_settings(kitchen_size)
+        changed = sorted(key for key in expected.keys() | zoo.generator.keys()
+                         if expected.get(key) != zoo.generator.get(key))
+        if changed:
+            raise ConfigError(f"zoo file {path} was drawn with another generator (settings "
+                              f"{', '.join(changed)} differ): draw it again with `kitchen-zoo draw`")
+    return zoo
+
+
+# ---------------------------------------------------------------------------------------------- diversity
+def event_profiles(events: np.ndarray) -> np.ndarray:
+    """[n, E] mean events per episode -> the same scaled per event to [0, 1] by the largest of the n."""
+    scale = events.max(0)
+    return events / np.where(scale > 0, scale, 1.0)
+
+
+def similarity(profiles: np.ndarray) -> np.ndarray:
+    """[n, n]: exp(-|a - b|^2 / E), 1 for equal profiles and smaller the further apart they lie."""
+    distances = ((profiles[:, None] - profiles[None]) ** 2).sum(-1)
+    return np.exp(-distances / profiles.shape[1])
+
+
+def select_diverse(profiles: np.ndarray, keep: int) -> list[int]:
+    """Indices of `keep` profiles in the order chosen: first the one furthest from the mean, then each time the one
+    that makes the determinant of the chosen ones' similarity largest (a greedy volume of their spread)."""
+    kernel = similarity(profiles)
+    chosen = [int(((profiles - profiles.mean(0)) ** 2).sum(1).argmax())]
+    while len(chosen) < min(keep, len(profiles)):
+        best, best_logdet = None, -np.inf
+        for candidate in range(len(profiles)):
+            if candidate in chosen:
+                continue
+            rows = [*chosen, candidate]
+            sign, logdet = np.linalg.slogdet(kernel[np.ix_(rows, rows)])
+            logdet = logdet if sign > 0 else -np.inf
+            if best is None or logdet > best_logdet:
+                best, best_logdet = candidate, logdet
+        chosen.append(best)
+    return chosen
+
+
+def mean_similarity(profiles: np.ndarray) -> float:
+    """The mean similarity of distinct pairs of profiles (lower: further apart)."""
+    kernel = similarity(profiles)
+    n = len(profiles)
+    return float((kernel.sum() - n) / max(n * (n - 1), 1))
+
+
+# ------------------------------------------------------------------------------------------------- drawing
+def zoo_levels(seed: int, count: int, kitchen_size: int) -> list:
+    """`count` generated training levels of the zoo's seed (the generator rejects every held-out grid)."""
+    levels = sample_batch(seed, count, training=True, config=GeneratorConfig(size=kitchen_size))
+    return [layout_from_state(jax.tree_util.tree_map(lambda leaf, i=i: leaf[i], levels), name=f"zoo_{i:03d}")
+            for i in range(count)]
+
+
+def self_play(conventions: Sequence[Convention], grids: list, rollouts: int, seed: int, max_envs: int,
+              workers: int, progress: bool):
+    """Each convention with itself on every grid: (deliveries [n, G, R], events per episode and seat [n, G, E])."""
+    obs_shape = (*grids[0].shape, 26)
+    teams = [convention_team(convention, obs_shape) for convention in conventions]
+    matchups = [Matchup(i, i, SP) for i in range(len(teams))]
+    outcomes = play(teams, matchups, grids, rollouts, max_envs=max_envs, seed=seed, progress=progress,
+                    workers=workers)
+    return outcomes.deliveries, outcomes.events.sum(2) / (2 * rollouts)
+
+
+def draw_zoo(seed: int = 0, candidates: int = 96, keep: int = 32, strangers: int = 8, levels: int = 64,
+             kitchen_size: int = 7, min_cooked: float = 0.5, max_envs: int = 4096, workers: int = 1,
+             progress: bool = True) -> Zoo:
+    """Draws, plays, filters and selects a zoo (see the module docstring). Deterministic for its arguments."""
+    rng = random.Random(seed)
+    drawn = [draw_convention(rng, f"cook_{seed}_{i:03d}") for i in range(candidates)]
+    deliveries, events = self_play(drawn, zoo_levels(seed, levels, kitchen_size), 1, seed, max_envs, workers,
+                                   progress)
+    cooked = (deliveries > 0).mean((1, 2))
+    cooks = [i for i in range(candidates) if cooked[i] >= min_cooked]
+    if len(cooks) < keep:
+        raise ConfigError(f"{len(cooks)} of {candidates} conventions drawn cook (two of them deliver on at least "
+                          f"{min_cooked:.0%} of {levels} levels), fewer than keep={keep}: draw more candidates")
+    mean_events = events.mean(1)  # [n, E]
+    profiles = event_profiles(mean_events[cooks])
+    order = select_diverse(profiles, keep)
+    step = max(1, keep // max(strangers, 1))
+    random_pick = np.random.default_rng(seed)
+    random_similarity = np.mean([mean_similarity(profiles[random_pick.choice(len(cooks), keep, replace=False)])
+                                 for _ in range(100)])
+    members = []
+    for position, chosen in enumerate(order):
+        i = cooks[chosen]
+        split = STRANGER if strangers and position % step == step - 1 and position // step < strangers else TRAIN
+        members.append(ZooMember(drawn[i], split, float(deliveries[i].mean()), float(cooked[i]),
+                                 dict(zip(EVENTS, map(float, mean_events[i])))))
+    return Zoo(seed, kitchen_size, generator_settings(kitchen_size), members, drawn=candidates, levels=levels,
+               similarity={"kept": round(mean_similarity(profiles[order]), 4),
+                           "random": round(float(random_similarity), 4), "cooks": len(cooks)})
+
+
+# -------------------------------------------------------------------------------------------------- table
+def zoo_table(zoo: Zoo, heldout: int, rollouts: int, seed: int, max_envs: int, workers: int,
+              progress: bool) -> str:
+    """Markdown: each convention's split, role and description, its self-play on each classic layout and on the
+    held-out levels, and its events per episode and seat on the zoo's levels."""
+    size = zoo.kitchen_size
+    layouts = list(EXPANDED_LAYOUTS) if size == 7 else list(padded_layouts(size))
+    grids = evaluation_grids(layouts, heldout, size)
+    conventions = [member.convention for member in zoo.members]
+    deliveries, _ = self_play(conventions, grids, rollouts, seed, max_envs, workers, progress)
+    classic = [g for g, grid in enumerate(grids) if not is_heldout(grid.name)]
+    held = [g for g, grid in enumerate(grids) if is_heldout(grid.name)]
+    short = [name.removesuffix("_7x7") for name in layouts]
+    lines = [
+        f"Self-play of each convention (two of it; mean deliveries per episode, {rollouts} rollouts per grid) on the "
+        f"expanded classic layouts and {len(held)} held-out levels, and its events per episode and seat on the zoo's "
+        f"{zoo.levels} training levels. Drawn {zoo.drawn} from seed {zoo.seed}, {zoo.similarity.get('cooks', '?')} "
+        f"cooked, {len(zoo.members)} kept; mean similarity of the kept profiles "
+        f"{zoo.similarity.get('kept', float('nan')):.3f} against {zoo.similarity.get('random', float('nan')):.3f} "
+        "for as many cooks drawn at random (lower: further apart).",
+        "",
+        f"| convention | split | role | {' | '.join(short)} | held-out | {' | '.join(EVENTS)} | convention |",
+        "|---|---|---|" + "---:|" * (len(short) + 1 + len(EVENTS)) + "---|",
+    ]
+    for m, member in enumerate(zoo.members):
+        per_layout = " | ".join(f"{deliveries[m, g].mean():.2f}" for g in classic)
+        events = " | ".join(f"{member.events[event]:.1f}" for event in EVENTS)
+        heldout_mean = f"{deliveries[m, held].mean():.2f}" if held else ""
+        lines.append(f"| {member.name} | {member.split} | {member.convention.role} | {per_layout} | {heldout_mean} | "
+                     f"{events} | {member.convention.describe()} |")
+    return "\n".join(lines) + "\n"
+
+
+# ------------------------------------------------------------------------------------------- command line
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="kitchen-zoo", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    verbs = parser.add_subparsers(dest="verb", required=True)
+    draw = verbs.add_parser("draw", help="draw conventions, keep a diverse set that cooks, split off strangers")
+    draw.add_argument("--seed", type=int, default=0)
+    draw.add_argument("--candidates", type=int, default=96, help="conventions drawn")
+    draw.add_argument("--keep", type=int, default=32, help="conventions kept, the strangers among them")
+    draw.add_argument("--strangers", type=int, default=8, help="held-out strangers among the kept")
+    draw.add_argument("--levels", type=int, default=64, help="generated training levels each plays on")
+    draw.add_argument("--min-cooked", type=float, default=0.5, help="share of levels two of it must deliver on")
+    draw.add_argument("--kitchen-size", type=int, default=7, choices=GENERATOR_SIZES)
+    draw.add_argument("--table-heldout", type=int, default=100, help="held-out levels in the table")
+    draw.add_argument("--table-rollouts", type=int, default=2, help="episodes per grid in the table")
+    draw.add_argument("--workers", type=int, default=1, help="processes that play at once")
+    draw.add_argument("--out", default=str(Path(ZOO_FILE).parent), help="folder of zoo.yaml and zoo.md")
+    show = verbs.add_parser("show", help="print a zoo file's conventions")
+    show.add_argument("zoo", nargs="?", default=ZOO_FILE)
+    args = parser.parse_args(argv)
+    try:
+        if args.verb == "show":
+            zoo = load_zoo(args.zoo)
+            for member in zoo.members:
+                print(f"{member.name:14s} {member.split:8s} self-play {member.self_play:5.2f}  "
+                      f"{member.convention.describe()}")
+            return 0
+        if not 0 <= args.strangers <= args.keep <= args.candidates:
+            raise ConfigError(f"need 0 <= strangers <= keep <= candidates, got {args.strangers}, {args.keep}, "
+                              f"{args.candidates}")
+        zoo = draw_zoo(args.seed, args.candidates, args.keep, args.strangers, args.levels, args.kitchen_size,
+                       args.min_cooked, workers=args.workers)
+        table = zoo_table(zoo, args.table_heldout, args.table_rollouts, args.seed, 4096, args.workers, True)
+        out = Path(args.out)
+        print(f"wrote {save_zoo(zoo, out / 'zoo.yaml')}")
+        (out / "zoo.md").write_text(f"# The zoo\n\n`kitchen-zoo draw --seed {args.seed} --candidates "
+                                    f"{args.candidates} --keep {args.keep} --strangers {args.strangers} --levels "
+                                    f"{args.levels}`\n\n" + table)
+        print(table)
+        print(f"wrote {out / 'zoo.md'}")
+    except (ConfigError, ConventionError) as error:
+        print(f"kitchen-zoo: error: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
