@@ -13,15 +13,21 @@
     noise             the probability of an action drawn uniformly instead
 
 The default convention is the scripted cook of every earlier run, action for action. `draw_convention` draws one
-from a seed, as the zoo (`trainers.zoo`) does.
+from a seed, as the zoo (`trainers.zoo`) does. A `Zoo` is a file of conventions split into those to train with and
+the held-out strangers (`load_zoo`; the project ships `ZOO_FILE`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import random
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
+import yaml
+
+from jax_env import GeneratorConfig
 from torch_kitchen.events import EVENTS
 
 ROLES = ("both", "loader", "server")
@@ -116,3 +122,112 @@ def draw_convention(rng: random.Random, name: str) -> Convention:
         noise=0.0 if rational else round(rng.choice((0.0, 0.02, 0.05, 0.1)), 2),
     )
 
+
+# ------------------------------------------------------------------------------------------------------ zoo
+ZOO_FILE = "configs/zoo/zoo.yaml"  # the zoo the project ships: its strangers are held out of every shipped config
+TRAIN, STRANGER = "train", "stranger"
+
+
+@dataclass
+class ZooMember:
+    """One convention of a zoo: its split ("train" or "stranger") and what it did with itself on the zoo's levels:
+    mean deliveries, the share of levels it cooked on, mean events per episode and seat."""
+
+    convention: Convention
+    split: str
+    self_play: float
+    cooked: float
+    events: dict[str, float]
+
+    @property
+    def name(self) -> str:
+        return self.convention.name
+
+
+@dataclass
+class Zoo:
+    """Conventions drawn from `seed` and kept for their diversity, with the kitchens they were measured in."""
+
+    seed: int
+    kitchen_size: int
+    generator: dict
+    members: list[ZooMember]
+    drawn: int = 0
+    levels: int = 0
+    similarity: dict[str, float] = field(default_factory=dict)
+
+    def split(self, split: str) -> list[Convention]:
+        return [member.convention for member in self.members if member.split == split]
+
+    @property
+    def strangers(self) -> list[Convention]:
+        """The held-out strangers: evaluation partners only."""
+        return self.split(STRANGER)
+
+    @property
+    def training(self) -> list[Convention]:
+        """The conventions a team may train with."""
+        return self.split(TRAIN)
+
+    def convention(self, name: str, splits: Sequence[str] = (TRAIN, STRANGER)) -> Convention:
+        """The member named `name` among `splits` (a ConventionError names what there is)."""
+        for member in self.members:
+            if member.name == name and member.split in splits:
+                return member.convention
+        if any(member.name == name for member in self.members):
+            raise ConventionError(f"{name!r} is a held-out stranger of the zoo: it evaluates teams and never "
+                                  f"trains one; train with one of {', '.join(c.name for c in self.training)}")
+        raise ConventionError(f"the zoo has no convention {name!r}; its conventions: "
+                              f"{', '.join(member.name for member in self.members if member.split in splits)}")
+
+
+def generator_settings(kitchen_size: int) -> dict:
+    """The generator's settings the zoo's levels are drawn with (a zoo file records them; another is refused)."""
+    return {key: value for key, value in dataclasses.asdict(GeneratorConfig(size=kitchen_size)).items()}
+
+
+def save_zoo(zoo: Zoo, path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    document = {
+        "seed": zoo.seed, "kitchen_size": zoo.kitchen_size, "drawn": zoo.drawn, "levels": zoo.levels,
+        "generator": zoo.generator, "similarity": zoo.similarity,
+        "members": [{"split": m.split, "self_play": round(m.self_play, 3), "cooked": round(m.cooked, 3),
+                     "events": {k: round(v, 2) for k, v in m.events.items()}, "convention": m.convention.as_dict()}
+                    for m in zoo.members],
+    }  # fmt: skip
+    header = "# Written by `kitchen-zoo draw` (trainers/zoo.py): the conventions, their split and what they did.\n"
+    path.write_text(header + yaml.safe_dump(document, sort_keys=False, width=120))
+    return path
+
+
+def load_zoo(path: str | Path, kitchen_size: int | None = None) -> Zoo:
+    """The zoo of a file; with `kitchen_size`, one drawn for kitchens of that size by this generator (else a
+    ConventionError in one line)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConventionError(f"zoo file {path} does not exist: `kitchen-zoo draw` writes one ({ZOO_FILE} is "
+                              "shipped)")
+    try:
+        document = yaml.safe_load(path.read_text())
+        members = [ZooMember(Convention.from_dict(m["convention"]), m["split"], float(m["self_play"]),
+                             float(m["cooked"]), dict(m["events"])) for m in document["members"]]
+        zoo = Zoo(int(document["seed"]), int(document["kitchen_size"]), dict(document["generator"]), members,
+                  int(document.get("drawn", 0)), int(document.get("levels", 0)), dict(document.get("similarity", {})))
+    except ConventionError as error:
+        raise ConventionError(f"zoo file {path}: {error}") from None
+    except (yaml.YAMLError, KeyError, TypeError, ValueError) as error:
+        raise ConventionError(f"{path} is not a zoo file ({type(error).__name__}: {error}); `kitchen-zoo draw` "
+                              "writes one") from None
+    if kitchen_size is not None:
+        if zoo.kitchen_size != kitchen_size:
+            raise ConventionError(f"zoo file {path} was drawn for {zoo.kitchen_size}x{zoo.kitchen_size} kitchens, "
+                                  f"not {kitchen_size}x{kitchen_size}: draw one at this size with `kitchen-zoo draw "
+                                  f"--kitchen-size {kitchen_size}`")
+        expected = generator_settings(kitchen_size)
+        changed = sorted(key for key in expected.keys() | zoo.generator.keys()
+                         if expected.get(key) != zoo.generator.get(key))
+        if changed:
+            raise ConventionError(f"zoo file {path} was drawn with another generator (settings "
+                                  f"{', '.join(changed)} differ): draw it again with `kitchen-zoo draw`")
+    return zoo

@@ -405,6 +405,11 @@ class EvalConfig:
         "with the proxy of each test grid that has one, both seats (e.g. runs; empty: none)"
     )
 
+    strangers: str = option(
+        "", "a zoo file (`kitchen-zoo`; the shipped one: configs/zoo/zoo.yaml): every team also plays beside each of "
+        "its held-out strangers, both seats, on every test grid, scored against two of the stranger (empty: none)"
+    )
+
     # --- where and how long
     layouts: list[str] = option(
         list(EXPANDED_LAYOUTS), "test grids: layout names or text-grid files", group="where and how long"

@@ -5,6 +5,7 @@
     fig7_heldout.png        SP and XP per family on the held-out generated levels
     fig8_per_layout.png     SP and XP per family, one panel per classic layout
     heatmap_<grid>.png      where the agents stand on a grid: one row per condition, SP and XP columns (Fig. 4)
+    heatmap_strangers.png   each team beside each held-out stranger: deliveries over two of the stranger's
     learning_curve.png      a run's deliveries per episode and shaped return against env steps (from its CSV logs)
 
 A family's value on a layout comes from its conditions at home there (an SK condition on the layout it was
@@ -148,6 +149,25 @@ def draw_heatmap(layout, panels: list[tuple[str, str, np.ndarray]], path: Path) 
         axis.set_title(f"{condition}: {kind}", fontsize=9)
     figure.colorbar(image, ax=axes.ravel().tolist(), shrink=0.8, label="share of agent steps")
     figure.suptitle(f"Cells visited on {layout.name} (Fig. 4)")
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+    return path
+
+
+def draw_stranger_heatmap(teams: list[str], strangers: list[str], normalised: np.ndarray, grids: str,
+                          path: Path) -> Path:
+    """Team x stranger: normalised [T, S] (deliveries with the stranger over two of the stranger's, both seats
+    averaged) on the grid group `grids`, each cell written in; 1.0 (white) is as good a partner as its own kind."""
+    figure, axis = plt.subplots(figsize=(1.0 + 0.75 * len(strangers), 1.2 + 0.42 * len(teams)))
+    top = max(2.0, float(np.nanmax(normalised)) if np.isfinite(normalised).any() else 2.0)
+    image = axis.imshow(normalised, cmap="RdBu", vmin=0.0, vmax=top, aspect="auto")
+    for (row, column), value in np.ndenumerate(normalised):
+        axis.text(column, row, "" if math.isnan(value) else f"{value:.2f}", ha="center", va="center", fontsize=7)
+    axis.set_xticks(range(len(strangers)), strangers, rotation=60, ha="right", fontsize=7)
+    axis.set_yticks(range(len(teams)), teams, fontsize=7)
+    figure.colorbar(image, ax=axis, shrink=0.8, label="deliveries / two of the stranger's")
+    axis.set_title(f"With the held-out strangers: {grids}", fontsize=9)
+    figure.tight_layout()
     figure.savefig(path, dpi=120)
     plt.close(figure)
     return path

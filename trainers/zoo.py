@@ -20,133 +20,35 @@ the 5 expanded layouts and the held-out levels, its events and its role, written
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import random
 import sys
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import jax
 import numpy as np
-import yaml
 
 from jax_env import EXPANDED_LAYOUTS, GeneratorConfig, layout_from_state
 from jax_env.generator import SIZES as GENERATOR_SIZES
 from jax_env.layouts import padded_layouts
-from torch_kitchen.conventions import Convention, ConventionError, draw_convention
+from torch_kitchen.conventions import (
+    STRANGER,
+    TRAIN,
+    ZOO_FILE,
+    Convention,
+    ConventionError,
+    Zoo,
+    ZooMember,
+    draw_convention,
+    generator_settings,
+    load_zoo,
+    save_zoo,
+)
 from torch_kitchen.events import EVENTS
 from trainers.config import ConfigError
 from trainers.evaluation.pairs import SP, Matchup, evaluation_grids, is_heldout, play
 from trainers.evaluation.teams import convention_team
 from trainers.levels import sample_batch
-
-ZOO_FILE = "configs/zoo/zoo.yaml"  # the zoo the project ships: its strangers are held out of every shipped config
-TRAIN, STRANGER = "train", "stranger"
-
-
-@dataclass
-class ZooMember:
-    """One convention of a zoo: its split ("train" or "stranger") and what it did with itself on the zoo's levels:
-    mean deliveries, the share of levels it cooked on, mean events per episode and seat."""
-
-    convention: Convention
-    split: str
-    self_play: float
-    cooked: float
-    events: dict[str, float]
-
-    @property
-    def name(self) -> str:
-        return self.convention.name
-
-
-@dataclass
-class Zoo:
-    """Conventions drawn from `seed` and kept for their diversity, with the kitchens they were measured in."""
-
-    seed: int
-    kitchen_size: int
-    generator: dict
-    members: list[ZooMember]
-    drawn: int = 0
-    levels: int = 0
-    similarity: dict[str, float] = field(default_factory=dict)
-
-    def split(self, split: str) -> list[Convention]:
-        return [member.convention for member in self.members if member.split == split]
-
-    @property
-    def strangers(self) -> list[Convention]:
-        """The held-out strangers: evaluation partners only."""
-        return self.split(STRANGER)
-
-    @property
-    def training(self) -> list[Convention]:
-        """The conventions a team may train with."""
-        return self.split(TRAIN)
-
-    def convention(self, name: str, splits: Sequence[str] = (TRAIN, STRANGER)) -> Convention:
-        """The member named `name` among `splits` (a ConfigError names what there is)."""
-        for member in self.members:
-            if member.name == name and member.split in splits:
-                return member.convention
-        if any(member.name == name for member in self.members):
-            raise ConfigError(f"{name!r} is a held-out stranger of the zoo: it evaluates teams and never trains "
-                              f"one; train with one of {', '.join(c.name for c in self.training)}")
-        raise ConfigError(f"the zoo has no convention {name!r}; its conventions: "
-                          f"{', '.join(member.name for member in self.members if member.split in splits)}")
-
-
-def generator_settings(kitchen_size: int) -> dict:
-    """The generator's settings the zoo's levels are drawn with (a zoo file records them; another is refused)."""
-    return {key: value for key, value in dataclasses.asdict(GeneratorConfig(size=kitchen_size)).items()}
-
-
-def save_zoo(zoo: Zoo, path: str | Path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    document = {
-        "seed": zoo.seed, "kitchen_size": zoo.kitchen_size, "drawn": zoo.drawn, "levels": zoo.levels,
-        "generator": zoo.generator, "similarity": zoo.similarity,
-        "members": [{"split": m.split, "self_play": round(m.self_play, 3), "cooked": round(m.cooked, 3),
-                     "events": {k: round(v, 2) for k, v in m.events.items()}, "convention": m.convention.as_dict()}
-                    for m in zoo.members],
-    }  # fmt: skip
-    header = "# Written by `kitchen-zoo draw` (trainers/zoo.py): the conventions, their split and what they did.\n"
-    path.write_text(header + yaml.safe_dump(document, sort_keys=False, width=120))
-    return path
-
-
-def load_zoo(path: str | Path, kitchen_size: int | None = None) -> Zoo:
-    """The zoo of a file; with `kitchen_size`, one drawn for kitchens of that size by this generator (else a
-    ConfigError in one line)."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"zoo file {path} does not exist: `kitchen-zoo draw` writes one ({ZOO_FILE} is shipped)")
-    try:
-        document = yaml.safe_load(path.read_text())
-        members = [ZooMember(Convention.from_dict(m["convention"]), m["split"], float(m["self_play"]),
-                             float(m["cooked"]), dict(m["events"])) for m in document["members"]]
-        zoo = Zoo(int(document["seed"]), int(document["kitchen_size"]), dict(document["generator"]), members,
-                  int(document.get("drawn", 0)), int(document.get("levels", 0)), dict(document.get("similarity", {})))
-    except ConventionError as error:
-        raise ConfigError(f"zoo file {path}: {error}") from None
-    except (yaml.YAMLError, KeyError, TypeError, ValueError) as error:
-        raise ConfigError(f"{path} is not a zoo file ({type(error).__name__}: {error}); `kitchen-zoo draw` "
-                          "writes one") from None
-    if kitchen_size is not None:
-        if zoo.kitchen_size != kitchen_size:
-            raise ConfigError(f"zoo file {path} was drawn for {zoo.kitchen_size}x{zoo.kitchen_size} kitchens, not "
-                              f"{kitchen_size}x{kitchen_size}: draw one at this size with `kitchen-zoo draw "
-                              f"--kitchen-size {kitchen_size}`")
-        expected = generator_settings(kitchen_size)
-        changed = sorted(key for key in expected.keys() | zoo.generator.keys()
-                         if expected.get(key) != zoo.generator.get(key))
-        if changed:
-            raise ConfigError(f"zoo file {path} was drawn with another generator (settings "
-                              f"{', '.join(changed)} differ): draw it again with `kitchen-zoo draw`")
-    return zoo
 
 
 # ---------------------------------------------------------------------------------------------- diversity
@@ -208,7 +110,7 @@ def self_play(conventions: Sequence[Convention], grids: list, rollouts: int, see
 
 
 def draw_zoo(seed: int = 0, candidates: int = 96, keep: int = 32, strangers: int = 8, levels: int = 64,
-             kitchen_size: int = 7, min_cooked: float = 0.5, max_envs: int = 4096, workers: int = 1,
+             kitchen_size: int = 7, min_cooked: float = 0.6, max_envs: int = 4096, workers: int = 1,
              progress: bool = True) -> Zoo:
     """Draws, plays, filters and selects a zoo (see the module docstring). Deterministic for its arguments."""
     rng = random.Random(seed)
@@ -282,7 +184,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     draw.add_argument("--keep", type=int, default=32, help="conventions kept, the strangers among them")
     draw.add_argument("--strangers", type=int, default=8, help="held-out strangers among the kept")
     draw.add_argument("--levels", type=int, default=64, help="generated training levels each plays on")
-    draw.add_argument("--min-cooked", type=float, default=0.5, help="share of levels two of it must deliver on")
+    draw.add_argument("--min-cooked", type=float, default=0.6, help="share of levels two of it must deliver on")
     draw.add_argument("--kitchen-size", type=int, default=7, choices=GENERATOR_SIZES)
     draw.add_argument("--table-heldout", type=int, default=100, help="held-out levels in the table")
     draw.add_argument("--table-rollouts", type=int, default=2, help="episodes per grid in the table")

@@ -8,20 +8,37 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from jax_env import EXPANDED_LAYOUTS, load_layout
 from jax_env.generator import SIZES as GENERATOR_SIZES
 from jax_env.layouts import padded_layouts
+from torch_kitchen.conventions import ConventionError, load_zoo
 from trainers.checkpoint import CheckpointError
 from trainers.composer import config_help, load_config, save_config
 from trainers.config import ConfigError, DeviceConfig, EvalConfig
 from trainers.evaluation.gifs import parse_gif_request, record_gif
 from trainers.evaluation.pairs import evaluation_grids, make_matchups, play
-from trainers.evaluation.partners import load_human_proxies, with_human_proxies
-from trainers.evaluation.tables import markdown_summary, pair_rows, summary_rows, visit_shares, write_csv
-from trainers.evaluation.teams import load_population, load_team, scripted_cook_team
-from trainers.figures import draw_figures, draw_heatmap, draw_learning_curve
+from trainers.evaluation.partners import load_human_proxies, play_with_strangers, with_human_proxies
+from trainers.evaluation.tables import (
+    markdown_strangers,
+    markdown_summary,
+    pair_rows,
+    stranger_pair_rows,
+    stranger_rows,
+    summary_rows,
+    visit_shares,
+    write_csv,
+)
+from trainers.evaluation.teams import (
+    STRANGERS_CONDITION,
+    convention_team,
+    load_population,
+    load_team,
+    scripted_cook_team,
+)
+from trainers.figures import draw_figures, draw_heatmap, draw_learning_curve, draw_stranger_heatmap
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 
 
@@ -32,10 +49,14 @@ def evaluate(config: EvalConfig) -> Path:
     if not config.conditions:
         raise ConfigError("no conditions to evaluate: give conditions: {name: run_dir_or_glob, ...}")
     population = load_population(config.conditions, device)
+    evaluated = [team for members in population.values() for team in members]
     grids = evaluation_grids(config.layouts, config.heldout, config.kitchen_size)
     partner = scripted_cook_team((*grids[0].shape, 26), device) if config.partner else None
     teams, matchups = make_matchups(population, config.cross, partner)
     proxies = load_human_proxies(config.human_proxies, grids, device) if config.human_proxies else {}
+    zoo = load_zoo(config.strangers, config.kitchen_size) if config.strangers else None
+    strangers = [convention_team(convention, (*grids[0].shape, 26), device, condition=STRANGERS_CONDITION)
+                 for convention in (zoo.strangers if zoo else [])]
     by_name = {grid.name: grid for grid in grids}
     for heatmap in config.heatmaps:
         if heatmap not in by_name:
@@ -45,7 +66,8 @@ def evaluate(config: EvalConfig) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     save_config(config, out / "eval_config.yaml")
     print(f"{len(teams)} teams, {len(matchups)} pairs, {len(grids)} grids, {config.rollouts} rollouts: "
-          f"{len(matchups) * len(grids) * config.rollouts:,} episodes")
+          f"{len(matchups) * len(grids) * config.rollouts:,} episodes"
+          + (f"; {(2 * len(evaluated) + 1) * len(strangers)} pairs with {len(strangers)} strangers" if zoo else ""))
 
     outcomes = play(teams, matchups, grids, config.rollouts, config.max_steps, config.max_envs, config.seed,
                     device, config.progress, config.workers)
@@ -56,9 +78,20 @@ def evaluate(config: EvalConfig) -> Path:
     summary = summary_rows(outcomes)
     write_csv(summary, out / "summary.csv")
     table = markdown_summary(summary, config.rollouts)
+    written = draw_figures(outcomes, summary, out)
+    if strangers:
+        met = play_with_strangers(evaluated, strangers, grids, config.rollouts, config.max_steps,
+                                  config.max_envs, config.seed, device, config.progress, config.workers)
+        write_csv(stranger_pair_rows(met), out / "strangers_pairs.csv")
+        rows = stranger_rows(met, config.seed)
+        write_csv(rows, out / "strangers.csv")
+        table += "\n" + markdown_strangers(rows, [stranger.name for stranger in strangers], config.rollouts)
+        group, _ = met.groups[-1]  # the held-out levels, where there are any
+        written.append(draw_stranger_heatmap([team.name for team in met.teams], [s.name for s in met.strangers],
+                                             np.nanmean(met.normalised[..., -1], axis=2), group,
+                                             out / "heatmap_strangers.png"))
     (out / "eval.md").write_text(table)
     print(table)
-    written = draw_figures(outcomes, summary, out)
     for grid_name in config.heatmaps:
         panels = visit_shares(outcomes, grid_name)
         if panels:
@@ -121,7 +154,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         import_plugins(args.plugins)
         evaluate(load_config(args.config, args.overrides, schema=EvalConfig))
-    except (ConfigError, CheckpointError, ValueError, PluginError) as error:
+    except (ConfigError, CheckpointError, ConventionError, ValueError, PluginError) as error:
         print(f"kitchen-eval: error: {error}", file=sys.stderr)
         return 2
     return 0

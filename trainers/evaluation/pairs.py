@@ -22,7 +22,7 @@ from trainers.checkpoint import CheckpointError
 from trainers.evaluation.teams import Team
 from trainers.rollout import play_episodes
 
-SP, XP, CROSS, PARTNER, HUMAN = "SP", "XP", "cross", "partner", "human proxy"
+SP, XP, CROSS, PARTNER, HUMAN, STRANGER = "SP", "XP", "cross", "partner", "human proxy", "stranger"
 
 
 # --------------------------------------------------------------------------------------------- matchups

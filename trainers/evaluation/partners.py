@@ -1,18 +1,21 @@
 """Partners from outside the population: teams that were trained apart from the conditions evaluated, played
-with every team of theirs in either seat. Today: the human proxies of the test grids (`kitchen-humans train`),
-each played on its own grid only. The scripted cook, the `partner` of a config, is a team of `teams`
-(`scripted_cook_team`) played by `make_matchups`."""
+with every team of theirs in either seat. The human proxies of the test grids (`kitchen-humans train`), each
+played on its own grid only; the held-out strangers of a zoo (`trainers.zoo`), scripted cooks of conventions no
+shipped config trains with, played on every grid and scored against two of their own kind. The scripted cook, the
+`partner` of a config, is a team of `teams` (`scripted_cook_team`) played by `make_matchups`."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from jax_env import Layout
 from trainers.config import ConfigError
-from trainers.evaluation.pairs import HUMAN, SP, Matchup, Outcomes, play
+from trainers.evaluation.pairs import HUMAN, SP, STRANGER, Matchup, Outcomes, play
+from trainers.evaluation.tables import grid_groups
 from trainers.evaluation.teams import Team, load_team
 
 HUMAN_PROXY_RUN = "human_proxy_{grid}/seed0"  # a test grid's human proxy in the `human_proxies` folder
@@ -58,3 +61,45 @@ def with_human_proxies(outcomes: Outcomes, proxies: dict[str, Team], rollouts: i
         events.append(happened)
     return Outcomes(teams, matchups, outcomes.grids, np.concatenate(deliveries), np.concatenate(visits),
                     np.concatenate(events))
+
+
+# ------------------------------------------------------------------------------------------------- strangers
+@dataclass
+class StrangerOutcomes:
+    """Every team beside every held-out stranger, both seats, and each stranger with itself, per grid group.
+
+    with_team float [T, S, 2, G]: mean deliveries of team t with stranger s, the team in seat 0 or 1 (index 2);
+    alone float [S, G]: two of stranger s; groups: (name, its grids' names) of each grid group (each classic
+    layout, then the held-out levels together); teams and strangers: as played."""
+
+    teams: list[Team]
+    strangers: list[Team]
+    groups: list[tuple[str, list[str]]]
+    with_team: np.ndarray
+    alone: np.ndarray
+
+    @property
+    def normalised(self) -> np.ndarray:
+        """float [T, S, 2, G]: deliveries with the stranger divided by two of that stranger's (1.0: as good a
+        partner to it as its own kind); NaN where the stranger alone never delivers."""
+        alone = np.where(self.alone > 0, self.alone, np.nan)[None, :, None]
+        return self.with_team / alone
+
+
+def play_with_strangers(teams: list[Team], strangers: list[Team], grids: list[Layout], rollouts: int,
+                        max_steps: int, max_envs: int, seed: int, device: str, progress: bool = False,
+                        workers: int = 1) -> StrangerOutcomes:
+    """Each team beside each stranger in both seats, and each stranger with itself, `rollouts` episodes per grid."""
+    everyone = [*teams, *strangers]
+    first = len(teams)
+    matchups = [m for t in range(first) for s in range(first, len(everyone))
+                for m in (Matchup(t, s, STRANGER), Matchup(s, t, STRANGER))]
+    matchups += [Matchup(s, s, SP) for s in range(first, len(everyone))]
+    outcomes = play(everyone, matchups, grids, rollouts, max_steps, max_envs, seed, device, progress, workers)
+    groups = grid_groups(outcomes)
+    per_grid = outcomes.deliveries.mean(-1)  # [M, G]
+    by_group = np.stack([per_grid[:, [g for g, grid in enumerate(grids) if grid.name in names]].mean(1)
+                         for _, names in groups], axis=1)  # [M, groups]
+    pairs = len(teams) * len(strangers) * 2
+    with_team = by_group[:pairs].reshape(len(teams), len(strangers), 2, len(groups))
+    return StrangerOutcomes(teams, strangers, groups, with_team, by_group[pairs:])

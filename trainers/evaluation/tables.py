@@ -7,11 +7,16 @@ import csv
 import math
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy import stats
 
 from trainers.evaluation.pairs import CROSS, HUMAN, PARTNER, SP, XP, Outcomes, cross_condition, is_heldout
 from trainers.evaluation.teams import Team
+
+if TYPE_CHECKING:
+    from trainers.evaluation.partners import StrangerOutcomes
 
 
 def mean_and_stderr(values: np.ndarray) -> tuple[float, float]:
@@ -167,3 +172,83 @@ def visit_shares(outcomes: Outcomes, grid_name: str) -> list[tuple[str, str, np.
                 visits = outcomes.visits[chosen, g].sum(axis=(0, 1))
                 panels.append((condition, kind, visits / max(visits.sum(), 1)))
     return panels
+
+
+# ------------------------------------------------------------------------------------------------- strangers
+def iqm(values: np.ndarray, axis: int = -1) -> np.ndarray:
+    """The interquartile mean: the mean of the middle half of the values (a quarter cut off at either end)."""
+    return stats.trim_mean(values, 0.25, axis=axis)
+
+
+def iqm_interval(values, confidence: float = 0.95, resamples: int = 2000, seed: int = 0) -> tuple[float, ...]:
+    """(IQM, low, high): the interquartile mean of the values that are not NaN, with a percentile bootstrap
+    interval (scipy.stats.bootstrap); NaN for no values, a point for one."""
+    values = np.asarray(values, dtype=np.float64).ravel()
+    values = values[~np.isnan(values)]
+    if values.size == 0:
+        return math.nan, math.nan, math.nan
+    middle = float(iqm(values))
+    if values.size == 1 or np.all(values == values[0]):
+        return middle, middle, middle
+    interval = stats.bootstrap((values,), iqm, confidence_level=confidence, n_resamples=resamples,
+                               method="percentile", rng=np.random.default_rng(seed)).confidence_interval
+    return middle, float(interval.low), float(interval.high)
+
+
+def stranger_pair_rows(outcomes: StrangerOutcomes) -> list[dict]:
+    """One row per team, stranger, seat and grid group: deliveries together, two of the stranger's, the ratio."""
+    normalised = outcomes.normalised
+    rows = []
+    for t, team in enumerate(outcomes.teams):
+        for s, stranger in enumerate(outcomes.strangers):
+            for seat in (0, 1):
+                for g, (group, names) in enumerate(outcomes.groups):
+                    if not all(at_home(team, name) for name in names):
+                        continue
+                    rows.append({
+                        "team": team.name, "condition": team.condition, "stranger": stranger.name,
+                        "team_seat": seat, "grids": group,
+                        "deliveries": round(float(outcomes.with_team[t, s, seat, g]), 4),
+                        "stranger_alone": round(float(outcomes.alone[s, g]), 4),
+                        "normalised": round(float(normalised[t, s, seat, g]), 4),
+                    })  # fmt: skip
+    return rows
+
+
+def stranger_rows(outcomes: StrangerOutcomes, seed: int = 0) -> list[dict]:
+    """Per condition and grid group (where its teams are at home): mean deliveries with the strangers, the mean and
+    the IQM of the normalised score over its teams x strangers x seats, with a 95% bootstrap interval."""
+    normalised = outcomes.normalised
+    rows = []
+    for condition in dict.fromkeys(team.condition for team in outcomes.teams):
+        members = [t for t, team in enumerate(outcomes.teams) if team.condition == condition]
+        for g, (group, names) in enumerate(outcomes.groups):
+            if not all(at_home(outcomes.teams[members[0]], name) for name in names):
+                continue
+            ratios = normalised[members, :, :, g]
+            middle, low, high = iqm_interval(ratios, seed=seed)
+            rows.append({
+                "condition": condition, "grids": group, "pairs": int(ratios.size),
+                "deliveries": float(outcomes.with_team[members, :, :, g].mean()),
+                "strangers_alone": float(outcomes.alone[:, g].mean()),
+                "normalised": float(np.nanmean(ratios)) if not np.isnan(ratios).all() else math.nan,
+                "iqm": middle, "iqm_low": low, "iqm_high": high,
+            })  # fmt: skip
+    return rows
+
+
+def markdown_strangers(rows: list[dict], strangers: Sequence[str], rollouts: int) -> str:
+    lines = [
+        f"With the held-out strangers ({len(strangers)}: {', '.join(strangers)}), the team in either seat, "
+        f"{rollouts} rollouts per pair and grid. Deliveries: the mean over the condition's teams x strangers x "
+        "seats. Normalised: deliveries over two of that stranger's on the same grids (1.0: as good a partner to it "
+        "as its own kind); IQM: their interquartile mean over teams x strangers x seats, [95% bootstrap interval].",
+        "",
+        "| condition | grids | with strangers | strangers alone | normalised | IQM normalised | pairs |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for row in rows:
+        lines.append(f"| {row['condition']} | {row['grids']} | {row['deliveries']:.2f} | {row['strangers_alone']:.2f} "
+                     f"| {row['normalised']:.2f} | {row['iqm']:.2f} [{row['iqm_low']:.2f}, {row['iqm_high']:.2f}] | "
+                     f"{row['pairs']} |")
+    return "\n".join(lines) + "\n"

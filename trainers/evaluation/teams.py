@@ -18,6 +18,7 @@ from trainers.checkpoint import CheckpointError, load_checkpoint
 from trainers.composer import load_config
 from trainers.config import ConfigError, RuntimeConfig, TrainConfig
 
+STRANGERS_CONDITION = "held-out strangers"  # the condition of a zoo's strangers (`trainers.zoo`)
 SCRIPTED_CONDITION = "scripted cook"
 
 

@@ -1,0 +1,89 @@
+"""Evaluation beside a zoo's held-out strangers: known counts in booths, the normalised score, the IQM and its
+interval, the heat map, and one-line refusals of a zoo that does not fit."""
+
+import csv
+
+import numpy as np
+import pytest
+from scripted_cook import TWO_BOOTHS, save_scripted_team
+
+from jax_env import save_layout
+from torch_kitchen.conventions import STRANGER, TRAIN, Convention, Zoo, ZooMember, generator_settings, save_zoo
+from trainers.config import EvalConfig
+from trainers.evaluation import evaluate, main
+from trainers.evaluation.partners import StrangerOutcomes
+from trainers.evaluation.tables import iqm_interval, stranger_rows
+from trainers.evaluation.teams import convention_team
+
+STRANGERS = [Convention(name="left_first", move_order="WENS"), Convention(name="server", role="server")]
+
+
+def _zoo(path, size=7, generator=None):
+    members = [ZooMember(c, STRANGER, 1.0, 1.0, {}) for c in STRANGERS]
+    members.append(ZooMember(Convention(name="trainee", move_order="SNWE"), TRAIN, 1.0, 1.0, {}))
+    return save_zoo(Zoo(0, size, generator or generator_settings(size), members), path)
+
+
+def test_the_interquartile_mean_and_its_bootstrap_interval_on_a_hand_computed_example():
+    middle, low, high = iqm_interval([8, 1, 7, 2, 6, 3, 5, 4, np.nan])  # NaN left out
+    assert middle == pytest.approx(4.5)  # the mean of 3, 4, 5, 6
+    assert 1 < low < 4.5 < high < 8
+    assert iqm_interval([2.0, 2.0]) == (2.0, 2.0, 2.0) and np.isnan(iqm_interval([np.nan])[0])
+    assert iqm_interval(np.arange(12.0)) == iqm_interval(np.arange(12.0))  # seeded
+
+
+def test_the_normalised_score_divides_by_two_of_the_stranger_and_rows_aggregate_teams_x_strangers_x_seats():
+    teams = [convention_team(Convention(name=f"t{i}"), (7, 7, 26), condition="c") for i in range(2)]
+    strangers = [convention_team(Convention(name=f"s{i}"), (7, 7, 26)) for i in range(2)]
+    with_team = np.array([[[[3.0], [1.0]], [[2.0], [2.0]]], [[[4.0], [4.0]], [[0.0], [6.0]]]])  # [T, S, 2, G]
+    alone = np.array([[2.0], [4.0]])  # [S, G]
+    outcomes = StrangerOutcomes(teams, strangers, [("held-out (1)", ["heldout_000"])], with_team, alone)
+    expected = np.array([1.5, 0.5, 0.5, 0.5, 2.0, 2.0, 0.0, 1.5])  # t0s0 seats, t0s1, t1s0, t1s1
+    np.testing.assert_allclose(outcomes.normalised.ravel(), expected)
+    (row,) = stranger_rows(outcomes)
+    assert row["pairs"] == 8 and row["deliveries"] == pytest.approx(with_team.mean())
+    assert row["normalised"] == pytest.approx(expected.mean())
+    assert row["iqm"] == pytest.approx(np.sort(expected)[2:6].mean())  # 0.5, 0.5, 1.5, 1.5
+
+
+def test_every_team_plays_beside_every_stranger_in_both_seats_and_is_scored_against_two_of_it(tmp_path):
+    booths = save_layout(TWO_BOOTHS, str(tmp_path / "two_booths.txt"))
+    runs = [save_scripted_team(tmp_path / f"{name}.pt", name, seed=k)
+            for k, name in enumerate(["scripted_cooks", "scripted_idle"])]
+    config = EvalConfig(conditions={"cooks": runs}, layouts=[booths], heldout=0, rollouts=2, partner=False,
+                        strangers=str(_zoo(tmp_path / "zoo.yaml")), out_dir=str(tmp_path / "out"),
+                        progress=False).check()
+    out = evaluate(config)
+    with open(out / "strangers_pairs.csv") as handle:
+        pairs = list(csv.DictReader(handle))
+    assert len(pairs) == 2 * 2 * 2  # teams x strangers x seats; the training convention never plays
+    assert {row["stranger"] for row in pairs} == {"left_first", "server"}
+    for row in pairs:
+        # Each cook keeps to its booth: a stranger alone delivers 2p, beside the working team 7 + p, beside the
+        # idle team p.
+        pace = float(row["stranger_alone"]) / 2
+        assert pace > 0
+        working = row["team"] == "cooks/seed0"
+        assert float(row["deliveries"]) == pytest.approx(7 + pace if working else pace)
+        assert float(row["normalised"]) == pytest.approx((7 + pace if working else pace) / (2 * pace))
+    with open(out / "strangers.csv") as handle:
+        (summary,) = list(csv.DictReader(handle))
+    assert int(summary["pairs"]) == 8 and float(summary["iqm_low"]) <= float(summary["iqm"])
+    report = (out / "eval.md").read_text()
+    assert "held-out strangers (2: left_first, server)" in report and "| IQM normalised |" in report
+    assert (out / "heatmap_strangers.png").stat().st_size > 0
+
+
+def test_a_zoo_of_another_size_or_generator_and_a_missing_zoo_are_refused_in_one_line(tmp_path, capsys):
+    booths = save_layout(TWO_BOOTHS, str(tmp_path / "two_booths.txt"))
+    run = save_scripted_team(tmp_path / "cooks.pt", "scripted_cooks")
+    other_generator = {**generator_settings(7), "p_smaller": 0.5}
+    for zoo, words in [(_zoo(tmp_path / "nine.yaml", size=9), "drawn for 9x9 kitchens, not 7x7"),
+                       (_zoo(tmp_path / "other.yaml", generator=other_generator), "with another generator"),
+                       (tmp_path / "none.yaml", "does not exist")]:
+        out = tmp_path / f"out_{zoo.stem}"
+        code = main(["configs/eval/paper.yaml", f"conditions={{cooks: {run}}}", f"layouts=[{booths}]", "heldout=0",
+                     f"strangers={zoo}", f"out_dir={out}", "progress=false", "cross=[]", "gifs=[]"])
+        error = capsys.readouterr().err
+        assert code == 2 and words in error and error.count("\n") == 1, error
+        assert not out.exists()
