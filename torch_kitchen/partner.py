@@ -98,16 +98,26 @@ class PartnerSeats(Transform):
 
     Its own generator (seeded) makes the draws reproducible; `state_dict()` holds it and the current seats, and
     after `load_state_dict` the next full reset hands those seats out again, as `KitchenEnv` does its kitchens.
+    A subclass draws other seatings by overriding `key`, `_draw`, `_seating` and `_spec` (`torch_kitchen.zoo_partners`).
     """
 
+    key = MIXED
+
     def __init__(self, seed: int = 0):
-        super().__init__(in_keys=[], out_keys=[MIXED])
+        super().__init__(in_keys=[], out_keys=[self.key])
         self.generator = torch.Generator().manual_seed(seed)
-        self._seats: torch.Tensor | None = None  # long [B]: the mixed agent of every kitchen
+        self._seats: torch.Tensor | None = None  # long [B]: each kitchen's draw (here: its mixed agent)
         self._restored = False
 
     def _draw(self, count: int) -> torch.Tensor:
         return torch.randint(2, (count,), generator=self.generator)
+
+    def _seating(self, device) -> torch.Tensor:
+        """The entry [B, 2] of the current draws."""
+        return torch.nn.functional.one_hot(self._seats, 2).bool().to(device)
+
+    def _spec(self, agents: Composite):
+        return Categorical(2, shape=agents.shape, dtype=torch.bool, device=agents.device)
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         batch_size = tensordict_reset.batch_size
@@ -119,19 +129,16 @@ class PartnerSeats(Transform):
         else:
             self._seats = self._seats.clone()
             self._seats[fresh] = self._draw(int(fresh.sum()))
-        tensordict_reset.set(MIXED, self._mixed(tensordict_reset.device))
+        tensordict_reset.set(self.key, self._seating(tensordict_reset.device))
         return tensordict_reset
 
-    def _mixed(self, device) -> torch.Tensor:
-        return torch.nn.functional.one_hot(self._seats, 2).bool().to(device)
-
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        next_tensordict.set(MIXED, tensordict.get(MIXED))
+        next_tensordict.set(self.key, tensordict.get(self.key))
         return next_tensordict
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         agents = observation_spec["agents"]
-        agents["mixed"] = Categorical(2, shape=agents.shape, dtype=torch.bool, device=agents.device)
+        agents[self.key[-1]] = self._spec(agents)
         return observation_spec
 
     def get_extra_state(self) -> dict:

@@ -374,4 +374,5 @@ def scripted_actor_critic(convention: Convention = Convention()) -> ActorCritic:
 
 
 SCRIPTED_COOK = "scripted_cook"
-register_architecture(SCRIPTED_COOK, lambda obs_shape, hidden, share_params: scripted_actor_critic())
+register_architecture(SCRIPTED_COOK, lambda obs_shape, hidden, share_params, convention=None: scripted_actor_critic(
+    Convention.from_dict(convention) if convention else Convention()))

@@ -18,6 +18,7 @@ import dataclasses
 import difflib
 import functools
 import math
+import random
 import types
 import typing
 from dataclasses import dataclass
@@ -31,6 +32,7 @@ from omegaconf.errors import OmegaConfBaseException
 from jax_env import EXPANDED_LAYOUTS, classify_layout, load_layout
 from jax_env.generator import NUM_HELDOUT_GENERATED, GeneratorConfig
 from jax_env.generator import SIZES as GENERATOR_SIZES
+from torch_kitchen.conventions import TRAIN, ZOO_FILE, Convention, ConventionError, load_zoo
 
 
 class ConfigError(ValueError):
@@ -39,6 +41,7 @@ class ConfigError(ValueError):
 
 LOGGERS = ("tensorboard", "csv", "wandb", "mlflow", "trackio")  # TorchRL's `get_logger` backends
 PLANNER_START = "scripted_cook"  # init_from: start from the scripted cook, distilled into the run's folder
+TEACHER_MIXES = ("seed", "round")  # distill_teacher_mix: one teacher per seed, or one drawn per DAgger round
 COLLECTORS = ("kitchen", "torchrl", "xla")  # runtime.collector: torch_kitchen.rollout's, TorchRL's, whole in XLA
 GENERATED_LEVELS = ("infinite", "heldout")  # `levels` values that name generated levels rather than layouts
 # torch takes 64-bit seeds, but JAX (32-bit by default) keeps only a seed's low 32 bits: 2**32 + 5 would replay 5.
@@ -119,7 +122,8 @@ class TrainConfig:
     algorithm: str = option(
         "ippo", '"ippo" (self-play), "e3t" (mixed partner + partner model; e3t_* architectures), "anchored_ippo" '
                 '(IPPO kept near its init_from policy by a KL penalty), "kickstarted_ippo" (IPPO with the scripted '
-                'cook as a teacher throughout), or a registered one'
+                'cook as a teacher throughout), "zoo_ippo" (a share of the kitchens seat a cook of the zoo beside the '
+                'learner), or a registered one'
     )
     algorithm_config: dict[str, typing.Any] = option(
         {}, "the algorithm's own settings (algorithm_config.<key>, each algorithm's listed below; empty: its "
@@ -191,6 +195,17 @@ class TrainConfig:
     )
     distill_symmetries: bool = option(
         True, "kitchen-distill: fit each minibatch under a random mirror image or quarter turn of its kitchens"
+    )
+    distill_teachers: list[str] = option(
+        [], "kitchen-distill: conventions of the zoo's training split to learn from instead of the scripted cook "
+            "(never a held-out stranger); empty: the scripted cook"
+    )
+    distill_teacher_mix: str = option(
+        "seed", 'kitchen-distill, with distill_teachers: "seed" (seed k learns from teacher k mod n, one convention '
+                'per seed) or "round" (each DAgger round from a teacher drawn by seed and round)'
+    )
+    zoo: str = option(
+        ZOO_FILE, "the zoo file (kitchen-zoo) whose training conventions distill_teachers and algorithm zoo_ippo name"
     )
 
     # --- logging, checkpoints, final evaluation
@@ -266,6 +281,19 @@ class TrainConfig:
         """The Infinite Kitchen generator's config that the environment keys name."""
         return GeneratorConfig(size=self.kitchen_size, p_smaller=self.smaller_kitchens, p_wall_intact=self.intact_walls)
 
+    def distill_teacher(self, round_: int = 0) -> Convention:
+        """The convention distillation learns from in DAgger round `round_` (and kickstarted IPPO all through): the
+        scripted cook with `distill_move_order`, or of `distill_teachers` the seed's (mix "seed") or one drawn by
+        seed and round (mix "round")."""
+        if not self.distill_teachers:
+            return Convention(move_order=self.distill_move_order)
+        names = self.distill_teachers
+        if self.distill_teacher_mix == "seed":
+            name = names[self.seed % len(names)]
+        else:
+            name = names[random.Random(f"{self.seed}/{round_}").randrange(len(names))]
+        return load_zoo(self.zoo, self.kitchen_size).convention(name, splits=(TRAIN,))
+
     def check(self) -> TrainConfig:
         """Refuses values no run can use, before any work starts. Touches neither the file system nor the levels:
         the trainer also calls `check_run_location` and `check_levels`; nor the algorithm's own settings, which
@@ -280,6 +308,19 @@ class TrainConfig:
         _at_least(self, ["eval_episodes", "shaping_anneal_steps", *weights], 0)
         if sorted(self.distill_move_order) != sorted("NSEW"):
             raise ConfigError(f"distill_move_order must be a permutation of NSEW, got {self.distill_move_order!r}")
+        if self.distill_teacher_mix not in TEACHER_MIXES:
+            raise ConfigError(f"distill_teacher_mix must be one of {', '.join(TEACHER_MIXES)}, got "
+                              f"{self.distill_teacher_mix!r}")
+        if self.distill_teachers:
+            if self.distill_move_order != "NSEW":
+                raise ConfigError("distill_move_order sets the scripted cook's moves; distill_teachers have their own "
+                                  "conventions: give one or the other")
+            try:
+                zoo = load_zoo(self.zoo, self.kitchen_size)
+                for name in self.distill_teachers:
+                    zoo.convention(name, splits=(TRAIN,))
+            except ConventionError as error:
+                raise ConfigError(f"distill_teachers: {error}") from None
         for name in ("lr", "adam_eps", "clip_epsilon", "max_grad_norm", "distill_lr"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be greater than 0, got {getattr(self, name)}")

@@ -200,7 +200,7 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
     identity = model_identity(config.architecture, obs_shape, config.hidden, config.share_params)
     parts = {"actor": actor_critic.actor, "critic": actor_critic.critic, "optimizer": optimizer,
              "env": TeamKitchens(kitchen, 0)}
-    policy = GuidedPolicy(actor_critic.acting_policy(), ScriptedCook(config.distill_move_order))
+    policy = GuidedPolicy(actor_critic.acting_policy(), ScriptedCook(config.distill_teacher(0)))
 
     done_rounds, env_steps, rng = 0, 0, None
     if resume:
@@ -229,6 +229,7 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
     try:
         batches = iter(collector)
         for round_ in range(done_rounds, config.distill_rounds):
+            policy.teacher = ScriptedCook(config.distill_teacher(round_)).to(config.runtime.device)
             policy.teacher_share = teacher_share(config, round_)
             batch = next(batches)
             env_steps += batch.numel()

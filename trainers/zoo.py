@@ -2,14 +2,15 @@
 
     kitchen-zoo draw --seed 0 --out configs/zoo          # draw, play, keep a diverse set, split, write
     kitchen-zoo draw --candidates 8 --keep 4 --strangers 2 --levels 8 --table-heldout 4 --out /tmp/zoo   # tiny
-    kitchen-zoo show configs/zoo/zoo.yaml                # the zoo's table
+    kitchen-zoo show configs/zoo/zoo.yaml                # its conventions, one a line
+    kitchen-zoo save cook_0_012 --run-dir runs/zoo       # a cook as a run kitchen-eval and kitchen-play read
 
 `draw` draws `candidates` conventions from `seed` (`torch_kitchen.conventions.draw_convention`), plays each with
 itself on `levels` generated *training* levels of the zoo's seed (never a held-out one), and drops those that do
 not cook: two of a convention must deliver in at least `min_cooked` of the levels (ZSC-Eval drops its partners of
 low return). Each cook's event counts per episode (`torch_kitchen.events`) make its profile; of the cooks, `keep`
 are chosen whose profiles lie apart, greedily by the determinant of their similarity (an RBF kernel over the
-profiles scaled per event, as ZSC-Eval keeps its partners by the determinant of their event-count similarity),
+profiles standardised per event, as ZSC-Eval keeps its partners by the determinant of their event-count similarity),
 and one in every `keep // strangers` of them in the order chosen becomes a held-out *stranger*: no shipped config
 trains with one (`tests/trainers/test_zoo.py`), and a training config that names one is refused. The rest are the
 conventions to train with. The zoo file (`zoo.yaml`) holds the conventions, their split and their measurements,
@@ -45,7 +46,10 @@ from torch_kitchen.conventions import (
     save_zoo,
 )
 from torch_kitchen.events import EVENTS
-from trainers.config import ConfigError
+from torch_kitchen.scripted import SCRIPTED_COOK
+from trainers.checkpoint import LATEST, model_identity, save_checkpoint
+from trainers.composer import save_config
+from trainers.config import ConfigError, TrainConfig
 from trainers.evaluation.pairs import SP, Matchup, evaluation_grids, is_heldout, play
 from trainers.evaluation.teams import convention_team
 from trainers.levels import sample_batch
@@ -53,15 +57,16 @@ from trainers.levels import sample_batch
 
 # ---------------------------------------------------------------------------------------------- diversity
 def event_profiles(events: np.ndarray) -> np.ndarray:
-    """[n, E] mean events per episode -> the same scaled per event to [0, 1] by the largest of the n."""
-    scale = events.max(0)
-    return events / np.where(scale > 0, scale, 1.0)
+    """[n, E] mean events per episode -> the same standardised per event over the n (an event none differ in
+    counts for nothing)."""
+    spread = events.std(0)
+    return (events - events.mean(0)) / np.where(spread > 0, spread, 1.0)
 
 
 def similarity(profiles: np.ndarray) -> np.ndarray:
-    """[n, n]: exp(-|a - b|^2 / E), 1 for equal profiles and smaller the further apart they lie."""
+    """[n, n]: exp(-|a - b|^2 / 2E), 1 for equal profiles and smaller the further apart they lie."""
     distances = ((profiles[:, None] - profiles[None]) ** 2).sum(-1)
-    return np.exp(-distances / profiles.shape[1])
+    return np.exp(-distances / (2 * profiles.shape[1]))
 
 
 def select_diverse(profiles: np.ndarray, keep: int) -> list[int]:
@@ -173,6 +178,23 @@ def zoo_table(zoo: Zoo, heldout: int, rollouts: int, seed: int, max_envs: int, w
     return "\n".join(lines) + "\n"
 
 
+# ---------------------------------------------------------------------------------------------- saving
+def save_cook(convention: Convention, run_dir: str | Path, kitchen_size: int = 7) -> Path:
+    """The scripted cook of `convention` as a run of its own, RUN_DIR/<name>/seed0, with a checkpoint that
+    `kitchen-eval`, `kitchen-play` and `load_team` read as any trained team's (no weights: its model header holds
+    the convention)."""
+    config = TrainConfig(name=convention.name, run_dir=str(run_dir), architecture=SCRIPTED_COOK,
+                         kitchen_size=kitchen_size, eval_episodes=0)
+    run = config.run_path
+    identity = model_identity(SCRIPTED_COOK, (kitchen_size, kitchen_size, 26), config.hidden, config.share_params)
+    save_checkpoint(run / "checkpoints" / LATEST, {
+        "config": config.to_dict(), "model": {**identity, "options": {"convention": convention.as_dict()}},
+        "actor": {}, "critic": {}, "update": 0, "env_steps": config.planned_steps,
+    })  # fmt: skip
+    save_config(config, run / "config.yaml")
+    return run
+
+
 # ------------------------------------------------------------------------------------------- command line
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="kitchen-zoo", description=__doc__,
@@ -192,6 +214,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     draw.add_argument("--out", default=str(Path(ZOO_FILE).parent), help="folder of zoo.yaml and zoo.md")
     show = verbs.add_parser("show", help="print a zoo file's conventions")
     show.add_argument("zoo", nargs="?", default=ZOO_FILE)
+    save = verbs.add_parser("save", help="save cooks of a zoo as runs that kitchen-eval and kitchen-play read")
+    save.add_argument("names", nargs="+", help="conventions of the zoo")
+    save.add_argument("--zoo", default=ZOO_FILE)
+    save.add_argument("--run-dir", default="runs/zoo", help="the runs go to RUN_DIR/<name>/seed0")
     args = parser.parse_args(argv)
     try:
         if args.verb == "show":
@@ -199,6 +225,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             for member in zoo.members:
                 print(f"{member.name:14s} {member.split:8s} self-play {member.self_play:5.2f}  "
                       f"{member.convention.describe()}")
+            return 0
+        if args.verb == "save":
+            zoo = load_zoo(args.zoo)
+            for name in args.names:
+                print(f"wrote {save_cook(zoo.convention(name), args.run_dir, zoo.kitchen_size)}")
             return 0
         if not 0 <= args.strangers <= args.keep <= args.candidates:
             raise ConfigError(f"need 0 <= strangers <= keep <= candidates, got {args.strangers}, {args.keep}, "

@@ -148,12 +148,14 @@ def build_e3t(encoder: str, obs_shape: tuple[int, int, int], hidden: int, share_
 
 
 # ----------------------------------------------------------------------------------------------- registry
-Builder = Callable[..., ActorCritic]  # builder(obs_shape=(H, W, C), hidden=h, share_params=bool) -> ActorCritic
+Builder = Callable[..., ActorCritic]  # builder(obs_shape=(H, W, C), hidden=h, share_params=bool, **options)
 _REGISTRY: dict[str, Builder] = {}
 
 
 def register_architecture(name: str, builder: Builder) -> None:
-    """Make `make_actor_critic(name, ...)` call `builder(obs_shape=..., hidden=..., share_params=...)`.
+    """Make `make_actor_critic(name, ...)` call `builder(obs_shape=..., hidden=..., share_params=..., **options)`
+    (options: plain values an architecture of its own takes, e.g. the scripted cook's convention; a checkpoint's
+    model header keeps them).
 
     The builder returns an `ActorCritic` honouring the keys of the module docstring. A name can be registered
     once (`ValueError` otherwise), so a second registration cannot silently replace another architecture.
@@ -171,7 +173,7 @@ del _name
 
 
 def make_actor_critic(architecture: str, obs_shape: tuple[int, int, int] = (7, 7, 26), hidden: int = 256,
-                      share_params: bool = True) -> ActorCritic:
+                      share_params: bool = True, **options) -> ActorCritic:
     """Actor and critic of a registered architecture ("mlp", "mlp_lstm", "gnn", "gnn_lstm", "ego_mlp", "e3t_mlp",
     "e3t_gnn" or your own).
 
@@ -181,4 +183,4 @@ def make_actor_critic(architecture: str, obs_shape: tuple[int, int, int] = (7, 7
     """
     if architecture not in _REGISTRY:
         raise ValueError(f"unknown architecture {architecture!r}; registered: {', '.join(_REGISTRY)}")
-    return _REGISTRY[architecture](obs_shape=tuple(obs_shape), hidden=hidden, share_params=share_params)
+    return _REGISTRY[architecture](obs_shape=tuple(obs_shape), hidden=hidden, share_params=share_params, **options)

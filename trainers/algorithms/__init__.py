@@ -4,6 +4,7 @@
     e3t    E3T's mixed partner and partner predictor (`trainers.algorithms.e3t`)
     anchored_ippo   IPPO kept near its starting policy by a KL penalty (`trainers.algorithms.anchored`)
     kickstarted_ippo   IPPO with the scripted cook as a teacher all through training (`trainers.algorithms.kickstarted`)
+    zoo_ippo   IPPO where a share of the kitchens seat a zoo cook beside the learner (`trainers.algorithms.zoo_ippo`)
 
 Add one by subclassing `Algorithm` (its docstring lists the hooks; its `Settings` dataclass holds its own settings)
 and calling `register_algorithm(name, cls)` before the config is checked; `examples/` and docs/extending.md show how.
@@ -18,10 +19,11 @@ from trainers.algorithms.base import Algorithm
 from trainers.algorithms.e3t import E3T
 from trainers.algorithms.ippo import IPPO
 from trainers.algorithms.kickstarted import KickstartedIPPO
+from trainers.algorithms.zoo_ippo import ZooIPPO
 from trainers.config import ConfigError, TrainConfig
 
 ALGORITHMS: dict[str, type[Algorithm]] = {"ippo": IPPO, "e3t": E3T, "anchored_ippo": AnchoredIPPO,
-                                       "kickstarted_ippo": KickstartedIPPO}
+                                       "kickstarted_ippo": KickstartedIPPO, "zoo_ippo": ZooIPPO}
 
 
 def register_algorithm(name: str, algorithm: type[Algorithm]) -> None:
@@ -53,4 +55,4 @@ def algorithm_settings() -> dict[str, type]:
 
 
 __all__ = ["ALGORITHMS", "Algorithm", "AnchoredIPPO", "E3T", "IPPO", "KickstartedIPPO", "algorithm_settings",
-           "check_algorithm", "register_algorithm"]
+           "check_algorithm", "register_algorithm", "ZooIPPO"]

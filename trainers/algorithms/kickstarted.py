@@ -6,7 +6,7 @@ policy's at every transition of the minibatch, the cook's read off the batch's o
 self-play visits is labelled, so the team keeps learning the cook's way of playing on kitchens where imitation
 generalised least, while the reward mends what imitation gets wrong. The weight falls linearly to 0 over
 `teacher_anneal_steps` env steps of this run (0: constant), after which the run is plain IPPO. The cook is the one
-distillation uses (`distill_move_order`).
+distillation learns from first (`distill_move_order`, or the seed's of `distill_teachers`).
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ class KickstartedIPPO(IPPO):
 
     def __init__(self, config, actor_critic):
         super().__init__(config, actor_critic)
-        self.teacher = ScriptedCook(config.distill_move_order)
+        self.teacher = ScriptedCook(config.distill_teacher())
         self.env_steps = 0  # of this run: the weight's schedule starts where the run does, after any init_from
         # A tensor filled in place, so that a compiled minibatch step reads the weight of the update it runs in.
         self.weight = torch.tensor(teacher_weight(self.settings, 0), device=config.runtime.device)

@@ -74,9 +74,8 @@ def load_team(checkpoint: str | Path, device: str = "cpu", condition: str = "") 
         raise CheckpointError(f"{where} was saved with a config this version cannot read ({error})") from None
     model = state["model"]
     try:
-        actor_critic = make_actor_critic(
-            model["architecture"], tuple(model["obs_shape"]), model["hidden"], model["share_params"]
-        )
+        actor_critic = make_actor_critic(model["architecture"], tuple(model["obs_shape"]), model["hidden"],
+                                         model["share_params"], **model.get("options", {}))
     except ValueError as error:
         raise CheckpointError(
             f"{where} holds a {model['architecture']!r} model that cannot be built here ({error}); import the "

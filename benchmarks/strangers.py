@@ -1,0 +1,92 @@
+"""One team beside the held-out strangers of a zoo: the wall time of `kitchen-eval`'s stranger pass, and its
+episodes per second against the scripted cook's partner pass in the same run (the reference: one cook instead of
+eight conventions).
+
+The team beside each stranger in both seats and each stranger with itself (24 pairs with 8 strangers) play `--heldout`
+held-out levels x `--rollouts` episodes through `trainers.evaluation.partners.play_with_strangers`, in `--workers`
+processes; then the team beside the scripted cook in both seats and the cook with itself (3 pairs) on the same
+grids through `play`. The goal: one team against 8 strangers on 100 held-out levels x 4 rollouts in under 5 minutes
+on 2 cores. Writes its table to `--out` (markdown) as well as printing it.
+
+    python benchmarks/strangers.py [--team RUN_DIR] [--heldout 100] [--rollouts 4] [--workers 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import torch
+
+from torch_kitchen.conventions import ZOO_FILE, load_zoo
+from torch_kitchen.models import make_actor_critic
+from trainers.config import TrainConfig
+from trainers.evaluation import Matchup, Team, evaluation_grids, load_team, play, scripted_cook_team
+from trainers.evaluation.pairs import PARTNER, SP
+from trainers.evaluation.partners import play_with_strangers
+from trainers.evaluation.teams import convention_team
+from trainers.machine import machine_name
+
+GOAL_S = 300.0
+
+
+def untrained_team(architecture: str = "ego_mlp", hidden: int = 128) -> Team:
+    """The main job's architecture with its initial weights: the speed of play does not depend on them."""
+    torch.manual_seed(0)
+    actor_critic = make_actor_critic(architecture, (7, 7, 26), hidden, share_params=True)
+    config = TrainConfig(architecture=architecture, hidden=hidden)
+    return Team(f"{architecture}/untrained", architecture, config, actor_critic, (7, 7, 26), "")
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--team", help="a run directory (default: the main job's architecture, untrained)")
+    parser.add_argument("--zoo", default=ZOO_FILE)
+    parser.add_argument("--heldout", type=int, default=100)
+    parser.add_argument("--rollouts", type=int, default=4)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--out", default="benchmarks/results/strangers.md")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    team = load_team(args.team) if args.team else untrained_team()
+    strangers = [convention_team(c, (7, 7, 26)) for c in load_zoo(args.zoo, 7).strangers]
+    grids = evaluation_grids([], args.heldout)
+
+    start = time.perf_counter()
+    met = play_with_strangers([team], strangers, grids, args.rollouts, 256, 8192, 0, "cpu", workers=args.workers)
+    strangers_s = time.perf_counter() - start
+    stranger_episodes = (2 * len(strangers) + len(strangers)) * len(grids) * args.rollouts
+
+    cook = scripted_cook_team((7, 7, 26))
+    pairs = [Matchup(0, 1, PARTNER), Matchup(1, 0, PARTNER), Matchup(1, 1, SP)]
+    start = time.perf_counter()
+    play([team, cook], pairs, grids, args.rollouts, 256, 8192, 0, "cpu", workers=args.workers)
+    cook_s = time.perf_counter() - start
+    cook_episodes = len(pairs) * len(grids) * args.rollouts
+
+    ours, reference = stranger_episodes / strangers_s, cook_episodes / cook_s
+    held = float(met.normalised[..., -1].mean())
+    lines = [
+        f"{machine_name()}, {args.workers} worker processes, torch threads 1; team: {team.name}; "
+        f"{len(strangers)} strangers of {args.zoo}; {args.heldout} held-out levels x {args.rollouts} rollouts",
+        "",
+        "| pass | pairs | episodes | wall s | episodes/s |",
+        "|---|---:|---:|---:|---:|",
+        f"| beside the strangers (and each alone) | {3 * len(strangers)} | {stranger_episodes:,} | {strangers_s:.1f} | "
+        f"{ours:.1f} |",
+        f"| beside the scripted cook (and it alone): reference | {len(pairs)} | {cook_episodes:,} | {cook_s:.1f} | "
+        f"{reference:.1f} |",
+        "",
+        f"Episodes per second with the strangers over those with the scripted cook: {ours / reference:.2f}. "
+        f"Goal: the stranger pass under {GOAL_S:.0f} s: {'PASS' if strangers_s < GOAL_S else 'FAIL'} "
+        f"({strangers_s:.0f} s). The team's normalised score on the held-out levels: {held:.2f}.",
+    ]
+    table = "\n".join(lines) + "\n"
+    print(table)
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(table)
+
+
+if __name__ == "__main__":
+    main()

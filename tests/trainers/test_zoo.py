@@ -1,0 +1,166 @@
+"""The zoo: diverse conventions drawn deterministically, strangers held out of training, teams trained beside zoo
+cooks (zoo_ippo) and distilled from several teachers, each resumed bit for bit."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from test_ppo import tiny_config
+
+from torch_kitchen.conventions import (
+    STRANGER,
+    TRAIN,
+    ZOO_FILE,
+    Convention,
+    Zoo,
+    ZooMember,
+    generator_settings,
+    load_zoo,
+    save_zoo,
+)
+from torch_kitchen.env import KitchenEnv
+from torch_kitchen.models import make_actor_critic
+from torch_kitchen.scripted import ScriptedCook
+from torch_kitchen.zoo_partners import LEARNER, ZOO_COOK, ZooPartners, ZooSeats
+from trainers.checkpoint import load_checkpoint
+from trainers.distill import DATA, TEACHER_PROBS, distill
+from trainers.distill import main as distill_main
+from trainers.evaluation import load_team
+from trainers.ppo import train
+from trainers.rollout import make_collector
+from trainers.train_command import main as train_main
+from trainers.zoo import draw_zoo, select_diverse
+from trainers.zoo import main as zoo_main
+
+ROOT = Path(__file__).resolve().parents[2]
+TEACHERS = [Convention(name="west_first", move_order="WENS"), Convention(name="loader", role="loader"),
+            Convention(name="onions", preferences={"onion_pickup": 0.6}, goal_temperature=0.5)]
+
+
+@pytest.fixture()
+def zoo_file(tmp_path):
+    members = [ZooMember(c, TRAIN, 1.0, 1.0, {}) for c in TEACHERS]
+    members.append(ZooMember(Convention(name="stranger", handover="avoid"), STRANGER, 1.0, 1.0, {}))
+    return str(save_zoo(Zoo(0, 7, generator_settings(7), members), tmp_path / "zoo.yaml"))
+
+
+def test_the_diverse_selection_takes_the_profiles_furthest_apart_first():
+    profiles = np.array([[0.5, 0.5], [0.5, 0.52], [1.0, 0.0], [0.0, 1.0], [0.51, 0.5]])
+    chosen = select_diverse(profiles, 3)
+    assert set(chosen) == {2, 3} | {chosen[2]} and chosen[2] in (0, 1, 4)  # the two corners, then one of the middle
+
+
+def test_a_zoo_is_drawn_the_same_for_a_seed_from_training_levels_only_and_differs_for_another():
+    first, again = (draw_zoo(seed=5, candidates=6, keep=2, strangers=1, levels=4, min_cooked=0.5, progress=False)
+                    for _ in range(2))
+    assert first == again and len(first.members) == 2
+    assert [m.split for m in first.members] == [TRAIN, STRANGER] and first.strangers[0] not in first.training
+    assert all(member.cooked >= 0.5 for member in first.members)
+    other = draw_zoo(seed=6, candidates=6, keep=2, strangers=1, levels=4, min_cooked=0.5, progress=False)
+    assert [m.convention for m in other.members] != [m.convention for m in first.members]
+
+
+def test_the_shipped_zoo_holds_diverse_cooks_and_no_shipped_config_trains_with_a_stranger():
+    zoo = load_zoo(ROOT / ZOO_FILE, kitchen_size=7)
+    assert len(zoo.members) >= 24 and len(zoo.strangers) >= 8
+    assert all(member.cooked >= 0.6 for member in zoo.members)
+    assert zoo.similarity["kept"] < zoo.similarity["random"]
+    names = {c.name for c in zoo.strangers}
+    shipped = [p for p in (ROOT / "configs").rglob("*.yaml") if "zoo" not in p.parts and "eval" not in p.parts]
+    shipped += list((ROOT / "benchmarks").rglob("*.yaml")) + list((ROOT / "examples").rglob("*.yaml"))
+    assert len(shipped) > 40
+    for path in shipped:
+        text = path.read_text()
+        assert not [name for name in names if name in text], path
+
+
+@pytest.mark.parametrize("overrides, words", [
+    (["distill_teachers=[stranger]"], "'stranger' is a held-out stranger of the zoo"),
+    (["distill_teachers=[nobody]"], "the zoo has no convention 'nobody'"),
+    (["algorithm=zoo_ippo", "algorithm_config.zoo_conventions=[stranger]"], "'stranger' is a held-out stranger"),
+    (["kitchen_size=9", "distill_teachers=[loader]"], "drawn for 7x7 kitchens, not 9x9"),
+])  # fmt: skip
+def test_a_training_config_that_names_a_stranger_or_an_unknown_cook_is_refused_in_one_line(
+        tmp_path, zoo_file, capsys, overrides, words):
+    assert train_main(["configs/ippo/mlp_ik.yaml", f"zoo={zoo_file}", f"run_dir={tmp_path}", *overrides]) == 2
+    error = capsys.readouterr().err
+    assert words in error and error.count("\n") == 1, error
+    assert not list(tmp_path.glob("*/seed0"))
+
+
+def test_zoo_seats_draw_a_cook_per_kitchen_and_episode_and_the_cook_acts_in_its_seat():
+    seats = ZooSeats(conventions=3, share=0.5, seed=1)
+    env = KitchenEnv(64, levels="infinite", max_steps=8, seed=0).append_transform(seats)
+    td = env.reset()
+    zoo_cook = td[ZOO_COOK]
+    cooks = (zoo_cook != LEARNER).sum(-1)
+    assert set(cooks.tolist()) == {0, 1} and 0.25 < cooks.float().mean() < 0.75  # at most one cook per kitchen
+    assert set(zoo_cook[zoo_cook != LEARNER].tolist()) == {0, 1, 2}
+    restored = ZooSeats(conventions=3, share=0.5, seed=7)
+    restored.load_state_dict(seats.state_dict())
+    assert torch.equal(restored._draw(64), seats._draw(64))  # a resume draws on as the run would have
+
+    # Collected as training collects (the default collector, which leaves the XLA rollout to bare kitchens): the
+    # cooks' seats take their conventions' planned actions, the learner's its own.
+    actor_critic = make_actor_critic("mlp", (7, 7, 26), 16, True)
+    policy = actor_critic.acting_policy(ZooPartners(TEACHERS))
+    batch = next(iter(make_collector(env, policy, 64 * 8, kind="xla")))
+    zoo_cook, acted = batch[ZOO_COOK], batch["agents", "action"]
+    for index, convention in enumerate(TEACHERS[:2]):  # the deterministic ones
+        logits = ScriptedCook(convention)(batch["agents", "observation"])
+        seated = (zoo_cook == index) & ((logits == 0).sum(-1) == 1)
+        assert seated.any() and torch.equal(acted[seated], logits.argmax(-1)[seated])
+    learner = zoo_cook == LEARNER
+    own = torch.distributions.Categorical(logits=batch["agents", "logits"]).log_prob(acted)
+    torch.testing.assert_close(own[learner], batch["agents", "action_log_prob"][learner])
+
+
+def test_zoo_ippo_learns_beside_zoo_cooks_and_resumes_bit_for_bit(tmp_path, zoo_file):
+    common = ("algorithm=zoo_ippo", f"zoo={zoo_file}", "algorithm_config.zoo_share=0.5", "checkpoint_every=1",
+              "levels=infinite")
+    whole = train(tiny_config(tmp_path / "whole", *common, updates=3))
+    stopped_config = tiny_config(tmp_path / "stopped", *common, updates=3)
+    train(stopped_config, on_update=lambda update, metrics: update == 2)
+    assert train_main(["--resume", str(stopped_config.run_path)]) == 0
+    final, straight = load_checkpoint(stopped_config.run_path), load_checkpoint(whole)
+    assert final["algorithm"]["zoo_seats"]  # the seats' generator and draws travel with the checkpoint
+    for part in ("actor", "critic", "algorithm"):
+        torch.testing.assert_close(final[part], straight[part], rtol=0, atol=0)
+
+
+def test_distillation_from_several_teachers_labels_each_round_with_its_teacher_and_resumes_bit_for_bit(
+        tmp_path, zoo_file):
+    common = ("distill_rounds=3", "distill_epochs=1", f"zoo={zoo_file}", "distill_teacher_mix=round",
+              "distill_teachers=[west_first,loader,onions]", "levels=infinite")
+    straight_config = tiny_config(tmp_path / "straight", *common)
+    straight = distill(straight_config)
+    teachers = [straight_config.distill_teacher(r).name for r in range(3)]
+    assert len(set(teachers)) > 1  # the draw of seed 0's rounds mixes teachers
+    for round_, name in enumerate(teachers):
+        data = TensorDict.load_memmap(straight / DATA / f"round{round_}")
+        cook = ScriptedCook(next(c for c in TEACHERS if c.name == name))
+        torch.testing.assert_close(data[TEACHER_PROBS], torch.softmax(cook(data["agents", "observation"]), -1),
+                                   rtol=0, atol=0)
+    stopped = distill(tiny_config(tmp_path / "stopped", *common), on_round=lambda round_, metrics: round_ == 2)
+    assert distill_main(["--resume", str(stopped)]) == 0
+    for part in ("actor", "critic", "optimizer", "env"):
+        torch.testing.assert_close(load_checkpoint(stopped)[part], load_checkpoint(straight)[part], rtol=0, atol=0)
+    per_seed = [tiny_config(tmp_path, f"zoo={zoo_file}", "distill_teachers=[west_first,loader]", f"seed={seed}")
+                for seed in range(3)]
+    assert [config.distill_teacher(2).name for config in per_seed] == ["west_first", "loader", "west_first"]
+
+
+def test_a_cook_of_the_zoo_is_saved_and_loaded_as_a_team_with_its_convention(tmp_path, zoo_file, capsys):
+    assert zoo_main(["save", "loader", "stranger", "--zoo", zoo_file, "--run-dir", str(tmp_path)]) == 0
+    assert "wrote" in capsys.readouterr().out
+    team = load_team(tmp_path / "loader" / "seed0")
+    assert team.fully_trained and team.name == "loader/seed0"
+    observation = KitchenEnv(8, levels="heldout", seed=2).reset()["agents", "observation"]
+    logits = team.actor_critic.actor(TensorDict({("agents", "observation"): observation}, [8]))["agents", "logits"]
+    assert torch.equal(logits, ScriptedCook(TEACHERS[1])(observation))
+    assert not torch.equal(logits, ScriptedCook()(observation))  # the loader, not the scripted cook
+    assert zoo_main(["save", "nobody", "--zoo", zoo_file, "--run-dir", str(tmp_path)]) == 2
+    error = capsys.readouterr().err
+    assert "no convention 'nobody'" in error and error.count("\n") == 1
