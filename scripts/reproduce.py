@@ -96,7 +96,10 @@ def named_conditions(protocol: dict, sections: list[str] | None, conditions: lis
     unknown = [name for name in sections or [] if name not in known]
     if unknown:
         raise ValueError(f"--sections: {', '.join(unknown)} not in the protocol, which has {', '.join(known)}")
-    return [*(name for section in sections or [] for name in known[section]["conditions"]), *(conditions or [])]
+    # A section's own conditions and those its claims compare it with (trained by another section, reused if there).
+    return [*(name for section in sections or [] for name in (*known[section]["conditions"],
+                                                               *known[section].get("compared", {}).values())),
+            *(conditions or [])]
 
 
 def select_conditions(protocol: dict, names: list[str] | None) -> tuple[dict, list[str]]:
@@ -272,6 +275,67 @@ def cross_pairs(summary: dict, pairs: list[list[str]]) -> list[str]:
     return rows
 
 
+def read_strangers(eval_dir: Path) -> tuple[dict[tuple[str, str], dict], list[dict]]:
+    """The evaluation's rows beside the held-out strangers: per (condition, grids) (`strangers.csv`) and per team,
+    stranger and seat (`strangers_pairs.csv`); empty where it seated none."""
+    if not (eval_dir / "strangers.csv").is_file():
+        return {}, []
+    with open(eval_dir / "strangers_pairs.csv") as handle:
+        pairs = list(csv.DictReader(handle))
+    return read_summary(eval_dir / "strangers.csv"), pairs
+
+
+def stranger_claims(strangers: dict, pairs: list[dict], summary: dict, families: dict, compared: dict) -> list[str]:
+    """Claims rows beside the held-out strangers: each family's IK against its SK teams at home on every layout;
+    and, of the conditions `compared` names (one_teacher, diverse_teachers, zoo_partners), the cross-play a shared
+    teacher adds over play with strangers, whether zoo partners in training raise play with strangers by more than
+    the bootstrap intervals, and whether a condition is a better partner to every stranger than that stranger's own
+    kind, all on the held-out levels."""
+    if not strangers:
+        return []  # a section evaluated without strangers
+    heldout = heldout_grids(strangers)
+    rows = []
+    for family, (ik, sk, learner, _) in families.items():
+        if sk:
+            ours = {layout: value(strangers, ik, layout, "deliveries") for layout in sk}
+            theirs = {layout: value(strangers, condition, layout, "deliveries") for layout, condition in sk.items()}
+            wins = sum(ours[layout] > theirs[layout] for layout in sk)
+            rows.append(f"| {family} | {learner} | IK beats SK beside held-out strangers on the 5 layouts (Fig. 3a, "
+                        "with partners no team saw) | " + ", ".join(
+                            f"{layout.removesuffix('_7x7')} {ours[layout]:.2f} vs {theirs[layout]:.2f}"
+                            for layout in sk) + f" | {wins} of {len(sk)} layouts |")
+    if not heldout:
+        return rows
+    learner = next((learner for _, (_, _, learner, _) in families.items()), SCRATCH)
+    one, diverse, zoo = (compared.get(key) for key in ("one_teacher", "diverse_teachers", "zoo_partners"))
+    if one and diverse:
+        inflation = {c: value(summary, c, heldout, "xp") - value(strangers, c, heldout, "deliveries")
+                     for c in (one, diverse)}
+        lower = inflation[diverse] < inflation[one]
+        rows.append(f"| {diverse} | {learner} | Diverse teachers lower the cross-play inflation of one teacher (XP "
+                    f"between seeds minus play with strangers) | {heldout}: {one} {inflation[one]:+.2f}, {diverse} "
+                    f"{inflation[diverse]:+.2f} | {'holds' if lower else 'does not hold'} |")
+    if one and zoo:
+        (low, high), (zoo_low, zoo_high) = ((value(strangers, c, heldout, "iqm_low"),
+                                             value(strangers, c, heldout, "iqm_high")) for c in (one, zoo))
+        iqm_one, iqm_zoo = value(strangers, one, heldout, "iqm"), value(strangers, zoo, heldout, "iqm")
+        rows.append(f"| {zoo} | {learner} | Zoo partners in training raise play with strangers on held-out levels, by "
+                    f"more than the bootstrap interval | normalised IQM {iqm_zoo:.2f} [{zoo_low:.2f}, {zoo_high:.2f}] "
+                    f"against {one}'s {iqm_one:.2f} [{low:.2f}, {high:.2f}] | "
+                    f"{'holds' if zoo_low > high else 'does not hold'} |")
+    for condition in dict.fromkeys(c for c in (one, diverse, zoo) if c):
+        per_stranger = {}
+        for row in pairs:
+            if row["condition"] == condition and row["grids"] == heldout:
+                per_stranger.setdefault(row["stranger"], []).append(float(row["normalised"]))
+        if per_stranger:
+            above = sum(sum(scores) / len(scores) > 1.0 for scores in per_stranger.values())
+            rows.append(f"| {condition} | {learner} | Beyond each stranger's own kind: normalised > 1.0 beside every "
+                        f"stranger on held-out levels (moonshot) | above 1.0 beside {above} of {len(per_stranger)} "
+                        f"strangers | {'holds' if above == len(per_stranger) else 'does not hold'} |")
+    return rows
+
+
 @dataclass(frozen=True)
 class Section:
     """A section of RESULTS.md as one run writes it: the conditions it trained of the section, the partners that its
@@ -285,6 +349,8 @@ class Section:
     families: dict[str, tuple[str, dict[str, str], str, str | None]]
     cross: list[list[str]]
     left_out: list[str]
+    strangers: str = ""  # a zoo file whose held-out strangers every team plays beside
+    compared: dict[str, str] | None = None  # one_teacher, diverse_teachers, zoo_partners: conditions of the claims
 
 
 def sections_run(full: dict, protocol: dict, entries: dict[str, tuple[str, list[str]]]) -> list[Section]:
@@ -305,7 +371,8 @@ def sections_run(full: dict, protocol: dict, entries: dict[str, tuple[str, list[
         partners = [*(sk for _, sks, _, _ in families.values() for sk in sks.values()), *(pair[1] for pair in cross)]
         evaluated = [condition for condition in protocol["conditions"] if condition in {*conditions, *partners}]
         left_out = [condition for condition in section["conditions"] if condition not in conditions]
-        sections.append(Section(name, section["title"], conditions, evaluated, families, cross, left_out))
+        sections.append(Section(name, section["title"], conditions, evaluated, families, cross, left_out,
+                                section.get("strangers", ""), section.get("compared", {})))
     return sections
 
 
@@ -332,7 +399,7 @@ def evaluate_section(section: Section, out: Path, evaluation: dict, device: str,
         conditions={name: str(out / "runs" / name / "seed*") for name in section.evaluated},
         cross=[*([ik, name] for ik, sk, _, _ in section.families.values() for name in sk.values()), *section.cross],
         layouts=[*EXPANDED_LAYOUTS, *(PADDED_LAYOUTS if proxies else [])], heldout=evaluation["heldout"],
-        human_proxies=str(proxies or ""),
+        human_proxies=str(proxies or ""), strangers=section.strangers,
         rollouts=evaluation["rollouts"], max_steps=evaluation.get("max_steps", 256), workers=workers,
         heatmaps=evaluation.get("heatmaps", []), runtime=DeviceConfig(device=device),
         out_dir=str(out / "eval" / section.name), progress=False,
@@ -384,6 +451,7 @@ def section_markdown(section: Section, facts: RunFacts, config: TrainConfig, eva
                      eval_seconds: float, pictures: list[str]) -> str:
     """The section's text, between its markers: how it was made, its claims, cross pairs, tables and figures."""
     summary = read_summary(eval_dir / "summary.csv")
+    strangers, stranger_pairs = read_strangers(eval_dir)
     own = {name: facts.own_overrides[name] for name in section.conditions if facts.own_overrides[name]}
     lines = [
         SECTION_START.format(section.name),
@@ -409,7 +477,10 @@ def section_markdown(section: Section, facts: RunFacts, config: TrainConfig, eva
         + (f" The classic layouts that fit a 7x7 kitchen, drawn inside one ({', '.join(PADDED_LAYOUTS)}), with "
            "each one's human proxy beside every team (behaviour-cloned from the 2019 human games' test split, so no "
            f"team is tuned to it; how the proxies play: `{facts.proxies.parent / 'proxies.md'}`); "
-           "\"human_proxy_<layout>\" is two proxies together." if facts.proxies else ""),
+           "\"human_proxy_<layout>\" is two proxies together." if facts.proxies else "")
+        + (f" Beside every team, both seats, the held-out strangers of `{section.strangers}` (`kitchen-zoo`: scripted "
+           "cooks of conventions no shipped config trains with), scored against two of each stranger."
+           if section.strangers else ""),
         "",
         "### Claims",
         "",
@@ -421,6 +492,7 @@ def section_markdown(section: Section, facts: RunFacts, config: TrainConfig, eva
           for row in shared_teacher(summary, family, learner, [pair for pair in section.cross if pair[0] == ik])),
         *(row for family, (ik, _, learner, _) in section.families.items()
           for row in (beyond_teacher(summary, family, learner, ik) if config.init_from == PLANNER_START else [])),
+        *stranger_claims(strangers, stranger_pairs, summary, section.families, section.compared or {}),
         CLAIMS_END,
         "",
         *([
@@ -555,6 +627,8 @@ def main(argv=None) -> int:
     )  # fmt: skip
     written = {}
     for section in sections_run(full, protocol, entries):
+        if args.sections and section.name not in args.sections:
+            continue  # a section of a condition another one compares with: it stays as it was written
         evaluated = time.perf_counter()
         eval_dir = evaluate_section(section, out, evaluation, device, facts.proxies, facts.eval_workers)
         config = load_config(*trained[section.conditions[0]])

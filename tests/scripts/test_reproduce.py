@@ -204,3 +204,27 @@ def test_a_distilled_sections_budget_is_set_beside_the_main_jobs():
     main_jobs = load_config(ROOT / "configs/ippo/ego_mlp_ik.yaml", ["init_from=scripted_cook", "total_steps=1572864"])
     assert "trains 1,572,864 steps after 6 rounds of 8 passes, the same budget)" in reproduce.budget(main_jobs, teams=3)
     assert "main job" not in reproduce.budget(load_config(ROOT / "configs/ippo/mlp_ik.yaml"), teams=3)
+
+
+def test_the_claims_beside_the_strangers_read_their_tables():
+    def row(deliveries="", iqm="", low="", high=""):
+        return {"deliveries": deliveries, "iqm": iqm, "iqm_low": low, "iqm_high": high}
+
+    held = "held-out (100)"
+    strangers = {
+        ("ik", "cramped_room_7x7"): row("4.00"), ("ik", "coord_ring_7x7"): row("1.00"),
+        ("sk_a", "cramped_room_7x7"): row("3.00"), ("sk_b", "coord_ring_7x7"): row("2.00"),
+        ("ik", held): row("3.00", "0.70", "0.60", "0.80"), ("ik_many", held): row("3.50", "0.80", "0.70", "0.90"),
+        ("ik_zoo", held): row("3.80", "0.95", "0.85", "1.05"),
+    }  # fmt: skip
+    summary = {("ik", held): {"xp": "4.00"}, ("ik_many", held): {"xp": "3.80"}}
+    pairs = [{"condition": "ik_zoo", "grids": held, "stranger": s, "normalised": n}
+             for s, n in (("a", "1.2"), ("a", "1.0"), ("b", "0.9"), ("b", "0.9"))]
+    families = {"MLP": ("ik", {"cramped_room_7x7": "sk_a", "coord_ring_7x7": "sk_b"}, "planner", None)}
+    compared = {"one_teacher": "ik", "diverse_teachers": "ik_many", "zoo_partners": "ik_zoo"}
+    layouts, inflation, zoo, moonshot = reproduce.stranger_claims(strangers, pairs, summary, families, compared)
+    assert layouts.endswith("| cramped_room 4.00 vs 3.00, coord_ring 1.00 vs 2.00 | 1 of 2 layouts |")
+    assert inflation.endswith(f"| {held}: ik +1.00, ik_many +0.30 | holds |")
+    assert zoo.endswith("| normalised IQM 0.95 [0.85, 1.05] against ik's 0.70 [0.60, 0.80] | holds |")
+    assert moonshot.endswith("| above 1.0 beside 1 of 2 strangers | does not hold |")
+    assert reproduce.stranger_claims({}, [], summary, families, compared) == []  # a section without strangers

@@ -186,8 +186,9 @@ def play(
                 f"the test grids are {obs_shape[0]}x{obs_shape[1]}: evaluate it on grids of its own size"
             )
     num_grids, units = len(grids), len(matchups) * rollouts
-    batches = Batches(teams, matchups, grids, rollouts, max_steps, max(1, min(max_envs // num_grids, units)), seed,
-                      device)
+    # As few batches as `max_envs` allows, of equal size: processes that share them finish together.
+    per_batch = math.ceil(units / math.ceil(units / max(1, max_envs // num_grids)))
+    batches = Batches(teams, matchups, grids, rollouts, max_steps, per_batch, seed, device)
     height, width = obs_shape[:2]
     deliveries = np.zeros((units, num_grids), np.float32)
     visits = np.zeros((len(matchups), num_grids, 2, height, width), np.float32)
