@@ -83,10 +83,11 @@ for _name, _seats in SEATS.items():
         pass
 
 
-def save_scripted_team(path, architecture: str, seed: int = 0, levels="infinite", shape=TWO_BOOTHS.grid.shape) -> str:
+def save_scripted_team(path, architecture: str, seed: int = 0, levels="infinite", shape=TWO_BOOTHS.grid.shape,
+                       **config) -> str:
     """A checkpoint of a scripted team for kitchens of `shape`, as `kitchen-train` would write it (no weights:
-    nothing to learn)."""
-    config = TrainConfig(name=architecture, seed=seed, architecture=architecture, levels=levels)
+    nothing to learn); `config`: more of its config's values."""
+    config = TrainConfig(name=architecture, seed=seed, architecture=architecture, levels=levels, **config)
     obs_shape = (*shape, 26)
     save_checkpoint(path, {
         "config": config.to_dict(), "model": model_identity(architecture, obs_shape, 1, True),

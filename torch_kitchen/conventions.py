@@ -174,9 +174,13 @@ class Zoo:
         for member in self.members:
             if member.name == name and member.split in splits:
                 return member.convention
-        if any(member.name == name for member in self.members):
+        split = next((member.split for member in self.members if member.name == name), None)
+        if split == STRANGER:
             raise ConventionError(f"{name!r} is a held-out stranger of the zoo: it evaluates teams and never "
                                   f"trains one; train with one of {', '.join(c.name for c in self.training)}")
+        if split == TRAIN:
+            raise ConventionError(f"{name!r} is a training convention of the zoo, not a held-out stranger; its "
+                                  f"strangers: {', '.join(c.name for c in self.strangers)}")
         raise ConventionError(f"the zoo has no convention {name!r}; its conventions: "
                               f"{', '.join(member.name for member in self.members if member.split in splits)}")
 

@@ -450,6 +450,10 @@ class EvalConfig:
         "", "a zoo file (`kitchen-zoo`; the shipped one: configs/zoo/zoo.yaml): every team also plays beside each of "
         "its held-out strangers, both seats, on every test grid, scored against two of the stranger (empty: none)"
     )
+    best_responses: dict[str, str] = option(
+        {}, "held-out stranger -> the run of its best response (kitchen-train algorithm=zoo_ippo "
+            "algorithm_config.best_response_to=NAME): the teams are also scored over it (BR-Prox)"
+    )
 
     # --- where and how long
     layouts: list[str] = option(

@@ -87,3 +87,35 @@ def test_a_zoo_of_another_size_or_generator_and_a_missing_zoo_are_refused_in_one
         error = capsys.readouterr().err
         assert code == 2 and words in error and error.count("\n") == 1, error
         assert not out.exists()
+
+
+def test_teams_are_scored_over_a_strangers_best_response_which_is_never_a_team_to_evaluate(tmp_path, capsys):
+    booths = save_layout(TWO_BOOTHS, str(tmp_path / "two_booths.txt"))
+    runs = [save_scripted_team(tmp_path / f"{name}.pt", name, seed=k)
+            for k, name in enumerate(["scripted_cooks", "scripted_idle"])]
+    best = save_scripted_team(tmp_path / "best.pt", "scripted_cooks", algorithm="zoo_ippo",
+                              algorithm_config={"best_response_to": "server"})
+    zoo = str(_zoo(tmp_path / "zoo.yaml"))
+    config = EvalConfig(conditions={"cooks": runs}, layouts=[booths], heldout=0, rollouts=1, partner=False,
+                        strangers=zoo, best_responses={"server": best}, out_dir=str(tmp_path / "out"),
+                        progress=False).check()
+    out = evaluate(config)
+    with open(out / "strangers_pairs.csv") as handle:
+        pairs = list(csv.DictReader(handle))
+    for row in pairs:
+        pace = float(row["stranger_alone"]) / 2
+        working = row["team"] == "cooks/seed0"
+        if row["stranger"] == "server":  # its best response cooks in its booth beside it: 7 + p
+            assert float(row["over_best_response"]) == pytest.approx((7 + pace if working else pace) / (7 + pace))
+        else:
+            assert row["over_best_response"] == "nan"
+    assert "| over the best response (IQM) |" in (out / "eval.md").read_text()
+    for conditions, responses, words in [({"cooks": [best]}, {}, "is a best response to the stranger 'server'"),
+                                         ({"cooks": runs}, {"left_first": best}, "not trained as the best response"),
+                                         ({"cooks": runs}, {"nobody": best}, "'nobody', which is not a stranger")]:
+        code = main(["configs/eval/paper.yaml", f"conditions={conditions}", f"best_responses={responses}",
+                     f"layouts=[{booths}]", "heldout=0", f"strangers={zoo}", f"out_dir={tmp_path / 'bad'}",
+                     "progress=false", "cross=[]", "gifs=[]"])
+        error = capsys.readouterr().err
+        assert code == 2 and words in error and error.count("\n") == 1, error
+        assert not (tmp_path / "bad").exists()

@@ -24,6 +24,7 @@ from torch_kitchen.env import KitchenEnv
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.scripted import ScriptedCook
 from torch_kitchen.zoo_partners import LEARNER, ZOO_COOK, ZooPartners, ZooSeats
+from trainers.algorithms import ZooIPPO, check_algorithm
 from trainers.checkpoint import load_checkpoint
 from trainers.distill import DATA, TEACHER_PROBS, distill
 from trainers.distill import main as distill_main
@@ -81,6 +82,9 @@ def test_the_shipped_zoo_holds_diverse_cooks_and_no_shipped_config_trains_with_a
     (["distill_teachers=[nobody]"], "the zoo has no convention 'nobody'"),
     (["algorithm=zoo_ippo", "algorithm_config.zoo_conventions=[stranger]"], "'stranger' is a held-out stranger"),
     (["kitchen_size=9", "distill_teachers=[loader]"], "drawn for 7x7 kitchens, not 9x9"),
+    (["algorithm=zoo_ippo", "algorithm_config.best_response_to=loader"], "'loader' is a training convention"),
+    (["algorithm=zoo_ippo", "algorithm_config.best_response_to=stranger", "algorithm_config.zoo_conventions=[loader]"],
+     "best_response_to trains beside one stranger alone"),
 ])  # fmt: skip
 def test_a_training_config_that_names_a_stranger_or_an_unknown_cook_is_refused_in_one_line(
         tmp_path, zoo_file, capsys, overrides, words):
@@ -115,6 +119,14 @@ def test_zoo_seats_draw_a_cook_per_kitchen_and_episode_and_the_cook_acts_in_its_
     learner = zoo_cook == LEARNER
     own = torch.distributions.Categorical(logits=batch["agents", "logits"]).log_prob(acted)
     torch.testing.assert_close(own[learner], batch["agents", "action_log_prob"][learner])
+
+
+def test_a_best_response_trains_beside_its_stranger_in_every_kitchen(tmp_path, zoo_file):
+    config = tiny_config(tmp_path, "algorithm=zoo_ippo", f"zoo={zoo_file}", "levels=infinite",
+                         "algorithm_config.best_response_to=stranger", updates=1)
+    algorithm = ZooIPPO(check_algorithm(config), make_actor_critic("mlp", (7, 7, 26), 16, True))
+    assert [c.name for c in algorithm.conventions] == ["stranger"] and algorithm.seats.share == 1.0
+    assert load_checkpoint(train(config))["config"]["algorithm_config"]["best_response_to"] == "stranger"
 
 
 def test_zoo_ippo_learns_beside_zoo_cooks_and_resumes_bit_for_bit(tmp_path, zoo_file):

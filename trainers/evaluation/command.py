@@ -42,6 +42,29 @@ from trainers.figures import draw_figures, draw_heatmap, draw_learning_curve, dr
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 
 
+def load_best_responses(runs: dict[str, str], strangers: list[str], evaluated: list, device: str) -> dict:
+    """{stranger index: its best response} of `best_responses` (trained with `best_response_to` that stranger); a
+    best response among the evaluated teams, or one of another stranger, is a ConfigError in one line."""
+    for team in evaluated:
+        target = team.config.algorithm_config.get("best_response_to")
+        if target:
+            raise ConfigError(f"{team.name} is a best response to the stranger {target!r}, an evaluation instrument "
+                              "rather than a team: give it under best_responses")
+    if runs and not strangers:
+        raise ConfigError("best_responses scores teams over the strangers' best responses: give strangers=ZOO too")
+    found = {}
+    for name, run in runs.items():
+        if name not in strangers:
+            raise ConfigError(f"best_responses names {name!r}, which is not a stranger of the zoo: "
+                              f"{', '.join(strangers)}")
+        team = load_team(run, device)
+        if team.config.algorithm_config.get("best_response_to") != name:
+            raise ConfigError(f"best_responses: {run} was not trained as the best response to {name!r} "
+                              "(algorithm=zoo_ippo algorithm_config.best_response_to=NAME)")
+        found[strangers.index(name)] = team
+    return found
+
+
 def evaluate(config: EvalConfig) -> Path:
     """Loads the population, plays every matchup, writes tables, figures and GIFs to `config.out_dir`."""
     device = config.runtime.device
@@ -57,6 +80,7 @@ def evaluate(config: EvalConfig) -> Path:
     zoo = load_zoo(config.strangers, config.kitchen_size) if config.strangers else None
     strangers = [convention_team(convention, (*grids[0].shape, 26), device, condition=STRANGERS_CONDITION)
                  for convention in (zoo.strangers if zoo else [])]
+    best_responses = load_best_responses(config.best_responses, [s.name for s in strangers], evaluated, device)
     by_name = {grid.name: grid for grid in grids}
     for heatmap in config.heatmaps:
         if heatmap not in by_name:
@@ -81,7 +105,8 @@ def evaluate(config: EvalConfig) -> Path:
     written = draw_figures(outcomes, summary, out)
     if strangers:
         met = play_with_strangers(evaluated, strangers, grids, config.rollouts, config.max_steps,
-                                  config.max_envs, config.seed, device, config.progress, config.workers)
+                                  config.max_envs, config.seed, device, config.progress, config.workers,
+                                  best_responses)
         write_csv(stranger_pair_rows(met), out / "strangers_pairs.csv")
         rows = stranger_rows(met, config.seed)
         write_csv(rows, out / "strangers.csv")

@@ -69,14 +69,16 @@ class StrangerOutcomes:
     """Every team beside every held-out stranger, both seats, and each stranger with itself, per grid group.
 
     with_team float [T, S, 2, G]: mean deliveries of team t with stranger s, the team in seat 0 or 1 (index 2);
-    alone float [S, G]: two of stranger s; groups: (name, its grids' names) of each grid group (each classic
-    layout, then the held-out levels together); teams and strangers: as played."""
+    alone float [S, G]: two of stranger s; best float [S, G]: stranger s with its best response, both seats
+    averaged (NaN where none was given); groups: (name, its grids' names) of each grid group (each classic layout,
+    then the held-out levels together); teams and strangers: as played."""
 
     teams: list[Team]
     strangers: list[Team]
     groups: list[tuple[str, list[str]]]
     with_team: np.ndarray
     alone: np.ndarray
+    best: np.ndarray | None = None
 
     @property
     def normalised(self) -> np.ndarray:
@@ -85,16 +87,27 @@ class StrangerOutcomes:
         alone = np.where(self.alone > 0, self.alone, np.nan)[None, :, None]
         return self.with_team / alone
 
+    @property
+    def over_best(self) -> np.ndarray:
+        """float [T, S, 2, G]: deliveries with the stranger over its best response's with it (ZSC-Eval's BR-Prox);
+        NaN where the stranger has no best response or it never delivers."""
+        best = np.full_like(self.alone, np.nan) if self.best is None else self.best
+        return self.with_team / np.where(best > 0, best, np.nan)[None, :, None]
+
 
 def play_with_strangers(teams: list[Team], strangers: list[Team], grids: list[Layout], rollouts: int,
                         max_steps: int, max_envs: int, seed: int, device: str, progress: bool = False,
-                        workers: int = 1) -> StrangerOutcomes:
-    """Each team beside each stranger in both seats, and each stranger with itself, `rollouts` episodes per grid."""
-    everyone = [*teams, *strangers]
-    first = len(teams)
-    matchups = [m for t in range(first) for s in range(first, len(everyone))
+                        workers: int = 1, best_responses: dict[int, Team] | None = None) -> StrangerOutcomes:
+    """Each team beside each stranger in both seats, each stranger with itself, and with its best response where
+    `best_responses` has one (stranger index -> team), `rollouts` episodes per grid."""
+    best_responses = best_responses or {}
+    everyone = [*teams, *strangers, *best_responses.values()]
+    first, last = len(teams), len(teams) + len(strangers)
+    matchups = [m for t in range(first) for s in range(first, last)
                 for m in (Matchup(t, s, STRANGER), Matchup(s, t, STRANGER))]
-    matchups += [Matchup(s, s, SP) for s in range(first, len(everyone))]
+    matchups += [Matchup(s, s, SP) for s in range(first, last)]
+    for b, s in enumerate(best_responses, start=last):
+        matchups += [Matchup(b, first + s, STRANGER), Matchup(first + s, b, STRANGER)]
     outcomes = play(everyone, matchups, grids, rollouts, max_steps, max_envs, seed, device, progress, workers)
     groups = grid_groups(outcomes)
     per_grid = outcomes.deliveries.mean(-1)  # [M, G]
@@ -102,4 +115,8 @@ def play_with_strangers(teams: list[Team], strangers: list[Team], grids: list[La
                          for _, names in groups], axis=1)  # [M, groups]
     pairs = len(teams) * len(strangers) * 2
     with_team = by_group[:pairs].reshape(len(teams), len(strangers), 2, len(groups))
-    return StrangerOutcomes(teams, strangers, groups, with_team, by_group[pairs:])
+    alone = by_group[pairs:pairs + len(strangers)]
+    best = np.full_like(alone, np.nan)
+    for b, s in enumerate(best_responses):
+        best[s] = by_group[pairs + len(strangers) + 2 * b: pairs + len(strangers) + 2 * b + 2].mean(0)
+    return StrangerOutcomes(teams, strangers, groups, with_team, alone, best)

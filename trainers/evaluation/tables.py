@@ -197,7 +197,7 @@ def iqm_interval(values, confidence: float = 0.95, resamples: int = 2000, seed: 
 
 def stranger_pair_rows(outcomes: StrangerOutcomes) -> list[dict]:
     """One row per team, stranger, seat and grid group: deliveries together, two of the stranger's, the ratio."""
-    normalised = outcomes.normalised
+    normalised, over_best = outcomes.normalised, outcomes.over_best
     rows = []
     for t, team in enumerate(outcomes.teams):
         for s, stranger in enumerate(outcomes.strangers):
@@ -211,14 +211,16 @@ def stranger_pair_rows(outcomes: StrangerOutcomes) -> list[dict]:
                         "deliveries": round(float(outcomes.with_team[t, s, seat, g]), 4),
                         "stranger_alone": round(float(outcomes.alone[s, g]), 4),
                         "normalised": round(float(normalised[t, s, seat, g]), 4),
+                        "over_best_response": round(float(over_best[t, s, seat, g]), 4),
                     })  # fmt: skip
     return rows
 
 
 def stranger_rows(outcomes: StrangerOutcomes, seed: int = 0) -> list[dict]:
     """Per condition and grid group (where its teams are at home): mean deliveries with the strangers, the mean and
-    the IQM of the normalised score over its teams x strangers x seats, with a 95% bootstrap interval."""
-    normalised = outcomes.normalised
+    the IQM of the normalised score over its teams x strangers x seats, with a 95% bootstrap interval, and the IQM
+    over the strangers' best responses where they have one (BR-Prox)."""
+    normalised, over_best = outcomes.normalised, outcomes.over_best
     rows = []
     for condition in dict.fromkeys(team.condition for team in outcomes.teams):
         members = [t for t, team in enumerate(outcomes.teams) if team.condition == condition]
@@ -227,28 +229,37 @@ def stranger_rows(outcomes: StrangerOutcomes, seed: int = 0) -> list[dict]:
                 continue
             ratios = normalised[members, :, :, g]
             middle, low, high = iqm_interval(ratios, seed=seed)
+            proximity = over_best[members, :, :, g]
+            br_middle, br_low, br_high = iqm_interval(proximity, seed=seed)
             rows.append({
                 "condition": condition, "grids": group, "pairs": int(ratios.size),
                 "deliveries": float(outcomes.with_team[members, :, :, g].mean()),
                 "strangers_alone": float(outcomes.alone[:, g].mean()),
                 "normalised": float(np.nanmean(ratios)) if not np.isnan(ratios).all() else math.nan,
-                "iqm": middle, "iqm_low": low, "iqm_high": high,
+                "iqm": middle, "iqm_low": low, "iqm_high": high, "br_pairs": int((~np.isnan(proximity)).sum()),
+                "br_iqm": br_middle, "br_iqm_low": br_low, "br_iqm_high": br_high,
             })  # fmt: skip
     return rows
 
 
 def markdown_strangers(rows: list[dict], strangers: Sequence[str], rollouts: int) -> str:
+    with_best = any(row["br_pairs"] for row in rows)
     lines = [
         f"With the held-out strangers ({len(strangers)}: {', '.join(strangers)}), the team in either seat, "
         f"{rollouts} rollouts per pair and grid. Deliveries: the mean over the condition's teams x strangers x "
         "seats. Normalised: deliveries over two of that stranger's on the same grids (1.0: as good a partner to it "
-        "as its own kind); IQM: their interquartile mean over teams x strangers x seats, [95% bootstrap interval].",
+        "as its own kind); IQM: their interquartile mean over teams x strangers x seats, [95% bootstrap interval]."
+        + (" Over the best response: deliveries with a stranger over its best response's with it (ZSC-Eval's "
+           "BR-Prox), IQM over the pairs of the strangers that have one." if with_best else ""),
         "",
-        "| condition | grids | with strangers | strangers alone | normalised | IQM normalised | pairs |",
-        "|---|---|---:|---:|---:|---:|---:|",
+        "| condition | grids | with strangers | strangers alone | normalised | IQM normalised | pairs |"
+        + (" over the best response (IQM) |" if with_best else ""),
+        "|---|---|---:|---:|---:|---:|---:|" + ("---:|" if with_best else ""),
     ]
     for row in rows:
+        best = (f" {row['br_iqm']:.2f} [{row['br_iqm_low']:.2f}, {row['br_iqm_high']:.2f}] ({row['br_pairs']}) |"
+                if with_best else "")
         lines.append(f"| {row['condition']} | {row['grids']} | {row['deliveries']:.2f} | {row['strangers_alone']:.2f} "
                      f"| {row['normalised']:.2f} | {row['iqm']:.2f} [{row['iqm_low']:.2f}, {row['iqm_high']:.2f}] | "
-                     f"{row['pairs']} |")
+                     f"{row['pairs']} |" + best)
     return "\n".join(lines) + "\n"
