@@ -325,3 +325,13 @@ def test_the_checks_find_what_is_wrong():
     page = ROOT / "docs" / "page.md"
     assert link_problems(page, text) == [
         f"docs/page.md:12: the link nowhere.md leads nowhere ({ROOT / 'docs' / 'nowhere.md'} does not exist)"]
+
+
+def test_the_pages_small_python_snippets_run_as_written():
+    """The JAX kitchen's and PettingZoo's snippets: whole programs a reader pastes (the larger ones train)."""
+    for page, first_line in [("docs/environment.md", "import jax, jax.numpy as jnp"),
+                             ("docs/play.md", "from jax_env.pettingzoo import KitchenParallelEnv")]:
+        snippets = [code for code in re.findall(r"```python\n(.*?)```", (ROOT / page).read_text(), re.S)
+                    if code.startswith(first_line)]
+        assert len(snippets) == 1, page
+        exec(compile(snippets[0], page, "exec"), {})  # a NameError or any failure fails the test

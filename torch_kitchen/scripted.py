@@ -1,10 +1,10 @@
 """A scripted cook: a partner no team trained with, reading the same observation a trained agent reads.
 
-It plans on the kitchen it sees, on any layout: it picks the first goal it can reach from a short list (what it
-holds and what the pots need decide the list), walks the shortest path to a cell beside the goal's tile (a
-breadth-first distance field), faces the tile and interacts. Where the partner stands in its way it takes a way
-around the partner or waits, at random, and where both could step into one cell it steps or waits at random:
-this breaks the symmetry of two cooks meeting in a corridor.
+It plans on the kitchen it sees, on any layout: it weighs the goals of a short list (what it holds and what the
+pots need decide which apply), takes the best one it can reach (or draws one, by a convention's temperature), walks
+a shortest path to a cell beside the goal's tile, faces the tile and interacts. Where the partner stands in its way
+it takes a way around the partner or waits, at random, and where both could step into one cell it steps or waits at
+random: this breaks the symmetry of two cooks meeting in a corridor.
 
     holding a soup    the serving counter; else a counter the partner can reach (a hand-over)
     holding an onion  a pot that takes onions; else a hand-over
@@ -12,10 +12,16 @@ this breaks the symmetry of two cooks meeting in a corridor.
     empty hands       a soup on a counter; a plate if a pot cooks and the partner holds no plate; an onion if a
                       pot takes onions; then a plate, then an onion (from a pile or a counter)
 
+That order is the default convention's (`torch_kitchen.conventions.Convention()`); a convention's preferences over
+events reorder the goals, its role holds the other part of the work back, its hand-over habit moves the hand-over
+goal, and its temperatures and noise spread the actions. Distances are read off a table per floor plan
+(`FloorDistances`): one breadth-first wave from each cell, once per kitchen, since walls and counters never move.
+
 Where nothing on its list is reachable it picks an action at random. Two of it deliver on every expanded classic
 layout (forced_coord_7x7 through hand-overs) and about 6 soups per 256 steps on the held-out levels
-(`tests/torch_kitchen/test_scripted.py`). Registered as the architecture "scripted_cook", so it is seated, saved
-and loaded like a trained team (it has no weights); `kitchen-eval` seats it beside every team (`partner`).
+(`tests/torch_kitchen/test_scripted.py`). Registered as the architecture "scripted_cook" (its convention a model
+option), so it is seated, saved and loaded like a trained team (it has no weights); `kitchen-eval` seats it beside
+every team (`partner`), and the zoo's cooks as strangers (`trainers.zoo`).
 """
 
 from __future__ import annotations

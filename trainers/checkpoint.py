@@ -93,6 +93,11 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         path = path / "checkpoints" / LATEST
     if not path.is_file():
         raise CheckpointError(f"no checkpoint at {path}: give a checkpoint file or a run directory that has one")
+    with open(path, "rb") as handle:
+        head = handle.read(4)
+    if not head.startswith((b"PK\x03\x04", b"\x80")):  # neither torch.save's zip nor a pickle, whole or cut short
+        raise CheckpointError(f"{path} is not a checkpoint: not a file torch.save writes (a run keeps its own in "
+                              "RUN/checkpoints/latest.pt)")
     try:
         with warnings.catch_warnings():  # a bare pickle of another protocol: refused below, no need to warn
             warnings.filterwarnings("ignore", message="Detected pickle protocol")

@@ -288,7 +288,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                  algorithm_settings())
     parser.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its latest round")
     add_plugin_option(parser)
-    args = parser.parse_args(argv)
+    args = parser.parse_intermixed_args(argv)  # overrides may follow --import MODULE
     try:
         import_plugins(args.plugins)
         if args.resume:

@@ -162,7 +162,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("config", help="a YAML config (configs/...)")
     parser.add_argument("overrides", nargs="*", help="key=a,b,c sweeps and key=value overrides; hydra.* settings")
     add_plugin_option(parser)
-    args = parser.parse_args(argv)
+    args = parser.parse_intermixed_args(argv)  # overrides may follow --import MODULE
     try:
         import_plugins(args.plugins)  # and again in every job (run_point), from the environment
         sweep(args.config, args.overrides)

@@ -89,7 +89,7 @@ def config_of(args: argparse.Namespace) -> tuple[list[TrainConfig], list[Path] |
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_intermixed_args(argv)  # overrides may follow --import MODULE
     stopped = None
     try:
         import_plugins(args.plugins)

@@ -102,10 +102,16 @@ def test_damaged_and_foreign_files_are_refused(tmp_path):
     foreign_zip = tmp_path / "foreign.pt"
     with zipfile.ZipFile(foreign_zip, "w") as archive:
         archive.writestr("notes.txt", "not a checkpoint")
-    for path in (truncated, empty, garbage, foreign_zip):
+    for path in (truncated, foreign_zip):
         with pytest.raises(CheckpointError, match="is not a readable checkpoint .*truncated or corrupt") as refused:
             load_checkpoint(path)
         assert "\n" not in str(refused.value)
+    text = tmp_path / "notes.pt"
+    text.write_text("hello")
+    for path in (empty, garbage, text):  # no file torch.save writes: said so, rather than how the reader failed
+        with pytest.raises(CheckpointError, match="is not a checkpoint: not a file torch.save writes") as refused:
+            load_checkpoint(path)
+        assert "\n" not in str(refused.value) and "Error" not in str(refused.value)
     torch.save({"weight": torch.zeros(2)}, tmp_path / "weights.pt")  # torch's, but no checkpoint
     with pytest.raises(CheckpointError, match="not an Infinite Kitchen checkpoint \\(no format and model"):
         load_checkpoint(tmp_path / "weights.pt")

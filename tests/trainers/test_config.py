@@ -227,3 +227,15 @@ def test_a_group_the_file_does_not_choose_is_added_and_the_runtime_group_fills_i
     twice = load_config(tmp_path / "mine.yaml", ["regime=ik", "architecture=mlp", "regime=sk_coord_ring",
                                                  "architecture=gnn"])  # the last choice, as for a key
     assert (twice.levels, twice.architecture) == ("coord_ring_7x7", "gnn")
+
+
+def test_every_shipped_training_config_trains_a_whole_number_of_updates():
+    """A run of any shipped config (and the paper's protocol) ends on an update's edge, with no warning."""
+    root = Path(__file__).resolve().parents[2]
+    paths = [*sorted((root / "configs" / "ippo").glob("*.yaml")), *sorted((root / "configs" / "e3t").glob("*.yaml")),
+             root / "configs" / "main.yaml", root / "configs" / "main_9x9.yaml"]
+    protocol = yaml.safe_load((root / "configs" / "protocols" / "paper.yaml").read_text())
+    paper = [item for item in protocol["overrides"] if not item.startswith("runtime.")]  # a GPU's
+    for path, overrides in [*((p, []) for p in paths), (paths[0], paper)]:
+        config = load_config(path, overrides)
+        assert config.total_steps % (config.num_envs * config.rollout_steps) == 0, (path, config.total_steps)

@@ -105,6 +105,7 @@ def test_every_team_also_plays_with_the_scripted_cook_in_both_seats(tmp_path, bo
     with open(out / "summary.csv") as handle:
         summary = {row["condition"]: row for row in csv.DictReader(handle)}
     assert int(summary["cooks"]["partner_pairs"]) == 4 and int(summary[SCRIPTED_CONDITION]["sp_pairs"]) == 1
+    assert int(summary[SCRIPTED_CONDITION]["partner_pairs"]) == 0  # its row is its self-play, not its partners' play
     expected = sum(float(row["mean_deliveries"]) for row in partner.values()) / 4
     assert float(summary["cooks"]["partner"]) == pytest.approx(expected)
     assert "| SP - XP | with the scripted cook |" in (out / "eval.md").read_text()

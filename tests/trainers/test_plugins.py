@@ -44,8 +44,10 @@ def test_a_users_architecture_trains_and_evaluates_by_name(user_folder, capsys):
     eval_config.write_text(f"conditions: {{mine: {user_folder / 'runs' / 'mine' / 'seed*'}}}\nlayouts: "
                            "[cramped_room_7x7]\nheldout: 0\nrollouts: 1\nmax_steps: 8\nprogress: false\n"
                            f"out_dir: {user_folder / 'eval'}\n")
-    assert eval_main([str(eval_config), "--import", "my_models"]) == 0
+    # Overrides may come before or after `--import MODULE`.
+    assert eval_main([str(eval_config), "--import", "my_models", "rollouts=2"]) == 0
     assert "| mine | cramped_room_7x7 |" in (user_folder / "eval" / "eval.md").read_text()
+    assert "(2 rollouts per pair and grid" in (user_folder / "eval" / "eval.md").read_text()
     # A sweep's job, in a process of its own, imports what the command was given: it is in the environment.
     assert import_plugins() == ["my_models"]
 

@@ -43,7 +43,7 @@ from trainers.evaluation.pairs import (
     make_matchups,
     play,
 )
-from trainers.evaluation.partners import HUMAN_PROXY_RUN, load_human_proxies, with_human_proxies
+from trainers.evaluation.partners import load_human_proxies, with_human_proxies
 from trainers.evaluation.tables import (
     at_home,
     grid_groups,
@@ -55,7 +55,14 @@ from trainers.evaluation.tables import (
     visit_shares,
     write_csv,
 )
-from trainers.evaluation.teams import SCRIPTED_CONDITION, Team, load_population, load_team, scripted_cook_team
+from trainers.evaluation.teams import (
+    HUMAN_PROXY_RUN,
+    SCRIPTED_CONDITION,
+    Team,
+    load_population,
+    load_team,
+    scripted_cook_team,
+)
 
 __all__ = [
     "CROSS", "HUMAN", "HUMAN_PROXY_RUN", "PARTNER", "SCRIPTED_CONDITION", "SP", "XP",

@@ -175,7 +175,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("config", help="an evaluation config (configs/eval/...)")
     parser.add_argument("overrides", nargs="*", help="key=value config overrides")
     add_plugin_option(parser)
-    args = parser.parse_args(argv)
+    args = parser.parse_intermixed_args(argv)  # overrides may follow --import MODULE
     try:
         import_plugins(args.plugins)
         evaluate(load_config(args.config, args.overrides, schema=EvalConfig))

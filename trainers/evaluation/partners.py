@@ -16,9 +16,7 @@ from jax_env import Layout
 from trainers.config import ConfigError
 from trainers.evaluation.pairs import HUMAN, SP, STRANGER, Matchup, Outcomes, play
 from trainers.evaluation.tables import grid_groups
-from trainers.evaluation.teams import Team, load_team
-
-HUMAN_PROXY_RUN = "human_proxy_{grid}/seed0"  # a test grid's human proxy in the `human_proxies` folder
+from trainers.evaluation.teams import HUMAN_PROXY_RUN, Team, load_team
 
 
 def load_human_proxies(folder: str | Path, grids: Sequence[Layout], device: str = "cpu") -> dict[str, Team]:

@@ -87,14 +87,11 @@ def summary_rows(outcomes: Outcomes) -> list[dict]:
                     outcomes, lambda m, a, b, kind=kind: m.kind == kind and a.condition == condition, names
                 )
                 stats[kind] = (*mean_and_stderr(scores), len(scores))
-            scores = pair_scores(
-                outcomes, lambda m, a, b: m.kind == PARTNER and condition in (a.condition, b.condition), names
-            )
-            stats[PARTNER] = (*mean_and_stderr(scores), len(scores))
-            scores = pair_scores(
-                outcomes, lambda m, a, b: m.kind == HUMAN and condition in (a.condition, b.condition), names
-            )
-            stats[HUMAN] = (*mean_and_stderr(scores), len(scores))
+            outside = team.outside_partner is not None  # its own row would repeat its partners' numbers
+            for kind in (PARTNER, HUMAN):
+                scores = pair_scores(outcomes, lambda m, a, b, kind=kind: m.kind == kind and not outside
+                                     and condition in (a.condition, b.condition), names)
+                stats[kind] = (*mean_and_stderr(scores), len(scores))
             if not any(pairs for _, _, pairs in stats.values()):
                 continue  # a human proxy away from its grid
             rows.append({

@@ -18,6 +18,7 @@ from trainers.checkpoint import CheckpointError, load_checkpoint
 from trainers.composer import load_config
 from trainers.config import ConfigError, RuntimeConfig, TrainConfig
 
+HUMAN_PROXY_RUN = "human_proxy_{grid}/seed0"  # a test grid's human proxy in the `human_proxies` folder
 STRANGERS_CONDITION = "held-out strangers"  # the condition of a zoo's strangers (`trainers.zoo`)
 SCRIPTED_CONDITION = "scripted cook"
 
@@ -53,6 +54,14 @@ class Team:
             return None
         levels = self.config.levels
         return {layout_name(level) for level in ([levels] if isinstance(levels, str) else levels)}
+
+    @property
+    def outside_partner(self) -> str | None:
+        """The kind of pair this team is the partner from outside in ("partner": the scripted cook, "human proxy"),
+        or None for a team of a population."""
+        if self.condition == SCRIPTED_CONDITION:
+            return "partner"
+        return "human proxy" if self.condition.startswith(HUMAN_PROXY_RUN.split("{")[0]) else None
 
     @property
     def label(self) -> str:
