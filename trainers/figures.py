@@ -158,14 +158,17 @@ def draw_stranger_heatmap(teams: list[str], strangers: list[str], normalised: np
                           path: Path) -> Path:
     """Team x stranger: normalised [T, S] (deliveries with the stranger over two of the stranger's, both seats
     averaged) on the grid group `grids`, each cell written in; 1.0 (white) is as good a partner as its own kind."""
-    figure, axis = plt.subplots(figsize=(1.0 + 0.75 * len(strangers), 1.2 + 0.42 * len(teams)))
+    figure, axis = plt.subplots(figsize=(2.5 + 0.75 * len(strangers), 2.2 + 0.42 * len(teams)))
     top = max(2.0, float(np.nanmax(normalised)) if np.isfinite(normalised).any() else 2.0)
-    image = axis.imshow(normalised, cmap="RdBu", vmin=0.0, vmax=top, aspect="auto")
+    norm = matplotlib.colors.TwoSlopeNorm(vmin=0.0, vcenter=1.0, vmax=top)  # white: as good as its own kind
+    image = axis.imshow(normalised, cmap="RdBu", norm=norm, aspect="auto")
     for (row, column), value in np.ndenumerate(normalised):
-        axis.text(column, row, "" if math.isnan(value) else f"{value:.2f}", ha="center", va="center", fontsize=7)
+        dark = not math.isnan(value) and abs(norm(value) - 0.5) > 0.3
+        axis.text(column, row, "" if math.isnan(value) else f"{value:.2f}", ha="center", va="center", fontsize=7,
+                  color="white" if dark else "black")
     axis.set_xticks(range(len(strangers)), strangers, rotation=60, ha="right", fontsize=7)
     axis.set_yticks(range(len(teams)), teams, fontsize=7)
-    figure.colorbar(image, ax=axis, shrink=0.8, label="deliveries / two of the stranger's")
+    figure.colorbar(image, ax=axis, fraction=0.04, pad=0.02).set_label("over two of the stranger", fontsize=8)
     axis.set_title(f"With the held-out strangers: {grids}", fontsize=9)
     figure.tight_layout()
     figure.savefig(path, dpi=120)

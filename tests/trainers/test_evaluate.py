@@ -204,8 +204,15 @@ def test_unusable_checkpoints_and_configs_are_refused_with_a_message(tmp_path, c
     corrupt.write_bytes(Path(good).read_bytes()[:500])
     with pytest.raises(CheckpointError, match="condition 'c': .*corrupt.pt is not a readable checkpoint"):
         load_population({"c": [good, str(corrupt)]})
-    with pytest.raises(CheckpointError, match="no run matches"):
-        load_population({"c": str(tmp_path / "nothing*")})
+    with pytest.raises(CheckpointError, match="no run matches 2 of the conditions' patterns: c .*nothing.*, d .*no") \
+            as missing:  # every missing run named in one refusal
+        load_population({"c": str(tmp_path / "nothing*"), "d": [good, str(tmp_path / "no*")]})
+    assert "\n" not in str(missing.value)
+    # The README's first evaluation: one's own runs named on the command line, no other condition needed.
+    out = tmp_path / "quick"
+    assert main(["configs/eval/runs.yaml", f"conditions={{c: {good}}}", "layouts=[cramped_room_7x7]", "heldout=1",
+                 "rollouts=1", "max_steps=8", f"out_dir={out}", "progress=false"]) == 0
+    assert "| c | cramped_room_7x7 |" in (out / "eval.md").read_text()
     save_checkpoint(tmp_path / "alien.pt", {"config": {}, "model": model_identity("alien", (7, 7, 26), 8, True),
                                             "actor": {}, "critic": {}})
     with pytest.raises(CheckpointError, match="'alien' model that cannot be built here"):

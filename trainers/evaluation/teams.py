@@ -122,14 +122,17 @@ def convention_team(convention: Convention, obs_shape: tuple[int, int, int], dev
 
 def load_population(conditions: dict[str, str | list[str]], device: str = "cpu") -> dict[str, list[Team]]:
     """Condition name -> its teams, from run directories, checkpoint files or glob patterns of them."""
+    matched = {condition: {pattern: sorted(glob.glob(pattern)) if glob.has_magic(pattern) else [pattern]
+                           for pattern in ([patterns] if isinstance(patterns, str) else patterns)}
+               for condition, patterns in conditions.items()}
+    missing = [f"{condition} ({pattern})" for condition, found in matched.items()
+               for pattern, paths in found.items() if not paths]
+    if missing:  # every one at once: a newcomer learns in one try what to train or leave out
+        raise CheckpointError(f"no run matches {len(missing)} of the conditions' patterns: {', '.join(missing)}; "
+                              "train them first, or name your own runs with conditions={name: RUN_DIR_OR_GLOB}")
     population = {}
-    for condition, patterns in conditions.items():
-        paths = []
-        for pattern in [patterns] if isinstance(patterns, str) else patterns:
-            matched = sorted(glob.glob(pattern)) if glob.has_magic(pattern) else [pattern]
-            if not matched:
-                raise CheckpointError(f"condition {condition!r}: no run matches {pattern!r}")
-            paths += matched
+    for condition, found in matched.items():
+        paths = [path for paths in found.values() for path in paths]
         teams = []
         for path in paths:
             try:
