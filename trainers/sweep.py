@@ -6,8 +6,10 @@
 Every config key takes Hydra's sweep grammar (`a,b,c`, `range(0,6)`); the grid is the product of the keys given
 several values, and each point of it is the run `kitchen-train CONFIG key=value ...` would train. Its directory is
 `<run_dir>/<name>/seed<k>` when only seeds vary and `<run_dir>/<name>/<key=value,...>/seed<k>` when other keys vary
-too, so `kitchen-eval`'s `runs/<name>/seed*` globs keep working. `teams=K` makes every job train seeds seed ..
-seed+K-1 together in one process, the paper's six teams of a condition in one job.
+too, so `kitchen-eval`'s `runs/<name>/seed*` globs keep working. `runtime.teams=K` makes every job train seeds
+seed .. seed+K-1 together in one process, the paper's six teams of a condition in one job. Each job ends as
+`kitchen-train` does: every run's self-play table (`eval.md`), learning curve and GIF in its folder, as its
+`eval_episodes` and `gif` ask; the sweep ends by saying where the runs are.
 
 The config groups (configs/algorithm, architecture, regime, runtime: `kitchen-train CONFIG regime=...` and the
 shipped configs' `defaults:`) sweep as groups, composed by Hydra from the same files as `kitchen-train`'s: e.g.
@@ -44,7 +46,7 @@ from trainers.algorithms import algorithm_settings, check_algorithm
 from trainers.composer import CONFIG_ROOT, GROUPS, config_help, group_choices, group_overrides, load_config
 from trainers.config import ConfigError, TrainConfig, is_config_key, unknown_key
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
-from trainers.train_command import train_or_resume
+from trainers.train_command import report_runs, train_or_resume
 from trainers.training_team import team_configs
 
 
@@ -60,7 +62,9 @@ def run_point(cfg) -> list[str]:
     varied = ",".join(item.lstrip("+") for item in HydraConfig.get().job.override_dirname.split(",") if item)
     if varied and not names_itself(cfg):
         config = load_config(base={**config.to_dict(), "name": f"{config.name}/{varied}"})
-    return [str(run) for run in train_or_resume(team_configs(config))]
+    runs = train_or_resume(team_configs(config))
+    report_runs(config, runs)  # eval.md, the learning curve and the GIF, as kitchen-train writes them
+    return [str(run) for run in runs]
 
 
 def names_itself(cfg) -> bool:
@@ -151,6 +155,8 @@ def sweep(config_path: str, overrides: Sequence[str]) -> None:
     path = Path(config_path).resolve()
     with command_line(["--multirun", *settings, *hydras, *as_hydra_overrides(config_path, grid)]):
         hydra.main(version_base="1.3", config_path=str(path.parent), config_name=path.stem)(run_point)()
+    where = f"{single.run_dir}/" + ("<name>/" if swept_name else f"{single.name}/")
+    print(f"kitchen-sweep: the runs are in {where} (each seed<k>, or <key=value,...>/seed<k> where other keys vary)")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -40,6 +40,16 @@ def train_or_resume(configs: Sequence[TrainConfig]) -> list[Path]:
     return train_teams(configs)
 
 
+def report_runs(config: TrainConfig, runs: Sequence[Path]) -> None:
+    """Each trained run's self-play table, learning curve and GIF, in its folder, as `eval_episodes` asks (0:
+    none): what `kitchen-train` and every job of `kitchen-sweep` end with."""
+    if config.eval_episodes > 0:
+        from trainers.evaluation import report_trained_team  # the evaluation's imports only where it runs
+
+        for run in runs:
+            report_trained_team(run)
+
+
 def train_config_file(path: str, overrides: Sequence[str]) -> float:
     """`train_or_resume` of the teams a config file and its overrides name; returns the wall seconds it took. A
     process's task where conditions train side by side (`scripts/reproduce.py --jobs`)."""
@@ -101,11 +111,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             stopped = error
             print(f"kitchen-train: {error}; continue with `kitchen-train --resume {' '.join(map(str, runs))}`",
                   file=sys.stderr)
-        if configs[0].eval_episodes > 0 and (stopped is None or args.eval_on_stop):
-            from trainers.evaluation import report_trained_team
-
-            for run in runs:
-                report_trained_team(run)
+        if stopped is None or args.eval_on_stop:
+            report_runs(configs[0], runs)
     except (ConfigError, CheckpointError, ValueError, PluginError) as error:
         print(f"kitchen-train: error: {error}", file=sys.stderr)
         return 2

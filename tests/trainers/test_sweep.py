@@ -30,9 +30,11 @@ def csv_rows(run: Path) -> list[str]:
 
 
 def test_a_two_by_two_grid_writes_four_runs_named_by_the_keys_that_vary(tmp_path):
-    sweep = kitchen_sweep(tmp_path, "seed=0,1", "lr=0.001,0.002", "total_steps=32", *TINY)
+    sweep = kitchen_sweep(tmp_path, "seed=0,1", "lr=0.001,0.002", "total_steps=32", *TINY, "eval_episodes=1",
+                          "eval_heldout=0")
     output, _ = sweep.communicate(timeout=600)
     assert sweep.returncode == 0, output
+    assert "kitchen-sweep: the runs are in runs/main/" in output
     runs = sorted(tmp_path.glob("runs/main/*/seed*"))
     assert [str(run.relative_to(tmp_path / "runs" / "main")) for run in runs] == [
         "lr=0.001/seed0", "lr=0.001/seed1", "lr=0.002/seed0", "lr=0.002/seed1"]
@@ -41,6 +43,7 @@ def test_a_two_by_two_grid_writes_four_runs_named_by_the_keys_that_vary(tmp_path
         assert state["env_steps"] == 32 and state["config"]["seed"] == int(run.name.removeprefix("seed"))
         assert state["config"]["lr"] == float(run.parent.name.removeprefix("lr="))
         assert [int(row.split(",")[0]) for row in csv_rows(run)] == [16, 32]
+        assert f"| main/{run.parent.name} | cramped_room_7x7 |" in (run / "eval.md").read_text()  # as kitchen-train
     assert list(tmp_path.glob("runs/main/.sweeps/*/multirun.yaml"))  # Hydra's record of the sweep, beside the runs
 
 
