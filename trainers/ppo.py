@@ -359,6 +359,9 @@ def run_directories(configs: Sequence[TrainConfig], runs: Sequence[Path] | None,
         print(f"kitchen-train: warning: {warning}", file=sys.stderr)
     if note := lead.step_note():
         print(f"kitchen-train: {note}", file=sys.stderr)
+    if actor_critic is not None and not isinstance(actor_critic, ActorCritic):
+        raise ConfigError(f"actor_critic must be a torch_kitchen.models.ActorCritic(actor=..., critic=..., "
+                          f"recurrent=...), got a {type(actor_critic).__name__}")
     if actor_critic is not None and len(configs) > 1:
         raise ConfigError("a given actor_critic trains one team; build the teams from config.architecture")
     runs = [Path(run) for run in runs] if runs is not None else [config.run_path for config in configs]

@@ -154,7 +154,8 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
     team = TrainingTeam(
         config=config, run=run, stream=stream, actor_critic=actor_critic, algorithm=algorithm, policy=policy,
         loss_module=loss_module, optimizer=optimizer, parameters=parameters,
-        identity=model_identity(config.architecture, obs_shape, config.hidden, config.share_params),
+        identity={**model_identity(config.architecture, obs_shape, config.hidden, config.share_params),
+                  **({} if own_networks else {"given": True})},  # networks passed from Python: not rebuilt by name
         parts={"actor": actor_critic.actor, "critic": actor_critic.critic, "optimizer": optimizer,
                "env": TeamKitchens(kitchen, index)},
     )  # fmt: skip

@@ -30,10 +30,11 @@ from trainers.advantages import compute_advantages
 from trainers.algorithms import ALGORITHMS, E3T, IPPO, register_algorithm
 from trainers.algorithms.base import standardize_advantage
 from trainers.algorithms.e3t import EGO
-from trainers.checkpoint import load_checkpoint
+from trainers.checkpoint import CheckpointError, load_checkpoint
 from trainers.composer import load_config
 from trainers.config import ConfigError, TrainConfig
 from trainers.evaluation import load_team, report_trained_team
+from trainers.evaluation import main as eval_main
 from trainers.figures import read_scalar
 from trainers.ppo import train
 from trainers.ppo_step import team_gradients
@@ -582,3 +583,19 @@ def test_a_team_trains_on_9x9_generated_kitchens_with_networks_built_for_them(tm
     for layout in CLASSIC_LAYOUTS:
         assert f"{layout}_in_9x9" in table
     assert "held-out (2)" in table
+
+
+def test_networks_built_in_python_train_and_load_into_networks_of_ones_own_never_by_a_wrong_name(tmp_path, capsys):
+    mine = make_actor_critic("mlp", (7, 7, 26), 8, True)  # narrower than the config's hidden=16
+    run = train(tiny_config(tmp_path), actor_critic=mine)
+    with pytest.raises(CheckpointError, match="built in Python .*load_team\\(RUN, actor_critic=") as refused:
+        load_team(run)
+    assert "\n" not in str(refused.value)
+    team = load_team(run, actor_critic=make_actor_critic("mlp", (7, 7, 26), 8, True))
+    for name, tensor in mine.actor.state_dict().items():
+        assert torch.equal(team.actor_critic.actor.state_dict()[name], tensor), name
+    assert eval_main(["configs/eval/runs.yaml", f"conditions={{mine: {run}}}", f"out_dir={tmp_path / 'eval'}"]) == 2
+    error = capsys.readouterr().err
+    assert "built in Python" in error and error.count("\n") == 1
+    with pytest.raises(ConfigError, match="actor_critic must be a torch_kitchen.models.ActorCritic.*got a tuple"):
+        train(tiny_config(tmp_path / "tuple"), actor_critic=(mine.actor, mine.critic))

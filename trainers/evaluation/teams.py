@@ -73,25 +73,36 @@ class Team:
         return f"{algorithm.upper()} {architecture.upper().replace('_', '+')} {self.regime}"
 
 
-def load_team(checkpoint: str | Path, device: str = "cpu", condition: str = "") -> Team:
-    """The trained team of a checkpoint file or run directory (a CheckpointError says why one is unusable)."""
+def load_team(checkpoint: str | Path, device: str = "cpu", condition: str = "",
+              actor_critic: ActorCritic | None = None) -> Team:
+    """The trained team of a checkpoint file or run directory (a CheckpointError says why one is unusable); its
+    weights go into `actor_critic` where given (networks built in Python, as `train(actor_critic=...)` took them),
+    else into the networks its header names."""
     state = load_checkpoint(checkpoint, map_location=device)
     where = state["path"]
+    model = state["model"]
+    if model.get("given") and actor_critic is None:
+        raise CheckpointError(
+            f"{where} was trained with networks built in Python (train(actor_critic=...)), which no name rebuilds: "
+            "load it with load_team(RUN, actor_critic=your_networks), or register their builder "
+            "(torch_kitchen.models.register_architecture) and train with architecture=<its name>"
+        )
     try:
         config = load_config(base=state["config"], overrides=[f"runtime.device={device}"])
     except ConfigError as error:
         raise CheckpointError(f"{where} was saved with a config this version cannot read ({error})") from None
-    model = state["model"]
+    own_networks = actor_critic is None
     try:
-        actor_critic = make_actor_critic(model["architecture"], tuple(model["obs_shape"]), model["hidden"],
-                                         model["share_params"], **model.get("options", {}))
+        if own_networks:
+            actor_critic = make_actor_critic(model["architecture"], tuple(model["obs_shape"]), model["hidden"],
+                                             model["share_params"], **model.get("options", {}))
     except ValueError as error:
         raise CheckpointError(
             f"{where} holds a {model['architecture']!r} model that cannot be built here ({error}); import the "
             "module that registers that architecture before loading it"
         ) from None
-    if torch.device(device).type == "cpu":
-        accelerate_cpu(actor_critic.actor, actor_critic.critic)
+    if own_networks and torch.device(device).type == "cpu":
+        accelerate_cpu(actor_critic.actor, actor_critic.critic)  # a user's networks stay as they were given
     try:
         actor_critic.actor.load_state_dict(state["actor"])
         actor_critic.critic.load_state_dict(state["critic"])
