@@ -49,7 +49,7 @@ from jax_env import EXPANDED_LAYOUTS, PADDED_LAYOUTS
 from trainers.composer import load_config
 from trainers.config import PLANNER_START, ConfigError, DeviceConfig, EvalConfig, TrainConfig
 from trainers.evaluation import HUMAN_PROXY_RUN, SCRIPTED_CONDITION, cross_condition, evaluate
-from trainers.humans import CACHE, fetch
+from trainers.humans import fetch
 from trainers.humans import train as train_proxies
 from trainers.machine import machine_name
 from trainers.resume import RunStopped
@@ -385,7 +385,7 @@ def human_proxies(out: Path) -> Path:
     missing = [g for g in PADDED_LAYOUTS if not (runs / HUMAN_PROXY_RUN.format(grid=g) / "checkpoints").is_dir()]
     if missing:
         if not (out / "data").is_dir():
-            fetch(out / "data", CACHE, progress=False)
+            fetch(out / "data", out / "cache", progress=False)  # the download stays in --out, as all the rest
         train_proxies(out / "data", runs, missing, ProxySettings(), 32, out / "proxies.md", fit_on="test")
     return runs
 
@@ -582,6 +582,9 @@ def main(argv=None) -> int:
                         help="train, evaluate and rewrite these of the protocol's sections only (default: all)")
     parser.add_argument("--conditions", nargs="+", metavar="NAME",
                         help="train and evaluate these of the protocol's conditions only (default: all)")
+    parser.add_argument("--no-human-proxies", action="store_true",
+                        help="evaluate without the human proxies even where the protocol seats them (fetching the "
+                             "2019 games and fitting five proxies takes longer than a tiny run)")
     parser.add_argument("--jobs", type=int, default=1,
                         help="conditions trained at a time, each in its own process (2 uses both cores of a 2-core "
                              "CPU; the results are the same)")
@@ -623,7 +626,8 @@ def main(argv=None) -> int:
         overrides=overrides, own_overrides={name: own for name, (_, own) in entries.items()}, jobs=args.jobs,
         eval_workers=min(args.jobs, os.cpu_count() or 1) if device == "cpu" else 1,
         training_seconds=time.perf_counter() - started, condition_seconds=seconds, evaluation=evaluation,
-        proxies=human_proxies(out / "humans") if evaluation.get("human_proxies") else None,
+        proxies=human_proxies(out / "humans") if evaluation.get("human_proxies") and not args.no_human_proxies
+        else None,
     )  # fmt: skip
     written = {}
     for section in sections_run(full, protocol, entries):

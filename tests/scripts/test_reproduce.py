@@ -61,10 +61,14 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     assert ("ik x sk_cramped", "cramped_room_7x7") in summary and ("guided_sk x ik", "cramped_room_7x7") in summary
     assert ("guided_sk x sk_cramped", "cramped_room_7x7") in summary  # a pair the protocol adds
 
-    # Run again: every condition is trained already, so nothing trains and the checkpoints stay as they were.
+    # Run again: every condition is trained already, so nothing trains and the checkpoints stay as they were;
+    # without the human proxies where asked, which are then neither fetched nor fitted.
     stamps = {p: p.stat().st_mtime_ns for p in out.glob("runs/*/seed*/checkpoints/latest.pt")}
-    assert reproduce.main(argv) == 0
+    monkeypatch.setattr(reproduce, "human_proxies", lambda out: pytest.fail("fetched the human proxies"))
+    assert reproduce.main([*argv, "--no-human-proxies"]) == 0
+    assert "| with the human proxy |" not in results.read_text()
     assert {p: p.stat().st_mtime_ns for p in out.glob("runs/*/seed*/checkpoints/latest.pt")} == stamps
+    monkeypatch.setattr(reproduce, "human_proxies", scripted_proxy)
     # Run again with a setting changed: the runs trained with the old one are refused in one line, not reused.
     capsys.readouterr()
     assert reproduce.main([argv[0], "lr=0.1", *argv[1:]]) == 2
