@@ -328,9 +328,8 @@ def test_the_checks_find_what_is_wrong():
 
 
 def test_the_pages_small_python_snippets_run_as_written():
-    """The JAX kitchen's and PettingZoo's snippets: whole programs a reader pastes (the larger ones train)."""
-    for page, first_line in [("docs/environment.md", "import jax, jax.numpy as jnp"),
-                             ("docs/play.md", "from jax_env.pettingzoo import KitchenParallelEnv")]:
+    """The JAX kitchen's snippet: a whole program a reader pastes (the larger ones train)."""
+    for page, first_line in [("docs/environment.md", "import jax, jax.numpy as jnp")]:
         snippets = [code for code in re.findall(r"```python\n(.*?)```", (ROOT / page).read_text(), re.S)
                     if code.startswith(first_line)]
         assert len(snippets) == 1, page

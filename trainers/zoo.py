@@ -104,24 +104,24 @@ def zoo_levels(seed: int, count: int, kitchen_size: int) -> list:
 
 
 def self_play(conventions: Sequence[Convention], grids: list, rollouts: int, seed: int, max_envs: int,
-              workers: int, progress: bool):
+              workers: int, progress: bool, max_steps: int = 256):
     """Each convention with itself on every grid: (deliveries [n, G, R], events per episode and seat [n, G, E])."""
     obs_shape = (*grids[0].shape, 26)
     teams = [convention_team(convention, obs_shape) for convention in conventions]
     matchups = [Matchup(i, i, SP) for i in range(len(teams))]
-    outcomes = play(teams, matchups, grids, rollouts, max_envs=max_envs, seed=seed, progress=progress,
-                    workers=workers)
+    outcomes = play(teams, matchups, grids, rollouts, max_steps, max_envs, seed, progress=progress, workers=workers)
     return outcomes.deliveries, outcomes.events.sum(2) / (2 * rollouts)
 
 
 def draw_zoo(seed: int = 0, candidates: int = 96, keep: int = 32, strangers: int = 8, levels: int = 64,
              kitchen_size: int = 7, min_cooked: float = 0.6, max_envs: int = 4096, workers: int = 1,
-             progress: bool = True) -> Zoo:
-    """Draws, plays, filters and selects a zoo (see the module docstring). Deterministic for its arguments."""
+             progress: bool = True, max_steps: int = 256) -> Zoo:
+    """Draws, plays (`max_steps`-step episodes), filters and selects a zoo (see the module docstring).
+    Deterministic for its arguments."""
     rng = random.Random(seed)
     drawn = [draw_convention(rng, f"cook_{seed}_{i:03d}") for i in range(candidates)]
     deliveries, events = self_play(drawn, zoo_levels(seed, levels, kitchen_size), 1, seed, max_envs, workers,
-                                   progress)
+                                   progress, max_steps)
     cooked = (deliveries > 0).mean((1, 2))
     cooks = [i for i in range(candidates) if cooked[i] >= min_cooked]
     if len(cooks) < keep:

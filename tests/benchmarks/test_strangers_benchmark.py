@@ -10,8 +10,8 @@ def test_the_stranger_benchmark_times_both_passes_and_writes_its_table(tmp_path)
                for name, order in (("a", "NSEW"), ("b", "WENS"))]
     zoo = save_zoo(Zoo(0, 7, generator_settings(7), members), tmp_path / "zoo.yaml")
     out = tmp_path / "strangers.md"
-    strangers.main(["--zoo", str(zoo), "--heldout", "2", "--rollouts", "1", "--workers", "1", "--out", str(out)])
+    strangers.main(["--zoo", str(zoo), "--heldout", "1", "--rollouts", "1", "--workers", "1", "--out", str(out)])
     table = out.read_text()
-    assert "| beside the strangers (and each alone) | 6 | 12 |" in table  # 2 strangers: 6 pairs x 2 levels
-    assert "| beside the scripted cook (and it alone): reference | 3 | 6 |" in table
+    assert "| beside the strangers (and each alone) | 6 | 6 |" in table  # 2 strangers: 6 pairs x 1 level
+    assert "| beside the scripted cook (and it alone): reference | 3 | 3 |" in table
     assert "Goal: the stranger pass under 300 s: PASS" in table

@@ -72,7 +72,8 @@ def test_bad_overrides_are_refused_before_any_work(override, message):
 @pytest.mark.parametrize(
     "overrides, message",
     [
-        (["algorithm=ppo"], r"^algorithm must be one of ippo, e3t, anchored_ippo, kickstarted_ippo, got 'ppo'$"),
+        (["algorithm=ppo"],
+         r"^algorithm must be one of ippo, e3t, anchored_ippo, kickstarted_ippo, zoo_ippo, got 'ppo'$"),
         (["algorithm=e3t", "algorithm_config.partner_epsilon=1.5"],
          r"^algorithm_config.partner_epsilon must lie in \[0, 1\], got 1.5$"),
         (["algorithm=e3t", "algorithm_config.partner_copy_rate=-0.1"],
@@ -358,7 +359,8 @@ def test_config_help_lists_every_key_with_type_default_and_meaning():
                       "planner-guided start (kitchen-distill, then init_from):",
                       "logging, checkpoints, final evaluation:", "runtime:",
                       "algorithm_config (algorithm: e3t):", "algorithm_config (algorithm: anchored_ippo):",
-                      "algorithm_config (algorithm: kickstarted_ippo):"]  # fmt: skip
+                      "algorithm_config (algorithm: kickstarted_ippo):",
+                      "algorithm_config (algorithm: zoo_ippo):"]  # fmt: skip
     assert "    layouts: list[str] = [cramped_room_7x7, " in config_help(EvalConfig)
 
     # As an epilog, argparse keeps its lines.
