@@ -27,7 +27,7 @@ from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 from torchrl.record.loggers import TensorboardLogger
 
-from torch_kitchen.env import KitchenEnv
+from torch_kitchen.env import AgentDones, KitchenEnv
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -127,6 +127,7 @@ def main(argv: list[str] | None = None) -> dict:
     torch.manual_seed(args.seed)
     levels = args.levels[0] if len(args.levels) == 1 else args.levels
     env = KitchenEnv(num_envs=args.envs, levels=levels, max_steps=args.max_steps, device=args.device, seed=args.seed)
+    env = env.append_transform(AgentDones())  # ("agents", "done" | "terminated") beside each agent's reward
     actor, critic = make_actor_critic(env)
     initial_params = {"actor": TensorDict.from_module(actor).clone(), "critic": TensorDict.from_module(critic).clone()}
 
@@ -149,10 +150,6 @@ def main(argv: list[str] | None = None) -> dict:
         # reward: the shared sparse reward plus each agent's weighted shaped reward, [B, T, 2, 1]
         shaped = next_["agents", "shaped_reward"]
         next_["agents", "ppo_reward"] = next_["agents", "reward"] + args.shaping_weight * shaped
-        # the env's done/terminated are per kitchen [B, T, 1]; GAE reads them next to the per-agent reward
-        agent_shape = next_.get_item_shape(("agents", "reward"))
-        for key in ("done", "terminated"):
-            next_["agents", key] = next_[key].unsqueeze(-1).expand(agent_shape)
         with torch.no_grad():
             loss_module.value_estimator(
                 data, params=loss_module.critic_network_params, target_params=loss_module.target_critic_network_params

@@ -39,7 +39,7 @@ from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
 from jax_env import DELIVERY_REWARD, NUM_ACTIONS, GeneratorConfig, Overcooked, ShapingWeights, State
 from jax_env.env import Levels
 from torch_kitchen.jax_settings import share_process_with_torch
-from torch_kitchen.keys import ACTION, OBSERVATION, REWARD, SHAPED_REWARD
+from torch_kitchen.keys import ACTION, AGENTS, N_AGENTS, OBSERVATION, REWARD, SHAPED_REWARD
 from torch_kitchen.rollout import as_tensordict, rollout_into
 
 share_process_with_torch()
@@ -485,6 +485,33 @@ class KitchenEnv(EnvBase):
     def states(self):
         """The JAX kitchens (a batched `jax_env.State`), read-only: for rendering and scenario checks."""
         return self._states
+
+
+class AgentDones(Transform):
+    """("agents", "done" | "terminated" | "truncated") bool [*B, 2, 1]: the kitchen's flags beside each agent's
+    reward, where TorchRL's multi-agent GAE and PPO loss read them (`set_keys(done=("agents", "done"),
+    terminated=("agents", "terminated"))`), as TorchRL's PettingZoo wrapper gives them per group: a TorchRL loop
+    over the kitchens needs no expansion of its own (docs/environment.md)."""
+
+    FLAGS = ("done", "terminated", "truncated")
+
+    def __init__(self):
+        super().__init__(in_keys=list(self.FLAGS), out_keys=[(AGENTS, flag) for flag in self.FLAGS])
+
+    def _call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        for flag in self.FLAGS:
+            kitchen = tensordict.get(flag)  # [*B, 1]
+            tensordict.set((AGENTS, flag), kitchen.unsqueeze(-2).expand(*kitchen.shape[:-1], N_AGENTS, 1))
+        return tensordict
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        return self._call(tensordict_reset)
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        agents = observation_spec[AGENTS]
+        for flag in self.FLAGS:
+            agents[flag] = Categorical(2, shape=(*agents.shape, 1), dtype=torch.bool, device=agents.device)
+        return observation_spec
 
 
 class TransformedKitchenEnv(TransformedEnv):

@@ -11,7 +11,7 @@ from torchrl.envs.utils import RandomPolicy, check_env_specs
 
 from jax_env import State, load_layout
 from jax_env.state import make_state
-from torch_kitchen.env import KitchenEnv
+from torch_kitchen.env import AgentDones, KitchenEnv
 
 
 def _numpy_states(states):
@@ -305,3 +305,14 @@ def test_packed_outputs_as_a_gpu_crosses_them_hold_what_the_three_arrays_hold():
             assert torch.equal(ours[key], theirs[key]), (t, key)
         ours["agents", "action"], theirs["agents", "action"] = actions[t], actions[t]
         ours, theirs = packed.step_and_maybe_reset(ours)[1], plain.step_and_maybe_reset(theirs)[1]
+
+
+def test_agent_dones_put_each_kitchens_flags_beside_each_agents_reward():
+    env = KitchenEnv(num_envs=3, levels="cramped_room_7x7", max_steps=4, seed=0).append_transform(AgentDones())
+    check_env_specs(env)
+    rollout = env.rollout(6, break_when_any_done=False)  # an episode ends at step 4, the next one starts
+    for flag in ("done", "terminated", "truncated"):
+        per_agent, kitchen = rollout["next", "agents", flag], rollout["next", flag]
+        assert per_agent.shape == rollout["next", "agents", "reward"].shape == (3, 6, 2, 1)
+        assert torch.equal(per_agent, kitchen.unsqueeze(-2).expand(3, 6, 2, 1))
+    assert rollout["next", "agents", "done"][:, 3].all() and not rollout["next", "agents", "done"][:, :3].any()
