@@ -87,9 +87,8 @@ def summary_rows(outcomes: Outcomes) -> list[dict]:
                     outcomes, lambda m, a, b, kind=kind: m.kind == kind and a.condition == condition, names
                 )
                 stats[kind] = (*mean_and_stderr(scores), len(scores))
-            outside = team.outside_partner is not None  # its own row would repeat its partners' numbers
-            for kind in (PARTNER, HUMAN):
-                scores = pair_scores(outcomes, lambda m, a, b, kind=kind: m.kind == kind and not outside
+            for kind in (PARTNER, HUMAN):  # an outside partner's own row would repeat its partners' numbers
+                scores = pair_scores(outcomes, lambda m, a, b, kind=kind: m.kind == kind and not team.is_outside_partner
                                      and condition in (a.condition, b.condition), names)
                 stats[kind] = (*mean_and_stderr(scores), len(scores))
             if not any(pairs for _, _, pairs in stats.values()):

@@ -56,12 +56,9 @@ class Team:
         return {layout_name(level) for level in ([levels] if isinstance(levels, str) else levels)}
 
     @property
-    def outside_partner(self) -> str | None:
-        """The kind of pair this team is the partner from outside in ("partner": the scripted cook, "human proxy"),
-        or None for a team of a population."""
-        if self.condition == SCRIPTED_CONDITION:
-            return "partner"
-        return "human proxy" if self.condition.startswith(HUMAN_PROXY_RUN.split("{")[0]) else None
+    def is_outside_partner(self) -> bool:
+        """Whether this team is a partner from outside every population: the scripted cook or a human proxy."""
+        return self.condition == SCRIPTED_CONDITION or self.condition.startswith(HUMAN_PROXY_RUN.split("{")[0])
 
     @property
     def label(self) -> str:
