@@ -12,7 +12,8 @@ cross-plays; `learner` says how they learn, `paper` whose of the paper's figures
 cross-play (`cross`), RESULTS.md's `sections` (the conditions evaluated and reported together: a learner's
 families, say) and the evaluation's sizes; `evaluation: {human_proxies: true}` also seats a human proxy
 (behaviour-cloned from the 2019 human games' test split, `kitchen-humans`) beside every team on the classic
-layouts drawn inside a 7x7 kitchen, which join the test grids.
+layouts drawn inside a 7x7 kitchen, which join the test grids; a mapping of `ProxySettings` fields in its place sizes
+their fitting (`{epochs: 1, candidates: 1, fine_tune_steps: 0}` for a tiny run), `--no-human-proxies` leaves them out.
 
 Training writes `<out>/runs/<condition>/seed<k>`, `--jobs` conditions at a time, each in a process of its own; a
 condition already trained is skipped and one that stopped part-way is resumed, so an interrupted reproduction
@@ -28,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import datetime
 import functools
 import math
@@ -46,6 +48,7 @@ import torch
 import yaml
 
 from jax_env import EXPANDED_LAYOUTS, PADDED_LAYOUTS
+from trainers.behaviour_cloning import ProxySettings
 from trainers.composer import load_config
 from trainers.config import PLANNER_START, ConfigError, DeviceConfig, EvalConfig, TrainConfig
 from trainers.evaluation import HUMAN_PROXY_RUN, SCRIPTED_CONDITION, cross_condition, evaluate
@@ -376,17 +379,30 @@ def sections_run(full: dict, protocol: dict, entries: dict[str, tuple[str, list[
     return sections
 
 
-def human_proxies(out: Path) -> Path:
+def proxy_settings(human_proxies: bool | dict) -> ProxySettings | None:
+    """How the protocol's human proxies are fitted (`evaluation: {human_proxies: true}`, or a mapping of
+    `ProxySettings` fields that sizes them, e.g. `{epochs: 1, candidates: 1, fine_tune_steps: 0}` for a tiny run);
+    None: no human proxies."""
+    if not human_proxies:
+        return None
+    settings = human_proxies if isinstance(human_proxies, dict) else {}
+    fields = {field.name for field in dataclasses.fields(ProxySettings)}
+    unknown = sorted(set(settings) - fields)
+    if unknown:
+        raise ValueError(f"evaluation.human_proxies: unknown settings {', '.join(unknown)} (the settings are "
+                         f"{', '.join(sorted(fields))})")
+    return ProxySettings(**settings)
+
+
+def human_proxies(out: Path, settings: ProxySettings) -> Path:
     """The test split's human proxy of every classic layout drawn inside a 7x7 kitchen, in `out`/runs (fetched and
     fitted the first time: `kitchen-humans fetch`, then `kitchen-humans train --fit-on test`)."""
-    from trainers.behaviour_cloning import ProxySettings
-
     runs = out / "runs"
     missing = [g for g in PADDED_LAYOUTS if not (runs / HUMAN_PROXY_RUN.format(grid=g) / "checkpoints").is_dir()]
     if missing:
         if not (out / "data").is_dir():
             fetch(out / "data", out / "cache", progress=False)  # the download stays in --out, as all the rest
-        train_proxies(out / "data", runs, missing, ProxySettings(), 32, out / "proxies.md", fit_on="test")
+        train_proxies(out / "data", runs, missing, settings, 32, out / "proxies.md", fit_on="test")
     return runs
 
 
@@ -472,7 +488,8 @@ def section_markdown(section: Section, facts: RunFacts, config: TrainConfig, eva
         + f", each in its own process: distillation, collection and updates); evaluation {eval_seconds / 60:.1f} min "
         f"({facts.eval_workers} process{'es' if facts.eval_workers > 1 else ''}).",
         f"- **Evaluation:** the 5 expanded layouts and {facts.evaluation['heldout']} held-out levels, "
-        f"{facts.evaluation['rollouts']} rollouts per pair and grid; the scripted cook "
+        f"{facts.evaluation['rollouts']} rollouts of {facts.evaluation.get('max_steps', 256)} steps per pair and grid; "
+        "the scripted cook "
         f"(`torch_kitchen/scripted.py`) beside every team; \"{SCRIPTED_CONDITION}\" is its own self-play."
         + (f" The classic layouts that fit a 7x7 kitchen, drawn inside one ({', '.join(PADDED_LAYOUTS)}), with "
            "each one's human proxy beside every team (behaviour-cloned from the 2019 human games' test split, so no "
@@ -578,6 +595,8 @@ def main(argv=None) -> int:
     parser.add_argument("--teams", type=int, help="seeds per condition (default: the protocol's)")
     parser.add_argument("--rollouts", type=int, help="evaluation episodes per pair and grid (default: the protocol's)")
     parser.add_argument("--heldout", type=int, help="held-out levels in the evaluation (default: the protocol's)")
+    parser.add_argument("--max-steps", type=int,
+                        help="steps of an evaluation episode (default: the protocol's, else 256)")
     parser.add_argument("--sections", nargs="+", metavar="NAME",
                         help="train, evaluate and rewrite these of the protocol's sections only (default: all)")
     parser.add_argument("--conditions", nargs="+", metavar="NAME",
@@ -588,12 +607,13 @@ def main(argv=None) -> int:
     parser.add_argument("--jobs", type=int, default=1,
                         help="conditions trained at a time, each in its own process (2 uses both cores of a 2-core "
                              "CPU; the results are the same)")
-    args = parser.parse_args(argv)
+    args = parser.parse_intermixed_args(argv)  # overrides may follow the options
     if args.jobs < 1:
         parser.error(f"--jobs must be at least 1, got {args.jobs}")
     try:
         full = yaml.safe_load(Path(args.protocol).read_text())
         protocol, _ = select_conditions(full, named_conditions(full, args.sections, args.conditions))
+        proxies = None if args.no_human_proxies else proxy_settings(protocol.get("evaluation", {}).get("human_proxies"))
     except OSError as error:
         parser.error(f"{args.protocol}: {error.strerror}")
     except ValueError as error:
@@ -615,7 +635,8 @@ def main(argv=None) -> int:
         print(f"reproduce: error: {error}", file=sys.stderr)
         return 2
     evaluation = {**protocol.get("evaluation", {}),
-                  **{key: getattr(args, key) for key in ("rollouts", "heldout") if getattr(args, key) is not None}}
+                  **{key: getattr(args, key) for key in ("rollouts", "heldout", "max_steps")
+                     if getattr(args, key) is not None}}
     device = load_config(next(iter(entries.values()))[0], overrides).runtime.device  # shared by every condition
     machine = f"{machine_name()}, device {device}"
     if device.startswith("cuda") and torch.cuda.is_available():
@@ -626,8 +647,7 @@ def main(argv=None) -> int:
         overrides=overrides, own_overrides={name: own for name, (_, own) in entries.items()}, jobs=args.jobs,
         eval_workers=min(args.jobs, os.cpu_count() or 1) if device == "cpu" else 1,
         training_seconds=time.perf_counter() - started, condition_seconds=seconds, evaluation=evaluation,
-        proxies=human_proxies(out / "humans") if evaluation.get("human_proxies") and not args.no_human_proxies
-        else None,
+        proxies=human_proxies(out / "humans", proxies) if proxies else None,
     )  # fmt: skip
     written = {}
     for section in sections_run(full, protocol, entries):

@@ -18,7 +18,8 @@ TINY = ["hidden=8", "num_envs=4", "rollout_steps=16", "max_steps=16", "total_ste
 
 @pytest.mark.slow
 def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp_path, monkeypatch, capsys):
-    def scripted_proxy(out):  # a stand-in for the human proxies (fetching and fitting them is kitchen-humans' test)
+    def scripted_proxy(out, settings):  # a stand-in for the human proxies (fetching and fitting: kitchen-humans' test)
+        assert (settings.epochs, settings.candidates, settings.hidden) == (2, 1, 128)  # the protocol sizes them
         save_scripted_team(out / "runs" / "human_proxy_cramped_room_in_7x7" / "seed0" / "checkpoints" / "latest.pt",
                            "scripted_cooks", levels="cramped_room_in_7x7", shape=(7, 7))
         return out / "runs"
@@ -33,7 +34,7 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
         "families": {"MLP": {"ik": "ik", "sk": ["sk_cramped"]},
                      "MLP guided": {"ik": "ik", "sk": ["guided_sk"], "learner": "guided", "paper": "MLP"}},
         "cross": [["sk_cramped", "guided_sk"]],
-        "evaluation": {"heldout": 1, "rollouts": 1, "max_steps": 16, "human_proxies": True},
+        "evaluation": {"heldout": 1, "rollouts": 1, "max_steps": 16, "human_proxies": {"epochs": 2, "candidates": 1}},
     }  # fmt: skip
     path = tmp_path / "protocol.yaml"
     path.write_text(yaml.safe_dump(protocol))
@@ -64,7 +65,7 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     # Run again: every condition is trained already, so nothing trains and the checkpoints stay as they were;
     # without the human proxies where asked, which are then neither fetched nor fitted.
     stamps = {p: p.stat().st_mtime_ns for p in out.glob("runs/*/seed*/checkpoints/latest.pt")}
-    monkeypatch.setattr(reproduce, "human_proxies", lambda out: pytest.fail("fetched the human proxies"))
+    monkeypatch.setattr(reproduce, "human_proxies", lambda out, settings: pytest.fail("fetched the human proxies"))
     assert reproduce.main([*argv, "--no-human-proxies"]) == 0
     assert "| with the human proxy |" not in results.read_text()
     assert {p: p.stat().st_mtime_ns for p in out.glob("runs/*/seed*/checkpoints/latest.pt")} == stamps
@@ -125,6 +126,13 @@ def test_a_condition_not_in_the_protocol_is_one_line_naming_the_ones_there(tmp_p
         reproduce.main([str(path), "--conditions", "ik", "gnn_ik"])
     assert stopped.value.code == 2
     assert capsys.readouterr().err.strip().endswith("--conditions: gnn_ik not in the protocol, which has ik")
+    # The human proxies' sizes in the protocol: an unknown one is refused before anything trains.
+    path.write_text(yaml.safe_dump({"teams": 1, "conditions": {"ik": "a.yaml"}, "families": {},
+                                    "evaluation": {"human_proxies": {"epoch": 1}}}))
+    with pytest.raises(SystemExit):
+        reproduce.main([str(path)])
+    assert "evaluation.human_proxies: unknown settings epoch (the settings are anchor_coef, architecture" in \
+        capsys.readouterr().err
 
 
 def test_a_protocol_file_that_is_not_there_is_one_line(tmp_path, capsys):
