@@ -1,13 +1,29 @@
 #!/usr/bin/env bash
-# Every GPU check and benchmark in one call, on a machine with CUDA torch and JAX (outputs under $OUT, or
-# benchmarks/results/gpu). Without a package index, TorchRL's wheels come from .whl/ (`make gpu-offline`).
-# The steps run in order of what they tell, each within its own timeout, and a step is skipped (saying so) once
-# less than its timeout is left of BUDGET_S seconds (default 540: one call of a 10-minute limit, with set-up).
-# ONLY=<regex> runs the steps whose output file matches it (e.g. ONLY=main for the main job alone).
+# Every GPU check and benchmark in one call, on a machine with CUDA torch and JAX. Without a package index,
+# TorchRL's wheels come from .whl/ (`make gpu-offline`).
+#
+# The main job (`make main DEVICE=cuda` less its set-up: the user's first command) starts in the background at once,
+# with its own wall time; the rows run meanwhile, each once, in order of what they tell: the paper's protocol with
+# the default collector first, ours against the pure-JAX yardstick in the same run. A row is skipped (saying so)
+# once less than its timeout is left of BUDGET_S seconds (default 540: one call of a 10-minute limit, with set-up).
+# Each run writes a fresh record, benchmarks/results/gpu/<date>_<device>.json and .md (benchmarks/gpu_record.py):
+# per row the command, ours, the yardstick, the ratio and PASS/FAIL against the goals; raw outputs beside it.
+#
+# DEVICE=cpu SIZE=tiny: a dry run of every path in seconds (the suite runs it, so the script cannot rot between
+# lendings). ONLY=<regex> runs the rows whose name matches it (e.g. ONLY=main for the main job alone).
 set -uo pipefail
-out=${OUT:-benchmarks/results/gpu}
+device=${DEVICE:-cuda}
 budget=${BUDGET_S:-540}
-mkdir -p "$out"
+results=${RESULTS:-benchmarks/results/gpu}
+raw=$(mktemp -d)
+records=$raw/records.jsonl
+if [[ ${SIZE:-full} == tiny ]]; then
+    protocol=tiny jaxmarl=tiny ik=tiny updates=2 repeats=1 envs=4 steps=8
+    main_args="num_envs=4 rollout_steps=16 max_steps=16 hidden=16 total_steps=64 distill_kitchens=4 distill_rounds=1
+        distill_epochs=1 eval_episodes=0 runtime.threads=1"
+else
+    protocol=protocol jaxmarl=jaxmarl ik=ik updates=3 repeats=3 envs=192 steps=300 main_args=""
+fi
 if ! python -c "import torchrl" 2>/dev/null; then
     python -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl
     export PYTHONPATH=/tmp/site:$PWD
@@ -16,42 +32,60 @@ export PYTHONPATH=${PYTHONPATH:-$PWD}
 # Pure-Python packages a bare machine may lack (the config loader's OmegaConf, the reference's Flax and Optax):
 # copies of the set-up's, last on the path (`make gpu-offline`).
 [[ -d .whl/site ]] && export PYTHONPATH=$PYTHONPATH:$PWD/.whl/site
-# A missing package stops the call here, before any device time goes on steps that cannot start.
+# A missing package stops the call here, before any device time goes on rows that cannot start.
 if ! python -W ignore -c "import torchrl, flax, optax, trainers.ppo, torch_kitchen.env"; then
     echo "gpu_checks: the imports above fail (make gpu-offline, then carry .whl)"; exit 1
 fi
+{ nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>/dev/null
+  python -c "import torch, jax; print('torch', torch.__version__, torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no CUDA', '| jax', jax.__version__, jax.devices())"
+} 2>&1 | tee "$raw/device.txt"
 
-# step FILE TIMEOUT COMMAND...: runs COMMAND with TIMEOUT seconds, appending its output (warnings dropped) to FILE.
-step() {
-    local file=$1 limit=$2
+# row NAME TIMEOUT COMMAND...: runs COMMAND with TIMEOUT seconds, its output (warnings dropped) into NAME.txt.
+row() {
+    local name=$1 limit=$2
     shift 2
-    [[ -n ${ONLY:-} && ! $file =~ $ONLY ]] && return
+    [[ -n ${ONLY:-} && ! $name =~ $ONLY ]] && return
     if (( budget - SECONDS < limit )); then
-        echo "== skipped (${limit} s needed, $(( budget - SECONDS )) s left): $*" | tee -a "$out/$file"
+        echo "== $name skipped (${limit} s needed, $(( budget - SECONDS )) s left)"
+        printf '{"row": "%s", "command": "%s", "skipped": true}\n' "$name" "$*" >> "$records"
         return
     fi
-    echo "== $*" | tee -a "$out/$file"
-    timeout "$limit" "$@" 2>&1 | grep -v Warning | tee -a "$out/$file"
+    echo "== $name: $*"
+    GPU_CHECK_ROW=$name timeout "$limit" "$@" 2>&1 | grep -v Warning | tee "$raw/$name.txt"
 }
 
-{ nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv; python -c "import torch, jax; print('torch', torch.__version__, torch.cuda.get_device_name(0), '| jax', jax.__version__, jax.devices())"; } 2>&1 | tee "$out/device.txt"
-reference="python benchmarks/train.py reference --device cuda --threads 1"
-# The headline first: the paper's protocol (c), ours against the pure-JAX yardstick in the same run: the teams
-# acting inside the kitchens' XLA program (the default collector), then acting step by step from torch, then with
-# the compiled update (CUDA graphs), and with the stacked acting networks as CUDA graphs too.
-step reference_gpu.txt 200 $reference --setting protocol --updates 3
-step reference_gpu.txt 200 $reference --setting protocol --updates 3 --collector kitchen
-step reference_gpu.txt 200 $reference --setting protocol --updates 3 --update-compiled true
-step reference_gpu.txt 180 $reference --setting protocol --updates 3 --update-compiled true --compile \
-    --collector kitchen
-# What the host does per step and minibatch, where a batch's time goes, the floor, and the syncs torch reports.
-step launches_gpu.txt 90 python benchmarks/launches.py --setting protocol --teams 1 6 --device cuda
-step phases_gpu.txt 120 python benchmarks/phases.py --setting protocol --updates 3 --device cuda
-step collection_gpu.txt 90 python benchmarks/collection.py --setting ik --envs 192 --steps 300 --device cuda
-# The main job end to end on the GPU (`make main DEVICE=cuda` less its set-up), and its wall time.
-step main_gpu.txt 200 bash -c 'started=$SECONDS; python -m trainers.train_command configs/main.yaml \
-    runtime.device=cuda run_dir=/tmp/main_gpu progress=false && echo "main job: $((SECONDS - started)) s"'
-if (( budget - SECONDS >= 90 )); then  # its warnings are the output: kept whole
+# The main job, from the start, in the background: its wall time is the user's.
+if [[ -z ${ONLY:-} || main =~ $ONLY ]]; then
+    (
+        started=$SECONDS
+        timeout "$budget" python -m trainers.train_command configs/main.yaml runtime.device="$device" \
+            run_dir="$raw/main" progress=false $main_args > "$raw/main.txt" 2>&1
+        status=$?
+        printf '{"row": "main", "command": "kitchen-train configs/main.yaml runtime.device=%s %s", "seconds": %d, "status": %d}\n' \
+            "$device" "$(echo $main_args)" $((SECONDS - started)) $status >> "$records"
+    ) &
+    main_job=$!
+fi
+
+reference="python benchmarks/train.py reference --device $device --threads 1 --updates $updates --repeats $repeats --record $records"
+# The headline: the paper's protocol (c) with the default collector (the MLP teams act inside the kitchens' XLA
+# program), then acting step by step from torch, with the compiled update (CUDA graphs), and with the stacked
+# acting networks compiled too.
+row protocol_default 200 $reference --setting $protocol
+row protocol_kitchen 200 $reference --setting $protocol --collector kitchen
+row protocol_update_compiled 200 $reference --setting $protocol --update-compiled true
+row protocol_all_compiled 180 $reference --setting $protocol --update-compiled true --compile --collector kitchen
+# What the host does per step and minibatch, where a batch's time goes, and the floor.
+row launches 90 python benchmarks/launches.py --setting $protocol --teams 1 6 --device "$device"
+row phases 120 python benchmarks/phases.py --setting $protocol --updates $updates --device "$device"
+row collection 90 python benchmarks/collection.py --setting ik --envs $envs --steps $steps --device "$device"
+# The other settings: one team at the paper's shape (b), JaxMARL's (a).
+row ik_default 150 $reference --setting $ik
+row jaxmarl_default 150 $reference --setting $jaxmarl
+row jaxmarl_update_compiled 150 $reference --setting $jaxmarl --update-compiled true
+[[ $protocol == protocol ]] && row protocol_gnn 150 $reference --setting protocol_gnn
+# The syncs torch reports in two updates (its warnings are the output: kept whole).
+if [[ -z ${ONLY:-} || sync_audit =~ $ONLY ]] && (( budget - SECONDS >= 90 )) && [[ $device == cuda ]]; then
     timeout 90 python -c "
 import sys, warnings, torch
 warnings.simplefilter('always')
@@ -60,12 +94,9 @@ sys.argv = ['train.py', 'throughput', '--archs', 'mlp', '--envs', '32', '--updat
 torch.cuda.set_sync_debug_mode('warn')
 import train
 train.main()
-" > "$out/sync_audit_gpu.txt" 2>&1
-    grep -c "synchronizing" "$out/sync_audit_gpu.txt" | sed 's/^/torch sync warnings in 2 updates at 32 x 256: /'
+" > "$raw/sync_audit.txt" 2>&1
+    echo "torch sync warnings in 2 updates at 32 x 256: $(grep -c synchronizing "$raw/sync_audit.txt")"
 fi
-# The other settings: one team at the paper's shape (b), JaxMARL's (a), and the GNN protocol (d).
-step reference_gpu.txt 150 $reference --setting ik --updates 3
-step reference_gpu.txt 150 $reference --setting ik --updates 3 --update-compiled true
-step reference_gpu.txt 150 $reference --setting jaxmarl --updates 3
-step reference_gpu.txt 150 $reference --setting jaxmarl --updates 3 --update-compiled true
-step reference_gpu.txt 150 $reference --setting protocol_gnn --updates 2
+
+[[ -n ${main_job:-} ]] && wait "$main_job"
+python benchmarks/gpu_record.py "$records" "$raw" --out "$results"

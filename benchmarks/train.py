@@ -20,6 +20,9 @@ the ratio of their steps/s.
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import sys
 import tempfile
 import time
 from collections import deque
@@ -115,9 +118,11 @@ def learning_check(target: float, budget: int, threads: int, device: str, seed: 
 
 
 def reference(setting: str, updates: int, device: str, threads: int, compile_policy: bool = False,
-              compile_update: bool = False, collector: str = "kitchen") -> None:
+              compile_update: bool = False, collector: str | None = None, repeats: int = 3,
+              record: str | None = None) -> None:
     """Steps/s of our trainer (updates 2..`updates`) and of the JAX reference (all `updates`, compilation excluded,
-    the median of 3 runs) on one setting of `benchmarks/jax_ppo.py`, one after the other, and their ratio.
+    the median of `repeats` runs) on one setting of `benchmarks/jax_ppo.py`, one after the other, and their ratio;
+    `collector` None is the trainer's default. With `record`, the figures are appended to that file as a JSON line.
 
     The reference runs as one XLA program on JAX's own CPU thread pool, as the JAX env inside our trainer does;
     `threads` sets torch's threads only.
@@ -125,20 +130,28 @@ def reference(setting: str, updates: int, device: str, threads: int, compile_pol
     from jax_ppo import SETTINGS, check_supported, run_reference, setting_overrides  # with the test extra
 
     overrides = [*setting_overrides(setting), f"runtime.compile_policy={compile_policy}",
-                 f"runtime.compile_update={compile_update}", f"runtime.collector={collector}"]
+                 f"runtime.compile_update={compile_update}",
+                 *([f"runtime.collector={collector}"] if collector else [])]
     num_envs, rollout_steps = SETTINGS[setting]["num_envs"], SETTINGS[setting]["rollout_steps"]
     ours = throughput("mlp", num_envs, rollout_steps, updates, device, threads, overrides=overrides)
     config = load_config(None, [*overrides, f"total_steps={updates * num_envs * rollout_steps}",
                                 f"runtime.device={device}", f"runtime.threads={threads}"])
-    print(f"setting {setting}: {' '.join(overrides)}")
+    print(f"setting {setting}: {' '.join(overrides)} (collector {config.runtime.collector})")
+    figures = {"setting": setting, "collector": config.runtime.collector, "compile_policy": compile_policy,
+               "compile_update": compile_update, "device": device, "ours": ours, "reference": None, "ratio": None}
     try:
         check_supported(config)
     except ValueError as error:  # the yardstick has only the MLP
         print(f"{'ours steps/s':>13s}\n{ours:13,.0f}   (no reference: {error})", flush=True)
-        return
-    jax_rate, _ = run_reference(config, repeats=3)
-    print(f"{'ours steps/s':>13s} {'JAX steps/s':>12s} {'ours / JAX':>11s}")
-    print(f"{ours:13,.0f} {jax_rate:12,.0f} {ours / jax_rate:11.3f}", flush=True)
+    else:
+        jax_rate, _ = run_reference(config, repeats=repeats)
+        figures.update(reference=jax_rate, ratio=ours / jax_rate)
+        print(f"{'ours steps/s':>13s} {'JAX steps/s':>12s} {'ours / JAX':>11s}")
+        print(f"{ours:13,.0f} {jax_rate:12,.0f} {ours / jax_rate:11.3f}", flush=True)
+    if record:
+        with open(record, "a") as file:
+            row = os.environ.get("GPU_CHECK_ROW", "reference")  # the row's name in benchmarks/gpu_checks.sh
+            file.write(json.dumps({"row": row, "command": " ".join(["python", *sys.argv]), **figures}) + "\n")
 
 
 def profile(setting: str, updates: int, threads: int, rows: int, device: str = "cpu", collector: str = "kitchen"
@@ -226,15 +239,18 @@ def main(argv=None):
     learn.add_argument("--seed", type=int, default=0)
     learn.add_argument("overrides", nargs="*", help="config overrides, key=value")
     ref = sub.add_parser("reference")
-    ref.add_argument("--setting", choices=["jaxmarl", "ik", "protocol", "protocol_gnn"], default="jaxmarl")
+    ref.add_argument("--setting", choices=["jaxmarl", "ik", "protocol", "protocol_gnn", "tiny"], default="jaxmarl")
     ref.add_argument("--updates", type=int, default=3, help="updates per measurement (ours: the first is not timed)")
     ref.add_argument("--device", default="cpu")
     ref.add_argument("--threads", type=int, default=1, help=THREADS_HELP)
     ref.add_argument("--compile", action="store_true", help="ours with compile_policy=true")
     ref.add_argument("--update-compiled", choices=["false", "true"], default="false",
                      help="ours with compile_update (the minibatch step compiled; CUDA graphs on a GPU)")
-    ref.add_argument("--collector", choices=["kitchen", "torchrl", "xla"], default="kitchen",
-                     help="ours with this runtime.collector (xla: the MLP teams act inside the kitchens' program)")
+    ref.add_argument("--collector", choices=["kitchen", "torchrl", "xla"],
+                     help="ours with this runtime.collector (default: the trainer's; xla: the MLP teams act inside "
+                          "the kitchens' program)")
+    ref.add_argument("--repeats", type=int, default=3, help="timed runs of the reference (the median is kept)")
+    ref.add_argument("--record", help="append the figures to this file as a JSON line")
     prof = sub.add_parser("profile")
     prof.add_argument("--setting", choices=["jaxmarl", "ik"], default="jaxmarl")
     prof.add_argument("--updates", type=int, default=12)
@@ -261,7 +277,7 @@ def main(argv=None):
         return
     if args.mode == "reference":
         reference(args.setting, args.updates, args.device, args.threads, args.compile, args.update_compiled == "true",
-                  args.collector)
+                  args.collector, args.repeats, args.record)
         return
     if args.mode == "learning":
         learning_check(args.target, int(args.budget), args.threads, args.device, args.seed, args.overrides)

@@ -1,8 +1,15 @@
 """The device benchmarks that `benchmarks/gpu_checks.sh` runs, on tiny shapes on the CPU: they run, and count or
 split what they say they do."""
 
+import json
+import os
+import subprocess
 import sys
 from pathlib import Path
+
+import pytest
+
+from trainers.config import TrainConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
@@ -50,3 +57,26 @@ def test_device_busy_time_counts_overlapping_kernels_once_and_annotations_not_at
              span(0, "gemm", 160, 170, launcher=5, on_device=True)]
     busy = phases.busy_seconds(spans, [collection, update])
     assert busy == {"collection": 60 / 1e9, "update": 10 / 1e9}  # 30..90 once, though the kernels overlap
+
+
+@pytest.mark.slow
+def test_the_gpu_checks_dry_run_times_the_default_collector_and_the_main_job_and_writes_a_record(tmp_path):
+    """`DEVICE=cpu SIZE=tiny benchmarks/gpu_checks.sh`, its headline row, a benchmark and the main job: the script
+    runs as it will on a GPU, and its record holds what each row measured, with the verdicts."""
+    root = Path(__file__).resolve().parents[2]
+    environment = {**os.environ, "DEVICE": "cpu", "SIZE": "tiny", "RESULTS": str(tmp_path),
+                   "ONLY": "protocol_default|collection|main",
+                   "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}"}
+    done = subprocess.run(["bash", "benchmarks/gpu_checks.sh"], cwd=root, env=environment, capture_output=True,
+                          text=True, timeout=900)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    (record,) = tmp_path.glob("*.json")
+    rows = {row["row"]: row for row in json.loads(record.read_text())["rows"]}
+    assert set(rows) == {"protocol_default", "main"}
+    headline = rows["protocol_default"]
+    assert headline["collector"] == TrainConfig().runtime.collector  # the default collector, timed first
+    assert headline["ours"] > 0 and headline["ratio"] == pytest.approx(headline["ours"] / headline["reference"])
+    assert headline["verdict"] in ("PASS", "FAIL") and rows["main"]["status"] == 0 and rows["main"]["seconds"] > 0
+    assert "| protocol_default |" in record.with_suffix(".md").read_text()
+    assert "xla rollout step" in (record.with_suffix("") / "collection.txt").read_text()  # its raw output kept
+    assert not (root / "benchmarks" / "results" / "gpu" / record.name).exists()  # the dry run's record stays out

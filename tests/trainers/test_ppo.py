@@ -452,14 +452,20 @@ def test_help_lists_every_config_key_and_hyperparameters_reach_tensorboard(tmp_p
 
 
 @pytest.mark.slow
-def test_a_compiled_acting_policy_takes_the_same_actions_and_learns_the_same(tmp_path):
-    """torch.compile'd collection: the same sampled actions (so the same returns), log-probabilities equal to
-    float32 rounding (fused kernels), hence the same losses to 1e-5."""
-    metrics = {}
+def test_a_compiled_acting_policy_takes_the_same_actions_and_learns_the_same(tmp_path, monkeypatch):
+    """torch.compile'd collection through the kitchen collector (the XLA one acts without torch): the same sampled
+    actions (so the same returns), log-probabilities equal to float32 rounding (fused kernels), hence the same losses
+    to 1e-5."""
+    metrics, compiled_functions, compile = {}, [], torch.compile
+    monkeypatch.setattr(torch, "compile", lambda function, **options: compiled_functions.append(function) or
+                        compile(function, **options))
     for compiled in ("false", "true"):
-        config = tiny_config(tmp_path / compiled, "shaping_weight=1", f"runtime.compile_policy={compiled}", updates=2)
+        config = tiny_config(tmp_path / compiled, "shaping_weight=1", f"runtime.compile_policy={compiled}",
+                             "runtime.collector=kitchen", updates=2)
         run = train(config)
         metrics[compiled] = read_metrics(run)
+        assert [getattr(function, "__name__", "") for function in compiled_functions] == \
+            (["act"] if compiled == "true" else []), "the acting pass was not the compiled one"
     assert metrics["false"].keys() == metrics["true"].keys()
     for name in ("charts/episode_return", "charts/shaped_return", "charts/episode_deliveries"):
         assert metrics["true"][name] == metrics["false"][name], name
