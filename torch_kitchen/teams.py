@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import functools
 from collections.abc import Callable, Iterator, Sequence
 
 import torch
@@ -150,6 +151,22 @@ def stackable_acting(policies: Sequence[TensorDictModuleBase]) -> list[tuple[nn.
     return networks
 
 
+def compiled_call(function: Callable, mode: str) -> Callable:
+    """`function` compiled in `mode`. In "reduce-overhead" (CUDA graphs on a GPU) its outputs live in buffers the next
+    replay overwrites, and a rollout keeps every step's: each call marks a new step and returns copies."""
+    run = torch.compile(function, mode=mode)
+    if mode != "reduce-overhead":
+        return run
+
+    def replay(*args):
+        torch.compiler.cudagraph_mark_step_begin()
+        outputs = run(*args)
+        return type(outputs)(output.clone() for output in outputs) if isinstance(outputs, tuple | list) else \
+            outputs.clone()
+
+    return replay
+
+
 class TeamPolicy(TensorDictModuleBase):
     """Team k's `policies[k]` acts on team k's rows of the batch, drawing from `streams[k]` (see the module
     docstring). The policies read and write the same keys; one team's policy acts on the batch as it is.
@@ -178,7 +195,8 @@ class TeamPolicy(TensorDictModuleBase):
         passes = [acting_pass_of(policy) for policy in policies]
         self.acts_on_observation = all(acting is not None for acting in passes)
         stacking = stack and len(policies) > 1
-        compiled = (lambda f: torch.compile(f, mode=compile_mode)) if compile_mode and not stacking else (lambda f: f)
+        compiled = functools.partial(compiled_call, mode=compile_mode) if compile_mode and not stacking else \
+            (lambda f: f)
         # How the teams act: their passes on plain tensors, or else their policies on TensorDicts.
         self.passes = [compiled(acting.act) for acting in passes] if self.acts_on_observation else None
         self.runs = None if self.acts_on_observation else [compiled(policy) for policy in policies]

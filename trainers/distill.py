@@ -52,10 +52,10 @@ from trainers.checkpoint import (
 from trainers.composer import load_config, save_config, train_config_parser
 from trainers.config import RESUMABLE, ConfigError, TrainConfig
 from trainers.loggers import make_loggers
+from trainers.placement import make_optimizer, place_networks, set_learning_rate
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.resume import check_same_learning, start_fresh
 from trainers.rollout import finished_episode_deliveries, make_collector, select_kitchens
-from trainers.runtime import make_optimizer, place_networks, set_learning_rate
 from trainers.training_team import TeamKitchens, make_env, with_model_transforms
 
 TEACHER_PROBS = ("agents", "teacher_probs")  # the scripted cook's action distribution in the visited state

@@ -36,10 +36,11 @@ from trainers.composer import save_config
 from trainers.config import PLANNER_START, ConfigError, TrainConfig
 from trainers.distill import distill_start
 from trainers.loggers import hyperparameters, make_loggers
+from trainers.placement import set_learning_rate
 from trainers.ppo_step import Losses, total_loss
 from trainers.resume import RunStopped, StopRequest, TrainingDiverged, drop_csv_rows_after, restore, start_fresh
 from trainers.rollout import finished_episode_deliveries, make_collector
-from trainers.runtime import Learner, UpdateRunner, set_learning_rate, team_policy, use_threads
+from trainers.runtime import Learner, UpdateRunner, team_policy, use_threads
 from trainers.training_team import (
     RestorePoint,
     TrainingTeam,

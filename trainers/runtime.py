@@ -1,6 +1,6 @@
 """How the teams of one batch act and learn on this machine: the run options (`threads`, `parallel_teams`,
 `minibatch_shards`, `compile_policy`, `compile_update`, the device), which change how fast a run goes and never
-what it learns. Here are the run's device and speed choices: the networks' CPU kernels, the optimizer's set-up,
+what it learns. Here are the run's speed choices (where a team's networks run and its optimizer: `trainers.placement`),
 the teams acting together (`team_policy`), and how the teams take their PPO steps (`UpdateRunner`, `Learner`): the step
 of `trainers.ppo_step`, written once, with its gradients on a whole minibatch, on shards on threads, or for several
 teams stacked (on a GPU), compiled or not.
@@ -18,7 +18,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from torch_kitchen.cpu_kernels import accelerate_cpu, batch_observations
+from torch_kitchen.cpu_kernels import batch_observations
 from torch_kitchen.keys import OBSERVATION
 from torch_kitchen.teams import StackedLoss, TeamPolicy, stackable_acting
 from trainers.algorithms import ALGORITHMS
@@ -37,7 +37,6 @@ from trainers.ppo_step import (
 from trainers.rollout import select_kitchens
 
 if TYPE_CHECKING:
-    from torch_kitchen.models import ActorCritic
     from trainers.training_team import TrainingTeam
 
 T = TypeVar("T")
@@ -60,37 +59,6 @@ def minibatch_shards(config: TrainConfig) -> int:
     pays = (torch.device(config.runtime.device).type == "cpu" and config.hidden >= 128
             and config.kitchens_per_minibatch % 2 == 0 and ALGORITHMS[config.algorithm].shardable)
     return 2 if pays else 1
-
-
-def place_networks(config: TrainConfig, actor_critic: ActorCritic, own_kernels: bool) -> None:
-    """The team's networks on the run's device; on a CPU with `own_kernels` (networks built from the config, not a
-    user's own) their layers swapped for this project's faster CPU kernels (`accelerate_cpu`)."""
-    if own_kernels and torch.device(config.runtime.device).type == "cpu":
-        accelerate_cpu(actor_critic.actor, actor_critic.critic)
-    actor_critic.actor.to(config.runtime.device)
-    actor_critic.critic.to(config.runtime.device)
-
-
-def make_optimizer(config: TrainConfig, parameters: list[torch.nn.Parameter]) -> torch.optim.Adam:
-    """The team's Adam: with `compile_update` its learning rate a tensor, so that annealing it changes a value
-    rather than the compiled graph, and on a GPU its step counts on the device, as a CUDA graph needs; else fused,
-    one kernel for all parameters instead of a few per tensor (3x faster on a CPU at hidden 256)."""
-    if config.runtime.compile_update:
-        lr = torch.tensor(config.lr, device=config.runtime.device)
-        return torch.optim.Adam(parameters, lr=lr, eps=config.adam_eps, capturable=config.runtime.on_gpu)
-    return torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps, fused=True)
-
-
-def set_learning_rate(config: TrainConfig, optimizer: torch.optim.Optimizer, lr: float) -> None:
-    """The optimizer's learning rate for the next update: with `compile_update` written into the tensor the
-    compiled step reads (made again after resuming a run saved without it)."""
-    for group in optimizer.param_groups:
-        if config.runtime.compile_update:
-            if not isinstance(group["lr"], torch.Tensor):
-                group["lr"] = torch.tensor(lr, device=config.runtime.device)
-            group["lr"].fill_(lr)
-        else:
-            group["lr"] = lr
 
 
 def team_policy(config: TrainConfig, teams: Sequence[TrainingTeam]) -> TeamPolicy:

@@ -24,7 +24,7 @@ from torch_kitchen.torchrl_internals import entropy_without_host_check, hold_val
 from trainers.algorithms import ALGORITHMS, Algorithm, check_algorithm
 from trainers.checkpoint import LATEST, capture_rng_states, model_identity, save_checkpoint
 from trainers.config import ConfigError, TrainConfig
-from trainers.runtime import make_optimizer, place_networks
+from trainers.placement import make_optimizer, place_networks
 
 
 def make_env(config: TrainConfig, num_envs: int | None = None, levels=None,

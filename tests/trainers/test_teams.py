@@ -351,6 +351,37 @@ def test_a_collector_keeps_every_step_of_stacked_networks_whose_outputs_share_on
                     torch.testing.assert_close(again["agents", "logits"], logits[:, step])
 
 
+def test_one_team_compiled_for_cuda_graphs_marks_each_step_and_keeps_its_outputs(tmp_path, monkeypatch):
+    """With one team there is nothing to stack, so its own acting pass is compiled, in "reduce-overhead" on a GPU:
+    a replay overwrites the last one's output buffers, so each call marks a step and returns copies (stood in for
+    here by a compiled function that writes every output into one buffer)."""
+    from torch_kitchen.teams import TeamPolicy
+    from trainers.training_team import build_team, make_env
+
+    def replaying_into_one_buffer(function, mode):
+        buffers = {}
+
+        def run(observation):
+            return tuple(buffers.setdefault(index, torch.empty_like(output)).copy_(output)
+                         for index, output in enumerate(function(observation)))
+        return run
+
+    marks = []
+    monkeypatch.setattr(torch, "compile", replaying_into_one_buffer)
+    monkeypatch.setattr(torch.compiler, "cudagraph_mark_step_begin", lambda: marks.append(1))
+    config = tiny_config(tmp_path, "architecture=mlp", "levels=infinite")
+    kitchen = make_env(config)
+    team = build_team(config, tmp_path / "run", kitchen, 0)
+    policy = TeamPolicy([team.policy], [team.stream], config.num_envs, stack=True, compile_mode="reduce-overhead")
+    first_observation = kitchen.reset().get(("agents", "observation"))
+    first = policy.act(first_observation)
+    kept = {key: value.clone() for key, value in first.items()}
+    policy.act(torch.zeros_like(first_observation))
+    assert len(marks) == 2
+    for key, value in first.items():
+        assert torch.equal(value, kept[key]), key  # the first step's outputs, not the second's
+
+
 def test_clipping_per_team_on_stacked_gradients_is_clip_grad_norm_of_each_team():
     from trainers.ppo_step import clip_per_team
 
