@@ -36,11 +36,12 @@ NO_ACTION = NUM_ACTIONS  # the context's padding token: one more than the real a
 
 
 def _reset_rows(tensordict: TensorDictBase, batch_size: torch.Size, device) -> torch.Tensor:
-    """bool [B]: the kitchens a reset starts anew (all of them without a "_reset" mask)."""
+    """bool [B] on `device`: the kitchens a reset starts anew (all of them without a "_reset" mask); the seats'
+    draws live on the CPU, where their generator is, whatever the kitchens' device."""
     mask = tensordict.get("_reset", None) if tensordict is not None else None
     if mask is None:
         return torch.ones(batch_size, dtype=torch.bool, device=device)
-    return mask.reshape(batch_size)
+    return mask.reshape(batch_size).to(device)
 
 
 class PartnerContext(Transform):
