@@ -309,22 +309,23 @@ def stranger_claims(strangers: dict, pairs: list[dict], summary: dict, families:
                             for layout in sk) + f" | {wins} of {len(sk)} layouts |")
     if not heldout:
         return rows
-    learner = next((learner for _, (_, _, learner, _) in families.items()), SCRATCH)
+    # A compared condition's row says which of the compared it is (its own learner is its config's, not a family's).
+    role = {condition: f"compared as {key.replace('_', ' ')}" for key, condition in compared.items()}
     one, diverse, zoo = (compared.get(key) for key in ("one_teacher", "diverse_teachers", "zoo_partners"))
     if one and diverse:
         inflation = {c: value(summary, c, heldout, "xp") - value(strangers, c, heldout, "deliveries")
                      for c in (one, diverse)}
         lower = inflation[diverse] < inflation[one]
-        rows.append(f"| {diverse} | {learner} | Diverse teachers lower the cross-play inflation of one teacher (XP "
-                    f"between seeds minus play with strangers) | {heldout}: {one} {inflation[one]:+.2f}, {diverse} "
+        rows.append(f"| {diverse} | {role[diverse]} | Diverse teachers lower the cross-play inflation of one teacher "
+                    f"(XP between seeds minus play with strangers) | {heldout}: {one} {inflation[one]:+.2f}, {diverse} "
                     f"{inflation[diverse]:+.2f} | {'holds' if lower else 'does not hold'} |")
     if one and zoo:
         (low, high), (zoo_low, zoo_high) = ((value(strangers, c, heldout, "iqm_low"),
                                              value(strangers, c, heldout, "iqm_high")) for c in (one, zoo))
         iqm_one, iqm_zoo = value(strangers, one, heldout, "iqm"), value(strangers, zoo, heldout, "iqm")
-        rows.append(f"| {zoo} | {learner} | Zoo partners in training raise play with strangers on held-out levels, by "
-                    f"more than the bootstrap interval | normalised IQM {iqm_zoo:.2f} [{zoo_low:.2f}, {zoo_high:.2f}] "
-                    f"against {one}'s {iqm_one:.2f} [{low:.2f}, {high:.2f}] | "
+        rows.append(f"| {zoo} | {role[zoo]} | Zoo partners in training raise play with strangers on held-out levels, "
+                    f"by more than the bootstrap interval | normalised IQM {iqm_zoo:.2f} "
+                    f"[{zoo_low:.2f}, {zoo_high:.2f}] against {one}'s {iqm_one:.2f} [{low:.2f}, {high:.2f}] | "
                     f"{'holds' if zoo_low > high else 'does not hold'} |")
     for condition in dict.fromkeys(c for c in (one, diverse, zoo) if c):
         per_stranger = {}
@@ -333,9 +334,10 @@ def stranger_claims(strangers: dict, pairs: list[dict], summary: dict, families:
                 per_stranger.setdefault(row["stranger"], []).append(float(row["normalised"]))
         if per_stranger:
             above = sum(sum(scores) / len(scores) > 1.0 for scores in per_stranger.values())
-            rows.append(f"| {condition} | {learner} | Beyond each stranger's own kind: normalised > 1.0 beside every "
-                        f"stranger on held-out levels (moonshot) | above 1.0 beside {above} of {len(per_stranger)} "
-                        f"strangers | {'holds' if above == len(per_stranger) else 'does not hold'} |")
+            verdict = "holds" if above == len(per_stranger) else "does not hold"
+            rows.append(f"| {condition} | {role[condition]} | Beyond each stranger's own kind: normalised > 1.0 beside "
+                        f"every stranger on held-out levels (moonshot) | above 1.0 beside {above} of "
+                        f"{len(per_stranger)} strangers | {verdict} |")
     return rows
 
 

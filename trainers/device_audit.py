@@ -1,6 +1,6 @@
 """What a loop would cost on a GPU, counted on any machine: a torch function mode that records every tensor made by a
 factory call without a device (on a GPU it lands on the CPU) and every read of a tensor's values by the host (on a
-GPU each one waits for the device), each by the line of this project's code that led to it.
+GPU each one waits for the device), each by the function of this project's code that led to it.
 
     with DeviceAudit() as audit:
         train(config)
@@ -29,13 +29,14 @@ ROOT = Path(__file__).resolve().parents[1]
 OWN_FILE = str(Path(__file__).resolve())
 
 
-def project_line() -> str:
-    """The innermost line of this project's code (not this file's) on the stack, as path:line."""
+def project_site() -> str:
+    """The innermost function of this project's code (not this file's) on the stack, as path:qualified name (a
+    function, not a line, so that an edit above it leaves the count's key as it was)."""
     frame = sys._getframe(1)
     while frame is not None:
         name = frame.f_code.co_filename
         if name != OWN_FILE and name.startswith(str(ROOT)) and Path(name).relative_to(ROOT).parts[0] in PACKAGES:
-            return f"{Path(name).relative_to(ROOT)}:{frame.f_lineno}"
+            return f"{Path(name).relative_to(ROOT)}:{frame.f_code.co_qualname}"
         frame = frame.f_back
     return "(outside the project)"
 
@@ -47,7 +48,7 @@ def masks_by_bool(index) -> bool:
 
 
 class DeviceAudit(TorchFunctionMode):
-    """Counts, while active: `factories` ("zeros at trainers/x.py:12" -> calls without a device) and `host_reads`
+    """Counts, while active: `factories` ("zeros at trainers/x.py:f" -> calls without a device) and `host_reads`
     ("item at ...", "bool-index at ..." -> calls)."""
 
     def __init__(self):
@@ -58,11 +59,11 @@ class DeviceAudit(TorchFunctionMode):
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
         if func in FACTORIES and kwargs.get("device") is None:
-            self.factories[f"{func.__name__} at {project_line()}"] += 1
+            self.factories[f"{func.__name__} at {project_site()}"] += 1
         elif func in HOST_READS:
-            self.host_reads[f"{func.__name__} at {project_line()}"] += 1
+            self.host_reads[f"{func.__name__} at {project_site()}"] += 1
         elif func is torch.Tensor.__getitem__ and len(args) > 1 and masks_by_bool(args[1]):
-            self.host_reads[f"bool-index at {project_line()}"] += 1
+            self.host_reads[f"bool-index at {project_site()}"] += 1
         return func(*args, **kwargs)
 
     def report(self) -> str:

@@ -239,4 +239,5 @@ def test_the_claims_beside_the_strangers_read_their_tables():
     assert inflation.endswith(f"| {held}: ik +1.00, ik_many +0.30 | holds |")
     assert zoo.endswith("| normalised IQM 0.95 [0.85, 1.05] against ik's 0.70 [0.60, 0.80] | holds |")
     assert moonshot.endswith("| above 1.0 beside 1 of 2 strangers | does not hold |")
+    assert zoo.startswith("| ik_zoo | compared as zoo partners |") and moonshot.startswith("| ik_zoo | compared as")
     assert reproduce.stranger_claims({}, [], summary, families, compared) == []  # a section without strangers

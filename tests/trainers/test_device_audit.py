@@ -1,6 +1,6 @@
 """The host's part of every training loop, counted on the CPU (`trainers.device_audit`): each loop trains twice, the
 second run 8 steps per update longer, and the host reads and device-less tensors whose count grew are the loop's
-per-step (or per-episode) ones. They are stated here, so a new one is a failing test naming its line."""
+per-step (or per-episode) ones. They are stated here, so a new one is a failing test naming its function."""
 
 import pytest
 from tiny import TINY
@@ -13,29 +13,31 @@ from trainers.training_team import team_configs
 SHORT, LONG, UPDATES = 8, 16, 2
 EXTRA_STEPS = (LONG - SHORT) * UPDATES
 # Per step, on the CPU. The sparse first layer (sparse_linear.py) is the CPU's kernel (`accelerate_cpu`) and the
-# actions go to JAX as NumPy there (env.py:_actions_to_jax); on a GPU neither runs. Episode ends (16-step episodes
+# actions go to JAX as NumPy there (`KitchenEnv._actions_to_jax`); on a GPU neither runs. Episode ends (16-step episodes
 # here) are read once per step by the kitchen collector, and by the kitchens when some end.
-CPU_KERNEL = {"nonzero at torch_kitchen/sparse_linear.py:53": 1.0}
-CPU_KERNEL_MADE = {"zeros at torch_kitchen/sparse_linear.py:41": 1.0}
-ACTIONS_TO_JAX = {"numpy at torch_kitchen/env.py:337": 1.0}
-EPISODE_ENDS = {"__bool__ at torch_kitchen/env.py:317": 1 / 16}
+CPU_KERNEL = {"nonzero at torch_kitchen/sparse_linear.py:NonZeroEntries.__init__": 1.0}
+CPU_KERNEL_MADE = {"zeros at torch_kitchen/sparse_linear.py:_row_offsets": 1.0}
+ACTIONS_TO_JAX = {"numpy at torch_kitchen/env.py:KitchenEnv._actions_to_jax": 1.0}
+EPISODE_ENDS = {"__bool__ at torch_kitchen/env.py:KitchenEnv._reset": 1 / 16}
 LOOPS = {
     # name: (config, overrides, host reads per step, tensors made without a device per step)
     "xla": ("configs/ippo/mlp_ik.yaml", ["runtime.collector=xla"], {}, {}),
     "kitchen": ("configs/ippo/mlp_ik.yaml", ["runtime.collector=kitchen"],
-                {**CPU_KERNEL, **ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at torch_kitchen/rollout.py:111": 0.25},
+                {**CPU_KERNEL, **ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at torch_kitchen/rollout.py:advance": 0.25},
                 CPU_KERNEL_MADE),
     "torchrl": ("configs/ippo/mlp_ik.yaml", ["runtime.collector=torchrl"],
-                {**CPU_KERNEL, **ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at trainers/ppo.py:327": 0.25},
+                {**CPU_KERNEL, **ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at trainers/ppo.py:train_teams": 0.25},
                 CPU_KERNEL_MADE),
     "gnn": ("configs/ippo/gnn_ik.yaml", [],
-            {**ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at torch_kitchen/rollout.py:111": 0.25}, {}),
+            {**ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at torch_kitchen/rollout.py:advance": 0.25}, {}),
     # E3T's partner model has a sparse first layer of its own, and its partner draws are made on the CPU (their own
     # generator) at episode starts.
     "e3t": ("configs/e3t/mlp_ik.yaml", [],
-            {"nonzero at torch_kitchen/sparse_linear.py:53": 2.0, **ACTIONS_TO_JAX, **EPISODE_ENDS,
-             "__bool__ at torch_kitchen/partner.py:127": 1 / 16, "__bool__ at torch_kitchen/rollout.py:161": 0.25},
-            {"zeros at torch_kitchen/sparse_linear.py:41": 2.0, "randint at torch_kitchen/partner.py:113": 1 / 16}),
+            {"nonzero at torch_kitchen/sparse_linear.py:NonZeroEntries.__init__": 2.0, **ACTIONS_TO_JAX,
+             **EPISODE_ENDS, "__bool__ at torch_kitchen/partner.py:PartnerSeats._reset": 1 / 16,
+             "__bool__ at torch_kitchen/rollout.py:transformed_rollout_into": 0.25},
+            {"zeros at torch_kitchen/sparse_linear.py:_row_offsets": 2.0,
+             "randint at torch_kitchen/partner.py:PartnerSeats._draw": 1 / 16}),
 }
 
 
