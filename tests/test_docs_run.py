@@ -10,13 +10,17 @@ whose run the page evaluates): those commands run first, shrunk as well.
 
 import configparser
 import contextlib
+import dataclasses
 import glob
 import importlib
 import io
+import json
+import os
 import re
 import shlex
 import shutil
 import subprocess
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +31,7 @@ from test_docs_commands import PAGES, ROOT, Code, code_of, page_name
 from tiny import script_module
 
 SHELLS = ("bash", "sh", "shell", "console")
-AFTER = re.compile(r"<!--\s*docs-run:\s*after\s+(.+?)\s*-->")
+AFTER = re.compile(r"^<!--\s*docs-run:\s*after\s+(.+?)\s*-->$", re.MULTILINE)  # a line of its own
 REFUSED = "refused"  # a comment that begins so marks a command meant to fail
 # Appended to a command of that name (a later `key=value` or option wins): one update of 4 kitchens x 16 steps,
 # 16-step episodes, narrow networks, one distillation round, 1-2 test levels, no progress bars.
@@ -178,15 +182,28 @@ def tracked_changes() -> str:
                           text=True).stdout
 
 
-@pytest.mark.slow
-def test_every_documented_command_runs_as_written(tmp_path, monkeypatch, capsys):
-    before = tracked_changes()
+def run_pages(folder: str, record: str) -> None:
+    """Every page's commands, each page in a folder of its own under `folder`; the outcomes as JSON in `record`.
+    Run in a process of its own, so that what a command leaves behind (logging set up, threads) stays there."""
     outcomes = []
     for index, path in enumerate(PAGES):
-        folder = tmp_path / f"page{index}"
-        folder.mkdir()
-        monkeypatch.chdir(folder)
-        outcomes += run_page(path, folder)
+        page_folder = Path(folder) / f"page{index}"
+        page_folder.mkdir()
+        os.chdir(page_folder)
+        outcomes += run_page(path, page_folder)
+    Path(record).write_text(json.dumps([dataclasses.asdict(outcome) for outcome in outcomes]))
+
+
+@pytest.mark.slow
+def test_every_documented_command_runs_as_written(tmp_path, capsys):
+    before = tracked_changes()
+    record = tmp_path / "outcomes.json"
+    child = subprocess.run(
+        [sys.executable, "-c", f"import test_docs_run; test_docs_run.run_pages({str(tmp_path)!r}, {str(record)!r})"],
+        cwd=tmp_path, capture_output=True, text=True,
+        env={**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), str(ROOT / "tests")])})
+    assert child.returncode == 0, child.stderr[-3000:]
+    outcomes = [Outcome(Code(**outcome.pop("code")), **outcome) for outcome in json.loads(record.read_text())]
     counts = {status: sum(outcome.status == status for outcome in outcomes)
               for status in ("ran", "refused", "not here", "failed")}
     reasons = sorted({outcome.detail for outcome in outcomes if outcome.status == "not here"})
