@@ -104,11 +104,17 @@ def commands_of(code: Code) -> list[tuple[str, list[str]]]:
     return commands
 
 
-def console_scripts() -> set[str]:
+def entry_points() -> dict[str, str]:
+    """setup.cfg's console scripts: name -> "module:function"."""
     parser = configparser.ConfigParser()
     parser.read(ROOT / "setup.cfg")
     entries = parser.get("options.entry_points", "console_scripts", fallback="")
-    return {line.split("=")[0].strip() for line in entries.splitlines() if "=" in line}
+    return {name.strip(): target.strip() for name, _, target in
+            (line.partition("=") for line in entries.splitlines() if "=" in line)}
+
+
+def console_scripts() -> set[str]:
+    return set(entry_points())
 
 
 def makefile() -> tuple[set[str], set[str]]:

@@ -8,7 +8,6 @@ A page states what its commands presume with a hidden line, `<!-- docs-run: afte
 whose run the page evaluates): those commands run first, shrunk as well.
 """
 
-import configparser
 import contextlib
 import dataclasses
 import glob
@@ -27,7 +26,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_docs_commands import PAGES, ROOT, Code, code_of, page_name
+from test_docs_commands import PAGES, ROOT, Code, code_of, entry_points, page_name
 from tiny import script_module
 
 SHELLS = ("bash", "sh", "shell", "console")
@@ -86,14 +85,6 @@ def split_comment(text: str) -> tuple[str, str]:
         elif char == "#" and (index == 0 or text[index - 1].isspace()):
             return text[:index].strip(), text[index + 1:].strip()
     return text.strip(), ""
-
-
-def entry_points() -> dict[str, str]:
-    parser = configparser.ConfigParser()
-    parser.read(ROOT / "setup.cfg")
-    entries = parser.get("options.entry_points", "console_scripts")
-    return {name.strip(): target.strip() for name, _, target in
-            (line.partition("=") for line in entries.splitlines() if "=" in line)}
 
 
 def expand(arguments: list[str]) -> list[str]:
