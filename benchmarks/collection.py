@@ -17,7 +17,8 @@ The difference between a whole step and "env.step" plus "acting policy" is Torch
 "JAX step" plus "acting policy" is all that is neither the kitchens nor the network; the xla rollout step, less the
 JAX step, is the network, the draws and the batch's copy together. Run it alone on the machine.
 
-    python benchmarks/collection.py [--setting jaxmarl|ik] [--steps 2000] [--envs 192] [--device cuda]
+    python benchmarks/collection.py [--setting jaxmarl|ik] [--steps 2000] [--envs 192] [--device cuda] [key=value ...]
+    python benchmarks/collection.py --setting ik architecture=ego_mlp hidden=128   # the main job's team
 
 With `--envs 192` at the ik setting, the "JAX step" row is the floor of the paper's protocol (6 teams x 32 kitchens):
 no trainer over this env collects a step faster.
@@ -48,12 +49,13 @@ def main(argv=None) -> None:
     parser.add_argument("--steps", type=int, default=2000, help="calls per measurement")
     parser.add_argument("--envs", type=int, default=0, help="kitchens (default: the setting's)")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("overrides", nargs="*", help="config overrides, key=value (e.g. architecture=ego_mlp)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
 
     envs = [f"num_envs={args.envs}"] if args.envs else []
     config = load_config(None, [*setting_overrides(args.setting), *envs, "total_steps=1e6", "runtime.threads=1",
-                                f"runtime.device={args.device}"])
+                                f"runtime.device={args.device}", *args.overrides])
     kitchen = make_env(config, seed=[config.seed])
     team = build_team(config, tempfile.mkdtemp(), kitchen, 0)
     env = with_model_transforms(kitchen, team.actor_critic)
@@ -79,8 +81,8 @@ def main(argv=None) -> None:
         rows[row] = 1e6 * seconds_per_call(lambda: next(batches), count) / steps
         collector.shutdown(close_env=False)
 
-    print(f"setting {args.setting}: {config.num_envs} kitchens, hidden {config.hidden}; {args.device}, "
-          f"{machine_name()}, torch 1 thread")
+    print(f"setting {args.setting}: {config.num_envs} kitchens, {config.architecture}, hidden {config.hidden}; "
+          f"{args.device}, {machine_name()}, torch 1 thread")
     print(f"{'layer':<16s} {'us per env step':>16s}")
     for name, value in rows.items():
         print(f"{name:<16s} {value:16.1f}")

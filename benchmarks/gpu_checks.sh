@@ -79,6 +79,9 @@ row protocol_all_compiled 180 $reference --setting $protocol --update-compiled t
 row launches 90 python benchmarks/launches.py --setting $protocol --teams 1 6 --device "$device"
 row phases 120 python benchmarks/phases.py --setting $protocol --updates $updates --device "$device"
 row collection 90 python benchmarks/collection.py --setting ik --envs $envs --steps $steps --device "$device"
+# The same for the main job's team (the agent-centred MLP at hidden 128), whose default collector is the XLA one too.
+row ego_rollout 90 python benchmarks/collection.py --setting ik --envs $envs --steps $steps --device "$device" \
+    architecture=ego_mlp hidden=128
 # The other settings: one team at the paper's shape (b), JaxMARL's (a).
 row ik_default 150 $reference --setting $ik
 row jaxmarl_default 150 $reference --setting $jaxmarl

@@ -4,10 +4,13 @@ Checks out `REVISION` into a temporary git worktree and runs `benchmarks/train.p
 `reference`) from each checkout in turn, alternating (earlier, current, earlier, current, ...) so that both see the
 same machine state; every measurement is a separate process. Prints, and writes to `--out`, a Markdown table of
 the median steps/s of each side and current / earlier. With `--reference`, each side also runs the pure-JAX
-yardstick of `benchmarks/jax_ppo.py` beside it, and the rows give ours / yardstick of each side.
+yardstick of `benchmarks/jax_ppo.py` beside it, and the rows give ours / yardstick of each side. With `--main`, each
+side also times the main job's IPPO phase (`configs/main.yaml`'s team and batch after its distilled start: the
+agent-centred MLP at hidden 128, 32 kitchens x 256 steps of the Infinite Kitchen) with its default collector.
 
     python benchmarks/train_revisions.py 93900fa --archs mlp gnn --e3t mlp --repeats 2 --out results.md
     python benchmarks/train_revisions.py 901da01 --archs --e3t --reference jaxmarl ik protocol --threads 1
+    python benchmarks/train_revisions.py 8587591 --archs --e3t --main --repeats 3
 """
 
 from __future__ import annotations
@@ -28,12 +31,28 @@ ROOT = Path(__file__).resolve().parents[1]
 # Updates per `reference` measurement (ours times all but the first): enough for a few seconds of timed work.
 REFERENCE_UPDATES = {"jaxmarl": 20, "ik": 4, "protocol": 3, "protocol_gnn": 2}
 
+# The main job's IPPO phase as `train.py`'s `throughput` runs it (the same function at every revision since its
+# overrides were added): configs/main.yaml's network and batch; its distilled start changes no step's cost.
+MAIN_IPPO = ("ego_mlp", 32, 256)
+MAIN_IPPO_OVERRIDES = ("hidden=128", "share_params=true", "regime=ik")
+
 
 def _run(checkout: Path, arguments: list[str]) -> str:
     """The output of `benchmarks/train.py ARGUMENTS` run from `checkout`, on that checkout's code."""
     environment = {**os.environ, "PYTHONPATH": str(checkout)}
     return subprocess.run([sys.executable, "benchmarks/train.py", *arguments], cwd=checkout, env=environment,
                           capture_output=True, text=True, check=True).stdout
+
+
+def measure_main(checkout: Path, updates: int, threads: int) -> dict[str, float]:
+    """The main job's IPPO steps/s (`MAIN_IPPO`, updates 2..`updates`) from `checkout`, with its default collector."""
+    architecture, envs, steps = MAIN_IPPO
+    call = (f"from train import throughput; print(throughput({architecture!r}, {envs}, {steps}, {updates}, 'cpu', "
+            f"{threads}, overrides={list(MAIN_IPPO_OVERRIDES)!r}))")
+    environment = {**os.environ, "PYTHONPATH": os.pathsep.join([str(checkout), str(checkout / "benchmarks")])}
+    output = subprocess.run([sys.executable, "-c", call], cwd=checkout, env=environment, capture_output=True,
+                            text=True, check=True).stdout
+    return {"main job's IPPO phase (ego_mlp, hidden 128)": float(output.strip().splitlines()[-1])}
 
 
 def measure_reference(checkout: Path, settings: list[str], threads: int, collector: str) -> dict[str, float]:
@@ -76,6 +95,7 @@ def main(argv=None) -> None:
                         help="settings of `train.py reference`: ours beside the pure-JAX yardstick")
     parser.add_argument("--collector", choices=["kitchen", "torchrl", "xla"], default="kitchen",
                         help="ours with this runtime.collector in the reference settings")
+    parser.add_argument("--main", action="store_true", help="also the main job's IPPO phase (MAIN_IPPO)")
     parser.add_argument("--envs", type=int, default=32)
     parser.add_argument("--updates", type=int, default=3, help="updates per measurement (the first is not timed)")
     parser.add_argument("--threads", type=int, default=1, help=THREADS_HELP)
@@ -91,10 +111,13 @@ def main(argv=None) -> None:
         try:
             for repeat in range(args.repeats):
                 for side, checkout in (("earlier", earlier), ("current", ROOT)):
-                    for mode, names in (("throughput", args.archs), ("e3t", args.e3t), ("reference", args.reference)):
+                    modes = (("throughput", args.archs), ("e3t", args.e3t), ("reference", args.reference),
+                             ("main", [MAIN_IPPO[0]] if args.main else []))
+                    for mode, names in modes:
                         if names:
                             rates = (measure_reference(checkout, names, args.threads, args.collector)
-                                     if mode == "reference" else
+                                     if mode == "reference" else measure_main(checkout, args.updates, args.threads)
+                                     if mode == "main" else
                                      measure(checkout, mode, names, args.envs, args.updates, args.threads))
                             for name, rate in rates.items():
                                 runs[side].setdefault(name, []).append(rate)
@@ -106,6 +129,8 @@ def main(argv=None) -> None:
     shape = f"{args.envs} kitchens x 256 steps, hidden 256, Infinite Kitchen" if args.archs or args.e3t else ""
     shape += (f"{'; ' if shape else ''}reference settings {', '.join(args.reference)}, ours collecting with "
               f"runtime.collector={args.collector}" if args.reference else "")
+    shape += (f"{'; ' if shape else ''}the main job's IPPO phase: {MAIN_IPPO[1]} kitchens x {MAIN_IPPO[2]} steps, "
+              f"{MAIN_IPPO[0]}, {', '.join(MAIN_IPPO_OVERRIDES)}" if args.main else "")
     lines = [
         f"Training steps/s ({shape}); median of {args.repeats} alternating runs per side; {machine}.",
         f"Earlier: `{args.revision}`. Command: `python benchmarks/train_revisions.py {' '.join(argv or sys.argv[1:])}`",

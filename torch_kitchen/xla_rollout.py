@@ -1,17 +1,18 @@
 """Rollouts inside one XLA program: the kitchens and the teams' acting passes stepped together by `jax.lax.scan`.
 
 `KitchenCollector` steps the kitchens' JAX program once per step and runs the teams' torch networks in between, so
-the host launches every step's work. Where every team's policy is an acting pass over chains of Flatten, Linear and
-ReLU layers (the MLP architectures), `XlaCollector` runs those chains in JAX as well, and a whole batch of steps is
-one program: the host launches it once per batch. The chains read the teams' own weights, taken again at every
-batch; their outputs agree with torch's to float32 rounding (the sums run in another order).
+the host launches every step's work. Where every team's policy is an acting pass over chains of Flatten, Linear,
+ReLU and agent-centred linear layers (the MLP architectures, the main job's "ego_mlp" among them), `XlaCollector`
+runs those chains in JAX as well, and a whole batch of steps is one program: the host launches it once per batch.
+The chains read the teams' own weights, taken again at every batch; their outputs agree with torch's to float32
+rounding (the sums run in another order).
 
 Actions are drawn from JAX's random streams, one per team, each seeded at every batch from the team's torch stream
 (`RandomStream`), so a resumed run draws what it would have. Everything else is `KitchenCollector`'s: the batch's
 keys, shapes and dtypes, the kitchens stepped and reset by the env's own programs and keys (the steps a
 `KitchenEnv` takes with those actions, bit for bit; `tests/torch_kitchen/test_xla_rollout.py`), the env left where
-the batch ended (its checkpoint, its next reset). Recurrent, graph and egocentric models, and envs with transforms,
-collect with `KitchenCollector` (`trainers.rollout.make_collector` picks).
+the batch ended (its checkpoint, its next reset). Recurrent and graph models, and envs with transforms, collect
+with `KitchenCollector` (`trainers.rollout.make_collector` picks).
 """
 
 from __future__ import annotations
@@ -25,25 +26,31 @@ from tensordict import TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
 
+from jax_env.observation import Channel
 from torch_kitchen.egocentric import EgocentricLinear
 from torch_kitchen.env import KitchenEnv, ProgramCache, kitchen_programs, output_entries
 from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, OBSERVATION, SHAPED_REWARD, VALUE
 from torch_kitchen.rollout import NEXT, InPlaceCollector, as_path, as_tensordict
 from torch_kitchen.teams import TeamPolicy, layers_of, stackable_acting
 
-Chain = tuple[tuple, ...]  # a network's layers as JAX runs them: ("flatten", start, end), ("linear",), ("relu",)
+# A network's layers as JAX runs them: ("flatten", start, end), ("linear",), ("relu",), ("egocentric", (H, W, C)).
+Chain = tuple[tuple, ...]
 
 
 def jax_chain(network: nn.Module) -> Chain | None:
-    """A chain of (nested `nn.Sequential`s of) Flatten, Linear and ReLU layers as JAX runs it (`run_chain`), or
-    None where it holds another layer (an egocentric window, a bias-free linear layer)."""
+    """A chain of (nested `nn.Sequential`s of) Flatten, Linear, `EgocentricLinear` and ReLU layers as JAX runs it
+    (`run_chain`), or None where it holds another layer (a bias-free linear layer, a graph layer)."""
     chain = []
     for layer in layers_of(network):
         if isinstance(layer, nn.Flatten):
             chain.append(("flatten", layer.start_dim, layer.end_dim))
         elif isinstance(layer, nn.ReLU):
             chain.append(("relu",))
-        elif isinstance(layer, nn.Linear) and not isinstance(layer, EgocentricLinear) and layer.bias is not None:
+        elif isinstance(layer, nn.Linear) and layer.bias is None:
+            return None
+        elif isinstance(layer, EgocentricLinear):
+            chain.append(("egocentric", layer.obs_shape))
+        elif isinstance(layer, nn.Linear):
             chain.append(("linear",))
         else:
             return None
@@ -54,6 +61,24 @@ def chain_weights(network: nn.Module) -> list[torch.Tensor]:
     """The weights and biases of a chain's linear layers, in order."""
     return [tensor for layer in layers_of(network) if isinstance(layer, nn.Linear)
             for tensor in (layer.weight, layer.bias)]
+
+
+def agent_window(obs: jax.Array) -> jax.Array:
+    """`EgocentricLinear.window` in JAX: observations [..., H, W, C] -> their agent-centred windows [..., (2H - 1) *
+    (2W - 1) * C], flat. The kitchen padded by H - 1 rows and W - 1 columns of zeros on every side holds the
+    agent's window at the agent's own cell: a slice where the layer scatters. The slices are taken one kitchen
+    after another (`lax.map`): under vmap they become one gather, 7x slower on a CPU."""
+    *batch, height, width, channels = obs.shape
+    flat = obs.reshape(-1, height, width, channels)
+    agent_cell = flat[..., Channel.SELF].reshape(len(flat), -1).argmax(-1)  # an all-zero row: cell 0, as torch's
+    padded = jnp.pad(flat, ((0, 0), (height - 1, height - 1), (width - 1, width - 1), (0, 0)))
+
+    def window(kitchen_and_cell):
+        kitchen, cell = kitchen_and_cell
+        corner = (cell // width, cell % width, 0)
+        return jax.lax.dynamic_slice(kitchen, corner, (2 * height - 1, 2 * width - 1, channels))
+
+    return jax.lax.map(window, (padded, agent_cell)).reshape(*batch, -1)
 
 
 def run_chain(chain: Chain, weights: Sequence[jax.Array], x: jax.Array) -> jax.Array:
@@ -67,6 +92,8 @@ def run_chain(chain: Chain, weights: Sequence[jax.Array], x: jax.Array) -> jax.A
         elif op == "relu":
             x = jax.nn.relu(x)
         else:
+            if op == "egocentric":
+                x = agent_window(x)
             weight, bias = next(weights), next(weights)
             x = jnp.matmul(x.astype(weight.dtype), weight.T, precision=jax.lax.Precision.HIGHEST) + bias
     return x

@@ -94,7 +94,7 @@ class RuntimeConfig(DeviceConfig):
                "(on a GPU, the teams' stacked networks replay as CUDA graphs)"
     )
     collector: str = option(
-        "xla", '"xla": MLP teams act inside the kitchens\' XLA program, a whole batch one call '
+        "xla", '"xla": MLP teams (ego_mlp too) act inside the kitchens\' XLA program, a whole batch one call '
                '(torch_kitchen.xla_rollout; actions drawn by JAX), other models as "kitchen"; "kitchen": the '
                'kitchens\' own in-place rollout (torch_kitchen.rollout); "torchrl": TorchRL\'s Collector; the last '
                'two collect the same batches bit for bit, the first at a fraction of the host\'s work per step'

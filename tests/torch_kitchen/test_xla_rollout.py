@@ -41,8 +41,9 @@ def xla_batches(tmp_path, overrides, count=3):
 
 # Episodes of 10 steps in batches of 16: they end inside a batch and across two.
 @pytest.mark.parametrize("overrides", [["architecture=mlp"],
-                                       ["architecture=mlp", "runtime.teams=2", "levels=infinite"]],
-                         ids=["mlp", "mlp-2-teams"])
+                                       ["architecture=mlp", "runtime.teams=2", "levels=infinite"],
+                                       ["architecture=ego_mlp", "runtime.teams=2", "levels=infinite"]],
+                         ids=["mlp", "mlp-2-teams", "ego_mlp-2-teams"])
 def test_the_xla_rollout_steps_the_kitchens_as_the_kitchen_collector_does_with_its_actions(tmp_path, overrides):
     overrides = ["max_steps=10", *overrides]
     ours, env, _, config = xla_batches(tmp_path / "xla", overrides)
@@ -65,8 +66,9 @@ def test_the_xla_rollout_steps_the_kitchens_as_the_kitchen_collector_does_with_i
         assert all(torch.equal(a, b) if isinstance(a, torch.Tensor) else a == b for a, b in zip(ours_state, twin_state))
 
 
-def test_the_xla_policy_is_the_teams_networks_and_draws_from_their_streams(tmp_path):
-    overrides = ["max_steps=10", "architecture=mlp", "runtime.teams=2", "levels=infinite"]
+@pytest.mark.parametrize("architecture", ["mlp", "ego_mlp"])
+def test_the_xla_policy_is_the_teams_networks_and_draws_from_their_streams(tmp_path, architecture):
+    overrides = ["max_steps=10", f"architecture={architecture}", "runtime.teams=2", "levels=infinite"]
     batches, env, policy, _ = xla_batches(tmp_path / "first", overrides, count=2)
     networks = stackable_acting(list(policy.policies))
     for team, (policy_net, value_net) in enumerate(networks):
@@ -85,8 +87,8 @@ def test_the_xla_policy_is_the_teams_networks_and_draws_from_their_streams(tmp_p
     assert not torch.equal(other[0][ACTION], batches[0][ACTION]), "another seed draws other actions"
 
 
-@pytest.mark.parametrize("architecture,kind", [("mlp", XlaCollector), ("mlp_lstm", KitchenCollector),
-                                               ("gnn", KitchenCollector), ("ego_mlp", KitchenCollector)])
+@pytest.mark.parametrize("architecture,kind", [("mlp", XlaCollector), ("ego_mlp", XlaCollector),
+                                               ("mlp_lstm", KitchenCollector), ("gnn", KitchenCollector)])
 def test_the_xla_kind_takes_the_models_it_can_run_and_leaves_the_others_to_the_kitchen_collector(
         tmp_path, architecture, kind):
     env, policy, config = env_and_policy(tmp_path, [f"architecture={architecture}"])
