@@ -59,7 +59,8 @@ class SeatedPolicy(TensorDictModuleBase):
         inputs = list(dict.fromkeys(key for keys in self._inputs for key in keys))
         self.in_keys = inputs + (["is_init", *state_keys] if self.recurrent else [])
         self.out_keys = [LOGITS] + [("next", *key) for key in state_keys]
-        self._rows: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
+        # Per team: the kitchens it plays in, and per seat (where among them it plays that seat, those kitchens).
+        self._rows: list[tuple[torch.Tensor, list[tuple[torch.Tensor, torch.Tensor]]]] = []
 
     def env_transforms(self) -> list[Transform]:
         """[InitTracker(), the primer of every stored state] if a team is recurrent, then the partner context if
@@ -77,7 +78,10 @@ class SeatedPolicy(TensorDictModuleBase):
         for team in range(len(self.actors)):
             seated = teams == team  # [B, 2]
             rows = seated.any(-1).nonzero().squeeze(-1)
-            self._rows.append((rows, seated[rows, 0], seated[rows, 1]))
+            # Per seat: where among `rows` the team plays it, and those kitchens. Found here, once per seating, so
+            # that a step indexes by them and never waits to count a mask.
+            places = [seated[rows, seat].nonzero().squeeze(-1) for seat in range(N_AGENTS)]
+            self._rows.append((rows, [(place, rows[place]) for place in places]))
         self._num_envs = teams.shape[0]
         return self
 
@@ -89,7 +93,7 @@ class SeatedPolicy(TensorDictModuleBase):
             raise ValueError(f"seated for {self._num_envs} kitchens, got a batch of {observation.shape[0]}")
         logits = observation.new_zeros((*observation.shape[:2], NUM_ACTIONS), dtype=torch.float32)
         next_states = {name: torch.zeros_like(tensordict.get(("agents", name))) for name in self._widths}
-        for actor, inputs, storage, (rows, seat0, seat1) in zip(self.actors, self._inputs, self._storage, self._rows):
+        for actor, inputs, storage, (rows, seats) in zip(self.actors, self._inputs, self._storage, self._rows):
             if rows.numel() == 0:
                 continue
             team_view = TensorDict({key: tensordict.get(key)[rows] for key in inputs}, batch_size=rows.shape)
@@ -98,10 +102,10 @@ class SeatedPolicy(TensorDictModuleBase):
                 for name, stored in storage.items():
                     team_view.set(("agents", name), tensordict.get(("agents", stored))[rows])
             team_view = actor(team_view)
-            for seat, mine in enumerate((seat0, seat1)):
-                logits[rows[mine], seat] = team_view.get(LOGITS)[mine, seat]
+            for seat, (place, kitchens) in enumerate(seats):
+                logits[kitchens, seat] = team_view.get(LOGITS)[place, seat]
                 for name, stored in storage.items():
-                    next_states[stored][rows[mine], seat] = team_view.get(("next", "agents", name))[mine, seat]
+                    next_states[stored][kitchens, seat] = team_view.get(("next", "agents", name))[place, seat]
         tensordict.set(LOGITS, logits)
         for name, state in next_states.items():
             tensordict.set(("next", "agents", name), state)

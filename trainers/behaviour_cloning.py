@@ -72,6 +72,7 @@ class ProxySettings:
     anchor_coef: float = 0.1
     fine_tune_lr: float = 1e-3
     threads: int = 1  # torch threads
+    device: str = "cpu"  # where the proxy is fitted, measured and plays (its checkpoint loads anywhere)
 
     def __post_init__(self):
         for name in ("hidden", "epochs", "minibatch", "candidates", "fine_tunes", "threads"):
@@ -82,6 +83,10 @@ class ProxySettings:
                              f"{self.fine_tune_steps}, {self.fine_tune_below} and {self.fine_tune_lr}")
         if not self.anchor_coef > 0:
             raise ValueError(f"anchor_coef must be above 0, got {self.anchor_coef}")
+        try:
+            torch.device(self.device)
+        except RuntimeError:
+            raise ValueError(f"device must be a torch device such as cpu or cuda, got {self.device!r}") from None
 
 
 def human_batch(games: list[HumanGame]) -> TensorDict:
@@ -93,23 +98,34 @@ def human_batch(games: list[HumanGame]) -> TensorDict:
     return TensorDict({OBSERVATION: observation, HUMAN_ACTION: action}, batch_size=[len(action)])
 
 
+def proxy_device(actor_critic: ActorCritic) -> torch.device:
+    """Where the proxy's networks are."""
+    return next(actor_critic.actor.parameters()).device
+
+
 def proxy_logits(actor_critic: ActorCritic, batch: TensorDict) -> torch.Tensor:
-    """The proxy's action logits [N, 2, 6] for the batch's observations."""
-    return actor_critic.actor(batch.select(OBSERVATION).clone(False)).get(LOGITS)
+    """The proxy's action logits [N, 2, 6] for the batch's observations (taken to the proxy's device)."""
+    return actor_critic.actor(batch.select(OBSERVATION).to(proxy_device(actor_critic)).clone(False)).get(LOGITS)
 
 
 def fit_proxy(train: TensorDict, settings: ProxySettings) -> tuple[ActorCritic, list[float]]:
-    """A proxy fitted to `train` (a `human_batch`); returns it and the mean loss of each epoch."""
+    """A proxy fitted to `train` (a `human_batch`) on `settings.device`; returns it and the mean loss of each
+    epoch. The loss is read once per epoch: nothing in a minibatch waits for the device."""
     torch.manual_seed(settings.seed)
+    device = torch.device(settings.device)
     obs_shape = tuple(train.get(OBSERVATION).shape[-3:])
     actor_critic = make_actor_critic(settings.architecture, obs_shape, settings.hidden, share_params=True)
-    optimizer = torch.optim.Adam(actor_critic.actor.parameters(), lr=settings.lr)
-    weights = torch.ones(6)
+    actor_critic.actor.to(device)
+    actor_critic.critic.to(device)
+    train = train.to(device)
+    # Fused: one kernel for every parameter, its step counts kept where they are, so that no step reads one.
+    optimizer = torch.optim.Adam(actor_critic.actor.parameters(), lr=settings.lr, fused=True)
+    weights = torch.ones(6, device=device)
     weights[STAY] = settings.stay_weight
     losses = []
     for _ in range(settings.epochs):
-        total = torch.zeros(())
-        order = torch.randperm(len(train))
+        total = torch.zeros((), device=device)
+        order = torch.randperm(len(train), device=device)
         for rows in order.split(settings.minibatch):
             batch = train[rows]
             logits = proxy_logits(actor_critic, batch)
@@ -129,6 +145,7 @@ def accuracy(actor_critic: ActorCritic, test: TensorDict, train: TensorDict) -> 
     """On `test`: the proxy's most likely action against the humans' (all labels, and the moves and interactions
     alone, STAY excluded from both sides), with the baselines always-STAY and the train split's most frequent
     move or interaction."""
+    test = test.to(proxy_device(actor_critic))
     human = test.get(HUMAN_ACTION) != NOT_HUMAN
     logits, labels = proxy_logits(actor_critic, test)[human], test.get(HUMAN_ACTION)[human]
     moving = labels != STAY
@@ -148,7 +165,7 @@ def accuracy(actor_critic: ActorCritic, test: TensorDict, train: TensorDict) -> 
 @torch.no_grad()
 def play_together(actor_critic: ActorCritic, layout: str, steps: int, episodes: int = 8, seed: int = 0) -> TensorDict:
     """The rollout [episodes, steps] of `episodes` games of `steps` steps of two copies of the proxy (sampling)."""
-    env = KitchenEnv(episodes, levels=layout, max_steps=steps, seed=seed)
+    env = KitchenEnv(episodes, levels=layout, max_steps=steps, seed=seed, device=proxy_device(actor_critic))
     torch.manual_seed(seed)
     with set_exploration_type(ExplorationType.RANDOM):
         return env.rollout(steps, actor_critic.actor, break_when_any_done=False)
@@ -206,7 +223,7 @@ def fine_tune(start: Path, layout: str, settings: ProxySettings, coef: float, ga
         "algorithm=anchored_ippo", f"algorithm_config.anchor_coef={coef}", f"init_from={start}",
         f"total_steps={settings.fine_tune_steps}", f"max_steps={game_steps}", f"lr={settings.fine_tune_lr}",
         f"seed={seed}", f"run_dir={run_dir}", f"name=anchor{coef:g}", "eval_episodes=0",
-        f"runtime.threads={settings.threads}",
+        f"runtime.threads={settings.threads}", f"runtime.device={settings.device}",
     ])  # fmt: skip
     return train(config)
 

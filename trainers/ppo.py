@@ -39,7 +39,7 @@ from trainers.loggers import hyperparameters, make_loggers
 from trainers.placement import set_learning_rate
 from trainers.ppo_step import Losses, total_loss
 from trainers.resume import RunStopped, StopRequest, TrainingDiverged, drop_csv_rows_after, restore, start_fresh
-from trainers.rollout import finished_episode_deliveries, make_collector
+from trainers.rollout import make_collector
 from trainers.runtime import Learner, UpdateRunner, team_policy, use_threads
 from trainers.training_team import (
     RestorePoint,
@@ -376,21 +376,28 @@ def run_directories(configs: Sequence[TrainConfig], runs: Sequence[Path] | None,
 
 
 class Progress:
-    """The run's progress bar (`progress`): env steps of all teams, with the recent episodes' mean deliveries and
-    the steps per second."""
+    """The run's progress bar (`progress`): env steps of all teams, with the mean deliveries of the episodes that
+    ended in the last `RECENT_UPDATES` batches and the steps per second. A hidden bar reads nothing from the
+    device; a shown one reads two numbers per batch."""
+
+    RECENT_UPDATES = 10
 
     def __init__(self, teams: Sequence[TrainingTeam]):
         lead, num_teams = teams[0].config, len(teams)
         self.total = num_teams * lead.planned_steps
         self.bar = tqdm(total=self.total, initial=sum(team.env_steps for team in teams), unit="step",
                         unit_scale=True, disable=not lead.progress, dynamic_ncols=True)
-        self.recent_deliveries = deque(maxlen=10 * num_teams * lead.num_envs)
+        self.recent = deque(maxlen=self.RECENT_UPDATES)  # (deliveries summed, episodes) per batch
 
     def update(self, batch: TensorDictBase, steps_per_second: float) -> None:
-        self.recent_deliveries.extend(finished_episode_deliveries(batch).tolist())
         self.bar.update(batch.numel())
-        recent = sum(self.recent_deliveries) / max(1, len(self.recent_deliveries))
-        self.bar.set_postfix(deliveries=f"{recent:.2f}", sps=f"{steps_per_second:,.0f}")
+        if self.bar.disable:
+            return
+        done = batch["next", "done"].squeeze(-1)
+        delivered = batch["next", "episode_deliveries"].squeeze(-1).where(done, 0).sum()
+        self.recent.append(torch.stack([delivered.float(), done.sum().float()]).tolist())
+        delivered, episodes = map(sum, zip(*self.recent))
+        self.bar.set_postfix(deliveries=f"{delivered / max(1, episodes):.2f}", sps=f"{steps_per_second:,.0f}")
 
     def close(self) -> None:
         self.bar.close()

@@ -1,12 +1,17 @@
-"""The host's part of every training loop, counted on the CPU (`trainers.device_audit`): each loop trains twice, the
-second run 8 steps per update longer, and the host reads and device-less tensors whose count grew are the loop's
-per-step (or per-episode) ones. They are stated here, so a new one is a failing test naming its function."""
+"""The host's part of every loop, counted on the CPU (`trainers.device_audit`): each training loop (every collector,
+the architecture families, E3T, the main job's), distillation, evaluation beside the scripted cook and a human proxy,
+and behaviour cloning runs twice, the second run longer (8 steps per update or episode, or 2 minibatches), and the
+host reads and device-less tensors whose count grew are the loop's per-step (or per-minibatch) ones. They are stated
+here, so a new one is a failing test naming its function."""
 
 import pytest
-from tiny import TINY
+import torch
+from tiny import TINY, infinite_observations
 
+from torch_kitchen.keys import OBSERVATION
 from trainers.composer import load_config
 from trainers.device_audit import DeviceAudit, per_step
+from trainers.distill import distill
 from trainers.ppo import train_teams
 from trainers.training_team import team_configs
 
@@ -22,6 +27,7 @@ EPISODE_ENDS = {"__bool__ at torch_kitchen/env.py:KitchenEnv._reset": 1 / 16}
 LOOPS = {
     # name: (config, overrides, host reads per step, tensors made without a device per step)
     "xla": ("configs/ippo/mlp_ik.yaml", ["runtime.collector=xla"], {}, {}),
+    "main job's IPPO (xla)": ("configs/main.yaml", [], {}, {}),
     "kitchen": ("configs/ippo/mlp_ik.yaml", ["runtime.collector=kitchen"],
                 {**CPU_KERNEL, **ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at torch_kitchen/rollout.py:advance": 0.25},
                 CPU_KERNEL_MADE),
@@ -40,6 +46,23 @@ LOOPS = {
              "randint at torch_kitchen/partner.py:PartnerSeats._draw": 1 / 16}),
 }
 
+# Distillation, evaluation and behaviour cloning, run at SHORT and LONG steps (one episode ends in the longer run
+# alone). The scripted cook plans on the host: it reads the floor plans to key its table of distances, and reads
+# whether a cook stands beside its partner (how often depends on the kitchens).
+SCRIPTED_COOK = {"numpy at torch_kitchen/scripted.py:FloorDistances.__call__": 1.0,
+                 "__bool__ at torch_kitchen/scripted.py:ScriptedCook.forward": 1.0}
+ONE_EPISODE_END = 1 / (LONG - SHORT)
+DISTILL_READS = {**CPU_KERNEL, **ACTIONS_TO_JAX, **SCRIPTED_COOK,
+                 "nonzero at torch_kitchen/scripted.py:ScriptedCook.forward": 1.0,
+                 "__bool__ at torch_kitchen/env.py:KitchenEnv._reset": ONE_EPISODE_END,
+                 "__bool__ at torch_kitchen/rollout.py:advance": 0.5,
+                 "__float__ at trainers/distill.py:learn_round": ONE_EPISODE_END}  # the round's mean deliveries
+EVALUATION = {  # partner: (host reads, tensors made without a device) per step; the seated teams read nothing
+    "scripted cook": ({**ACTIONS_TO_JAX, **SCRIPTED_COOK,
+                       "nonzero at torch_kitchen/scripted.py:ScriptedCook.forward": 0.625}, {}),
+    "human proxy": (ACTIONS_TO_JAX, {}),
+}
+
 
 def audited_run(tmp_path, config: str, overrides: list[str], steps: int) -> DeviceAudit:
     config = load_config(config, [*TINY, f"rollout_steps={steps}", f"total_steps={4 * steps * UPDATES}",
@@ -55,6 +78,75 @@ def test_each_loops_host_reads_and_device_less_tensors_per_step_are_the_stated_o
     short, long = (audited_run(tmp_path, config, overrides, steps) for steps in (SHORT, LONG))
     assert per_step(short.host_reads, long.host_reads, EXTRA_STEPS) == pytest.approx(reads), long.report()
     assert per_step(short.factories, long.factories, EXTRA_STEPS) == pytest.approx(made), long.report()
+
+
+def audited_distillation(tmp_path, steps: int) -> DeviceAudit:
+    config = load_config("configs/main.yaml", [*TINY, f"rollout_steps={steps}", "distill_rounds=1",
+                                               "distill_epochs=1", f"run_dir={tmp_path / str(steps)}",
+                                               "loggers=[csv]"])
+    with DeviceAudit() as audit:
+        distill(config)
+    return audit
+
+
+def test_distillations_host_reads_and_device_less_tensors_per_step_are_the_stated_ones(tmp_path):
+    short, long = (audited_distillation(tmp_path, steps) for steps in (SHORT, LONG))
+    assert per_step(short.host_reads, long.host_reads, LONG - SHORT) == pytest.approx(DISTILL_READS), long.report()
+    assert per_step(short.factories, long.factories, LONG - SHORT) == pytest.approx(CPU_KERNEL_MADE), long.report()
+
+
+def audited_evaluation(partner, steps: int) -> DeviceAudit:
+    from torch_kitchen.models import make_actor_critic
+    from trainers.config import TrainConfig
+    from trainers.evaluation.pairs import evaluation_grids, make_matchups, play
+    from trainers.evaluation.teams import Team
+
+    torch.manual_seed(0)
+    team = Team("ego/seed0", "ego", TrainConfig(architecture="ego_mlp", hidden=16),
+                make_actor_critic("ego_mlp", (7, 7, 26), 16), (7, 7, 26), "(made here)")
+    teams, matchups = make_matchups({"ego": [team]}, partner=partner)
+    with DeviceAudit() as audit:
+        play(teams, matchups, evaluation_grids(["cramped_room_7x7"], num_heldout=1), rollouts=1, max_steps=steps)
+    return audit
+
+
+def human_proxy_team():
+    from torch_kitchen.models import make_actor_critic
+    from trainers.config import TrainConfig
+    from trainers.evaluation.teams import Team
+
+    torch.manual_seed(1)
+    return Team("human_proxy_cramped_room/seed0", "human_proxy_cramped_room", TrainConfig(architecture="ego_mlp"),
+                make_actor_critic("ego_mlp", (7, 7, 26), 16), (7, 7, 26), "(made here)")
+
+
+@pytest.mark.parametrize("partner", ["scripted cook", "human proxy"])
+def test_evaluations_host_reads_and_device_less_tensors_per_step_are_the_stated_ones(partner):
+    from trainers.evaluation.teams import scripted_cook_team
+
+    seated = scripted_cook_team((7, 7, 26)) if partner == "scripted cook" else human_proxy_team()
+    short, long = (audited_evaluation(seated, steps) for steps in (SHORT, LONG))
+    reads, made = EVALUATION[partner]
+    assert per_step(short.host_reads, long.host_reads, LONG - SHORT) == pytest.approx(reads), long.report()
+    assert per_step(short.factories, long.factories, LONG - SHORT) == pytest.approx(made), long.report()
+
+
+def audited_cloning(samples: int) -> DeviceAudit:
+    from tensordict import TensorDict
+
+    from trainers.behaviour_cloning import HUMAN_ACTION, ProxySettings, fit_proxy
+
+    games = TensorDict({OBSERVATION: infinite_observations(samples, seed=0),
+                        HUMAN_ACTION: torch.randint(0, 6, (samples, 2))}, batch_size=[samples])
+    with DeviceAudit() as audit:
+        fit_proxy(games, ProxySettings(hidden=8, epochs=1, minibatch=8))
+    return audit
+
+
+def test_behaviour_clonings_minibatches_read_nothing_and_make_every_tensor_on_the_proxys_device():
+    short, long = audited_cloning(16), audited_cloning(32)  # 2 and 4 minibatches
+    assert per_step(short.host_reads, long.host_reads, 2) == {}, long.report()
+    assert per_step(short.factories, long.factories, 2) == {}, long.report()
 
 
 def test_the_audit_counts_host_reads_and_tensors_made_without_a_device_and_only_those():
