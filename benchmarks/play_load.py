@@ -62,12 +62,32 @@ def tick_latency(architecture: str, records: Path, ticks: int = 300) -> list[flo
     return times
 
 
-def resident_mb() -> float:
-    """This process's resident memory (Linux's /proc), MB."""
-    for line in Path("/proc/self/status").read_text().splitlines():
+def resident_mb(pid: int | str = "self") -> float:
+    """A process's resident memory (Linux's /proc; this one by default), MB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
     return float("nan")
+
+
+def state_gaps(arrivals: list[float]) -> list[float]:
+    """Seconds between a game's consecutive states as they arrived, from the second on (the first state comes
+    when the game connects, the second on the first tick's schedule)."""
+    return [b - a for a, b in zip(arrivals[1:], arrivals[2:])]
+
+
+def schedule_lag(arrivals: list[float], steps: int, tick: float) -> float:
+    """How late (s) a game's last state of `steps` came against a tick every `tick` s from its first state."""
+    return arrivals[-1] - (arrivals[0] + steps * tick)
+
+
+GAPS_HEADER = f"{'gap p50 ms':>10s} {'gap p90 ms':>10s} {'gap p99 ms':>10s} {'gap max ms':>10s}"
+
+
+def gaps_row(gaps: list[float]) -> str:
+    """The p50, p90, p99 and max of sorted `gaps` (s) in ms, under GAPS_HEADER."""
+    return " ".join(f"{value * 1e3:10.1f}" for value in (quantile(gaps, 0.5), quantile(gaps, 0.9),
+                                                          quantile(gaps, 0.99), gaps[-1]))
 
 
 class Serving:
@@ -127,8 +147,7 @@ async def study(url: str, partner: str, games: int, tick: float) -> dict:
                                                                                   "stay", "interact"])}))
                 if steps % 50 == 0:
                     peak[0] = max(peak[0], resident_mb())
-        lag = arrivals[-1] - (arrivals[0] + steps * tick)  # the last state against the schedule from the first
-        return [b - a for a, b in zip(arrivals[1:], arrivals[2:])], lag
+        return state_gaps(arrivals), schedule_lag(arrivals, steps, tick)
 
     results = await asyncio.gather(*(one(game_id) for game_id in ids))
     gaps = sorted(gap for intervals, _ in results for gap in intervals)
@@ -155,13 +174,10 @@ def run_study(partner_run: str, games: int, steps: int, tick_ms: int, records: P
         after = resident_mb()
     created, gaps, lags = result["created"], result["gaps"], result["lags"]
     print(f"\n{games} real-time games at once, mlp team, {steps} steps each, a key on every state")
-    print(f"{'create mean s':>13s} {'create max s':>12s} {'gap p50 ms':>10s} {'gap p90 ms':>10s} {'gap p99 ms':>10s} "
-          f"{'gap max ms':>10s} {'lag median s':>12s} {'lag max s':>9s} {'idle MB':>8s} {'peak MB':>8s} "
-          f"{'after MB':>8s}")
-    print(f"{statistics.mean(created):13.3f} {created[-1]:12.3f} {quantile(gaps, 0.5) * 1e3:10.1f} "
-          f"{quantile(gaps, 0.9) * 1e3:10.1f} {quantile(gaps, 0.99) * 1e3:10.1f} {gaps[-1] * 1e3:10.1f} "
-          f"{statistics.median(lags):12.2f} {lags[-1]:9.2f} {idle:8.0f} {result['peak_mb']:8.0f} {after:8.0f}",
-          flush=True)
+    print(f"{'create mean s':>13s} {'create max s':>12s} {GAPS_HEADER} {'lag median s':>12s} {'lag max s':>9s} "
+          f"{'idle MB':>8s} {'peak MB':>8s} {'after MB':>8s}")
+    print(f"{statistics.mean(created):13.3f} {created[-1]:12.3f} {gaps_row(gaps)} {statistics.median(lags):12.2f} "
+          f"{lags[-1]:9.2f} {idle:8.0f} {result['peak_mb']:8.0f} {after:8.0f}", flush=True)
 
 
 async def play_games(url: str, partner: str, games: int, seconds: float) -> list[float]:

@@ -144,6 +144,49 @@ def parse_action(text: str) -> int:
         raise ValueError(f"{first['msg']}{where}; {EXPECTED}"[:300]) from None
 
 
+def drawing_script() -> str:
+    """The script that draws a game's state and maps keys to actions (static/kitchen.js), shared by every page that
+    shows a game."""
+    return (STATIC / "kitchen.js").read_text(encoding="utf-8")
+
+
+def page_html(name: str) -> str:
+    """A page of static/ with the drawing script inlined where it names it, so that a page is one request, answered
+    behind the same host and token checks as the rest."""
+    return (STATIC / name).read_text(encoding="utf-8").replace('<script src="kitchen.js"></script>',
+                                                              f"<script>\n{drawing_script()}</script>")
+
+
+def token_admits(token: str | None, given: str | None) -> bool:
+    """Whether a request carrying `given` may be answered by a server whose key is `token` (None: any request)."""
+    return token is None or (given is not None and secrets.compare_digest(given.encode(), token.encode()))
+
+
+def guard(app: FastAPI, hosts: list[str] | None, token: str | None):
+    """Answers only `hosts` as Host (None: any) and, with a `token`, only requests carrying `?token=<token>`, on
+    every HTTP request of `app`; returns the same check for a WebSocket, which also needs its page's own origin."""
+
+    def known(host: str | None) -> bool:
+        return hosts is None or host in hosts
+
+    @app.middleware("http")
+    async def known_host(request, call_next):
+        if not known(request.headers.get("host")):
+            return HTMLResponse(f"unknown host {request.headers.get('host')!r}", status_code=400)
+        if not token_admits(token, request.query_params.get("token")):
+            return HTMLResponse(NO_TOKEN, status_code=403)
+        return await call_next(request)
+
+    def admits(websocket: WebSocket) -> bool:
+        host, origin = websocket.headers.get("host"), websocket.headers.get("origin")
+        if known(host) and same_origin(origin, host) and token_admits(token, websocket.query_params.get("token")):
+            return True
+        log.warning("refused a connection from origin %r to host %r (or without the token)", origin, host)
+        return False
+
+    return admits
+
+
 def same_origin(origin: str | None, host: str | None) -> bool:
     """Whether a browser's Origin header names the server it connects to (a client outside a browser sends
     none): a page served from anywhere else may not play, or take over, a game."""
@@ -235,19 +278,7 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
     app = FastAPI(title="kitchen-play")
     games: dict[str, tuple[Game, str, float]] = {}  # games made, not yet connected: (game, mode, made at)
 
-    def known(host: str | None) -> bool:
-        return hosts is None or host in hosts
-
-    def admitted(given: str | None) -> bool:
-        return token is None or (given is not None and secrets.compare_digest(given.encode(), token.encode()))
-
-    @app.middleware("http")
-    async def known_host(request, call_next):
-        if not known(request.headers.get("host")):
-            return HTMLResponse(f"unknown host {request.headers.get('host')!r}", status_code=400)
-        if not admitted(request.query_params.get("token")):
-            return HTMLResponse(NO_TOKEN, status_code=403)
-        return await call_next(request)
+    admits = guard(app, hosts, token)
 
     def expire_unconnected() -> None:
         for game_id, (game, _, made) in list(games.items()):
@@ -263,7 +294,7 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
 
     @app.get("/", response_class=HTMLResponse)
     def lobby() -> str:
-        return (STATIC / "index.html").read_text(encoding="utf-8")
+        return page_html("index.html")
 
     @app.get("/api/options")
     def options() -> dict:
@@ -296,10 +327,7 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
 
     @app.websocket("/ws/games/{game_id}")
     async def play(websocket: WebSocket, game_id: str) -> None:
-        host, origin = websocket.headers.get("host"), websocket.headers.get("origin")
-        if not known(host) or not same_origin(origin, host) or not admitted(websocket.query_params.get("token")):
-            log.warning("refused a connection to a game from origin %r to host %r (or without the token)", origin,
-                        host)
+        if not admits(websocket):
             await websocket.close(code=1008)  # policy violation, before accepting: the game stays its owner's
             return
         await websocket.accept()

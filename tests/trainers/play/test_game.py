@@ -1,7 +1,5 @@
 """A game's partner keeps its memory between ticks: an LSTM team's state and an E3T team's partner context."""
 
-from pathlib import Path
-
 import torch
 
 from jax_env import load_layout
@@ -10,6 +8,7 @@ from torch_kitchen.models import make_actor_critic
 from torch_kitchen.models.recurrence import recurrent_states
 from torch_kitchen.partner import CONTEXT_ACTION
 from trainers.play.game import Game, Partner, read_record, replay
+from trainers.play.server import page_html
 
 PERSON = [1, 2, 3, 4, 5, 0, 1, 2, 4, 4]  # the person's keys, seat 0
 
@@ -50,7 +49,7 @@ def test_an_e3t_partner_reads_the_persons_last_actions_as_its_context(tmp_path):
 
 
 def test_the_page_colours_the_cooks_as_the_recorded_gifs_do():
-    page = (Path(__file__).resolve().parents[3] / "trainers" / "play" / "static" / "index.html").read_text()
+    page = page_html("index.html")  # as served: the drawing script inlined
     colours = ", ".join('"#%02x%02x%02x"' % colour for colour in AGENT_COLOURS)
     assert f"const SEAT_COLOURS = [{colours}];" in page
 
