@@ -14,9 +14,9 @@ from trainers.runtime import minibatch_shards
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 # configs/eval: kitchen-eval's configs; configs/protocols: scripts/reproduce.py's (conditions, not one trainer config)
 # configs/architecture, configs/runtime: config groups of one or two keys, chosen by the others (and below)
-# configs/zoo: kitchen-zoo's file of conventions
+# configs/zoo: kitchen-zoo's file of conventions; configs/study: kitchen-study's (docs/study.md runs its check)
 CONFIGS = sorted(path for path in CONFIG_DIR.rglob("*.yaml")
-                 if path.parent.name not in ("eval", "protocols", "architecture", "runtime", "zoo"))
+                 if path.parent.name not in ("eval", "protocols", "architecture", "runtime", "zoo", "study"))
 EVAL_CONFIGS = sorted((CONFIG_DIR / "eval").glob("*.yaml"))
 PROTOCOLS = sorted((CONFIG_DIR / "protocols").glob("*.yaml"))
 
