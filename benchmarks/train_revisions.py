@@ -111,14 +111,18 @@ def main(argv=None) -> None:
         try:
             for repeat in range(args.repeats):
                 for side, checkout in (("earlier", earlier), ("current", ROOT)):
-                    modes = (("throughput", args.archs), ("e3t", args.e3t), ("reference", args.reference),
-                             ("main", [MAIN_IPPO[0]] if args.main else []))
-                    for mode, names in modes:
-                        if names:
-                            rates = (measure_reference(checkout, names, args.threads, args.collector)
-                                     if mode == "reference" else measure_main(checkout, args.updates, args.threads)
-                                     if mode == "main" else
-                                     measure(checkout, mode, names, args.envs, args.updates, args.threads))
+                    measurements = {
+                        "throughput": args.archs and (lambda: measure(checkout, "throughput", args.archs, args.envs,
+                                                                      args.updates, args.threads)),
+                        "e3t": args.e3t and (lambda: measure(checkout, "e3t", args.e3t, args.envs, args.updates,
+                                                             args.threads)),
+                        "reference": args.reference and (lambda: measure_reference(checkout, args.reference,
+                                                                                   args.threads, args.collector)),
+                        "main": args.main and (lambda: measure_main(checkout, args.updates, args.threads)),
+                    }
+                    for mode, measured in measurements.items():
+                        if measured:
+                            rates = measured()
                             for name, rate in rates.items():
                                 runs[side].setdefault(name, []).append(rate)
                             print(f"repeat {repeat + 1} {side:8s} {mode:10s} {rates}", flush=True)

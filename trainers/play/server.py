@@ -187,6 +187,24 @@ def guard(app: FastAPI, hosts: list[str] | None, token: str | None):
     return admits
 
 
+def port_in_use(host: str, port: int) -> str | None:
+    """Why nothing could serve on host:port (None: it is free), said before an address nothing will answer at is
+    printed. Bound as uvicorn binds: a server started again at once after a kill finds its port's old connections
+    in TIME_WAIT, which do not keep it."""
+    with socket.socket() as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError as failure:
+            return f"cannot serve on {host}:{port}: {failure.strerror} (another server there? choose another --port)"
+    return None
+
+
+def served_hosts(host: str, port: int, allowed: list[str]) -> list[str]:
+    """The Host headers a server on host:port answers: its own address, this machine's names, and `allowed`."""
+    return [*(f"{name}:{port}" for name in dict.fromkeys([host, "127.0.0.1", "localhost"])), *allowed]
+
+
 def same_origin(origin: str | None, host: str | None) -> bool:
     """Whether a browser's Origin header names the server it connects to (a client outside a browser sends
     none): a page served from anywhere else may not play, or take over, a game."""
@@ -379,18 +397,13 @@ def main(argv: list[str] | None = None) -> int:
     for flag, value in (("--tick-ms", args.tick_ms), ("--max-steps", args.max_steps), ("--idle-s", args.idle_s)):
         if value <= 0:
             parser.error(f"{flag} must be positive, got {value:g}")
-    with socket.socket() as probe:  # say so before printing an address nothing will answer at
-        try:
-            probe.bind((args.host, args.port))
-        except OSError as error:
-            print(f"kitchen-play: error: cannot serve on {args.host}:{args.port}: {error.strerror} (another "
-                  "server there? choose another --port)", file=sys.stderr)
-            return 2
+    if (busy := port_in_use(args.host, args.port)) is not None:
+        print(f"kitchen-play: error: {busy}", file=sys.stderr)
+        return 2
     token = secrets.token_urlsafe(16) if args.token == "random" else args.token
     try:
-        hosts = [f"{name}:{args.port}" for name in dict.fromkeys([args.host, "127.0.0.1", "localhost"])]
         app = create_app(args.runs, args.records, args.tick_ms, args.device, args.levels, args.max_steps,
-                         idle_s=args.idle_s, hosts=[*hosts, *args.allow_host], token=token)
+                         idle_s=args.idle_s, hosts=served_hosts(args.host, args.port, args.allow_host), token=token)
     except ImportError as error:
         print(f"kitchen-play: error: {error}", file=sys.stderr)
         return 2

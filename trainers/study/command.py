@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import argparse
 import logging
-import socket
 import sys
 
+from trainers.play.server import port_in_use, served_hosts
 from trainers.study.assignment import assign, latin_square
 from trainers.study.config import StudyError, load_study
 
@@ -39,21 +39,15 @@ def run(args) -> int:
     from trainers.study.server import create_study_app, open_study
 
     config = load_study(args.config)
-    with socket.socket() as probe:  # say so before printing an address nothing will answer at
-        # As uvicorn binds: a study restarted at once after a kill finds its port's old connections in TIME_WAIT.
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            probe.bind((args.host, args.port))
-        except OSError as failure:
-            return error(f"cannot serve on {args.host}:{args.port}: {failure.strerror} (another server there? choose "
-                         "another --port)")
+    if (busy := port_in_use(args.host, args.port)) is not None:
+        return error(busy)
     try:
         import uvicorn  # noqa: F401
     except ImportError:
         return error("kitchen-study needs the play extra: pip install .[play]")
     database, token, operator = open_study(config, args.token)
-    hosts = [f"{name}:{args.port}" for name in dict.fromkeys([args.host, "127.0.0.1", "localhost"])]
-    app = create_study_app(config, database, token, operator, hosts=[*hosts, *args.allow_host])
+    app = create_study_app(config, database, token, operator, hosts=served_hosts(args.host, args.port,
+                                                                                   args.allow_host))
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     base = f"http://{args.host}:{args.port}"
     print(f"{PROG}: study {config.name} in {config.folder}/\n"
