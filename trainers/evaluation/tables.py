@@ -176,19 +176,26 @@ def iqm(values: np.ndarray, axis: int = -1) -> np.ndarray:
     return stats.trim_mean(values, 0.25, axis=axis)
 
 
-def iqm_interval(values, confidence: float = 0.95, resamples: int = 2000, seed: int = 0) -> tuple[float, ...]:
-    """(IQM, low, high): the interquartile mean of the values that are not NaN, with a percentile bootstrap
-    interval (scipy.stats.bootstrap); NaN for no values, a point for one."""
+def bootstrap_interval(values, statistic, confidence: float = 0.95, resamples: int = 2000, seed: int = 0
+                       ) -> tuple[float, float, float]:
+    """(statistic, low, high): `statistic` (a function of an array and an `axis`) of the values that are not NaN,
+    with a percentile bootstrap interval (scipy.stats.bootstrap); NaN for no values, a point for one value or for
+    values all equal."""
     values = np.asarray(values, dtype=np.float64).ravel()
     values = values[~np.isnan(values)]
     if values.size == 0:
         return math.nan, math.nan, math.nan
-    middle = float(iqm(values))
+    middle = float(statistic(values, axis=-1))
     if values.size == 1 or np.all(values == values[0]):
         return middle, middle, middle
-    interval = stats.bootstrap((values,), iqm, confidence_level=confidence, n_resamples=resamples,
+    interval = stats.bootstrap((values,), statistic, confidence_level=confidence, n_resamples=resamples,
                                method="percentile", rng=np.random.default_rng(seed)).confidence_interval
     return middle, float(interval.low), float(interval.high)
+
+
+def iqm_interval(values, confidence: float = 0.95, resamples: int = 2000, seed: int = 0) -> tuple[float, ...]:
+    """(IQM, low, high): the interquartile mean with its bootstrap interval (`bootstrap_interval`)."""
+    return bootstrap_interval(values, iqm, confidence, resamples, seed)
 
 
 def stranger_pair_rows(outcomes: StrangerOutcomes) -> list[dict]:

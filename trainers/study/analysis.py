@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from trainers.evaluation.tables import bootstrap_interval
 from trainers.play.game import file_sha256, replay
 from trainers.study.assignment import QUESTIONS
 from trainers.study.config import FORCED_CHOICE, StudyConfig, StudyError, config_from_dict
@@ -46,16 +47,12 @@ class CountedGame:
 
 
 def interval(values, statistic=np.mean, seed: int = 0) -> tuple[float, float]:
-    """The 95% percentile bootstrap interval of `statistic` over `values` (NaN for fewer than two; the value
-    itself where all are equal)."""
-    values = np.asarray(values, dtype=float)
+    """The 95% percentile bootstrap interval of `statistic` over `values` (`bootstrap_interval`; NaN for fewer than
+    two, the value itself where all are equal)."""
     if len(values) < 2:
         return float("nan"), float("nan")
-    if np.all(values == values[0]):
-        return float(values[0]), float(values[0])
-    result = stats.bootstrap((values,), statistic, confidence_level=CONFIDENCE, n_resamples=RESAMPLES,
-                             method="percentile", random_state=np.random.default_rng(seed))
-    return float(result.confidence_interval.low), float(result.confidence_interval.high)
+    _, low, high = bootstrap_interval(values, statistic, CONFIDENCE, RESAMPLES, seed)
+    return low, high
 
 
 def wilcoxon_p(differences) -> float:
