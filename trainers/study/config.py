@@ -197,6 +197,11 @@ def check_values(config: StudyConfig, where: str) -> None:
         fail("forced_choice must be its question, or empty to ask none")
 
 
+def partner_key(spec: str, kitchen: str) -> str:
+    """The partner a condition's `spec` names in `kitchen`: one per run (a `{kitchen}` in its path resolved)."""
+    return spec.replace("{kitchen}", kitchen)
+
+
 def partner_of(spec: str, kitchen: str, device: str = "cpu") -> Partner:
     """The partner a condition names, for `kitchen` (a `{kitchen}` in a run's path is that kitchen's name); a
     StudyError says why one cannot be loaded."""
@@ -211,7 +216,7 @@ def partner_of(spec: str, kitchen: str, device: str = "cpu") -> Partner:
         except ConventionError as error:
             raise StudyError(f"partner {spec!r}: {error}") from None
         return Partner(name, scripted_actor_critic(convention))
-    path = spec.replace("{kitchen}", kitchen)
+    path = partner_key(spec, kitchen)
     try:
         return load_partner(path, device)
     except CheckpointError as error:
@@ -228,8 +233,10 @@ def kitchen_of(name: str, seed: int) -> Layout:
         raise StudyError(str(error)) from None
 
 
-def check_partners(config: StudyConfig) -> None:
-    """Every condition's partner loads and fits every kitchen, the practice partner its kitchen (StudyError)."""
+def study_partners(config: StudyConfig) -> dict[str, Partner]:
+    """Every partner of the study, loaded once (`partner_key` -> Partner) and checked to fit each kitchen it plays:
+    every condition's in every kitchen, the practice partner in its own (StudyError). The server's games share
+    them: networks hold no state between steps (an LSTM's or E3T's lives in each game's env)."""
     pairs = [(f"condition {name!r}", spec, kitchen) for name, spec in config.conditions.items()
              for kitchen in config.kitchens]
     if config.practice_games:
@@ -238,13 +245,14 @@ def check_partners(config: StudyConfig) -> None:
     for who, spec, kitchen in pairs:
         if kitchen not in layouts:
             layouts[kitchen] = kitchen_of(kitchen, config.seed)
-        resolved = spec.replace("{kitchen}", kitchen)
+        key = partner_key(spec, kitchen)
         try:
-            if resolved not in partners:
-                partners[resolved] = partner_of(spec, kitchen, config.device)
-            check_fits(partners[resolved], layouts[kitchen])
+            if key not in partners:
+                partners[key] = partner_of(spec, kitchen, config.device)
+            check_fits(partners[key], layouts[kitchen])
         except (StudyError, ValueError) as error:
             raise StudyError(f"{who}: {error}") from None
+    return partners
 
 
 def load_study(path: str | Path, check: bool = True) -> StudyConfig:
@@ -259,7 +267,7 @@ def load_study(path: str | Path, check: bool = True) -> StudyConfig:
     config = config_from_dict(values, str(path))
     if check:
         try:
-            check_partners(config)
+            study_partners(config)
         except StudyError as error:
             raise StudyError(f"{path}: {error}") from None
     return config

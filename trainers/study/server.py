@@ -32,7 +32,7 @@ from urllib.parse import quote
 from trainers.play.game import Game, file_sha256
 from trainers.play.server import guard, play_game
 from trainers.study.assignment import COMPLETE, CONSENT, PLAYED, QUESTIONS, assign, stages_of
-from trainers.study.config import FORCED_CHOICE, StudyConfig, StudyError, kitchen_of, partner_of
+from trainers.study.config import FORCED_CHOICE, StudyConfig, StudyError, kitchen_of, partner_key, study_partners
 from trainers.study.database import DATABASE, Refused, StillPlaying, StudyDatabase
 from trainers.study.pages import allowed_answers, progress_page, stage_page
 
@@ -106,6 +106,9 @@ def create_study_app(config: StudyConfig, database: StudyDatabase, token: str, o
     app = FastAPI(title="kitchen-study")
     admits = guard(app, hosts, token)
     folder = config.folder
+    # Loaded once: a game starting beside others then costs a kitchen, not a checkpoint read (the participants'
+    # first games start together, and each load held the ticking games back).
+    partners = study_partners(config)
 
     def participant_of(key: str):
         participant = database.participant(key)
@@ -216,8 +219,8 @@ def create_study_app(config: StudyConfig, database: StudyDatabase, token: str, o
             log.info("participant %d %s ended (%s), score %d", number, stage.label, reason, game.score)
 
         try:
-            partner = partner_of(config.practice_partner if slot.practice else config.conditions[slot.condition],
-                                 slot.kitchen, config.device)
+            partner = partners[partner_key(config.practice_partner if slot.practice
+                                           else config.conditions[slot.condition], slot.kitchen)]
             return StudyGame(kitchen_of(slot.kitchen, slot.seed), partner, config.seat, folder / record,
                              seed=slot.seed, max_steps=config.practice_steps if slot.practice else config.max_steps,
                              tick_ms=config.tick_ms, mode=config.pace, device=config.device, on_end=ended)

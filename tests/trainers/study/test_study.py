@@ -100,8 +100,13 @@ def study(tmp_path):
         yield client, database, operator, config
 
 
-def test_reload_second_tab_double_answer_skipped_stage_and_bad_token(study):
+def test_reload_second_tab_double_answer_skipped_stage_and_bad_token(study, monkeypatch):
     client, database, operator, config = study
+
+    def load_again(*args, **kwargs):
+        raise AssertionError("a game started by loading its partner: the app loads each once, when it is made")
+
+    monkeypatch.setattr("trainers.study.config.load_partner", load_again)
     person = Participant(InProcessTransport(client), "faults-1", TOKEN)
     person.enter()
     again = Participant(InProcessTransport(client), "faults-1", TOKEN)
