@@ -1,45 +1,82 @@
 """Rollouts inside one XLA program: the kitchens and the teams' acting passes stepped together by `jax.lax.scan`.
 
 `KitchenCollector` steps the kitchens' JAX program once per step and runs the teams' torch networks in between, so
-the host launches every step's work. Where every team's policy is an acting pass over chains of Flatten, Linear,
-ReLU and agent-centred linear layers (the MLP architectures, the main job's "ego_mlp" among them), `XlaCollector`
-runs those chains in JAX as well, and a whole batch of steps is one program: the host launches it once per batch.
+the host launches every step's work. Where every team's networks run in JAX as well, `XlaCollector` runs them
+beside the kitchens, and a whole batch of steps is one program: the host launches it once per batch. That is:
+
+    feed-forward   acting passes over chains of Flatten, Linear, ReLU, agent-centred linear layers and the GNN's
+                   graph encoder (the MLP architectures, the main job's "ego_mlp", "gnn"), on a bare `KitchenEnv`
+    recurrent      "mlp_lstm" and "gnn_lstm" with shared parameters: actor and critic each an encoder, an LSTM cell
+                   and a head (LayerNorm, Linear, ReLU), on a `KitchenEnv` with the model's transforms alone
+                   (`ActorCritic.env_transforms()`: InitTracker and the primer of the LSTM states)
+
+Each layer's JAX twin is in `torch_kitchen.xla_layers`.
+
 The chains read the teams' own weights, taken again at every batch; their outputs agree with torch's to float32
-rounding (the sums run in another order).
+rounding (the sums run in another order). A recurrent team's states are carried from step to step and from batch
+to batch inside the program, zeroed where an episode starts ("is_init"), as `MultiAgentLSTM` zeroes them, and the
+batch holds them as the transforms give them: the state each step read, ("next", ...) the state it left.
 
 Actions are drawn from JAX's random streams, one per team, each seeded at every batch from the team's torch stream
 (`RandomStream`), so a resumed run draws what it would have. Everything else is `KitchenCollector`'s: the batch's
 keys, shapes and dtypes, the kitchens stepped and reset by the env's own programs and keys (the steps a
 `KitchenEnv` takes with those actions, bit for bit; `tests/torch_kitchen/test_xla_rollout.py`), the env left where
-the batch ended (its checkpoint, its next reset). Recurrent and graph models, and envs with transforms, collect
-with `KitchenCollector` (`trainers.rollout.make_collector` picks).
+the batch ended (its checkpoint, its next reset). Per-agent networks, E3T's and other transforms, and an
+algorithm's acting modules collect with `KitchenCollector` (`trainers.rollout.make_collector` picks).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import torch
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
 from torch import nn
-from torchrl.envs import EnvBase
+from torchrl.envs import Compose, EnvBase, InitTracker, TensorDictPrimer, TransformedEnv
+from torchrl.modules import ProbabilisticActor
 
-from jax_env.observation import Channel
 from torch_kitchen.egocentric import EgocentricLinear
 from torch_kitchen.env import KitchenEnv, ProgramCache, kitchen_programs, output_entries
-from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, OBSERVATION, SHAPED_REWARD, VALUE
+from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, N_AGENTS, OBSERVATION, SHAPED_REWARD, VALUE
+from torch_kitchen.models.acting import ActionDistribution
+from torch_kitchen.models.networks import GraphEncoder
+from torch_kitchen.models.recurrence import MultiAgentLSTM
 from torch_kitchen.rollout import NEXT, InPlaceCollector, as_path, as_tensordict
-from torch_kitchen.teams import TeamPolicy, layers_of, stackable_acting
+from torch_kitchen.teams import ACTING_KEYS, TeamPolicy, acting_pass_of, layers_of
+from torch_kitchen.torchrl_internals import MultiAgentNet
+from torch_kitchen.xla_layers import (
+    agent_window,
+    dense,
+    graph_runs,
+    graph_scene,
+    graph_weights,
+    layer_norm,
+    lstm_cell,
+)
 
-# A network's layers as JAX runs them: ("flatten", start, end), ("linear",), ("relu",), ("egocentric", (H, W, C)).
+# A network's layers as JAX runs them: ("flatten", start, end), ("linear",), ("relu",), ("egocentric", (H, W, C)),
+# ("layer_norm", eps), ("lstm",), ("graph",) (`torch_kitchen.xla_layers` computes each).
 Chain = tuple[tuple, ...]
+IS_INIT = "is_init"  # InitTracker's key: the kitchens whose episode starts at this step
+
+
+class ActingNetwork(NamedTuple):
+    """A team's policy or value network as XLA runs it: its layers in order (nested `nn.Sequential`s, with an
+    `nn.LSTM` in a recurrent one), holding the team's weights, and the env's keys of its LSTM state (h, c), ()
+    without one."""
+
+    layers: nn.Module
+    state_keys: tuple = ()
 
 
 def jax_chain(network: nn.Module) -> Chain | None:
-    """A chain of (nested `nn.Sequential`s of) Flatten, Linear, `EgocentricLinear` and ReLU layers as JAX runs it
-    (`run_chain`), or None where it holds another layer (a bias-free linear layer, a graph layer)."""
+    """A chain of (nested `nn.Sequential`s of) Flatten, Linear, `EgocentricLinear`, ReLU, LayerNorm and `GraphEncoder`
+    layers, and at most one single-layer LSTM, as JAX runs it (`run_chain`), or None where it holds another layer (a
+    bias-free linear layer, a graph layer built otherwise)."""
     chain = []
     for layer in layers_of(network):
         if isinstance(layer, nn.Flatten):
@@ -52,38 +89,41 @@ def jax_chain(network: nn.Module) -> Chain | None:
             chain.append(("egocentric", layer.obs_shape))
         elif isinstance(layer, nn.Linear):
             chain.append(("linear",))
+        elif isinstance(layer, nn.LayerNorm) and len(layer.normalized_shape) == 1 and layer.bias is not None:
+            chain.append(("layer_norm", layer.eps))
+        elif isinstance(layer, nn.LSTM) and _one_cell(layer) and ("lstm",) not in chain:  # one state per network
+            chain.append(("lstm",))
+        elif isinstance(layer, GraphEncoder) and graph_runs(layer):
+            chain.append(("graph",))
         else:
             return None
     return tuple(chain)
 
 
+def _one_cell(lstm: nn.LSTM) -> bool:
+    """Whether an LSTM is one cell that `lstm_cell` runs: one layer, one direction, biases, no projection."""
+    return lstm.num_layers == 1 and lstm.bias and not lstm.bidirectional and lstm.proj_size == 0
+
+
 def chain_weights(network: nn.Module) -> list[torch.Tensor]:
-    """The weights and biases of a chain's linear layers, in order."""
-    return [tensor for layer in layers_of(network) if isinstance(layer, nn.Linear)
-            for tensor in (layer.weight, layer.bias)]
+    """The parameters of a chain's layers in the order `run_chain` reads them: each linear layer's and LayerNorm's
+    weight and bias, an LSTM's weight_ih, weight_hh, bias_ih and bias_hh, a graph encoder's `graph_weights`."""
+    weights = []
+    for layer in layers_of(network):
+        if isinstance(layer, GraphEncoder):
+            weights += graph_weights(layer)
+        elif isinstance(layer, nn.Linear | nn.LayerNorm):
+            weights += [layer.weight, layer.bias]
+        elif isinstance(layer, nn.LSTM):
+            weights += [layer.weight_ih_l0, layer.weight_hh_l0, layer.bias_ih_l0, layer.bias_hh_l0]
+    return weights
 
 
-def agent_window(obs: jax.Array) -> jax.Array:
-    """`EgocentricLinear.window` in JAX: observations [..., H, W, C] -> their agent-centred windows [..., (2H - 1) *
-    (2W - 1) * C], flat. The kitchen padded by H - 1 rows and W - 1 columns of zeros on every side holds the
-    agent's window at the agent's own cell: a slice where the layer scatters. The slices are taken one kitchen
-    after another (`lax.map`): under vmap they become one gather, 7x slower on a CPU."""
-    *batch, height, width, channels = obs.shape
-    flat = obs.reshape(-1, height, width, channels)
-    agent_cell = flat[..., Channel.SELF].reshape(len(flat), -1).argmax(-1)  # an all-zero row: cell 0, as torch's
-    padded = jnp.pad(flat, ((0, 0), (height - 1, height - 1), (width - 1, width - 1), (0, 0)))
-
-    def window(kitchen_and_cell):
-        kitchen, cell = kitchen_and_cell
-        corner = (cell // width, cell % width, 0)
-        return jax.lax.dynamic_slice(kitchen, corner, (2 * height - 1, 2 * width - 1, channels))
-
-    return jax.lax.map(window, (padded, agent_cell)).reshape(*batch, -1)
-
-
-def run_chain(chain: Chain, weights: Sequence[jax.Array], x: jax.Array) -> jax.Array:
+def run_chain(chain: Chain, weights: Sequence[jax.Array], x: jax.Array, state: tuple = ()
+              ) -> tuple[jax.Array, tuple]:
     """What the torch chain computes on x (uint8 observations are cast to float32 at the first linear layer), in
-    float32 at full precision (a GPU's TF32 products would stray from torch's)."""
+    float32 at full precision, and its LSTM's next state: state (h, c) float32 [..., 1, hidden] each, as the env
+    carries them, () for a chain without an LSTM. -> (output, next state)."""
     weights = iter(weights)
     for op, *args in chain:
         if op == "flatten":
@@ -91,26 +131,106 @@ def run_chain(chain: Chain, weights: Sequence[jax.Array], x: jax.Array) -> jax.A
             x = x.reshape(*x.shape[:start], -1, *x.shape[end + 1:])
         elif op == "relu":
             x = jax.nn.relu(x)
+        elif op == "layer_norm":
+            x = layer_norm(x, next(weights), next(weights), *args)
+        elif op == "lstm":
+            x, state = lstm_cell([next(weights) for _ in range(4)], x, state)
+        elif op == "graph":
+            x = graph_scene(x, [next(weights) for _ in range(6)])
         else:
             if op == "egocentric":
                 x = agent_window(x)
-            weight, bias = next(weights), next(weights)
-            x = jnp.matmul(x.astype(weight.dtype), weight.T, precision=jax.lax.Precision.HIGHEST) + bias
-    return x
+            x = dense(x, next(weights), next(weights))
+    return x, state
+
+
+def restarted(is_init: jax.Array, state: tuple) -> tuple:
+    """An LSTM state [B, ...] zeroed in the kitchens whose episode starts (is_init bool [B, 1]), as `MultiAgentLSTM`
+    zeroes it and the env's primer gives it at a reset."""
+    return jax.tree.map(lambda value: jnp.where(is_init.reshape(-1, *[1] * (value.ndim - 1)), 0, value), state)
+
+
+def recurrent_network(network: TensorDictModuleBase, out_key) -> ActingNetwork | None:
+    """`make_network`'s recurrent network writing `out_key` (an encoder, a `MultiAgentLSTM`, a head, each shared by
+    the agents) as an `ActingNetwork`; else None (per-agent networks, extra inputs to the head, another model)."""
+    if not isinstance(network, TensorDictSequential) or len(network.module) != 3:
+        return None
+    encoder, memory, head = network.module
+    if not (isinstance(memory, MultiAgentLSTM) and memory.share_params
+            and all(isinstance(part, TensorDictModule) and isinstance(part.module, MultiAgentNet)
+                    and part.module.share_params for part in (encoder, head))
+            and list(encoder.in_keys) == [OBSERVATION] and list(encoder.out_keys) == memory.in_keys[:1]
+            and list(head.in_keys) == memory.out_keys[:1] and list(head.out_keys) == [out_key]):
+        return None
+    layers = nn.Sequential(encoder.module.shared_net(), memory.lstms[0].lstm, head.module.shared_net())
+    return ActingNetwork(layers, tuple(memory.in_keys[1:3]))
+
+
+def recurrent_acting(policy: TensorDictModuleBase) -> tuple[ActingNetwork, ActingNetwork] | None:
+    """A recurrent model's collection policy, `ActorCritic.acting_policy()` (its sampling actor, then its critic),
+    as its (policy, value) networks; else None (an algorithm's acting modules between them, another model)."""
+    if not isinstance(policy, TensorDictSequential) or len(policy.module) != 2:
+        return None
+    actor, critic = policy.module
+    if not isinstance(actor, ProbabilisticActor) or len(actor.module) != 2:
+        return None
+    network, sampler = actor.module
+    if getattr(sampler, "distribution_class", None) is not ActionDistribution or \
+            list(sampler.out_keys) != [ACTION, LOG_PROB]:
+        return None
+    pair = recurrent_network(network, LOGITS), recurrent_network(critic, VALUE)
+    return None if None in pair else pair
+
+
+def team_networks(policy) -> list[tuple[ActingNetwork, ActingNetwork]] | None:
+    """Each team's (policy, value) networks, where every team of the `TeamPolicy` acts by an acting pass over shared
+    networks (`ActingPass.shared_networks`) or by a recurrent model's policy with shared networks
+    (`recurrent_acting`); else None. Whether JAX runs their layers is `jax_chain`'s to say."""
+    if not isinstance(policy, TeamPolicy):
+        return None
+    if policy.acts_on_observation:
+        networks = [acting_pass_of(team).shared_networks() for team in policy.policies]
+        return None if None in networks else [(ActingNetwork(net), ActingNetwork(value)) for net, value in networks]
+    pairs = [recurrent_acting(team) for team in policy.policies]
+    return None if None in pairs else pairs
+
+
+def env_runs_in_xla(env: EnvBase, networks: Sequence[ActingNetwork]) -> bool:
+    """Whether the rollout program can stand in for `env`'s steps with these networks acting: a bare `KitchenEnv`
+    for feed-forward ones; for recurrent ones a `KitchenEnv` with exactly the model's transforms
+    (`ActorCritic.env_transforms()`): InitTracker of "is_init", and a primer of these networks' LSTM states
+    [*B, 2, 1, h], zeros at a reset."""
+    sizes = {key: layer.hidden_size for network in networks for layer in layers_of(network.layers)
+             if isinstance(layer, nn.LSTM) for key in network.state_keys}
+    if not sizes:
+        return isinstance(env, KitchenEnv)
+    if not isinstance(env, TransformedEnv) or not isinstance(env.base_env, KitchenEnv):
+        return False
+    transforms = list(env.transform) if isinstance(env.transform, Compose) else [env.transform]
+    trackers = [t for t in transforms if type(t) is InitTracker and list(t.init_keys) == [IS_INIT]]
+    primers = [t for t in transforms if type(t) is TensorDictPrimer and not t.random]
+    if len(transforms) != 2 or len(trackers) != 1 or len(primers) != 1:
+        return False
+    primer = primers[0]
+    specs = {key: primer.primers[key] for key in primer.primers.keys(True, True)}
+    defaults = primer.default_value if isinstance(primer.default_value, dict) else \
+        dict.fromkeys(specs, primer.default_value)
+    return set(specs) == set(sizes) and all(
+        tuple(spec.shape[-3:]) == (N_AGENTS, 1, sizes[key]) and spec.dtype == torch.float32
+        and isinstance(defaults.get(key), int | float) and defaults[key] == 0 for key, spec in specs.items())
 
 
 def xla_chains(env: EnvBase, policy) -> tuple[Chain, Chain] | None:
     """The (policy, value) chains the teams of `policy` act with, where `XlaCollector` can run them over `env`: a
-    bare `KitchenEnv` and a `TeamPolicy` whose every team acts with an acting pass over MLP chains; else None."""
-    if not isinstance(env, KitchenEnv) or not isinstance(policy, TeamPolicy) or not policy.acts_on_observation:
+    `TeamPolicy` whose every team acts with networks JAX runs (`team_networks`), one chain for all, over the env
+    they need (`env_runs_in_xla`); else None."""
+    networks = team_networks(policy)
+    if networks is None or not env_runs_in_xla(env, networks[0]):
         return None
-    networks = stackable_acting(list(policy.policies))
-    if networks is None:
+    chains = {tuple((jax_chain(network.layers), network.state_keys) for network in pair) for pair in networks}
+    if len(chains) != 1 or any(chain is None for chain, _ in next(iter(chains))):
         return None
-    chains = {(jax_chain(policy_net), jax_chain(value_net)) for policy_net, value_net in networks}
-    if len(chains) != 1 or None in next(iter(chains)):
-        return None
-    return next(iter(chains))
+    return tuple(chain for chain, _ in next(iter(chains)))
 
 
 _PROGRAMS = ProgramCache(kept=8)
@@ -120,9 +240,10 @@ def rollout_program(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) ->
     """The jitted rollout of `steps` steps of every kitchen of `env` with the teams acting by `chains` (built once
     per kitchen settings, shape and chains, and shared, as the env's own programs are):
     (weights, (start states, states, deliveries, env key), act keys [teams, 2], carrier) -> ((states, deliveries,
-    env key, carrier), records [B, steps, ...]), where carrier = (observation, scalars, done), the policy's next
-    input as the env's programs give it, and records = (observation, scalars, done, logits, action, log-prob,
-    value, next observation, next scalars, next done)."""
+    env key, carrier), records [B, steps, ...]), where carrier = ((observation, scalars, done), (is_init, policy
+    state, value state)), the policy's next input as the env's programs and transforms give it (a state (h, c)
+    [B, 2, 1, h] each, () without an LSTM), and records = (carrier, (logits, action, log-prob, value), (next policy
+    state, next value state), (next observation, next scalars, next done))."""
     key = (env.jax_env.settings, env.num_envs, env.teams, env.pinned_levels is not None, chains, steps)
     return _PROGRAMS.get(key, lambda: _build_rollout(env, chains, steps))
 
@@ -132,22 +253,24 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> 
     policy_chain, value_chain = chains
     teams, team_size = env.teams, env.team_size
 
-    def act(weights, keys, observation):
-        def team(policy_weights, value_weights, key, observation):
-            logits = run_chain(policy_chain, policy_weights, observation)
+    def act(weights, keys, observation, states):
+        def team(policy_weights, value_weights, key, observation, policy_state, value_state):
+            logits, policy_state = run_chain(policy_chain, policy_weights, observation, policy_state)
             action = jax.random.categorical(key, logits)
             log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), action[..., None], -1)[..., 0]
-            return logits, action, log_prob, run_chain(value_chain, value_weights, observation)
+            value, value_state = run_chain(value_chain, value_weights, observation, value_state)
+            return (logits, action, log_prob, value), (policy_state, value_state)
 
-        by_team = observation.reshape(teams, team_size, *observation.shape[1:])
-        outputs = jax.vmap(team)(*weights, keys, by_team)
-        return [value.reshape(teams * team_size, *value.shape[2:]) for value in outputs]
+        by_team = jax.tree.map(lambda value: value.reshape(teams, team_size, *value.shape[1:]), (observation, *states))
+        outputs = jax.vmap(team)(*weights, keys, *by_team)
+        return jax.tree.map(lambda value: value.reshape(teams * team_size, *value.shape[2:]), outputs)
 
     def step(start_states, weights, carry, _):
         states, deliveries, env_key, act_keys, carrier = carry
+        observed, (is_init, *network_states) = carrier
         act_keys, used = jax.vmap(jax.random.split, out_axes=1)(act_keys)
-        logits, action, log_prob, value = act(weights, used, carrier[0])
-        states, deliveries, stepped = programs.step(states, deliveries, action.astype(jnp.int32))
+        acted, next_network_states = act(weights, used, observed[0], restarted(is_init, network_states))
+        states, deliveries, stepped = programs.step(states, deliveries, acted[1].astype(jnp.int32))
         ended = stepped[2][:, 0]
 
         def reset(_):  # as `KitchenEnv._reset` after TorchRL's partial reset, merged by TorchRL's rule
@@ -159,10 +282,12 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> 
             merged = [jnp.where(ended.reshape(-1, *[1] * (a.ndim - 1)), a, b) for a, b in zip(fresh, stepped)]
             return fresh_states, fresh_deliveries, kept, tuple(merged)
 
-        next_states, next_deliveries, env_key, next_carrier = jax.lax.cond(
+        next_states, next_deliveries, env_key, next_observed = jax.lax.cond(
             ended.any(), reset, lambda _: (states, deliveries, env_key, tuple(stepped)), None)
-        record = (*carrier, logits, action, log_prob, value, *stepped)
-        return (next_states, next_deliveries, env_key, act_keys, next_carrier), record
+        # The transforms' next input: episodes that ended start again (InitTracker), their states zero (the primer).
+        next_memory = (stepped[2], *restarted(stepped[2], next_network_states))
+        record = (carrier, acted, next_network_states, tuple(stepped))
+        return (next_states, next_deliveries, env_key, act_keys, (next_observed, next_memory)), record
 
     @jax.jit
     def rollout(weights, kitchens, act_keys, carrier):
@@ -170,7 +295,8 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> 
         carry = (states, deliveries, env_key, act_keys, carrier)
         carry, records = jax.lax.scan(lambda c, x: step(start_states, weights, c, x), carry, None, length=steps)
         states, deliveries, env_key, _, carrier = carry
-        return (states, deliveries, env_key, carrier), [jnp.swapaxes(record, 0, 1) for record in records]
+        return (states, deliveries, env_key, carrier), jax.tree.map(lambda record: jnp.swapaxes(record, 0, 1),
+                                                                     records)
 
     return rollout
 
@@ -178,31 +304,45 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> 
 class XlaCollector(InPlaceCollector):
     """A TorchRL collector whose batches are rolled out inside one XLA program (see the module docstring):
     `KitchenCollector`'s batches, keys and storage (an `InPlaceCollector`), with the actions drawn by JAX.
-    `xla_chains(env, policy)` must not be None (`trainers.rollout.make_collector` checks)."""
 
-    def __init__(self, env: KitchenEnv, policy: TeamPolicy, frames_per_batch: int, total_frames: int = -1):
+    env: a bare `KitchenEnv` for feed-forward teams; for recurrent ones the `KitchenEnv` with the model's transforms
+    (`with_transforms(kitchen, actor_critic.env_transforms())`), whose base env the program steps. ValueError where
+    `xla_chains(env, policy)` is None (`trainers.rollout.make_collector` checks, and collects those with
+    `KitchenCollector`)."""
+
+    def __init__(self, env: EnvBase, policy: TeamPolicy, frames_per_batch: int, total_frames: int = -1):
         super().__init__(env, frames_per_batch, total_frames)
         chains = xla_chains(env, policy)
         if chains is None:
-            raise ValueError("XlaCollector runs acting passes over MLP chains on a bare KitchenEnv; collect this "
-                             "policy with KitchenCollector")
+            raise ValueError("XlaCollector runs teams of MLP acting passes on a bare KitchenEnv, or of shared "
+                             "recurrent MLPs (mlp_lstm) on a KitchenEnv with the model's transforms alone "
+                             "(with_model_transforms); collect this policy and env with KitchenCollector")
         self.policy = policy
-        self._program = rollout_program(env, chains, self.steps)
-        self._networks = stackable_acting(list(policy.policies))
+        self.kitchen_env = env.base_env if isinstance(env, TransformedEnv) else env
+        self._program = rollout_program(self.kitchen_env, chains, self.steps)
+        networks = team_networks(policy)
+        self._networks = [[network.layers for network in pair] for pair in networks]
+        self._state_keys = [network.state_keys for network in networks[0]]
+        self._recurrent = any(self._state_keys)
         with torch.no_grad():
             first = env.reset()
         self._carrier = self._carrier_of(first)
 
     def _to_jax(self, tensor: torch.Tensor) -> jax.Array:
-        return jax.device_put(jax.dlpack.from_dlpack(tensor.detach().contiguous()), self.env.jax_device)
+        return jax.device_put(jax.dlpack.from_dlpack(tensor.detach().contiguous()), self.kitchen_env.jax_device)
 
-    def _carrier_of(self, tensordict: TensorDictBase) -> tuple[jax.Array, ...]:
-        """The env's reset output as the programs give it: (observation, scalars [B, 6], done), the scalars' reward
-        columns zero (a reset earns nothing)."""
+    def _carrier_of(self, tensordict: TensorDictBase) -> tuple:
+        """The env's reset output as the program carries it: ((observation, scalars [B, 6], done), (is_init, policy
+        state, value state)), the scalars' reward columns zero (a reset earns nothing), every episode starting."""
         shaped = tensordict.get(SHAPED_REWARD).squeeze(-1)
         scalars = torch.cat([torch.zeros_like(shaped), shaped, tensordict.get("deliveries"),
                              tensordict.get("episode_deliveries")], dim=-1)
-        return tuple(self._to_jax(value) for value in (tensordict.get(OBSERVATION), scalars, tensordict.get("done")))
+        done = tensordict.get("done")
+        observed = tuple(self._to_jax(value) for value in (tensordict.get(OBSERVATION), scalars, done))
+        is_init = tensordict.get(IS_INIT, None)
+        is_init = torch.ones_like(done) if is_init is None else is_init  # a bare env's: unread, but carried
+        states = [tuple(self._to_jax(tensordict.get(key)) for key in keys) for keys in self._state_keys]
+        return observed, (self._to_jax(is_init), *states)
 
     def _weights(self) -> tuple[list[jax.Array], list[jax.Array]]:
         """The teams' current weights, stacked along a leading team dim."""
@@ -218,16 +358,26 @@ class XlaCollector(InPlaceCollector):
                 seeds.append(torch.randint(0, 2**31 - 1, (2,), dtype=torch.int64))
         return self._to_jax(torch.stack(seeds).to(torch.int32)).view(jnp.uint32)
 
+    def _state_entries(self, is_init: torch.Tensor, states: list, next_states: list) -> dict:
+        """A recurrent batch's entries of the model's transforms: "is_init" (and ("next", "is_init"), which
+        InitTracker leaves False), the state each step read, and the state it left under "next"."""
+        entries = {IS_INIT: is_init, (NEXT, IS_INIT): torch.zeros_like(is_init)}
+        for keys, state, next_state in zip(self._state_keys, states, next_states):
+            entries.update(zip(keys, state))
+            entries.update({(NEXT, *as_path(key)): value for key, value in zip(keys, next_state)})
+        return entries
+
     def rollout(self) -> TensorDictBase:
         """The next batch: `steps` steps of every kitchen, written into the storage; the env left where they end."""
-        env = self.env
+        env = self.kitchen_env
         (states, deliveries, key, self._carrier), records = self._program(
             self._weights(), env.kitchens(), self._act_keys(), self._carrier)
-        env.continue_from(states, deliveries, key, self._carrier[0])
-        observation, scalars, done, logits, action, log_prob, value, *stepped = map(torch.from_dlpack, records)
-        values = {**output_entries(observation, scalars, done, with_reward=False),
-                  LOGITS: logits, ACTION: action, LOG_PROB: log_prob, VALUE: value,
+        env.continue_from(states, deliveries, key, self._carrier[0][0])
+        (observed, (is_init, *states)), acted, next_states, stepped = jax.tree.map(torch.from_dlpack, records)
+        values = {**output_entries(*observed, with_reward=False), **dict(zip(ACTING_KEYS, acted)),
                   **{(NEXT, *as_path(key)): tensor for key, tensor in output_entries(*stepped, True).items()}}
+        if self._recurrent:
+            values.update(self._state_entries(is_init, states, next_states))
         if self._storage is None:
             self._storage = as_tensordict({key: value.clone() for key, value in values.items()},
                                           torch.Size([env.num_envs, self.steps]), env.device)

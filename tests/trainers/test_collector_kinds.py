@@ -1,5 +1,5 @@
 """Training collects through the kitchens' own collector or TorchRL's, and learns the same either way; or with its
-MLP teams acting inside XLA, a run as deterministic and resumable as the others."""
+teams acting inside XLA, a run as deterministic and resumable as the others."""
 
 import pytest
 from test_ppo import tiny_config
@@ -15,7 +15,7 @@ def test_a_run_collecting_with_torchrls_collector_learns_what_the_kitchen_collec
     # Episodes of 10 steps in batches of 16: resets inside batches, and three updates.
     overrides = ("max_steps=10", "architecture=mlp_lstm")
     torchrl = train(tiny_config(tmp_path / "torchrl", "runtime.collector=torchrl", *overrides, updates=3))
-    kitchen = train(tiny_config(tmp_path / "kitchen", *overrides, updates=3))
+    kitchen = train(tiny_config(tmp_path / "kitchen", "runtime.collector=kitchen", *overrides, updates=3))
     assert_same_run(kitchen, torchrl)
 
 

@@ -34,8 +34,9 @@ LOOPS = {
     "torchrl": ("configs/ippo/mlp_ik.yaml", ["runtime.collector=torchrl"],
                 {**CPU_KERNEL, **ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at trainers/ppo.py:train_teams": 0.25},
                 CPU_KERNEL_MADE),
-    "gnn": ("configs/ippo/gnn_ik.yaml", [],
-            {**ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at torch_kitchen/rollout.py:advance": 0.25}, {}),
+    "gnn (xla)": ("configs/ippo/gnn_ik.yaml", [], {}, {}),
+    "gnn (kitchen)": ("configs/ippo/gnn_ik.yaml", ["runtime.collector=kitchen"],
+                      {**ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at torch_kitchen/rollout.py:advance": 0.25}, {}),
     # E3T's partner model has a sparse first layer of its own, and its partner draws are made on the CPU (their own
     # generator) at episode starts.
     "e3t": ("configs/e3t/mlp_ik.yaml", [],

@@ -1,0 +1,133 @@
+"""The models' torch layers as pure JAX functions, for rollouts inside one XLA program (`torch_kitchen.xla_rollout`).
+
+Each function computes what its torch layer computes, on the layer's own weights (taken again at every batch), in
+float32 with full-precision products, and jits with static shapes:
+
+    dense          `nn.Linear`
+    agent_window   `EgocentricLinear.window`, the agent-centred view (then `dense`)
+    layer_norm     `nn.LayerNorm` over the last dim
+    lstm_cell      one step of a one-layer `nn.LSTM`
+    graph_scene    `GraphEncoder`: the kitchen graph (`torch_kitchen.graph`) -> GATConv -> ReLU -> scene linear ->
+                   ReLU, its weights in `graph_weights`' order
+
+The graph layer runs densely, with no edge list: a cell node receives its own self-loop alone, so its GAT output is
+its own projection plus the bias (attention over one edge is 1); each agent node attends over the H*W cells and its
+own self-loop, a softmax over H*W + 1 scores.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import torch
+
+from jax_env.observation import Channel
+from torch_kitchen.models.networks import GraphEncoder
+
+HIGHEST = jax.lax.Precision.HIGHEST  # a GPU's TF32 products would stray from torch's float32
+NEGATIVE_SLOPE = 0.2  # GATConv's leaky ReLU on the attention scores, its default
+
+
+def dense(x: jax.Array, weight: jax.Array, bias: jax.Array) -> jax.Array:
+    """torch's `nn.Linear`: x [..., in] (cast to the weight's dtype) -> [..., out], weight [out, in], bias [out]."""
+    return jnp.matmul(x.astype(weight.dtype), weight.T, precision=HIGHEST) + bias
+
+
+def agent_window(obs: jax.Array) -> jax.Array:
+    """`EgocentricLinear.window` in JAX: observations [..., H, W, C] -> their agent-centred windows [..., (2H - 1) *
+    (2W - 1) * C], flat. The kitchen padded by H - 1 rows and W - 1 columns of zeros on every side holds the
+    agent's window at the agent's own cell: a slice where the layer scatters. The slices are taken one kitchen
+    after another (`lax.map`): under vmap they become one gather, 7x slower on a CPU."""
+    *batch, height, width, channels = obs.shape
+    flat = obs.reshape(-1, height, width, channels)
+    agent_cell = flat[..., Channel.SELF].reshape(len(flat), -1).argmax(-1)  # an all-zero row: cell 0, as torch's
+    padded = jnp.pad(flat, ((0, 0), (height - 1, height - 1), (width - 1, width - 1), (0, 0)))
+
+    def window(kitchen_and_cell):
+        kitchen, cell = kitchen_and_cell
+        corner = (cell // width, cell % width, 0)
+        return jax.lax.dynamic_slice(kitchen, corner, (2 * height - 1, 2 * width - 1, channels))
+
+    return jax.lax.map(window, (padded, agent_cell)).reshape(*batch, -1)
+
+
+def layer_norm(x: jax.Array, weight: jax.Array, bias: jax.Array, eps: float) -> jax.Array:
+    """torch's `nn.LayerNorm` over the last dim: the biased variance, eps inside the square root."""
+    mean = x.mean(-1, keepdims=True)
+    variance = jnp.square(x - mean).mean(-1, keepdims=True)
+    return (x - mean) * jax.lax.rsqrt(variance + eps) * weight + bias
+
+
+def lstm_cell(weights: Sequence[jax.Array], x: jax.Array, state: tuple[jax.Array, jax.Array]
+              ) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+    """One step of torch's one-layer `nn.LSTM` (gates i, f, g, o): x [..., in] and the state (h, c) [..., 1, hidden]
+    as the env carries them -> (h [..., hidden], the next state (h, c) [..., 1, hidden])."""
+    weight_ih, weight_hh, bias_ih, bias_hh = weights
+    hidden, cell = (value[..., 0, :] for value in state)
+    gates = dense(x, weight_ih, bias_ih) + dense(hidden, weight_hh, bias_hh)
+    in_gate, forget_gate, cell_gate, out_gate = jnp.split(gates, 4, axis=-1)
+    cell = jax.nn.sigmoid(forget_gate) * cell + jax.nn.sigmoid(in_gate) * jnp.tanh(cell_gate)
+    hidden = jax.nn.sigmoid(out_gate) * jnp.tanh(cell)
+    return hidden, (hidden[..., None, :], cell[..., None, :])
+
+
+def graph_runs(encoder: GraphEncoder) -> bool:
+    """Whether `graph_scene` computes this encoder's GATConv: one shared projection, concatenated heads, a bias,
+    GATConv's slope, no residual, no edge features (as `GraphEncoder` builds it)."""
+    gat = encoder.gat
+    return (gat.lin is not None and gat.res is None and gat.lin_edge is None and gat.bias is not None and gat.concat
+            and gat.negative_slope == NEGATIVE_SLOPE)
+
+
+def graph_weights(encoder: GraphEncoder) -> tuple[torch.Tensor, ...]:
+    """A `GraphEncoder`'s parameters in the order `graph_scene` reads them: the GAT layer's projection weight
+    [heads * F, C] (bias-free), att_src and att_dst [1, heads, F], its bias [heads * F], the scene layer's weight
+    [hidden, (H*W + 2) * heads * F] and bias [hidden]. ValueError unless `graph_runs(encoder)`."""
+    if not graph_runs(encoder):
+        raise ValueError(f"graph_scene runs GraphEncoder's own GATConv: one shared projection, concatenated heads, a "
+                         f"bias, negative_slope {NEGATIVE_SLOPE}, no residual, no edge features")
+    gat = encoder.gat
+    return gat.lin.weight, gat.att_src, gat.att_dst, gat.bias, encoder.scene.weight, encoder.scene.bias
+
+
+def graph_attention(projected: jax.Array, agent_cells: jax.Array, att_src: jax.Array, att_dst: jax.Array
+                    ) -> jax.Array:
+    """GATConv's messages into the two agent nodes: each agent node attends over every cell and its own self-loop.
+
+    projected: float32 [..., H*W, heads, F], the cells' projections (an agent node's is its cell's, since its
+    features are its cell's channels). agent_cells: int [..., 2], the cell of the observing agent and of its
+    partner. att_src, att_dst: [1, heads, F]. -> float32 [..., 2, heads, F], before GATConv's bias.
+    """
+    agents = jnp.take_along_axis(projected, agent_cells[..., None, None], axis=-3)  # [..., 2, heads, F]
+    source_scores = (projected * att_src[0]).sum(-1)  # [..., H*W, heads]
+    agent_source_scores = (agents * att_src[0]).sum(-1)  # [..., 2, heads]
+    target_scores = (agents * att_dst[0]).sum(-1)  # [..., 2, heads]
+    # Edge (source j -> target i) scores a_src.x_j + a_dst.x_i, over the H*W cells then the self-loop.
+    cell_scores = source_scores[..., None, :, :] + target_scores[..., :, None, :]  # [..., 2, H*W, heads]
+    self_scores = agent_source_scores + target_scores  # [..., 2, heads]
+    scores = jnp.concatenate([cell_scores, self_scores[..., None, :]], axis=-2)
+    attention = jax.nn.softmax(jax.nn.leaky_relu(scores, NEGATIVE_SLOPE), axis=-2)  # [..., 2, H*W + 1, heads]
+    from_cells = jnp.einsum("...ash,...shf->...ahf", attention[..., :-1, :], projected, precision=HIGHEST)
+    return from_cells + attention[..., -1, :, None] * agents
+
+
+def graph_scene(obs: jax.Array, weights: tuple[jax.Array, ...]) -> jax.Array:
+    """`GraphEncoder.forward` in JAX: observations uint8 or float [..., H, W, C] -> float32 [..., hidden].
+
+    weights: `graph_weights(encoder)` as JAX arrays. The nodes are flattened in torch's order (`torch_kitchen.graph`):
+    the H*W cells row by row, the observing agent, its partner; each node's heads concatenated.
+    """
+    lin_weight, att_src, att_dst, gat_bias, scene_weight, scene_bias = weights
+    *batch, height, width, channels = obs.shape
+    heads, features = att_src.shape[-2:]
+    cells = obs.astype(jnp.float32).reshape(*batch, height * width, channels)
+    # An agent stands on the cell where its channel (0: the observing agent, 1: its partner) is 1; an agent off the
+    # grid reads cell 0, as torch's argmax does.
+    agent_cells = cells[..., :2].argmax(axis=-2)  # [..., 2]
+    projected = jnp.matmul(cells, lin_weight.T, precision=HIGHEST).reshape(*batch, height * width, heads, features)
+    agents = graph_attention(projected, agent_cells, att_src, att_dst)
+    nodes = jnp.concatenate([projected, agents], axis=-3).reshape(*batch, height * width + 2, heads * features)
+    nodes = jax.nn.relu(nodes + gat_bias)
+    return jax.nn.relu(dense(nodes.reshape(*batch, -1), scene_weight, scene_bias))
