@@ -68,7 +68,7 @@ if [[ -z ${ONLY:-} || main =~ $ONLY ]]; then
 fi
 
 reference="python benchmarks/train.py reference --device $device --threads 1 --updates $updates --repeats $repeats --record $records"
-# The headline: the paper's protocol (c) with the default collector (the MLP teams act inside the kitchens' XLA
+# The headline: the paper's protocol (c) with the default collector (the teams act inside the kitchens' XLA
 # program), then acting step by step from torch, with the compiled update (CUDA graphs), and with the stacked
 # acting networks compiled too.
 row protocol_default 200 $reference --setting $protocol
