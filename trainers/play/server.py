@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import concurrent.futures
 import ctypes
 import ctypes.util
 import functools
@@ -89,8 +90,14 @@ def _malloc_trim():
         return None
 
 
+# Every game's steps, one at a time. A step is hundreds of small torch and JAX calls, each giving the GIL up and
+# taking it back: steps on several threads at once hand it to one another at every call (40 games on two cores:
+# p99 189 ms between states here against 345 with a thread per step; BENCHMARKS.md, "A study under load").
+GAME_STEPS = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="game-steps")
+
+
 def release_freed_memory() -> None:
-    """Hands the memory of ended games back to the system. Games step on worker threads, and glibc keeps what a
+    """Hands the memory of ended games back to the system. Games step on a worker thread, and glibc keeps what a
     thread freed in that thread's arena: without this a server's resident memory only grows (measured: idle 811 MB,
     994 MB after 40 games of 200 steps had ended, 772 MB once trimmed)."""
     if (trim := _malloc_trim()) is not None:
@@ -264,9 +271,9 @@ async def play_game(websocket: WebSocket, game_id: str, game: Game, mode: str, t
                 if receiver.done():
                     break
                 action, latest[0] = latest[0], STAY
-            # The partner's forward pass and the kitchen's step run on a worker thread (both release the GIL):
-            # the event loop keeps ticking the other games meanwhile.
-            await websocket.send_json(await asyncio.to_thread(game.step, action))
+            # The partner's forward pass and the kitchen's step run on the one stepping thread (both release the
+            # GIL): the event loop keeps serving the other games meanwhile, and no two steps contend for the GIL.
+            await websocket.send_json(await loop.run_in_executor(GAME_STEPS, game.step, action))
     except (WebSocketDisconnect, RuntimeError):
         pass
     finally:
