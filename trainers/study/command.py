@@ -13,7 +13,7 @@ import sys
 
 from trainers.play.server import port_in_use, served_hosts
 from trainers.study.assignment import assign, latin_square
-from trainers.study.config import StudyError, load_study
+from trainers.study.config import StudyError, load_study, study_partners
 
 PROG = "kitchen-study"
 
@@ -38,7 +38,11 @@ def check(args) -> int:
 def run(args) -> int:
     from trainers.study.server import create_study_app, open_study
 
-    config = load_study(args.config)
+    config = load_study(args.config, check=False)
+    try:
+        partners = study_partners(config)  # the check, and the partners the server's games share
+    except StudyError as failure:
+        raise StudyError(f"{args.config}: {failure}") from None
     if (busy := port_in_use(args.host, args.port)) is not None:
         return error(busy)
     try:
@@ -46,8 +50,8 @@ def run(args) -> int:
     except ImportError:
         return error("kitchen-study needs the play extra: pip install .[play]")
     database, token, operator = open_study(config, args.token)
-    app = create_study_app(config, database, token, operator, hosts=served_hosts(args.host, args.port,
-                                                                                   args.allow_host))
+    app = create_study_app(config, database, token, operator, served_hosts(args.host, args.port, args.allow_host),
+                           partners)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     base = f"http://{args.host}:{args.port}"
     print(f"{PROG}: study {config.name} in {config.folder}/\n"

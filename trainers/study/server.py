@@ -29,7 +29,7 @@ import secrets
 from pathlib import Path
 from urllib.parse import quote
 
-from trainers.play.game import Game, file_sha256
+from trainers.play.game import Game, Partner, file_sha256
 from trainers.play.server import guard, play_game
 from trainers.study.assignment import COMPLETE, CONSENT, PLAYED, QUESTIONS, assign, stages_of
 from trainers.study.config import FORCED_CHOICE, StudyConfig, StudyError, kitchen_of, partner_key, study_partners
@@ -99,8 +99,9 @@ def open_study(config: StudyConfig, token: str | None = None) -> tuple[StudyData
 
 
 def create_study_app(config: StudyConfig, database: StudyDatabase, token: str, operator: str,
-                     hosts: list[str] | None = None) -> FastAPI:
-    """The study's web app over its open `database` (see the module docstring)."""
+                     hosts: list[str] | None = None, partners: dict[str, Partner] | None = None) -> FastAPI:
+    """The study's web app over its open `database` (see the module docstring); `partners`: the study's, as
+    `study_partners(config)` loaded them (loaded here if not given)."""
     if FastAPI is None:
         raise ImportError("kitchen-study needs the play extra: pip install .[play]")
     app = FastAPI(title="kitchen-study")
@@ -108,7 +109,7 @@ def create_study_app(config: StudyConfig, database: StudyDatabase, token: str, o
     folder = config.folder
     # Loaded once: a game starting beside others then costs a kitchen, not a checkpoint read (the participants'
     # first games start together, and each load held the ticking games back).
-    partners = study_partners(config)
+    partners = partners if partners is not None else study_partners(config)
 
     def participant_of(key: str):
         participant = database.participant(key)
