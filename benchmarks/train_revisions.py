@@ -93,8 +93,8 @@ def main(argv=None) -> None:
     parser.add_argument("--e3t", nargs="*", default=["mlp"], help="E3T encoders (each also runs IPPO beside it)")
     parser.add_argument("--reference", nargs="*", default=[], choices=list(REFERENCE_UPDATES),
                         help="settings of `train.py reference`: ours beside the pure-JAX yardstick")
-    parser.add_argument("--collector", choices=["kitchen", "torchrl", "xla"], default="kitchen",
-                        help="ours with this runtime.collector in the reference settings")
+    parser.add_argument("--collector", choices=["kitchen", "torchrl", "xla"], default="xla",
+                        help="ours with this runtime.collector in the reference settings (default: the trainer's)")
     parser.add_argument("--main", action="store_true", help="also the main job's IPPO phase (MAIN_IPPO)")
     parser.add_argument("--envs", type=int, default=32)
     parser.add_argument("--updates", type=int, default=3, help="updates per measurement (the first is not timed)")

@@ -17,6 +17,7 @@ from torchrl.envs.utils import ExplorationType
 
 from jax_env import Channel
 from torch_kitchen.events import kitchen_events
+from torch_kitchen.keys import LOGITS, SHAPED_REWARD
 from torch_kitchen.rollout import KitchenCollector
 from torch_kitchen.xla_rollout import XlaCollector, xla_chains
 
@@ -91,6 +92,18 @@ def play_episodes(env: EnvBase, policy, max_steps: int, max_frames: int = 1 << 1
     finally:
         collector.shutdown()
     return EpisodeOutcomes(deliveries, visits, events)
+
+
+# What a batch holds for GAE and the logs alone, which no loss reads: the next step's entries, the episode flags
+# and counts, and the acting pass's logits and shaped rewards.
+COLLECTION_ONLY = ("next", "done", "terminated", "truncated", "deliveries", "episode_deliveries", LOGITS,
+                   SHAPED_REWARD)
+
+
+def learning_entries(batch: TensorDictBase) -> TensorDictBase:
+    """The batch without its `COLLECTION_ONLY` entries (a view): the losses' minibatches gather and carry only
+    what they read, and TorchRL's loss walks fewer keys (at JaxMARL's setting a fifth of an update's time)."""
+    return batch.exclude(*COLLECTION_ONLY)
 
 
 def select_kitchens(batch: TensorDictBase, kitchens: torch.Tensor) -> TensorDictBase:

@@ -34,7 +34,7 @@ from trainers.ppo_step import (
     team_gradients,
     total_loss,
 )
-from trainers.rollout import select_kitchens
+from trainers.rollout import learning_entries, select_kitchens
 
 if TYPE_CHECKING:
     from trainers.training_team import TrainingTeam
@@ -167,7 +167,9 @@ class Learner:
                     orders: Sequence[list[tuple[torch.Tensor, ...]]]) -> Iterator[TensorDictBase]:
         """The minibatches of the teams' PPO epochs over their batches, in their `orders` (`start_update`): a
         team's kitchens, or the teams' stacked along a team dim, minibatch i of every team together. A team alone
-        on a CPU hands each minibatch its sparse first layers' entries, found once per batch."""
+        on a CPU hands each minibatch its sparse first layers' entries, found once per batch. A minibatch holds the
+        batch's `learning_entries`."""
+        batches = [learning_entries(batch) for batch in batches]
         found = None
         if len(self.teams) == 1:
             networks = [self.teams[0].actor_critic.actor, self.teams[0].actor_critic.critic]

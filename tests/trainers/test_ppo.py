@@ -486,6 +486,25 @@ def test_minibatches_are_the_rows_of_their_kitchens():
     assert (minibatch == batch[kitchens]).all()
 
 
+def test_a_learners_minibatches_carry_only_what_the_losses_read_and_step_as_the_whole_batch_would(tmp_path):
+    config = tiny_config(tmp_path, "shaping_weight=1", "lr=1e-3")
+    team, batch = team_and_minibatch(config, tmp_path)
+    kitchens = torch.arange(config.num_envs)
+    [minibatch] = Learner(config, [team]).minibatches([batch], [[(kitchens,)]])
+    keys = set(minibatch.keys(True, True))
+    assert not any(key[0] == "next" for key in keys if isinstance(key, tuple)) and "done" not in keys
+    assert ("agents", "logits") not in keys and ("agents", "advantage") in keys
+    twin = build_team(config, tmp_path / "twin", make_env(config), 0)  # the same seed: the same weights
+    assert all(torch.equal(ours, theirs) for ours, theirs in zip(team.parameters, twin.parameters))
+    initial = [parameter.detach().clone() for parameter in team.parameters]
+    with set_recurrent_mode(True):
+        lean = Learner(config, [team]).step(minibatch)
+        whole = Learner(config, [twin]).step(trainers.rollout.select_kitchens(batch, kitchens))
+    assert all(torch.equal(lean[key], whole[key]) for key in whole)
+    assert all(torch.equal(ours, theirs) for ours, theirs in zip(team.parameters, twin.parameters))
+    assert not all(torch.equal(now, before) for now, before in zip(team.parameters, initial))
+
+
 def team_and_minibatch(config, tmp_path):
     """A team built as the trainer builds it, and one batch it collected as one minibatch, advantages standardised."""
     kitchen = make_env(config)
