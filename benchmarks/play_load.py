@@ -8,10 +8,12 @@ then that many games (and more) at once, each a WebSocket client of a real `kitc
 against the target. Then a study's load (`--games`, 40 by default): that many whole real-time games with the MLP
 team at once, each client sending a key on every state it gets: the time to create each game, the gaps between a
 game's states (p50, p90, p99, max), how far behind schedule games end, and the server process's resident memory
-idle (after one warm-up game), with the games running, and after they ended.
+idle (after one warm-up game), with the games running, and after they ended. With `--rounds N` (20 by default),
+first the cost of a game's tick where N games share a partner (each of `--partners` and the scripted cook), stepped
+one game after another and as the server's stepping thread takes them, one round (`step_games`).
 
     python benchmarks/play_load.py [--tick-ms 150] [--seconds 10] [--partners mlp gnn] [--games 40]
-        [--game-steps 200] [--skip-capacity]
+        [--game-steps 200] [--skip-capacity] [--rounds 20]
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from torch_kitchen.models import make_actor_critic
 from trainers.checkpoint import model_identity, save_checkpoint
 from trainers.config import TrainConfig
 from trainers.machine import machine_name
-from trainers.play.game import Game, Partner
+from trainers.play.game import SCRIPTED, Game, Partner, load_partner, step_games
 from trainers.play.server import create_app
 
 KITCHEN = "cramped_room_7x7"
@@ -60,6 +62,27 @@ def tick_latency(architecture: str, records: Path, ticks: int = 300) -> list[flo
         if t >= 20:
             times.append(time.perf_counter() - started)
     return times
+
+
+def round_cost(partner: Partner, games: int, records: Path, ticks: int = 50) -> tuple[float, float]:
+    """Seconds per game tick of `games` games sharing `partner` on 7x7 kitchens, stepped one after another and
+    as one round (`step_games`: the partner's forward pass once for all), after 10 warm-up rounds."""
+    layouts = [load_layout(KITCHEN), load_layout("coord_ring_7x7")]
+    playing = [Game(layouts[index % 2], partner, 0, records / f"round_{partner.name}_{index}.jsonl", seed=index,
+                    max_steps=10 * ticks) for index in range(games)]
+    for t in range(10):
+        step_games(playing, [t % 6] * games)
+    seconds = []
+    for in_rounds in (False, True):
+        started = time.perf_counter()
+        for t in range(ticks):
+            if in_rounds:
+                step_games(playing, [t % 6] * games)
+            else:
+                for game in playing:
+                    game.step(t % 6)
+        seconds.append((time.perf_counter() - started) / (ticks * games))
+    return seconds[0], seconds[1]
 
 
 def resident_mb(pid: int | str = "self") -> float:
@@ -214,6 +237,8 @@ def main(argv=None) -> None:
     parser.add_argument("--games", type=int, default=40, help="games at once in the study case (0: skip it)")
     parser.add_argument("--game-steps", type=int, default=200, help="steps of each game in the study case")
     parser.add_argument("--skip-capacity", action="store_true", help="only the study case")
+    parser.add_argument("--rounds", type=int, default=20,
+                        help="games sharing a partner, stepped one by one and as a round, per partner (0: skip)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     tick = args.tick_ms / 1000
@@ -238,6 +263,14 @@ def main(argv=None) -> None:
                         mean, late = statistics.mean(intervals), intervals[int(0.95 * len(intervals))]
                         print(f"{architecture:>8s} {p50 * 1e3:12.2f} {p95 * 1e3:12.2f} {capacity:11d} {games:6d} "
                               f"{mean * 1e3:17.1f} {late * 1e3:16.1f}", flush=True)
+        if args.rounds:
+            print(f"\n{args.rounds} games sharing a partner: ms per game tick, one game after another and as one "
+                  f"round (step_games)\n{'partner':>14s} {'one by one':>11s} {'a round':>8s}")
+            for name in [*args.partners, SCRIPTED]:
+                partner = (load_partner(SCRIPTED) if name == SCRIPTED else
+                           Partner(name, make_actor_critic(name, (7, 7, 26), 256, True), (7, 7, 26)))
+                alone, together = round_cost(partner, args.rounds, scratch / "rounds")
+                print(f"{name:>14s} {alone * 1e3:11.2f} {together * 1e3:8.2f}", flush=True)
         if args.games:
             run_study(runs["mlp"], args.games, args.game_steps, args.tick_ms, scratch / "study")
 

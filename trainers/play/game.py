@@ -20,6 +20,8 @@ import dataclasses
 import hashlib
 import json
 import time
+from collections import defaultdict
+from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
@@ -135,13 +137,18 @@ class Game:
 
     def step(self, action: int) -> dict:
         """One tick with the person's `action` (an index into the six actions); returns the new `view()`."""
-        if self.over:
-            raise RuntimeError("the game is over")
-        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
-            acted = self.partner.actor_critic.actor(self.tensordict)
-            actions = acted.get(("agents", "action")).clone()
-            actions[0, self.seat] = action
-            acted.set(("agents", "action"), actions)
+        [view] = step_games([self], [action])
+        if isinstance(view, Exception):
+            raise view
+        return view
+
+    def advance(self, acted: TensorDictBase, action: int) -> dict:
+        """The tick after the partner acted (`acted`: this game's row of its forward pass): the person's `action`
+        in the other seat, the kitchen's step, the record's line; returns the new `view()`."""
+        actions = acted.get(("agents", "action")).clone()
+        actions[0, self.seat] = action
+        acted.set(("agents", "action"), actions)
+        with torch.no_grad():
             stepped = self.env.step(acted)
         reward = float(stepped["next", "agents", "reward"][0, 0, 0])
         delivered = int(stepped["next", "deliveries"][0, 0])
@@ -183,6 +190,35 @@ class Game:
         self.recorder.write({"type": "end", "reason": reason, "score": self.score, "steps": self.t})
         self.recorder.close()
         self.recorder = None
+
+
+def step_games(games: Sequence[Game], actions: Sequence[int]) -> list[dict | Exception]:
+    """One tick of each of `games`, the person's `actions[i]` in game i: the partner's forward pass once for all
+    the games that share it and a kitchen size (their tensordicts as one batch; each row acts as it would alone),
+    then each game's `advance`. Returns each game's new view, or the exception its tick raised (a game over, a
+    record that cannot be written), so that one game's fault stays its own."""
+    results: list[dict | Exception | None] = [None] * len(games)
+    sharing: dict[tuple, list[int]] = defaultdict(list)
+    for index, game in enumerate(games):
+        if game.over:
+            results[index] = RuntimeError("the game is over")
+        else:
+            sharing[id(game.partner.actor_critic), game.layout.shape].append(index)
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        for indices in sharing.values():
+            actor = games[indices[0]].partner.actor_critic.actor
+            if len(indices) == 1:
+                rows = [actor(games[indices[0]].tensordict)]
+            else:  # what the actor reads (a game's first tick holds fewer entries than its later ones)
+                acted = actor(torch.cat([games[index].tensordict.select(*actor.in_keys, strict=False)
+                                         for index in indices]))
+                rows = [games[index].tensordict.update(acted[row:row + 1]) for row, index in enumerate(indices)]
+            for index, row in zip(indices, rows):
+                try:
+                    results[index] = games[index].advance(row, actions[index])
+                except Exception as error:  # noqa: BLE001 - handed to that game's caller
+                    results[index] = error
+    return results
 
 
 # --------------------------------------------------------------------------------------------- records

@@ -20,16 +20,17 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import concurrent.futures
 import ctypes
 import ctypes.util
 import functools
 import glob
 import itertools
 import logging
+import queue
 import secrets
 import socket
 import sys
+import threading
 import time
 import typing
 from pathlib import Path
@@ -50,7 +51,7 @@ from jax_env import (
 from jax_env.generator import sample_training_level
 from trainers.checkpoint import CheckpointError
 from trainers.evaluation import evaluation_grids
-from trainers.play.game import ACTIONS, RANDOM, SCRIPTED, Game, load_partner, replay
+from trainers.play.game import ACTIONS, RANDOM, SCRIPTED, Game, load_partner, replay, step_games
 
 try:
     from fastapi import FastAPI, HTTPException, WebSocket, WebSocketDisconnect
@@ -90,10 +91,57 @@ def _malloc_trim():
         return None
 
 
-# Every game's steps, one at a time. A step is hundreds of small torch and JAX calls, each giving the GIL up and
-# taking it back: steps on several threads at once hand it to one another at every call (40 games on two cores:
-# p99 189 ms between states here against 345 with a thread per step; BENCHMARKS.md, "A study under load").
-GAME_STEPS = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="game-steps")
+class GameStepper:
+    """Every game's steps, on one thread, in rounds: the steps waiting when the thread comes free are taken
+    together (`step_games`), so that games sharing a partner run its forward pass once a round. A step is hundreds
+    of small torch and JAX calls, each giving the GIL up and taking it back: steps on several threads at once hand
+    it to one another at every call (40 games on two cores: p99 189 ms between states with one thread against 345
+    with a thread per step), and a round of 20 games with the scripted cook costs 0.70 ms a game against 2.04 one
+    game after another (BENCHMARKS.md, "A study under load")."""
+
+    def __init__(self):
+        self.requests: queue.SimpleQueue = queue.SimpleQueue()
+        self.thread: threading.Thread | None = None
+        self.starting = threading.Lock()
+
+    async def step(self, game: Game, action: int) -> dict:
+        """`game.step(action)`, taken in the stepping thread's next round."""
+        loop = asyncio.get_running_loop()
+        future = loop.create_future()
+        with self.starting:
+            if self.thread is None:
+                self.thread = threading.Thread(target=self.run, name="game-steps", daemon=True)
+                self.thread.start()
+        self.requests.put((game, action, loop, future))
+        return await future
+
+    def run(self) -> None:
+        while True:
+            requests = [self.requests.get()]
+            while True:
+                try:
+                    requests.append(self.requests.get_nowait())
+                except queue.Empty:
+                    break
+            try:
+                results = step_games([game for game, *_ in requests], [action for _, action, *_ in requests])
+            except Exception as error:  # noqa: BLE001 - every caller of the round is told
+                results = [error] * len(requests)
+            for (_, _, loop, future), result in zip(requests, results):
+                loop.call_soon_threadsafe(settle, future, result)
+
+
+def settle(future: asyncio.Future, result: dict | Exception) -> None:
+    """A step's future given its view or its exception (unless its game's coroutine stopped waiting)."""
+    if future.cancelled():
+        return
+    if isinstance(result, Exception):
+        future.set_exception(result)
+    else:
+        future.set_result(result)
+
+
+GAME_STEPS = GameStepper()
 
 
 def release_freed_memory() -> None:
@@ -271,9 +319,9 @@ async def play_game(websocket: WebSocket, game_id: str, game: Game, mode: str, t
                 if receiver.done():
                     break
                 action, latest[0] = latest[0], STAY
-            # The partner's forward pass and the kitchen's step run on the one stepping thread (both release the
-            # GIL): the event loop keeps serving the other games meanwhile, and no two steps contend for the GIL.
-            await websocket.send_json(await loop.run_in_executor(GAME_STEPS, game.step, action))
+            # The step runs on the one stepping thread, in a round with the other games' (`GameStepper`): the event
+            # loop keeps serving the other games meanwhile, and no two steps contend for the GIL.
+            await websocket.send_json(await GAME_STEPS.step(game, action))
     except (WebSocketDisconnect, RuntimeError):
         pass
     finally:

@@ -1,4 +1,5 @@
-"""A game's partner keeps its memory between ticks: an LSTM team's state and an E3T team's partner context."""
+"""A game's partner keeps its memory between ticks (an LSTM team's state, an E3T team's partner context), and
+games sharing a partner act in one forward pass."""
 
 import torch
 
@@ -7,7 +8,7 @@ from jax_env.render import AGENT_COLOURS
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.models.recurrence import recurrent_states
 from torch_kitchen.partner import CONTEXT_ACTION
-from trainers.play.game import Game, Partner, read_record, replay
+from trainers.play.game import SCRIPTED, Game, Partner, load_partner, read_record, replay, step_games
 from trainers.play.server import page_html
 
 PERSON = [1, 2, 3, 4, 5, 0, 1, 2, 4, 4]  # the person's keys, seat 0
@@ -69,3 +70,38 @@ def test_a_new_game_compiles_nothing_its_kitchen_steps_with_the_first_games_prog
     assert programs.step._cache_size() == 1 and programs.reset_all._cache_size() == 1
     assert replay(tmp_path / "second.jsonl")["steps"] == 12
     assert read_record(tmp_path / "second.jsonl")[0]["layout"] == load_layout("coord_ring_7x7").to_text()
+
+
+def test_games_sharing_a_partner_act_in_one_forward_pass_each_row_as_it_would_alone(tmp_path):
+    """`step_games` (the server's round of steps): one forward pass per partner and kitchen size, each game's row
+    the logits and LSTM state its own tensordict gives alone; a game already over gets its error, the others
+    step and record as they would one by one."""
+    team = Partner("mlp_lstm", make_actor_critic("mlp_lstm", (7, 7, 26), 16, True), (7, 7, 26))
+    cook = load_partner(SCRIPTED)
+    layouts = ["cramped_room_7x7", "coord_ring_7x7", "cramped_room_7x7", "coord_ring_7x7"]
+    games = [Game(load_layout(name), partner, 0, tmp_path / f"{index}.jsonl", seed=index, max_steps=6)
+             for index, (name, partner) in enumerate(zip(layouts, [team, team, cook, team]))]
+    over = Game(load_layout("cramped_room_7x7"), team, 0, tmp_path / "over.jsonl", max_steps=1)
+    over.step(4)
+    games[0].step(3)  # a tick ahead: its tensordict holds what a first tick's does not
+    passes = []
+    team.actor_critic.actor.register_forward_hook(lambda module, args, out: passes.append(out.clone()))
+    states = recurrent_states(team.actor_critic.actor)
+    for tick in range(3):
+        alone = {index: team.actor_critic.actor(games[index].tensordict.clone()) for index in (0, 1, 3)}
+        passes.clear()
+        with torch.no_grad():
+            views = step_games([*games, over], [tick, 5 - tick, 4, 1, 0])
+        assert len(passes) == 1 and passes[0].batch_size == (3,)  # the team's three games, once
+        for row, index in enumerate((0, 1, 3)):
+            torch.testing.assert_close(passes[0]["agents", "logits"][row], alone[index]["agents", "logits"][0])
+            for name in states:
+                torch.testing.assert_close(games[index].tensordict["agents", name][0],
+                                           alone[index]["next", "agents", name][0])
+        assert isinstance(views[-1], RuntimeError)
+        assert [view["t"] for view in views[:-1]] == [tick + 2, tick + 1, tick + 1, tick + 1]
+    for index, game in enumerate(games):
+        game.end("disconnected")
+        _, steps, _ = read_record(tmp_path / f"{index}.jsonl")
+        assert [line["actions"][0] for line in steps] == [[3, 0, 1, 2], [5, 4, 3], [4, 4, 4], [1, 1, 1]][index]
+        assert replay(tmp_path / f"{index}.jsonl")["steps"] == len(steps)
