@@ -49,9 +49,9 @@ from jax_env import (
     load_layout,
 )
 from jax_env.generator import sample_training_level
-from trainers.checkpoint import CheckpointError
+from trainers.checkpoint import LATEST, CheckpointError
 from trainers.evaluation import evaluation_grids
-from trainers.play.game import ACTIONS, RANDOM, SCRIPTED, Game, load_partner, replay, step_games
+from trainers.play.game import ACTIONS, RANDOM, SCRIPTED, Game, Partner, load_partner, replay, step_games
 
 try:
     from fastapi import FastAPI, HTTPException, WebSocket, WebSocketDisconnect
@@ -96,7 +96,7 @@ class GameStepper:
     together (`step_games`), so that games sharing a partner run its forward pass once a round. A step is hundreds
     of small torch and JAX calls, each giving the GIL up and taking it back: steps on several threads at once hand
     it to one another at every call (40 games on two cores: p99 189 ms between states with one thread against 345
-    with a thread per step), and a round of 20 games with the scripted cook costs 0.70 ms a game against 2.04 one
+    with a thread per step), and a round of 20 games with the scripted cook costs 0.79 ms a game against 2.16 one
     game after another (BENCHMARKS.md, "A study under load")."""
 
     def __init__(self):
@@ -117,18 +117,22 @@ class GameStepper:
 
     def run(self) -> None:
         while True:
-            requests = [self.requests.get()]
-            while True:
-                try:
-                    requests.append(self.requests.get_nowait())
-                except queue.Empty:
-                    break
+            self.take_round()
+
+    def take_round(self) -> None:
+        """The steps waiting (the first awaited), as one round; each caller handed its game's view or error."""
+        requests = [self.requests.get()]
+        while True:
             try:
-                results = step_games([game for game, *_ in requests], [action for _, action, *_ in requests])
-            except Exception as error:  # noqa: BLE001 - every caller of the round is told
-                results = [error] * len(requests)
-            for (_, _, loop, future), result in zip(requests, results):
-                loop.call_soon_threadsafe(settle, future, result)
+                requests.append(self.requests.get_nowait())
+            except queue.Empty:
+                break
+        try:
+            results = step_games([game for game, *_ in requests], [action for _, action, *_ in requests])
+        except Exception as error:  # noqa: BLE001 - every caller of the round is told
+            results = [error] * len(requests)
+        for (_, _, loop, future), result in zip(requests, results):
+            loop.call_soon_threadsafe(settle, future, result)
 
 
 def settle(future: asyncio.Future, result: dict | Exception) -> None:
@@ -166,6 +170,35 @@ def kitchen_names(level_files: list[str]) -> list[str]:
 def heldout_layouts() -> dict[str, Layout]:
     """The 100 held-out levels as layouts by name, built once (not at every game)."""
     return {grid.name: grid for grid in evaluation_grids([], 100)}
+
+
+def checkpoint_version(name: str) -> tuple[int, int] | None:
+    """The modification time and size of the checkpoint a partner's name loads (a run directory's latest), None
+    for the scripted cook, the random agent or a name with no checkpoint file (which `load_partner` refuses)."""
+    path = Path(name)
+    path = path / "checkpoints" / LATEST if path.is_dir() else path
+    try:
+        status = path.stat()
+    except OSError:
+        return None
+    return status.st_mtime_ns, status.st_size
+
+
+class SharedPartners:
+    """The partners of a server's games, each loaded once per version of its checkpoint (a run still training
+    writes a new latest one): games with one partner then share it, and its forward pass runs once a round
+    (`GameStepper`), and a new game costs a kitchen, not a checkpoint read."""
+
+    def __init__(self, device: str):
+        self.device, self.loaded, self.lock = device, {}, threading.Lock()
+
+    def __call__(self, name: str) -> Partner:
+        version = checkpoint_version(name)
+        with self.lock:
+            cached = self.loaded.get(name)
+            if cached is None or cached[0] != version:
+                self.loaded[name] = (version, load_partner(name, self.device))
+            return self.loaded[name][1]
 
 
 def make_kitchen(name: str, level_files: list[str], seed: int) -> Layout:
@@ -359,6 +392,7 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
                 game.end("never connected")
                 log.info("game %s expired: nobody connected within %g s", game_id, connect_s)
     counter = itertools.count()
+    shared_partner = SharedPartners(device)
     records = Path(records)
     level_files = list(level_files)
 
@@ -387,7 +421,7 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
         seed = choice.seed if choice.seed is not None else int(time.time()) % 100_000 + number
         try:
             layout = make_kitchen(choice.kitchen, level_files, seed)
-            partner = load_partner(choice.partner, device)
+            partner = shared_partner(choice.partner)
             record = records / f"{time.strftime('%Y%m%d-%H%M%S')}-{number}.jsonl"
             game = Game(layout, partner, choice.seat, record, seed=seed, max_steps=max_steps,
                         tick_ms=tick_ms, mode=choice.mode, device=device)

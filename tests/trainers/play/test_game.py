@@ -9,7 +9,7 @@ from torch_kitchen.models import make_actor_critic
 from torch_kitchen.models.recurrence import recurrent_states
 from torch_kitchen.partner import CONTEXT_ACTION
 from trainers.play.game import SCRIPTED, Game, Partner, load_partner, read_record, replay, step_games
-from trainers.play.server import page_html
+from trainers.play.server import GameStepper, page_html
 
 PERSON = [1, 2, 3, 4, 5, 0, 1, 2, 4, 4]  # the person's keys, seat 0
 
@@ -105,3 +105,28 @@ def test_games_sharing_a_partner_act_in_one_forward_pass_each_row_as_it_would_al
         _, steps, _ = read_record(tmp_path / f"{index}.jsonl")
         assert [line["actions"][0] for line in steps] == [[3, 0, 1, 2], [5, 4, 3], [4, 4, 4], [1, 1, 1]][index]
         assert replay(tmp_path / f"{index}.jsonl")["steps"] == len(steps)
+
+
+class Settled:
+    """What the stepping thread hands back to an event loop, in order (a stand-in for the loop)."""
+
+    def __init__(self, log):
+        self.log = log
+
+    def call_soon_threadsafe(self, settle, future, result):
+        self.log.append((future, result))
+
+
+def test_the_stepping_thread_takes_every_waiting_step_as_one_round_each_caller_its_own_result(tmp_path):
+    stepper, handed = GameStepper(), []
+    loop = Settled(handed)
+    cook = load_partner(SCRIPTED)
+    games = [Game(load_layout("cramped_room_7x7"), cook, 0, tmp_path / f"{index}.jsonl", max_steps=5, seed=index)
+             for index in range(3)]
+    games[2].end("disconnected")  # over: its caller gets the error, the others step
+    for index, game in enumerate(games):
+        stepper.requests.put((game, 4, loop, f"game {index}"))
+    stepper.take_round()
+    assert [future for future, _ in handed] == ["game 0", "game 1", "game 2"]
+    assert handed[0][1]["t"] == handed[1][1]["t"] == 1 and isinstance(handed[2][1], RuntimeError)
+    assert stepper.requests.empty()

@@ -1,9 +1,12 @@
 """The kitchen-play server without a browser: lobby checks, games over WebSockets, records and their replay."""
 
 import json
+import os
 from pathlib import Path
 
 import pytest
+import torch
+from tensordict import TensorDict
 
 pytest.importorskip("fastapi", reason="kitchen-play needs the play extra: pip install .[play]")
 from fastapi import WebSocketDisconnect  # noqa: E402
@@ -16,7 +19,7 @@ from trainers.checkpoint import model_identity, save_checkpoint  # noqa: E402
 from trainers.config import TrainConfig  # noqa: E402
 from trainers.humans import games_from_records  # noqa: E402
 from trainers.play.game import RANDOM, SCRIPTED, read_record, replay  # noqa: E402
-from trainers.play.server import create_app, main  # noqa: E402
+from trainers.play.server import SharedPartners, create_app, main  # noqa: E402
 
 
 @pytest.fixture()
@@ -272,3 +275,35 @@ def test_a_study_token_admits_only_links_that_carry_it(tmp_path):
         assert refused.value.code == 1008
         with client.websocket_connect(f"/ws/games/{game['id']}?token=s3cret") as socket:
             assert socket.receive_json()["t"] == 0  # the refused attempt left the game to its player
+
+
+def save_mlp_team(run: Path, seed: int) -> torch.nn.Module:
+    torch.manual_seed(seed)
+    actor_critic = make_actor_critic("mlp", (7, 7, 26), 8, True)
+    save_checkpoint(run / "checkpoints" / "latest.pt", {
+        "config": TrainConfig().to_dict(), "model": model_identity("mlp", (7, 7, 26), 8, True),
+        "actor": actor_critic.actor.state_dict(), "critic": actor_critic.critic.state_dict(),
+    })  # fmt: skip
+    return actor_critic
+
+
+def test_games_with_one_partner_share_it_until_its_run_writes_a_new_checkpoint(client, tmp_path):
+    """A server's games load a partner once (then they run its forward pass once a round), and a run that is
+    still training is read again once its latest checkpoint changes."""
+    run = tmp_path / "runs" / "mlp" / "seed0"
+    save_mlp_team(run, 0)
+    shared = SharedPartners("cpu")
+    first, second = shared(str(run)), shared(str(run))
+    assert first is second and shared(SCRIPTED) is shared(SCRIPTED)
+    newer = save_mlp_team(run, 1)
+    stamp = (run / "checkpoints" / "latest.pt").stat().st_mtime_ns + 10**9
+    os.utime(run / "checkpoints" / "latest.pt", ns=(stamp, stamp))
+    reloaded = shared(str(run))
+    assert reloaded is not first
+    observation = TensorDict({OBSERVATION: torch.randint(0, 2, (3, 2, 7, 7, 26), dtype=torch.uint8)}, [3])
+    with torch.no_grad():
+        logits = [network(observation.clone())["agents", "logits"]
+                  for network in (reloaded.actor_critic.actor, newer.actor, first.actor_critic.actor)]
+    torch.testing.assert_close(logits[0], logits[1])
+    assert not torch.allclose(logits[0], logits[2])
+    assert new_game(client, partner=str(run))["id"] and new_game(client, partner=str(run))["id"]
