@@ -51,9 +51,14 @@ def save_team(path: Path, architecture: str) -> str:
     return str(path)
 
 
+def untrained_partner(architecture: str) -> Partner:
+    """A team of the paper's width on 7x7 kitchens (untrained weights time the same)."""
+    return Partner(architecture, make_actor_critic(architecture, (7, 7, 26), 256, True), (7, 7, 26))
+
+
 def tick_latency(architecture: str, records: Path, ticks: int = 300) -> list[float]:
     """Seconds per `Game.step` of one game, after 20 warm-up ticks."""
-    partner = Partner(architecture, make_actor_critic(architecture, (7, 7, 26), 256, True), (7, 7, 26))
+    partner = untrained_partner(architecture)
     game = Game(load_layout(KITCHEN), partner, 0, records / f"latency_{architecture}.jsonl", max_steps=ticks + 20)
     times = []
     for t in range(ticks + 20):
@@ -267,8 +272,7 @@ def main(argv=None) -> None:
             print(f"\n{args.rounds} games sharing a partner: ms per game tick, one game after another and as one "
                   f"round (step_games)\n{'partner':>14s} {'one by one':>11s} {'a round':>8s}")
             for name in [*args.partners, SCRIPTED]:
-                partner = (load_partner(SCRIPTED) if name == SCRIPTED else
-                           Partner(name, make_actor_critic(name, (7, 7, 26), 256, True), (7, 7, 26)))
+                partner = load_partner(SCRIPTED) if name == SCRIPTED else untrained_partner(name)
                 alone, together = round_cost(partner, args.rounds, scratch / "rounds")
                 print(f"{name:>14s} {alone * 1e3:11.2f} {together * 1e3:8.2f}", flush=True)
         if args.games:

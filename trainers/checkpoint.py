@@ -83,14 +83,18 @@ def save_checkpoint(path: str | Path, payload: dict) -> Path:
     return path
 
 
+def checkpoint_file(path: str | Path) -> Path:
+    """The checkpoint file `path` names: itself, or a run directory's latest checkpoint."""
+    path = Path(path)
+    return path / "checkpoints" / LATEST if path.is_dir() else path
+
+
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
     """The payload of a checkpoint file (a file, or a run directory whose latest checkpoint to take).
 
     Anything that is not a checkpoint of this version is refused with a `CheckpointError`, without running it.
     """
-    path = Path(path)
-    if path.is_dir():
-        path = path / "checkpoints" / LATEST
+    path = checkpoint_file(path)
     if not path.is_file():
         raise CheckpointError(f"no checkpoint at {path}: give a checkpoint file or a run directory that has one")
     with open(path, "rb") as handle:

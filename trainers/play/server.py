@@ -49,7 +49,7 @@ from jax_env import (
     load_layout,
 )
 from jax_env.generator import sample_training_level
-from trainers.checkpoint import LATEST, CheckpointError
+from trainers.checkpoint import CheckpointError, checkpoint_file
 from trainers.evaluation import evaluation_grids
 from trainers.play.game import ACTIONS, RANDOM, SCRIPTED, Game, Partner, load_partner, replay, step_games
 
@@ -175,10 +175,8 @@ def heldout_layouts() -> dict[str, Layout]:
 def checkpoint_version(name: str) -> tuple[int, int] | None:
     """The modification time and size of the checkpoint a partner's name loads (a run directory's latest), None
     for the scripted cook, the random agent or a name with no checkpoint file (which `load_partner` refuses)."""
-    path = Path(name)
-    path = path / "checkpoints" / LATEST if path.is_dir() else path
     try:
-        status = path.stat()
+        status = checkpoint_file(name).stat()
     except OSError:
         return None
     return status.st_mtime_ns, status.st_size
