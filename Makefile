@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup main test lint bench gpu-offline
+.PHONY: setup main test test-durations lint bench gpu-offline
 
 # DEVICE=cuda: the CUDA builds of torch and JAX, and the main job on the GPU (`make main DEVICE=cuda`).
 DEVICE ?= cpu
@@ -44,7 +44,11 @@ test: setup
 	@command -v chromium >/dev/null || ! command -v apt-get >/dev/null || \
 		(apt-get install -y -q chromium || (apt-get update -q && apt-get install -y -q chromium)) >/dev/null 2>&1 || \
 		echo "no Chromium could be installed: the browser test will be skipped"
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=10
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=10
+
+# tests/durations.json, the order in which make test hands its files to the workers: each file's seconds in a full run.
+test-durations: setup
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder --record-durations
 
 # .whl/ for benchmarks/gpu_checks.sh on a GPU machine without a package index: TorchRL's wheels from WHEELS, and
 # copies of the pure-Python packages such a machine may lack, taken from this set-up without their compiled parts

@@ -1,8 +1,9 @@
 """Every shell command of README.md and docs/*.md runs as written, page by page in the order the page gives, in a
 fresh folder that holds a copy of configs/ (as a clone's root does), shrunk to a tiny size: the same arguments
-with a few size overrides appended (`SHRINK`: a later `key=value` or option wins), in this process, the console
-scripts called as their entry points. A command a page marks as refused (its comment begins "refused") must end in
-one line on stderr and exit status 2. What cannot run here is named with its reason (`NOT_HERE`), and counted.
+with a few size overrides appended (`SHRINK`: a later `key=value` or option wins; a sweep's grid narrowed to the
+first and last value of each key), in this process, the console scripts called as their entry points. A command
+a page marks as refused (its comment begins "refused") must end in one line on stderr and exit status 2. What
+cannot run here is named with its reason (`NOT_HERE`), and counted.
 
 A page states what its commands presume with a hidden line, `<!-- docs-run: after COMMAND -->` (e.g. the main job
 whose run the page evaluates): those commands run first, shrunk as well.
@@ -96,12 +97,26 @@ def expand(arguments: list[str]) -> list[str]:
     return expanded
 
 
+def narrowed_grid(words: list[str]) -> list[str]:
+    """A sweep's keys of more than two values narrowed to their first and last (a later value wins): the grid of
+    docs/sweeps.md's paper grid in 4 points, not 24, each still a point it names."""
+    narrowed = []
+    for word in words[2:]:
+        key, _, values = word.partition("=")
+        values = values.split(",")
+        if not key.startswith(("hydra", "-")) and len(values) > 2 and "(" not in word:
+            narrowed.append(f"{key}={values[0]},{values[-1]}")
+    return narrowed
+
+
 def shrink_of(words: list[str]) -> list[str]:
     if "--resume" in words:
         return []  # a resumed run keeps its own (shrunk) config
     if words[0] in ("python", "python3"):
         words = words[1:]  # a script of scripts/, by its path
     shrink = SHRINK.get(" ".join(words[:2]), SHRINK.get(words[0], []))
+    if words[0] == "kitchen-sweep":
+        shrink = [*shrink, *narrowed_grid(words)]
     return [*shrink, "hydra.launcher.n_jobs=1"] if "hydra/launcher=joblib" in words else shrink
 
 
@@ -166,6 +181,8 @@ def test_make_main_stands_for_the_makefiles_recipe():
     assert recipe in (ROOT / "Makefile").read_text(), f"the Makefile's main target no longer runs {recipe}"
     assert split_comment("kitchen-eval 'a # b' x=1   # refused until # then") == ("kitchen-eval 'a # b' x=1",
                                                                                  "refused until # then")
+    assert shrink_of(["kitchen-sweep", "c.yaml", "seed=0,1,2", "lr=1,2", "x=range(0,6)", "hydra.a=1,2,3"])[-1:] == [
+        "seed=0,2"]
 
 
 def tracked_changes() -> str:
