@@ -5,7 +5,8 @@ the host launches every step's work. Where every team's networks run in JAX as w
 beside the kitchens, and a whole batch of steps is one program: the host launches it once per batch. That is:
 
     feed-forward   acting passes over chains of Flatten, Linear, ReLU, agent-centred linear layers and the GNN's
-                   graph encoder (the MLP architectures, the main job's "ego_mlp", "gnn"), on a bare `KitchenEnv`
+                   graph encoder (the MLP architectures, the main job's "ego_mlp", "gnn"), shared by the agents or one
+                   network per agent (`share_params=false`, the SK configs'), on a bare `KitchenEnv`
     recurrent      "mlp_lstm" and "gnn_lstm" with shared parameters: actor and critic each an encoder, an LSTM cell
                    and a head (LayerNorm, Linear, ReLU), on a `KitchenEnv` with the model's transforms alone
                    (`ActorCritic.env_transforms()`: InitTracker and the primer of the LSTM states)
@@ -21,7 +22,7 @@ Actions are drawn from JAX's random streams, one per team, each seeded at every 
 (`RandomStream`), so a resumed run draws what it would have. Everything else is `KitchenCollector`'s: the batch's
 keys, shapes and dtypes, the kitchens stepped and reset by the env's own programs and keys (the steps a
 `KitchenEnv` takes with those actions, bit for bit; `tests/torch_kitchen/test_xla_rollout.py`), the env left where
-the batch ended (its checkpoint, its next reset). Per-agent networks, E3T's and other transforms, and an
+the batch ended (its checkpoint, its next reset). Recurrent networks per agent, E3T's and other transforms, and an
 algorithm's acting modules collect with `KitchenCollector` (`trainers.rollout.make_collector` picks).
 """
 
@@ -42,12 +43,12 @@ from torchrl.modules import ProbabilisticActor
 from torch_kitchen.egocentric import EgocentricLinear
 from torch_kitchen.env import KitchenEnv, ProgramCache, kitchen_programs, output_entries
 from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, N_AGENTS, OBSERVATION, SHAPED_REWARD, VALUE
-from torch_kitchen.models.acting import ActionDistribution
+from torch_kitchen.models.acting import ActingPass, ActionDistribution
 from torch_kitchen.models.networks import GraphEncoder
 from torch_kitchen.models.recurrence import MultiAgentLSTM
 from torch_kitchen.rollout import NEXT, InPlaceCollector, as_path, as_tensordict
 from torch_kitchen.teams import ACTING_KEYS, TeamPolicy, acting_pass_of, layers_of
-from torch_kitchen.torchrl_internals import MultiAgentNet
+from torch_kitchen.torchrl_internals import TEMPLATE, MultiAgentNet
 from torch_kitchen.xla_layers import (
     agent_window,
     dense,
@@ -59,7 +60,8 @@ from torch_kitchen.xla_layers import (
 )
 
 # A network's layers as JAX runs them: ("flatten", start, end), ("linear",), ("relu",), ("egocentric", (H, W, C)),
-# ("layer_norm", eps), ("lstm",), ("graph",) (`torch_kitchen.xla_layers` computes each).
+# ("layer_norm", eps), ("lstm",), ("graph",) (`torch_kitchen.xla_layers` computes each), or a network per agent:
+# (("per_agent", chain),), one agent's chain run on each agent's observation with that agent's weights.
 Chain = tuple[tuple, ...]
 IS_INIT = "is_init"  # InitTracker's key: the kitchens whose episode starts at this step
 
@@ -67,10 +69,33 @@ IS_INIT = "is_init"  # InitTracker's key: the kitchens whose episode starts at t
 class ActingNetwork(NamedTuple):
     """A team's policy or value network as XLA runs it: its layers in order (nested `nn.Sequential`s, with an
     `nn.LSTM` in a recurrent one), holding the team's weights, and the env's keys of its LSTM state (h, c), ()
-    without one."""
+    without one. `per_agent`: `layers` is a `nn.Sequential` of `MultiAgentNet` parts with a network per agent."""
 
     layers: nn.Module
     state_keys: tuple = ()
+    per_agent: bool = False
+
+
+def network_chain(network: ActingNetwork) -> Chain | None:
+    """The chain JAX runs for an acting network (`jax_chain`; a network per agent as one agent's chain, whose
+    structure the parts' parameter-less templates hold), or None where a layer does not convert."""
+    if not network.per_agent:
+        return jax_chain(network.layers)
+    chain = jax_chain(nn.Sequential(*(getattr(part, TEMPLATE) for part in network.layers)))
+    return None if chain is None else (("per_agent", chain),)
+
+
+def network_weights(network: ActingNetwork) -> list[torch.Tensor]:
+    """The acting network's weights in the order its chain reads them; with a network per agent each [n_agents, ...],
+    the agents' weights stacked as `MultiAgentNet` holds them."""
+    if not network.per_agent:
+        return chain_weights(network.layers)
+    weights = []
+    for part in network.layers:
+        template = part.thread_template()
+        with part.params.to_module(template):  # the template then holds the stacked weights, as in its forward
+            weights += chain_weights(template)
+    return weights
 
 
 def jax_chain(network: nn.Module) -> Chain | None:
@@ -137,6 +162,10 @@ def run_chain(chain: Chain, weights: Sequence[jax.Array], x: jax.Array, state: t
             x, state = lstm_cell([next(weights) for _ in range(4)], x, state)
         elif op == "graph":
             x = graph_scene(x, [next(weights) for _ in range(6)])
+        elif op == "per_agent":  # x [..., n_agents, H, W, C]: each agent's view through its own network
+            (agent_chain,) = args
+            x = jax.vmap(lambda agent_weights, view: run_chain(agent_chain, agent_weights, view)[0],
+                         in_axes=(0, x.ndim - 4), out_axes=x.ndim - 4)(list(weights), x)
         else:
             if op == "egocentric":
                 x = agent_window(x)
@@ -182,16 +211,31 @@ def recurrent_acting(policy: TensorDictModuleBase) -> tuple[ActingNetwork, Actin
     return None if None in pair else pair
 
 
+def feed_forward_acting(acting: ActingPass | None) -> tuple[ActingNetwork, ActingNetwork] | None:
+    """An acting pass's (policy, value) networks: shared by the agents (`ActingPass.shared_networks`), or each a
+    chain of `MultiAgentNet` parts with a network per agent; else None (no acting pass, or shared and per-agent
+    parts mixed)."""
+    if acting is None:
+        return None
+    shared = acting.shared_networks()
+    if shared is not None:
+        return ActingNetwork(shared[0]), ActingNetwork(shared[1])
+    networks = (acting.policy_net, acting.value_net)
+    if not all(isinstance(part, MultiAgentNet) and not part.share_params for network in networks for part in network):
+        return None
+    return tuple(ActingNetwork(nn.Sequential(*network), per_agent=True) for network in networks)
+
+
 def team_networks(policy) -> list[tuple[ActingNetwork, ActingNetwork]] | None:
-    """Each team's (policy, value) networks, where every team of the `TeamPolicy` acts by an acting pass over shared
-    networks (`ActingPass.shared_networks`) or by a recurrent model's policy with shared networks
-    (`recurrent_acting`); else None. Whether JAX runs their layers is `jax_chain`'s to say."""
+    """Each team's (policy, value) networks, where every team of the `TeamPolicy` acts by an acting pass
+    (`feed_forward_acting`) or by a recurrent model's policy with shared networks (`recurrent_acting`); else None.
+    Whether JAX runs their layers is `network_chain`'s to say."""
     if not isinstance(policy, TeamPolicy):
         return None
     if policy.acts_on_observation:
-        networks = [acting_pass_of(team).shared_networks() for team in policy.policies]
-        return None if None in networks else [(ActingNetwork(net), ActingNetwork(value)) for net, value in networks]
-    pairs = [recurrent_acting(team) for team in policy.policies]
+        pairs = [feed_forward_acting(acting_pass_of(team)) for team in policy.policies]
+    else:
+        pairs = [recurrent_acting(team) for team in policy.policies]
     return None if None in pairs else pairs
 
 
@@ -227,7 +271,7 @@ def xla_chains(env: EnvBase, policy) -> tuple[Chain, Chain] | None:
     networks = team_networks(policy)
     if networks is None or not env_runs_in_xla(env, networks[0]):
         return None
-    chains = {tuple((jax_chain(network.layers), network.state_keys) for network in pair) for pair in networks}
+    chains = {tuple((network_chain(network), network.state_keys) for network in pair) for pair in networks}
     if len(chains) != 1 or any(chain is None for chain, _ in next(iter(chains))):
         return None
     return tuple(chain for chain, _ in next(iter(chains)))
@@ -314,14 +358,15 @@ class XlaCollector(InPlaceCollector):
         super().__init__(env, frames_per_batch, total_frames)
         chains = xla_chains(env, policy)
         if chains is None:
-            raise ValueError("XlaCollector runs teams of MLP acting passes on a bare KitchenEnv, or of shared "
-                             "recurrent MLPs (mlp_lstm) on a KitchenEnv with the model's transforms alone "
-                             "(with_model_transforms); collect this policy and env with KitchenCollector")
+            raise ValueError("XlaCollector runs teams of feed-forward acting passes (MLP, agent-centred MLP, GNN; "
+                             "shared or per agent) on a bare KitchenEnv, or of shared recurrent networks (mlp_lstm, "
+                             "gnn_lstm) on a KitchenEnv with the model's transforms alone (with_model_transforms); "
+                             "collect this policy and env with KitchenCollector")
         self.policy = policy
         self.kitchen_env = env.base_env if isinstance(env, TransformedEnv) else env
         self._program = rollout_program(self.kitchen_env, chains, self.steps)
         networks = team_networks(policy)
-        self._networks = [[network.layers for network in pair] for pair in networks]
+        self._networks = [list(pair) for pair in networks]
         self._state_keys = [network.state_keys for network in networks[0]]
         self._recurrent = any(self._state_keys)
         with torch.no_grad():
@@ -347,7 +392,7 @@ class XlaCollector(InPlaceCollector):
     def _weights(self) -> tuple[list[jax.Array], list[jax.Array]]:
         """The teams' current weights, stacked along a leading team dim."""
         with torch.no_grad():
-            return tuple([self._to_jax(torch.stack(tensors)) for tensors in zip(*map(chain_weights, nets))]
+            return tuple([self._to_jax(torch.stack(tensors)) for tensors in zip(*map(network_weights, nets))]
                          for nets in zip(*self._networks))
 
     def _act_keys(self) -> jax.Array:

@@ -49,10 +49,12 @@ def xla_batches(tmp_path, overrides, count=3):
 @pytest.mark.parametrize("overrides", [["architecture=mlp"],
                                        ["architecture=mlp", "runtime.teams=2", "levels=infinite"],
                                        ["architecture=ego_mlp", "runtime.teams=2", "levels=infinite"],
+                                       ["architecture=mlp", "share_params=false", "runtime.teams=2"],
                                        ["architecture=gnn", "runtime.teams=2", "levels=infinite"],
                                        ["architecture=gnn_lstm"],
                                        ["architecture=mlp_lstm", "runtime.teams=2", "levels=infinite"]],
-                         ids=["mlp", "mlp-2-teams", "ego_mlp-2-teams", "gnn-2-teams", "gnn_lstm", "mlp_lstm-2-teams"])
+                         ids=["mlp", "mlp-2-teams", "ego_mlp-2-teams", "mlp-per-agent-2-teams", "gnn-2-teams",
+                              "gnn_lstm", "mlp_lstm-2-teams"])
 def test_the_xla_rollout_steps_the_kitchens_as_the_kitchen_collector_does_with_its_actions(tmp_path, overrides):
     overrides = ["max_steps=10", *overrides]
     ours, env, _, config = xla_batches(tmp_path / "xla", overrides)
@@ -75,12 +77,19 @@ def test_the_xla_rollout_steps_the_kitchens_as_the_kitchen_collector_does_with_i
         assert all(torch.equal(a, b) if isinstance(a, torch.Tensor) else a == b for a, b in zip(ours_state, twin_state))
 
 
-@pytest.mark.parametrize("architecture", ["mlp", "ego_mlp", "gnn"])
-def test_the_xla_policy_is_the_teams_networks_and_draws_from_their_streams(tmp_path, architecture):
-    overrides = ["max_steps=10", f"architecture={architecture}", "runtime.teams=2", "levels=infinite"]
+# A network per agent (the SK configs'): each agent's view through its own weights, as TorchRL's vmap runs them.
+@pytest.mark.parametrize("overrides", [["architecture=mlp"], ["architecture=ego_mlp"], ["architecture=gnn"],
+                                       ["architecture=gnn", "share_params=false"]],
+                         ids=["mlp", "ego_mlp", "gnn", "gnn-per-agent"])
+def test_the_xla_policy_is_the_teams_networks_and_draws_from_their_streams(tmp_path, overrides):
+    overrides = ["max_steps=10", *overrides, "runtime.teams=2", "levels=infinite"]
     batches, env, policy, _ = xla_batches(tmp_path / "first", overrides, count=2)
     for team, team_policy in enumerate(policy.policies):
-        policy_net, value_net = acting_pass_of(team_policy).shared_networks()
+        acting = acting_pass_of(team_policy)
+        policy_net, value_net = acting.policy_net, acting.value_net
+        if "share_params=false" in overrides:  # each agent its own weights: one agent's read for the other's shows
+            weights = next(iter(acting.policy_net[0].params.values(True, True)))
+            assert weights.shape[0] == 2 and not torch.equal(weights[0], weights[1])
         batch = batches[1][team_rows(team, env.team_size)]
         with torch.no_grad():
             torch.testing.assert_close(batch[LOGITS], policy_net(batch[OBSERVATION]), rtol=1e-5, atol=1e-5)
@@ -132,11 +141,12 @@ def test_the_xla_recurrent_policy_is_the_teams_lstms_and_draws_from_their_stream
     (["architecture=mlp"], XlaCollector),
     (["architecture=ego_mlp"], XlaCollector),
     (["architecture=mlp_lstm"], XlaCollector),
+    (["architecture=mlp", "share_params=false"], XlaCollector),
     (["architecture=mlp_lstm", "share_params=false"], KitchenCollector),
     (["architecture=gnn"], XlaCollector),
     (["architecture=gnn_lstm"], XlaCollector),
     (["architecture=e3t_gnn", "algorithm=e3t"], KitchenCollector),
-], ids=["mlp", "ego_mlp", "mlp_lstm", "mlp_lstm-per-agent", "gnn", "gnn_lstm", "e3t_gnn"])
+], ids=["mlp", "ego_mlp", "mlp_lstm", "mlp-per-agent", "mlp_lstm-per-agent", "gnn", "gnn_lstm", "e3t_gnn"])
 def test_the_xla_kind_takes_the_models_it_can_run_and_leaves_the_others_to_the_kitchen_collector(
         tmp_path, overrides, kind):
     env, policy, config = env_and_policy(tmp_path, overrides)
