@@ -7,7 +7,7 @@ beside the kitchens, and a whole batch of steps is one program: the host launche
     feed-forward   acting passes over chains of Flatten, Linear, ReLU, agent-centred linear layers and the GNN's
                    graph encoder (the MLP architectures, the main job's "ego_mlp", "gnn"), shared by the agents or one
                    network per agent (`share_params=false`, the SK configs'), on a bare `KitchenEnv`
-    recurrent      "mlp_lstm" and "gnn_lstm" with shared parameters: actor and critic each an encoder, an LSTM cell
+    recurrent      "mlp_lstm" and "gnn_lstm", shared or per agent: actor and critic each an encoder, an LSTM cell
                    and a head (LayerNorm, Linear, ReLU), on a `KitchenEnv` with the model's transforms alone
                    (`ActorCritic.env_transforms()`: InitTracker and the primer of the LSTM states)
 
@@ -22,8 +22,8 @@ Actions are drawn from JAX's random streams, one per team, each seeded at every 
 (`RandomStream`), so a resumed run draws what it would have. Everything else is `KitchenCollector`'s: the batch's
 keys, shapes and dtypes, the kitchens stepped and reset by the env's own programs and keys (the steps a
 `KitchenEnv` takes with those actions, bit for bit; `tests/torch_kitchen/test_xla_rollout.py`), the env left where
-the batch ended (its checkpoint, its next reset). Recurrent networks per agent, E3T's and other transforms, and an
-algorithm's acting modules collect with `KitchenCollector` (`trainers.rollout.make_collector` picks).
+the batch ended (its checkpoint, its next reset). E3T's and other transforms, and an algorithm's acting modules,
+collect with `KitchenCollector` (`trainers.rollout.make_collector` picks).
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ from torch_kitchen.xla_layers import (
 
 # A network's layers as JAX runs them: ("flatten", start, end), ("linear",), ("relu",), ("egocentric", (H, W, C)),
 # ("layer_norm", eps), ("lstm",), ("graph",) (`torch_kitchen.xla_layers` computes each), or a network per agent:
-# (("per_agent", chain),), one agent's chain run on each agent's observation with that agent's weights.
+# (("per_agent", chain),), one agent's chain run on each agent's observation (and LSTM state) with its own weights.
 Chain = tuple[tuple, ...]
 IS_INIT = "is_init"  # InitTracker's key: the kitchens whose episode starts at this step
 
@@ -69,29 +69,31 @@ IS_INIT = "is_init"  # InitTracker's key: the kitchens whose episode starts at t
 class ActingNetwork(NamedTuple):
     """A team's policy or value network as XLA runs it: its layers in order (nested `nn.Sequential`s, with an
     `nn.LSTM` in a recurrent one), holding the team's weights, and the env's keys of its LSTM state (h, c), ()
-    without one. `per_agent`: `layers` is a `nn.Sequential` of `MultiAgentNet` parts with a network per agent."""
+    without one. With a network per agent, `layers` are one agent's (their structure, not its weights) and
+    `agent_parts` the `MultiAgentNet`s and `MultiAgentLSTM` that hold every agent's weights, in order."""
 
     layers: nn.Module
     state_keys: tuple = ()
-    per_agent: bool = False
+    agent_parts: tuple = ()
 
 
 def network_chain(network: ActingNetwork) -> Chain | None:
-    """The chain JAX runs for an acting network (`jax_chain`; a network per agent as one agent's chain, whose
-    structure the parts' parameter-less templates hold), or None where a layer does not convert."""
-    if not network.per_agent:
-        return jax_chain(network.layers)
-    chain = jax_chain(nn.Sequential(*(getattr(part, TEMPLATE) for part in network.layers)))
-    return None if chain is None else (("per_agent", chain),)
+    """The chain JAX runs for an acting network (`jax_chain`; a network per agent as one agent's chain), or None
+    where a layer does not convert."""
+    chain = jax_chain(network.layers)
+    return chain if chain is None or not network.agent_parts else (("per_agent", chain),)
 
 
 def network_weights(network: ActingNetwork) -> list[torch.Tensor]:
     """The acting network's weights in the order its chain reads them; with a network per agent each [n_agents, ...],
-    the agents' weights stacked as `MultiAgentNet` holds them."""
-    if not network.per_agent:
+    the agents' weights stacked."""
+    if not network.agent_parts:
         return chain_weights(network.layers)
     weights = []
-    for part in network.layers:
+    for part in network.agent_parts:
+        if isinstance(part, MultiAgentLSTM):
+            weights += [torch.stack(agents) for agents in zip(*(chain_weights(lstm.lstm) for lstm in part.lstms))]
+            continue
         template = part.thread_template()
         with part.params.to_module(template):  # the template then holds the stacked weights, as in its forward
             weights += chain_weights(template)
@@ -162,10 +164,12 @@ def run_chain(chain: Chain, weights: Sequence[jax.Array], x: jax.Array, state: t
             x, state = lstm_cell([next(weights) for _ in range(4)], x, state)
         elif op == "graph":
             x = graph_scene(x, [next(weights) for _ in range(6)])
-        elif op == "per_agent":  # x [..., n_agents, H, W, C]: each agent's view through its own network
+        elif op == "per_agent":  # x [..., n_agents, H, W, C], state [..., n_agents, 1, h]: each agent's own
             (agent_chain,) = args
-            x = jax.vmap(lambda agent_weights, view: run_chain(agent_chain, agent_weights, view)[0],
-                         in_axes=(0, x.ndim - 4), out_axes=x.ndim - 4)(list(weights), x)
+            agents = x.ndim - 4  # the agent dim, after as many leading dims in every input and output
+            x, state = jax.vmap(lambda agent_weights, view, agent_state: run_chain(agent_chain, agent_weights, view,
+                                                                                   agent_state),
+                                in_axes=(0, agents, agents), out_axes=agents)(list(weights), x, state)
         else:
             if op == "egocentric":
                 x = agent_window(x)
@@ -180,19 +184,24 @@ def restarted(is_init: jax.Array, state: tuple) -> tuple:
 
 
 def recurrent_network(network: TensorDictModuleBase, out_key) -> ActingNetwork | None:
-    """`make_network`'s recurrent network writing `out_key` (an encoder, a `MultiAgentLSTM`, a head, each shared by
-    the agents) as an `ActingNetwork`; else None (per-agent networks, extra inputs to the head, another model)."""
+    """`make_network`'s recurrent network writing `out_key` (an encoder, a `MultiAgentLSTM`, a head, all shared by
+    the agents or all per agent) as an `ActingNetwork`; else None (shared and per-agent parts mixed, extra inputs to
+    the head, another model)."""
     if not isinstance(network, TensorDictSequential) or len(network.module) != 3:
         return None
     encoder, memory, head = network.module
-    if not (isinstance(memory, MultiAgentLSTM) and memory.share_params
+    if not (isinstance(memory, MultiAgentLSTM)
             and all(isinstance(part, TensorDictModule) and isinstance(part.module, MultiAgentNet)
-                    and part.module.share_params for part in (encoder, head))
+                    and part.module.share_params == memory.share_params for part in (encoder, head))
             and list(encoder.in_keys) == [OBSERVATION] and list(encoder.out_keys) == memory.in_keys[:1]
             and list(head.in_keys) == memory.out_keys[:1] and list(head.out_keys) == [out_key]):
         return None
-    layers = nn.Sequential(encoder.module.shared_net(), memory.lstms[0].lstm, head.module.shared_net())
-    return ActingNetwork(layers, tuple(memory.in_keys[1:3]))
+    state_keys = tuple(memory.in_keys[1:3])
+    if memory.share_params:
+        layers = nn.Sequential(encoder.module.shared_net(), memory.lstms[0].lstm, head.module.shared_net())
+        return ActingNetwork(layers, state_keys)
+    one_agent = nn.Sequential(getattr(encoder.module, TEMPLATE), memory.lstms[0].lstm, getattr(head.module, TEMPLATE))
+    return ActingNetwork(one_agent, state_keys, agent_parts=(encoder.module, memory, head.module))
 
 
 def recurrent_acting(policy: TensorDictModuleBase) -> tuple[ActingNetwork, ActingNetwork] | None:
@@ -223,7 +232,8 @@ def feed_forward_acting(acting: ActingPass | None) -> tuple[ActingNetwork, Actin
     networks = (acting.policy_net, acting.value_net)
     if not all(isinstance(part, MultiAgentNet) and not part.share_params for network in networks for part in network):
         return None
-    return tuple(ActingNetwork(nn.Sequential(*network), per_agent=True) for network in networks)
+    return tuple(ActingNetwork(nn.Sequential(*(getattr(part, TEMPLATE) for part in network)),
+                               agent_parts=tuple(network)) for network in networks)
 
 
 def team_networks(policy) -> list[tuple[ActingNetwork, ActingNetwork]] | None:
@@ -359,7 +369,7 @@ class XlaCollector(InPlaceCollector):
         chains = xla_chains(env, policy)
         if chains is None:
             raise ValueError("XlaCollector runs teams of feed-forward acting passes (MLP, agent-centred MLP, GNN; "
-                             "shared or per agent) on a bare KitchenEnv, or of shared recurrent networks (mlp_lstm, "
+                             "shared or per agent) on a bare KitchenEnv, or of their recurrent networks (mlp_lstm, "
                              "gnn_lstm) on a KitchenEnv with the model's transforms alone (with_model_transforms); "
                              "collect this policy and env with KitchenCollector")
         self.policy = policy

@@ -94,9 +94,9 @@ class RuntimeConfig(DeviceConfig):
                "(on a GPU, the teams' stacked networks replay as CUDA graphs)"
     )
     collector: str = option(
-        "xla", '"xla": MLP, ego_mlp and GNN teams (shared or per-agent networks) and shared MLP and GNN LSTMs act '
-               'inside the kitchens\' XLA program, a whole batch one call (torch_kitchen.xla_rollout; actions drawn by '
-               'JAX), per-agent LSTMs and E3T as "kitchen"; "kitchen": the '
+        "xla", '"xla": MLP, ego_mlp and GNN teams and their LSTMs (shared or per-agent networks) act inside the '
+               'kitchens\' XLA program, a whole batch one call (torch_kitchen.xla_rollout; actions drawn by JAX), '
+               'E3T as "kitchen"; "kitchen": the '
                'kitchens\' own in-place rollout (torch_kitchen.rollout); "torchrl": TorchRL\'s Collector; the last '
                'two collect the same batches bit for bit, the first at a fraction of the host\'s work per step'
     )

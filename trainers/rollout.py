@@ -28,9 +28,9 @@ def make_collector(env: EnvBase, policy, frames_per_batch: int, total_frames: in
     (`kind="kitchen"`) or TorchRL's `Collector` ("torchrl"), which collect the same batches; or the whole rollout
     inside XLA ("xla", `XlaCollector`: actions drawn by JAX) where it runs the policy's teams, else the kitchens'
     own. XLA runs acting passes (MLP, ego_mlp, GNN; shared by the agents or one network per agent) on a bare
-    `KitchenEnv`, and their recurrent variants ("mlp_lstm", "gnn_lstm") with shared networks on a `KitchenEnv` with
-    the model's transforms alone (`with_model_transforms`); recurrent networks per agent, E3T and other transforms,
-    and an algorithm's acting modules take the kitchens' own.
+    `KitchenEnv`, and their recurrent variants ("mlp_lstm", "gnn_lstm") on a `KitchenEnv` with the model's
+    transforms alone (`with_model_transforms`); E3T and other transforms, and an algorithm's acting modules, take the
+    kitchens' own.
 
     Each writes every batch into the same buffers instead of a fresh copy, which keeps large batches cheap;
     consume a batch before asking for the next one.

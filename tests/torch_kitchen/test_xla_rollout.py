@@ -49,11 +49,11 @@ def xla_batches(tmp_path, overrides, count=3):
 @pytest.mark.parametrize("overrides", [["architecture=mlp"],
                                        ["architecture=mlp", "runtime.teams=2", "levels=infinite"],
                                        ["architecture=ego_mlp", "runtime.teams=2", "levels=infinite"],
-                                       ["architecture=mlp", "share_params=false", "runtime.teams=2"],
+                                       ["architecture=mlp_lstm", "share_params=false", "runtime.teams=2"],
                                        ["architecture=gnn", "runtime.teams=2", "levels=infinite"],
                                        ["architecture=gnn_lstm"],
                                        ["architecture=mlp_lstm", "runtime.teams=2", "levels=infinite"]],
-                         ids=["mlp", "mlp-2-teams", "ego_mlp-2-teams", "mlp-per-agent-2-teams", "gnn-2-teams",
+                         ids=["mlp", "mlp-2-teams", "ego_mlp-2-teams", "mlp_lstm-per-agent-2-teams", "gnn-2-teams",
                               "gnn_lstm", "mlp_lstm-2-teams"])
 def test_the_xla_rollout_steps_the_kitchens_as_the_kitchen_collector_does_with_its_actions(tmp_path, overrides):
     overrides = ["max_steps=10", *overrides]
@@ -112,9 +112,12 @@ def assert_draws_from_the_teams_streams(tmp_path, overrides, batches):
     assert not torch.equal(other[0][ACTION], batches[0][ACTION]), "another seed draws other actions"
 
 
-@pytest.mark.parametrize("architecture,teams", [("mlp_lstm", 2), ("gnn_lstm", 1)])
-def test_the_xla_recurrent_policy_is_the_teams_lstms_and_draws_from_their_streams(tmp_path, architecture, teams):
-    overrides = ["max_steps=10", f"architecture={architecture}", f"runtime.teams={teams}", "levels=infinite"]
+@pytest.mark.parametrize("architecture,teams,share", [("mlp_lstm", 2, "true"), ("gnn_lstm", 1, "true"),
+                                                       ("mlp_lstm", 1, "false")])
+def test_the_xla_recurrent_policy_is_the_teams_lstms_and_draws_from_their_streams(tmp_path, architecture, teams,
+                                                                                  share):
+    overrides = ["max_steps=10", f"architecture={architecture}", f"runtime.teams={teams}", "levels=infinite",
+                 f"share_params={share}"]
     batches, env, policy, _ = xla_batches(tmp_path / "first", overrides)
     for team, team_policy in enumerate(policy.policies):
         actor, critic = team_policy.module
@@ -142,7 +145,7 @@ def test_the_xla_recurrent_policy_is_the_teams_lstms_and_draws_from_their_stream
     (["architecture=ego_mlp"], XlaCollector),
     (["architecture=mlp_lstm"], XlaCollector),
     (["architecture=mlp", "share_params=false"], XlaCollector),
-    (["architecture=mlp_lstm", "share_params=false"], KitchenCollector),
+    (["architecture=mlp_lstm", "share_params=false"], XlaCollector),
     (["architecture=gnn"], XlaCollector),
     (["architecture=gnn_lstm"], XlaCollector),
     (["architecture=e3t_gnn", "algorithm=e3t"], KitchenCollector),
