@@ -1,8 +1,8 @@
 """The host's part of every loop, counted on the CPU (`trainers.device_audit`): each training loop (every collector,
-the architecture families, E3T, the main job's), distillation, evaluation beside the scripted cook and a human proxy,
-and behaviour cloning runs twice, the second run longer (8 steps per update or episode, or 2 minibatches), and the
-host reads and device-less tensors whose count grew are the loop's per-step (or per-minibatch) ones. They are stated
-here, so a new one is a failing test naming its function."""
+the architecture families, networks per agent, E3T, the main job's), distillation, evaluation beside the scripted
+cook and a human proxy, and behaviour cloning runs twice, the second run longer (8 steps per update or episode, or 2
+minibatches), and the host reads and device-less tensors whose count grew are the loop's per-step (or
+per-minibatch) ones. They are stated here, so a new one is a failing test naming its function."""
 
 import pytest
 import torch
@@ -35,6 +35,7 @@ LOOPS = {
                 {**CPU_KERNEL, **ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at trainers/ppo.py:train_teams": 0.25},
                 CPU_KERNEL_MADE),
     "gnn (xla)": ("configs/ippo/gnn_ik.yaml", [], {}, {}),
+    "an SK LSTM, a network per agent (xla)": ("configs/ippo/mlp_lstm_sk_cramped_room.yaml", [], {}, {}),
     "gnn (kitchen)": ("configs/ippo/gnn_ik.yaml", ["runtime.collector=kitchen"],
                       {**ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at torch_kitchen/rollout.py:advance": 0.25}, {}),
     # E3T's partner model has a sparse first layer of its own, and its partner draws are made on the CPU (their own
