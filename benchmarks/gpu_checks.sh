@@ -87,6 +87,8 @@ row ik_default 150 $reference --setting $ik
 row jaxmarl_default 150 $reference --setting $jaxmarl
 row jaxmarl_update_compiled 150 $reference --setting $jaxmarl --update-compiled true
 [[ $protocol == protocol ]] && row protocol_gnn 150 $reference --setting protocol_gnn
+# The SK configs' networks, one per agent (inside XLA too), against the yardstick's per-agent networks.
+[[ $protocol == protocol ]] && row protocol_sk 150 $reference --setting protocol_sk
 # The syncs torch reports in two updates (its warnings are the output: kept whole).
 if [[ -z ${ONLY:-} || sync_audit =~ $ONLY ]] && (( budget - SECONDS >= 90 )) && [[ $device == cuda ]]; then
     timeout 90 python -c "

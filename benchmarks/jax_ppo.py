@@ -73,6 +73,7 @@ SETTINGS = {
 # The paper's protocol: 6 teams (seeds) of the IK shape in one process.
 SETTINGS["protocol"] = {**SETTINGS["ik"], "runtime.teams": 6}
 SETTINGS["protocol_gnn"] = {**SETTINGS["protocol"], "architecture": "gnn"}  # ours only: the yardstick has no GNN
+SETTINGS["protocol_sk"] = {**SETTINGS["protocol"], "share_params": False}  # the SK configs' networks, one per agent
 # A dry run's: every path of a benchmark in seconds (benchmarks/gpu_checks.sh with SIZE=tiny).
 SETTINGS["tiny"] = {**SETTINGS["jaxmarl"], "levels": "cramped_room", "num_envs": 4, "rollout_steps": 16, "hidden": 16,
                     "epochs": 1, "minibatches": 2, "max_steps": 16, "runtime.teams": 2}

@@ -11,8 +11,8 @@ the ratio of their steps/s.
     python benchmarks/train.py throughput [--archs mlp gnn] [--envs 32 1024] [--device cpu|cuda]
     python benchmarks/train.py e3t [--encoders mlp gnn] [--envs 32] [--device cpu|cuda]
     python benchmarks/train.py learning [--target 5] [--budget 2e7] [--threads 2] [key=value ...]
-    python benchmarks/train.py reference [--setting jaxmarl|ik|protocol|protocol_gnn] [--updates 3] [--compile]
-                                         [--update-compiled true] [--collector kitchen|torchrl|xla]
+    python benchmarks/train.py reference [--setting jaxmarl|ik|protocol|protocol_gnn|protocol_sk] [--updates 3]
+                                         [--compile] [--update-compiled true] [--collector kitchen|torchrl|xla]
     python benchmarks/train.py parity [--setting jaxmarl] [--budget 3e6] [--rows 10] [--seed 0]
     python benchmarks/train.py profile [--setting jaxmarl|ik] [--updates 12] [--rows 40] [--collector xla]
 """
@@ -239,7 +239,8 @@ def main(argv=None):
     learn.add_argument("--seed", type=int, default=0)
     learn.add_argument("overrides", nargs="*", help="config overrides, key=value")
     ref = sub.add_parser("reference")
-    ref.add_argument("--setting", choices=["jaxmarl", "ik", "protocol", "protocol_gnn", "tiny"], default="jaxmarl")
+    ref.add_argument("--setting", choices=["jaxmarl", "ik", "protocol", "protocol_gnn", "protocol_sk", "tiny"],
+                     default="jaxmarl")
     ref.add_argument("--updates", type=int, default=3, help="updates per measurement (ours: the first is not timed)")
     ref.add_argument("--device", default="cpu")
     ref.add_argument("--threads", type=int, default=1, help=THREADS_HELP)

@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 # Updates per `reference` measurement (ours times all but the first): enough for a few seconds of timed work.
-REFERENCE_UPDATES = {"jaxmarl": 20, "ik": 4, "protocol": 3, "protocol_gnn": 2}
+REFERENCE_UPDATES = {"jaxmarl": 20, "ik": 4, "protocol": 3, "protocol_gnn": 2, "protocol_sk": 3}
 
 # The main job's IPPO phase as `train.py`'s `throughput` runs it (the same function at every revision since its
 # overrides were added): configs/main.yaml's network and batch; its distilled start changes no step's cost.
