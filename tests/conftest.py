@@ -24,7 +24,7 @@ if CACHE not in os.environ:
     _own_cache = os.environ[CACHE] = tempfile.mkdtemp(prefix="kitchen-tests-jax-cache-")
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")  # the programs worth a file
 # The suite's programs run for milliseconds and compile for seconds: LLVM's cheapest optimisation level compiles
-# them 2-3x faster (the suite's JAX-heavy files in 28% less time). The same HLO runs, so the numbers are the ones
+# them 2-3x faster (the suite's JAX-heavy files in a quarter less time). The same HLO runs, so the numbers are the ones
 # the tests compare as ever; XLA_FLAGS set by the user are kept as they are.
 os.environ.setdefault("XLA_FLAGS", "--xla_backend_optimization_level=0")
 

@@ -98,8 +98,8 @@ def expand(arguments: list[str]) -> list[str]:
 
 
 def narrowed_grid(words: list[str]) -> list[str]:
-    """A sweep's keys of more than two values narrowed to their first and last (a later value wins): the grid of
-    docs/sweeps.md's paper grid in 4 points, not 24, each still a point it names."""
+    """A sweep's keys of more than two values narrowed to their first and last (a later value wins): docs/sweeps.md's
+    paper grid in 4 points, not 24, each still a point of it."""
     narrowed = []
     for word in words[2:]:
         key, _, values = word.partition("=")
