@@ -54,3 +54,17 @@ def script_module(name: str):
     sys.modules[name] = module  # as an import would: dataclasses look their module up there
     spec.loader.exec_module(module)
     return module
+
+
+def compiled_with_operator(layer, inputs, operator: str, grad_out):
+    """`layer(inputs)` compiled whole, its graph calling the named operator (a CPU kernel kept whole in the graph),
+    and its backward run on `grad_out`: returns the output, the layer's parameters' gradients left in place."""
+    import torch
+
+    explained = torch._dynamo.explain(layer)(inputs)
+    assert explained.graph_break_count == 0
+    targets = {str(node.target) for graph in explained.graphs for node in graph.graph.nodes}
+    assert any(operator in target for target in targets), targets
+    out = torch.compile(layer, fullgraph=True)(inputs)
+    out.backward(grad_out)
+    return out

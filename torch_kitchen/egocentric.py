@@ -22,7 +22,13 @@ from torch.nn import functional as F
 
 from jax_env.observation import Channel
 from torch_kitchen.onednn_linear import plain_linear_here
-from torch_kitchen.sparse_linear import SparseProduct, nonzero_entries, store_by_column
+from torch_kitchen.sparse_linear import (
+    NonZeroEntries,
+    SparseProduct,
+    nonzero_entries,
+    sparse_product,
+    store_by_column,
+)
 
 
 def window_shape(obs_shape: tuple[int, int, int]) -> tuple[int, int, int]:
@@ -84,13 +90,65 @@ class SparseEgocentricLinear(EgocentricLinear):
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         if obs.requires_grad:
             raise ValueError("EgocentricLinear takes no gradient for its input: pass observations, not features")
-        height, width, channels = self.obs_shape
-        flat = obs.reshape(-1, height * width * channels)
-        if plain_linear_here(flat, self.weight):
+        flat = obs.reshape(-1, torch.Size(self.obs_shape).numel())
+        if plain_linear_here(flat, self.weight, in_graph=True):
             return super().forward(obs)
-        agent_cell = obs[..., Channel.SELF].reshape(-1, height * width).argmax(-1)  # an all-zero row: cell 0
-        columns = window_columns(self.obs_shape, flat.device)
-        entries = nonzero_entries(flat, self.weight.dtype)
-        moved = columns.reshape(-1).take(agent_cell[entries.rows] * flat.shape[1] + entries.cols)
-        out = SparseProduct.apply(flat, self.weight, self.bias, entries.moved(moved, self.in_features))
+        if torch.compiler.is_compiling():  # the product as one operator of the graph
+            out = sparse_egocentric_linear(flat, self.weight, self.bias, list(self.obs_shape))
+        else:
+            entries = window_entries(flat, self.obs_shape, self.weight.dtype)
+            out = SparseProduct.apply(flat, self.weight, self.bias, entries)
         return out.reshape(*obs.shape[:-3], self.out_features)
+
+
+def window_entries(flat: torch.Tensor, obs_shape: tuple[int, int, int], dtype: torch.dtype) -> NonZeroEntries:
+    """The non-zero entries of observations flat [N, H * W * C] with their columns renumbered into each row's
+    agent-centred window, made once per input (`NonZeroEntries.derived`)."""
+    entries = nonzero_entries(flat, dtype)
+
+    def moved() -> NonZeroEntries:
+        height, width, channels = obs_shape
+        agent_cell = flat.view(-1, height * width, channels)[..., Channel.SELF].argmax(-1)  # all-zero row: cell 0
+        columns = window_columns(tuple(obs_shape), flat.device)
+        cols = columns.reshape(-1).take(agent_cell[entries.rows] * flat.shape[1] + entries.cols)
+        return entries.moved(cols, torch.Size(window_shape(obs_shape)).numel())
+
+    return entries.derived(("window", tuple(obs_shape)), moved)
+
+
+@torch.library.custom_op("kitchen::sparse_egocentric_linear", mutates_args=())
+def sparse_egocentric_linear(flat: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, obs_shape: list[int]
+                             ) -> torch.Tensor:
+    """`SparseEgocentricLinear`'s product as one operator that a compiled graph calls as it is (as
+    `torch_kitchen.sparse_linear.sparse_input_linear`): observations flat [N, H * W * C] -> float [N, out]."""
+    return sparse_product(window_entries(flat, tuple(obs_shape), weight.dtype), weight, bias)
+
+
+@sparse_egocentric_linear.register_fake
+def _(flat: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, obs_shape: list[int]) -> torch.Tensor:
+    return weight.new_empty((flat.shape[0], weight.shape[0]))
+
+
+@torch.library.custom_op("kitchen::sparse_egocentric_weight_gradient", mutates_args=())
+def sparse_egocentric_weight_gradient(flat: torch.Tensor, grad_out: torch.Tensor, obs_shape: list[int]
+                                      ) -> torch.Tensor:
+    """window.T @ grad_out [window, out], from the observations' `window_entries`."""
+    return window_entries(flat, tuple(obs_shape), grad_out.dtype).weight_gradient(grad_out)
+
+
+@sparse_egocentric_weight_gradient.register_fake
+def _(flat: torch.Tensor, grad_out: torch.Tensor, obs_shape: list[int]) -> torch.Tensor:
+    return grad_out.new_empty((torch.Size(window_shape(obs_shape)).numel(), grad_out.shape[1]))
+
+
+def _save_observations(ctx, inputs, output) -> None:
+    ctx.save_for_backward(inputs[0])
+    ctx.obs_shape = inputs[3]
+
+
+def _sparse_egocentric_backward(ctx, grad_out: torch.Tensor):
+    (flat,) = ctx.saved_tensors
+    return None, sparse_egocentric_weight_gradient(flat, grad_out, ctx.obs_shape).t(), grad_out.sum(0), None
+
+
+sparse_egocentric_linear.register_autograd(_sparse_egocentric_backward, setup_context=_save_observations)

@@ -77,11 +77,11 @@ def device_path() -> Iterator[None]:
         _device_path = outer
 
 
-def plain_linear_here(x: torch.Tensor, weight: torch.Tensor) -> bool:
-    """Whether a layer should take torch's own product for `x`: off the CPU, under vmap, inside compiled graphs,
-    inside `device_path()`."""
-    return (_device_path or x.device.type != "cpu" or torch.compiler.is_compiling() or _under_vmap(x)
-            or _under_vmap(weight))
+def plain_linear_here(x: torch.Tensor, weight: torch.Tensor, in_graph: bool = False) -> bool:
+    """Whether a layer should take torch's own product for `x`: off the CPU, under vmap, inside compiled graphs
+    (unless the layer's kernel is an operator a graph can call: `in_graph`), inside `device_path()`."""
+    return (_device_path or x.device.type != "cpu" or (torch.compiler.is_compiling() and not in_graph)
+            or _under_vmap(x) or _under_vmap(weight))
 
 
 # Below this many multiply-adds a oneDNN call's fixed cost (about 20 us on a Zen 5 core) and the copies its weight

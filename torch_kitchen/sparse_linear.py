@@ -4,15 +4,17 @@ A kitchen's observation is about 2.5% non-zero (the Infinite Kitchen: some 32 of
 agent), and the first layer over it holds most of an MLP's arithmetic: at hidden 256 its forward and weight
 gradient are three quarters of a PPO minibatch on a CPU. `SparseInputLinear` computes the same product from the
 non-zero entries alone: the forward product as an embedding bag (each row sums the weight columns of its
-entries), the weight's gradient as a CSR matrix product. Finding the entries is the larger part of the cost, so
+entries), the weight's gradient as CSR matrix products. Finding the entries is the larger part of the cost, so
 the actor and the critic, which read the same observations, find them once. It is `nn.Linear` in every other respect
 (same parameters, state_dict keys and init), so checkpoints and user code see no difference; the sums run in
 another order, so results agree with `nn.Linear` to float32 rounding, not bit for bit.
 
 The models are built with the plain `ObservationLinear`; `torch_kitchen.cpu_kernels.accelerate_cpu` makes it a
 `SparseInputLinear` on a CPU. Where finding the non-zeros would cost more than it saves, the layer takes the plain
-product: on a GPU (whose `nonzero` waits for the device, and whose dense products are cheap), under vmap, and
-inside `torch.compile`'s graphs.
+product: on a GPU (whose `nonzero` waits for the device, and whose dense products are cheap) and under vmap. Inside
+a CPU's compiled graph the product is one operator of the graph (`sparse_input_linear`), whose entries are found
+or handed outside it, by the data of its input: the rest of a compiled PPO step then loses its Python, and the
+first layer keeps its sparse arithmetic.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from __future__ import annotations
 import copy
 import threading
 import warnings
+from collections.abc import Callable
 
 import torch
 from torch import nn
@@ -50,14 +53,15 @@ class NonZeroEntries:
     def __init__(self, x: torch.Tensor, dtype: torch.dtype):
         self.shape = tuple(x.shape)
         flat_x = x.reshape(-1)
-        flat = flat_x.nonzero().squeeze(1)  # a flat index: far cheaper than a 2-D nonzero and gather
+        flat = flat_nonzero(flat_x)  # a flat index: far cheaper than a 2-D nonzero and gather
         self.rows = torch.div(flat, self.shape[1], rounding_mode="floor")
         self.cols = flat - self.rows * self.shape[1]
         self.values = flat_x.take(flat).to(dtype)
         self.row_offsets = _row_offsets(self.rows, self.shape[0])
         self._transposed = None
         self._of_blocks = None  # (the whole input, blocks, block_rows) of a minibatch taken by `of_blocks`
-        self._blocks = None  # `_EntriesByBlock` of the whole input, made on a minibatch's first `transposed`
+        self._blocks = None  # (block_rows, each block's x.T) of the whole input, made on a minibatch's first use
+        self._derived = {}  # what `derived` built from these entries, by key
 
     def moved(self, cols: torch.Tensor, in_features: int) -> NonZeroEntries:
         """The same entries in other columns `cols` of a wider input [N, in_features] (e.g. a window around
@@ -65,59 +69,98 @@ class NonZeroEntries:
         entries = copy.copy(self)
         entries.cols, entries.shape, entries._transposed = cols, (self.shape[0], in_features), None
         entries._of_blocks = entries._blocks = None
+        entries._derived = {}
         return entries
+
+    def derived(self, key: tuple, make: Callable[[], NonZeroEntries]) -> NonZeroEntries:
+        """What `make()` builds from these entries (e.g. them `moved` into a window), built once per `key`: the
+        layers that read the same input (an actor's and a critic's) share it, its x.T included."""
+        if key not in self._derived:
+            self._derived[key] = make()
+        return self._derived[key]
 
     def of_blocks(self, blocks: torch.Tensor, block_rows: int) -> NonZeroEntries:
         """The entries of the input made of these blocks of `block_rows` rows (block b: rows b * block_rows on), in
         the order given: what `NonZeroEntries` finds in that input, without searching it (a minibatch of whole
-        kitchens of a batch whose entries were found once). A block's entries are a slice of this input's; their
-        x.T comes from this input's too (`_blocks_transposed`)."""
+        kitchens of a batch whose entries were found once). A block's entries are a slice of this input's; the
+        weight's gradient comes from this input's blocks too (`weight_gradient`)."""
         spans = _spans(self.row_offsets, blocks, block_rows)
         entries = copy.copy(self)
         entries.shape = (len(spans) * block_rows, self.shape[1])
         entries.cols, entries.values = _joined(self.cols, spans), _joined(self.values, spans)
         entries.rows = _joined(self.rows, spans, _row_shifts(blocks, block_rows))
         entries.row_offsets = _row_offsets(entries.rows, entries.shape[0])
-        entries._transposed, entries._blocks = None, None
+        entries._transposed, entries._blocks, entries._derived = None, None, {}
         entries._of_blocks = (self, blocks, block_rows)
         return entries
 
     def transposed(self) -> torch.Tensor:
         """x.T as a CSR matrix [in, N]: the entries by column (then by row)."""
         if self._transposed is None:
-            if self._of_blocks is not None:
-                whole, blocks, block_rows = self._of_blocks
-                self._transposed = whole._blocks_transposed(blocks, block_rows)
-            else:
-                by_col = torch.argsort(self.cols, stable=True)
-                self._transposed = _csr(*_gathered(by_col, self.cols, self.rows, self.values), self.shape[::-1])
+            by_col = stable_order(self.cols, self.shape[1])
+            self._transposed = _csr(*_gathered(by_col, self.cols, self.rows, self.values), self.shape[::-1])
         return self._transposed
 
-    def _blocks_transposed(self, blocks: torch.Tensor, block_rows: int) -> torch.Tensor:
-        """x.T of the input `of_blocks(blocks, block_rows)`, merged from its blocks' own entries sorted by column
-        (sorted once per block size, `_by_block`), instead of a sort of its entries: within a column an entry of
-        the block in place j comes after those of the blocks before it, in the order of its rows."""
-        by_block = self._by_block(block_rows)
-        in_features = self.shape[1]
-        counts = by_block.counts[blocks]  # [blocks, in]: each block's entries per column
-        col_offsets = torch.zeros(in_features + 1, dtype=torch.int64)
-        torch.cumsum(counts.sum(0), 0, out=col_offsets[1:])
-        # Where block j's entries of column c start in the merged order; each entry goes there plus its rank.
-        starts = (col_offsets[:-1] + counts.cumsum(0) - counts).reshape(-1)
-        spans = _spans(by_block.starts, blocks, 1)
-        places = [place * in_features for place in range(len(spans))]
-        destination = starts.index_select(0, _joined(by_block.cols, spans, places)) + _joined(by_block.ranks, spans)
-        rows = _joined(by_block.rows, spans, _row_shifts(blocks, block_rows))
-        values = _joined(by_block.values, spans)
-        merged_rows = torch.empty_like(rows).scatter_(0, destination, rows)  # scatter_: 4x the speed of [] = on a CPU
-        merged_values = torch.empty_like(values).scatter_(0, destination, values)
-        return torch.sparse_csr_tensor(col_offsets, merged_rows, merged_values,
-                                       (in_features, len(blocks) * block_rows), check_invariants=False)
+    def weight_gradient(self, grad_out: torch.Tensor) -> torch.Tensor:
+        """x.T @ grad_out [in, out]: a linear layer's weight gradient (transposed) from x's entries. For the input
+        of `of_blocks`, the sum of its blocks' own products, each block's x.T made once for the PPO epochs
+        (`_block_transposes`): a minibatch then needs no x.T of its own (4x the time of its two products)."""
+        if self._of_blocks is None:
+            return torch.sparse.mm(self.transposed(), grad_out)
+        whole, blocks, block_rows = self._of_blocks
+        transposes = whole._block_transposes(block_rows)
+        parts = [torch.sparse.mm(transposes[block], grad_part)
+                 for block, grad_part in zip(blocks.tolist(), grad_out.split(block_rows))]
+        gradient = parts[0]
+        for part in parts[1:]:
+            gradient.add_(part)
+        return gradient
 
-    def _by_block(self, block_rows: int) -> _EntriesByBlock:
-        if self._blocks is None or self._blocks.block_rows != block_rows:
-            self._blocks = _EntriesByBlock(self, block_rows)
-        return self._blocks
+    def _block_transposes(self, block_rows: int) -> list[torch.Tensor]:
+        """x.T of each block of `block_rows` rows of this input, as CSR matrices [in, block_rows] (one sort of the
+        entries by block, then column, for the PPO epochs)."""
+        if self._blocks is None or self._blocks[0] != block_rows:
+            self._blocks = (block_rows, _block_transposes(self, block_rows))
+        return self._blocks[1]
+
+
+def _block_transposes(entries: NonZeroEntries, block_rows: int) -> list[torch.Tensor]:
+    """`NonZeroEntries._block_transposes`: the entries sorted by block, then column, then row, cut into blocks."""
+    in_features, num_blocks = entries.shape[1], entries.shape[0] // block_rows
+    blocks = torch.div(entries.rows, block_rows, rounding_mode="floor")
+    key = blocks * in_features + entries.cols
+    order = stable_order(key, num_blocks * in_features)
+    rows, values = _gathered(order, entries.rows - blocks * block_rows, entries.values)
+    col_counts = torch.bincount(key, minlength=num_blocks * in_features).reshape(num_blocks, in_features)
+    col_offsets = torch.zeros(num_blocks, in_features + 1, dtype=torch.int64)
+    torch.cumsum(col_counts, 1, out=col_offsets[:, 1:])
+    starts = entries.row_offsets[torch.arange(num_blocks + 1) * block_rows].tolist()
+    return [torch.sparse_csr_tensor(col_offsets[block], rows[start:end], values[start:end],
+                                    (in_features, block_rows), check_invariants=False)
+            for block, (start, end) in enumerate(zip(starts[:-1], starts[1:]))]
+
+
+def flat_nonzero(flat: torch.Tensor) -> torch.Tensor:
+    """int64: where the 1-D `flat` is non-zero, in order (`flat.nonzero()`). A batch's observations are searched
+    8 bytes at a time first: their 8-byte words are three quarters zero, and the search then reads each element of
+    the rest in its own dtype (so -0.0 stays zero), 1.5x as fast as a search element by element."""
+    per_word = 8 // flat.element_size()
+    if len(flat) < WORD_SEARCH_MIN or per_word < 2 or not flat.is_contiguous() or len(flat) % per_word:
+        return flat.nonzero().squeeze(1)
+    words = flat.view(torch.int64)
+    nonzero_words = words.nonzero().squeeze(1)
+    within = words.index_select(0, nonzero_words).view(flat.dtype).nonzero().squeeze(1)
+    return nonzero_words.index_select(0, within.div(per_word, rounding_mode="floor")) * per_word + within % per_word
+
+
+WORD_SEARCH_MIN = 1 << 18  # elements: below it (an acting pass's observations) the second search costs more
+
+
+def stable_order(keys: torch.Tensor, bound: int) -> torch.Tensor:
+    """The stable argsort of integer `keys` in [0, bound), sorted in the narrowest integer type that holds them: a
+    CPU sorts int16 keys 5x, int32 keys 2x as fast as int64 ones."""
+    narrow = next((dtype for dtype in (torch.int16, torch.int32) if bound <= torch.iinfo(dtype).max + 1), keys.dtype)
+    return torch.argsort(keys.to(narrow), stable=True)
 
 
 def _spans(offsets: torch.Tensor, blocks: torch.Tensor, block_rows: int) -> list[tuple[int, int]]:
@@ -140,22 +183,6 @@ def _joined(tensor: torch.Tensor, spans: list[tuple[int, int]], shifts: list[int
 def _gathered(order: torch.Tensor, *parts: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """Each part in `order`, by index_select: a third of the time of indexing with [] on a CPU."""
     return tuple(part.index_select(0, order) for part in parts)
-
-
-class _EntriesByBlock:
-    """An input's entries ordered by block of `block_rows` rows, then column, then row (one sort for the PPO
-    epochs): each block's count per column, and each entry's rank among its block's entries of its column."""
-
-    def __init__(self, entries: NonZeroEntries, block_rows: int):
-        self.block_rows = block_rows
-        in_features, num_blocks = entries.shape[1], entries.shape[0] // block_rows
-        key = torch.div(entries.rows, block_rows, rounding_mode="floor") * in_features + entries.cols
-        order = torch.argsort(key, stable=True)
-        self.rows, self.cols, self.values, key = _gathered(order, entries.rows, entries.cols, entries.values, key)
-        self.counts = torch.bincount(key, minlength=num_blocks * in_features).reshape(num_blocks, in_features)
-        self.starts = entries.row_offsets[torch.arange(num_blocks + 1) * block_rows]
-        group_starts = torch.cat([torch.zeros(1, dtype=torch.int64), self.counts.reshape(-1).cumsum(0)[:-1]])
-        self.ranks = torch.arange(len(order)) - group_starts.index_select(0, key)
 
 
 class _LastInput(threading.local):
@@ -196,6 +223,15 @@ def remember_entries(x: torch.Tensor, entries: NonZeroEntries) -> None:
         _last_input.tensor, _last_input.key, _last_input.entries = x, _input_key(x, entries.values.dtype), entries
 
 
+def sparse_product(entries: NonZeroEntries, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """x @ weight.T + bias from x's `entries`: each row sums its entries' weight columns, an embedding bag over the
+    rows of weight.T (contiguous as the layer stores it; copied so otherwise: a strided read is 15x slower at a
+    minibatch's size)."""
+    out = F.embedding_bag(entries.cols, weight.t().contiguous(), entries.row_offsets[:-1], mode="sum",
+                          per_sample_weights=entries.values)
+    return out.add_(bias)
+
+
 class SparseProduct(torch.autograd.Function):
     """x @ weight.T + bias from x's non-zero entries: x [N, in] (any real dtype; uint8 observations are read as
     they are), weight float [out, in], bias [out] -> float [N, out]."""
@@ -206,11 +242,7 @@ class SparseProduct(torch.autograd.Function):
         """entries: x's `nonzero_entries`, or them moved to the columns of `weight` (then x takes no gradient)."""
         ctx.save_for_backward(weight)
         ctx.entries = entries
-        # Each row sums its entries' weight columns: an embedding bag over the rows of weight.T (contiguous as the
-        # layer stores it; copied so otherwise: a strided read is 15x slower at a minibatch's size).
-        out = F.embedding_bag(entries.cols, weight.t().contiguous(), entries.row_offsets[:-1], mode="sum",
-                              per_sample_weights=entries.values)
-        return out.add_(bias)
+        return sparse_product(entries, weight, bias)
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):
@@ -219,10 +251,46 @@ class SparseProduct(torch.autograd.Function):
         if ctx.needs_input_grad[0]:  # observations never need it; other inputs might
             grad_x = grad_out @ weight
         if ctx.needs_input_grad[1]:  # grad_out.T @ x, as (x.T @ grad_out).T
-            grad_weight = torch.sparse.mm(ctx.entries.transposed(), grad_out).t()
+            grad_weight = ctx.entries.weight_gradient(grad_out).t()
         if ctx.needs_input_grad[2]:
             grad_bias = grad_out.sum(0)
         return grad_x, grad_weight, grad_bias, None
+
+
+@torch.library.custom_op("kitchen::sparse_input_linear", mutates_args=())
+def sparse_input_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """`SparseProduct` as one operator that a compiled graph calls as it is: x [N, in] -> float [N, out], from
+    x's `nonzero_entries` (found, or handed to the layers outside the graph, by the data of x)."""
+    return sparse_product(nonzero_entries(x, weight.dtype), weight, bias)
+
+
+@sparse_input_linear.register_fake
+def _(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    return weight.new_empty((x.shape[0], weight.shape[0]))
+
+
+@torch.library.custom_op("kitchen::sparse_input_weight_gradient", mutates_args=())
+def sparse_input_weight_gradient(x: torch.Tensor, grad_out: torch.Tensor) -> torch.Tensor:
+    """x.T @ grad_out [in, out] from x's `nonzero_entries` (`NonZeroEntries.weight_gradient`)."""
+    return nonzero_entries(x, grad_out.dtype).weight_gradient(grad_out)
+
+
+@sparse_input_weight_gradient.register_fake
+def _(x: torch.Tensor, grad_out: torch.Tensor) -> torch.Tensor:
+    return grad_out.new_empty((x.shape[1], grad_out.shape[1]))
+
+
+def _save_input(ctx, inputs, output) -> None:
+    ctx.save_for_backward(inputs[0], inputs[1])
+
+
+def _sparse_input_backward(ctx, grad_out: torch.Tensor):
+    x, weight = ctx.saved_tensors
+    grad_x = grad_out @ weight if ctx.needs_input_grad[0] else None  # observations never need it
+    return grad_x, sparse_input_weight_gradient(x, grad_out).t(), grad_out.sum(0)
+
+
+sparse_input_linear.register_autograd(_sparse_input_backward, setup_context=_save_input)
 
 
 class ObservationLinear(nn.Linear):
@@ -256,9 +324,12 @@ class SparseInputLinear(ObservationLinear):
         store_by_column(self.weight)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        # `nonzero` has no batched form under vmap and would stop torch.compile's graph.
-        if plain_linear_here(x, self.weight):
+        # `nonzero` has no batched form under vmap; a compiled graph calls the product as one operator.
+        if plain_linear_here(x, self.weight, in_graph=True):
             return super().forward(x)
         flat = x.reshape(-1, self.in_features)
-        out = SparseProduct.apply(flat, self.weight, self.bias, nonzero_entries(flat, self.weight.dtype))
+        if torch.compiler.is_compiling():
+            out = sparse_input_linear(flat, self.weight, self.bias)
+        else:
+            out = SparseProduct.apply(flat, self.weight, self.bias, nonzero_entries(flat, self.weight.dtype))
         return out.reshape(*x.shape[:-1], self.out_features)

@@ -25,10 +25,15 @@ def test_a_minibatchs_entries_taken_from_the_batchs_are_those_a_search_finds():
         assert taken.shape == found.shape
         for name in ("rows", "cols", "values", "row_offsets"):
             assert torch.equal(getattr(taken, name), getattr(found, name)), name
-        # x.T, merged from the batch's entries by kitchen, is the CSR matrix a sort of the minibatch's makes.
-        merged, sorted_ = taken.transposed(), found.transposed()
+        # The weight's gradient, summed kitchen by kitchen from the batch's x.T of each, is the searched one's.
+        grad_out = torch.randn(flat.shape[0], 5, generator=generator)
+        torch.testing.assert_close(taken.weight_gradient(grad_out), found.weight_gradient(grad_out))
+        torch.testing.assert_close(found.weight_gradient(grad_out), flat.float().t() @ grad_out)
+    # Each kitchen's x.T is the CSR matrix a sort of that kitchen's entries alone makes.
+    for kitchen, transposed in enumerate(observations.entries._block_transposes(observations.rows_per_kitchen)):
+        alone = NonZeroEntries(batch[kitchen].reshape(-1, 36), torch.float32).transposed()
         for part in ("crow_indices", "col_indices", "values"):
-            assert torch.equal(getattr(merged, part)(), getattr(sorted_, part)()), part
+            assert torch.equal(getattr(transposed, part)(), getattr(alone, part)()), (kitchen, part)
 
 
 def test_the_layer_reading_a_minibatch_uses_the_entries_handed_to_it_and_computes_the_same():

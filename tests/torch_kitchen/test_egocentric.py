@@ -1,6 +1,6 @@
 import pytest
 import torch
-from tiny import infinite_observations
+from tiny import compiled_with_operator, infinite_observations
 
 from jax_env.observation import Channel
 from torch_kitchen import egocentric
@@ -28,7 +28,7 @@ def test_the_sparse_product_equals_the_dense_window_with_gradients(observations,
     out.backward(grad_out)
     grads = layer.weight.grad.clone(), layer.bias.grad.clone()
     layer.zero_grad()
-    monkeypatch.setattr(egocentric, "plain_linear_here", lambda x, weight: True)  # as on a GPU
+    monkeypatch.setattr(egocentric, "plain_linear_here", lambda x, weight, **_: True)  # as on a GPU
     expected = layer(observations)
     expected.backward(grad_out)
     assert out.shape == (32, 2, HIDDEN)
@@ -70,3 +70,27 @@ def test_an_all_zero_observation_gives_the_bias_and_inputs_take_no_gradient(obse
     torch.testing.assert_close(layer(torch.zeros(3, *SHAPE, dtype=torch.uint8)), layer.bias.detach().expand(3, -1))
     with pytest.raises(ValueError, match="no gradient"):
         layer(observations.float().requires_grad_())
+
+
+def test_the_window_product_as_a_graphs_operator_is_registered_whole_and_computes_the_layers(observations):
+    """`sparse_egocentric_linear`, what a compiled graph calls for the layer: torch's checks of its schema, fake
+    tensor and autograd registration pass; compiled, the layer gives its eager output and gradients."""
+    layer = _layer()
+    flat = observations.reshape(-1, 7 * 7 * 26)
+    torch.library.opcheck(egocentric.sparse_egocentric_linear, (flat, layer.weight, layer.bias, list(SHAPE)))
+    grad_out = torch.randn(32, 2, HIDDEN)
+    eager = layer(observations)
+    eager.backward(grad_out)
+    eager_grads = layer.weight.grad.clone(), layer.bias.grad.clone()
+    layer.zero_grad()
+    compiled = compiled_with_operator(layer, observations, "sparse_egocentric_linear", grad_out)
+    torch.testing.assert_close(compiled, eager)
+    torch.testing.assert_close(layer.weight.grad, eager_grads[0])
+    torch.testing.assert_close(layer.bias.grad, eager_grads[1])
+
+
+def test_the_actor_and_critic_reading_one_input_share_its_window_entries(observations):
+    flat = observations.reshape(-1, 7 * 7 * 26)
+    first = egocentric.window_entries(flat, SHAPE, torch.float32)
+    assert egocentric.window_entries(flat, SHAPE, torch.float32) is first
+    assert egocentric.window_entries(flat.clone(), SHAPE, torch.float32) is not first

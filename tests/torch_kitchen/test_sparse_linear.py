@@ -4,7 +4,7 @@ import io
 import pytest
 import torch
 from tensordict import TensorDict
-from tiny import infinite_observations
+from tiny import compiled_with_operator, infinite_observations
 from torch import nn
 
 from torch_kitchen import sparse_linear
@@ -115,7 +115,7 @@ def test_a_shared_mlp_reads_uint8_observations_through_it(observations, monkeypa
     values.sum().backward()
     grads = [p.grad.clone() for p in critic.parameters()]
     # The reference: the first layer as the dense product.
-    monkeypatch.setattr(sparse_linear, "plain_linear_here", lambda x, weight: True)
+    monkeypatch.setattr(sparse_linear, "plain_linear_here", lambda x, weight, **_: True)
     critic.zero_grad()
     expected = _critic_values(critic, observations[:8])
     expected.sum().backward()
@@ -185,3 +185,52 @@ def test_teams_learning_on_threads_keep_their_own_entries(observations):
     assert not errors
     torch.testing.assert_close(results["a"], expected)
     torch.testing.assert_close(results["b"], expected.flip(0))
+
+
+def test_the_sparse_product_as_a_graphs_operator_is_registered_whole_and_equals_a_dense_linear(observations):
+    """`sparse_input_linear`, what a compiled graph calls for the layer: torch's checks of its schema, fake tensor
+    and autograd registration pass, and its output and gradients are a dense linear's to rounding."""
+    x = observations.reshape(128, -1)
+    dense, sparse = _pair(x.shape[1])
+    torch.library.opcheck(sparse_linear.sparse_input_linear, (x, sparse.weight, sparse.bias))
+    out = sparse_linear.sparse_input_linear(x, sparse.weight, sparse.bias)
+    expected = dense(x.float())
+    torch.testing.assert_close(out, expected)
+    grad_out = torch.randn_like(out)
+    out.backward(grad_out)
+    expected.backward(grad_out)
+    torch.testing.assert_close(sparse.weight.grad, dense.weight.grad)
+    torch.testing.assert_close(sparse.bias.grad, dense.bias.grad)
+
+
+def test_a_compiled_graph_calls_the_sparse_product_and_computes_what_the_eager_layer_does(observations):
+    x = observations.reshape(128, -1)
+    _, sparse = _pair(x.shape[1])
+    grad_out = torch.randn(128, HIDDEN)
+    eager = sparse(x)
+    eager.backward(grad_out)
+    eager_grad = sparse.weight.grad.clone()
+    sparse.zero_grad()
+    compiled = compiled_with_operator(sparse, x, "sparse_input_linear", grad_out)
+    torch.testing.assert_close(compiled, eager)
+    torch.testing.assert_close(sparse.weight.grad, eager_grad)
+    # An input that needs its gradient gets it inside a graph too.
+    floats = x[:8].float().requires_grad_()
+    torch.compile(sparse, fullgraph=True)(floats).sum().backward()
+    torch.testing.assert_close(floats.grad, sparse.weight.sum(0).expand(8, -1))
+
+
+@pytest.mark.parametrize("dtype", [torch.uint8, torch.float32, torch.int16])
+def test_the_search_by_words_finds_what_nonzero_finds(observations, dtype, monkeypatch):
+    monkeypatch.setattr(sparse_linear, "WORD_SEARCH_MIN", 0)
+    flat = observations.reshape(-1).to(dtype)
+    if dtype.is_floating_point:
+        flat[::7] = -0.0  # zero, though its bits are not
+    for tensor in (flat, flat[:-3], flat[::2]):  # a whole number of words, not, and not contiguous
+        assert torch.equal(sparse_linear.flat_nonzero(tensor), tensor.nonzero().squeeze(1))
+
+
+def test_the_stable_order_of_narrowed_keys_is_argsorts():
+    keys = torch.randint(0, 40_000, (5_000,), generator=torch.Generator().manual_seed(0))
+    for bound in (40_000, 1 << 20, 1 << 40):
+        assert torch.equal(sparse_linear.stable_order(keys, bound), torch.argsort(keys, stable=True))

@@ -20,7 +20,7 @@ EXTRA_STEPS = (LONG - SHORT) * UPDATES
 # Per step, on the CPU. The sparse first layer (sparse_linear.py) is the CPU's kernel (`accelerate_cpu`) and the
 # actions go to JAX as NumPy there (`KitchenEnv._actions_to_jax`); on a GPU neither runs. Episode ends (16-step episodes
 # here) are read once per step by the kitchen collector, and by the kitchens when some end.
-CPU_KERNEL = {"nonzero at torch_kitchen/sparse_linear.py:NonZeroEntries.__init__": 1.0}
+CPU_KERNEL = {"nonzero at torch_kitchen/sparse_linear.py:flat_nonzero": 1.0}
 CPU_KERNEL_MADE = {"zeros at torch_kitchen/sparse_linear.py:_row_offsets": 1.0}
 ACTIONS_TO_JAX = {"numpy at torch_kitchen/env.py:KitchenEnv._actions_to_jax": 1.0}
 EPISODE_ENDS = {"__bool__ at torch_kitchen/env.py:KitchenEnv._reset": 1 / 16}
@@ -41,7 +41,7 @@ LOOPS = {
     # E3T's partner model has a sparse first layer of its own, and its partner draws are made on the CPU (their own
     # generator) at episode starts.
     "e3t": ("configs/e3t/mlp_ik.yaml", [],
-            {"nonzero at torch_kitchen/sparse_linear.py:NonZeroEntries.__init__": 2.0, **ACTIONS_TO_JAX,
+            {"nonzero at torch_kitchen/sparse_linear.py:flat_nonzero": 2.0, **ACTIONS_TO_JAX,
              **EPISODE_ENDS, "__bool__ at torch_kitchen/partner.py:PartnerSeats._reset": 1 / 16,
              "__bool__ at torch_kitchen/rollout.py:transformed_rollout_into": 0.25},
             {"zeros at torch_kitchen/sparse_linear.py:_row_offsets": 2.0,

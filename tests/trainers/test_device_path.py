@@ -1,6 +1,8 @@
 """The trainer's device path, checked on a CPU: what a GPU would run compiles whole, recompiles nothing across
 updates, and makes the host wait for nothing inside a collection step or a minibatch."""
 
+import contextlib
+
 import pytest
 import torch
 import torch._dynamo
@@ -11,6 +13,7 @@ from torch._dynamo.utils import counters
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import set_recurrent_mode
 
+from torch_kitchen import sparse_linear
 from torch_kitchen.keys import OBSERVATION
 from torch_kitchen.onednn_linear import device_path
 from trainers.ppo import train
@@ -43,15 +46,24 @@ def test_the_rollouts_acting_pass_on_plain_tensors_compiles_without_a_graph_brea
     assert acting.graph_count == 1 and acting.graph_break_count == 0, reasons
 
 
-def test_a_compiled_minibatch_step_is_the_eager_one_to_float_rounding(tmp_path):
+@pytest.mark.parametrize("kernels", ["device_path", "cpu"])
+def test_a_compiled_minibatch_step_is_the_eager_one_to_float_rounding(tmp_path, kernels, monkeypatch):
+    """On the device path (torch's own products, as a GPU runs them), and with the CPU's kernels, whose sparse first
+    layer a compiled graph calls as one operator (`sparse_input_linear`)."""
+    products = device_path() if kernels == "device_path" else contextlib.nullcontext()
     eager, minibatch = team_and_minibatch(tiny_config(tmp_path / "eager"), tmp_path / "eager")
     compiled_config = tiny_config(tmp_path / "compiled", "runtime.compile_update=true")
     compiled, _ = team_and_minibatch(compiled_config, tmp_path / "compiled")
     for mine, theirs in zip(compiled.parameters, eager.parameters):
         assert torch.equal(mine, theirs)  # the same seed builds the same weights
-    with device_path(), set_recurrent_mode(True), set_exploration_type(ExplorationType.RANDOM):
+    with products, set_recurrent_mode(True), set_exploration_type(ExplorationType.RANDOM):
         eager_losses = Learner(eager.config, [eager]).step(minibatch.clone())
+        searched = []
+        monkeypatch.setattr(sparse_linear, "nonzero_entries", lambda *args: searched.append(args[0].shape) or
+                            sparse_linear.NonZeroEntries(*args))
         compiled_losses = Learner(compiled_config, [compiled]).step(minibatch.clone())
+    # The actor's and the critic's first layers, forward and backward; none on the device path.
+    assert len(searched) == (0 if kernels == "device_path" else 4), searched
     for key in ("loss_objective", "loss_critic", "loss_entropy", "grad_norm"):
         torch.testing.assert_close(compiled_losses[key], eager_losses[key], rtol=1e-5, atol=1e-6, msg=key)
     moved = 0

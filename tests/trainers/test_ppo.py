@@ -24,6 +24,8 @@ import trainers.rollout
 import trainers.training_team
 from jax_env import CLASSIC_LAYOUTS, EXPANDED_LAYOUTS
 from jax_env.generator import GeneratorConfig
+from torch_kitchen.cpu_kernels import BatchObservations
+from torch_kitchen.keys import OBSERVATION
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
 from trainers.advantages import compute_advantages
@@ -499,7 +501,11 @@ def test_a_learners_minibatches_carry_only_what_the_losses_read_and_step_as_the_
     initial = [parameter.detach().clone() for parameter in team.parameters]
     with set_recurrent_mode(True):
         lean = Learner(config, [team]).step(minibatch)
-        whole = Learner(config, [twin]).step(trainers.rollout.select_kitchens(batch, kitchens))
+        whole_minibatch = trainers.rollout.select_kitchens(batch, kitchens)
+        # Its first layers take their entries from the batch's, as the learner's minibatches do (the weight's
+        # gradient then sums kitchen by kitchen in both).
+        BatchObservations(batch.get(OBSERVATION)).hand_to(whole_minibatch.get(OBSERVATION), kitchens)
+        whole = Learner(config, [twin]).step(whole_minibatch)
     assert all(torch.equal(lean[key], whole[key]) for key in whole)
     assert all(torch.equal(ours, theirs) for ours, theirs in zip(team.parameters, twin.parameters))
     assert not all(torch.equal(now, before) for now, before in zip(team.parameters, initial))
