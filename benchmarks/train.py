@@ -8,7 +8,7 @@ ends), reporting steps and wall time. Reference: our trainer and the pure-JAX PP
 yardstick: the whole run compiled as one XLA program) on the same kitchens, network and batch, in one run, and
 the ratio of their steps/s.
 
-    python benchmarks/train.py throughput [--archs mlp gnn] [--envs 32 1024] [--device cpu|cuda]
+    python benchmarks/train.py throughput [--archs mlp gnn] [--envs 32 1024] [--device cpu|cuda] [key=value ...]
     python benchmarks/train.py e3t [--encoders mlp gnn] [--envs 32] [--device cpu|cuda]
     python benchmarks/train.py learning [--target 5] [--budget 2e7] [--threads 2] [key=value ...]
     python benchmarks/train.py reference [--setting jaxmarl|ik|protocol|protocol_gnn|protocol_sk] [--updates 3]
@@ -225,6 +225,7 @@ def main(argv=None):
     speed.add_argument("--frames", type=int, default=65_536, help="env steps per update at large batches")
     speed.add_argument("--device", default="cpu")
     speed.add_argument("--threads", type=int, default=1, help=THREADS_HELP)
+    speed.add_argument("overrides", nargs="*", help="config overrides, key=value (e.g. runtime.compile_update=true)")
     e3t = sub.add_parser("e3t")
     e3t.add_argument("--encoders", nargs="+", default=["mlp", "gnn"])
     e3t.add_argument("--envs", nargs="+", type=int, default=[32])
@@ -296,7 +297,8 @@ def main(argv=None):
         for num_envs in args.envs:
             # The paper's 256-step rollouts at 32 envs; shorter ones keep large batches within memory and time.
             rollout_steps = 256 if num_envs * 256 <= args.frames else max(16, args.frames // num_envs)
-            sps = throughput(architecture, num_envs, rollout_steps, args.updates, args.device, args.threads)
+            sps = throughput(architecture, num_envs, rollout_steps, args.updates, args.device, args.threads,
+                             overrides=args.overrides)
             print(f"{architecture:>12s} {num_envs:6d} {rollout_steps:8d} {sps:10,.0f}", flush=True)
 
 

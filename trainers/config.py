@@ -102,7 +102,9 @@ class RuntimeConfig(DeviceConfig):
     )
     compile_update: bool = option(
         False, "torch.compile each PPO minibatch step (loss, backward, clipping, Adam with the learning rate a tensor) "
-               "as one function; on a GPU its graphs replay as CUDA graphs; equal to eager up to float rounding"
+               "as one function; on a GPU its graphs replay as CUDA graphs, on a CPU the sparse first layers stay "
+               "sparse inside them (at hidden 64 a quarter off an update, after a one-off compilation of 8-25 s); "
+               "equal to eager up to float rounding"
     )
 
 
