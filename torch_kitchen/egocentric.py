@@ -108,7 +108,7 @@ def window_entries(flat: torch.Tensor, obs_shape: tuple[int, int, int], dtype: t
 
     def moved() -> NonZeroEntries:
         height, width, channels = obs_shape
-        agent_cell = flat.view(-1, height * width, channels)[..., Channel.SELF].argmax(-1)  # all-zero row: cell 0
+        agent_cell = flat.reshape(-1, height * width, channels)[..., Channel.SELF].argmax(-1)  # all-zero row: cell 0
         columns = window_columns(tuple(obs_shape), flat.device)
         cols = columns.reshape(-1).take(agent_cell[entries.rows] * flat.shape[1] + entries.cols)
         return entries.moved(cols, torch.Size(window_shape(obs_shape)).numel())

@@ -104,7 +104,8 @@ class NonZeroEntries:
     def weight_gradient(self, grad_out: torch.Tensor) -> torch.Tensor:
         """x.T @ grad_out [in, out]: a linear layer's weight gradient (transposed) from x's entries. For the input
         of `of_blocks`, the sum of its blocks' own products, each block's x.T made once for the PPO epochs
-        (`_block_transposes`): a minibatch then needs no x.T of its own (4x the time of its two products)."""
+        (`_block_transposes`): a minibatch then needs no x.T of its own, which took longer than both its
+        products."""
         if self._of_blocks is None:
             return torch.sparse.mm(self.transposed(), grad_out)
         whole, blocks, block_rows = self._of_blocks
