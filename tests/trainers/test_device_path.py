@@ -74,12 +74,15 @@ def test_a_compiled_minibatch_step_is_the_eager_one_to_float_rounding(tmp_path, 
     assert moved == len(eager.parameters)  # both took a step
 
 
-def test_compiled_training_recompiles_nothing_as_the_learning_rate_and_shaping_anneal(tmp_path):
+@pytest.mark.parametrize("share_params", ["false", "true"])
+def test_compiled_training_recompiles_nothing_as_the_learning_rate_and_shaping_anneal(tmp_path, share_params):
     """Graph breaks only where torch itself puts them (around the optimizer's step): the loss and its gradient are
     one graph; the annealed learning rate is a tensor and the shaping weight acts outside the step, so no update
-    after the first compiles. With one network per agent (the SK configs'), which TorchRL runs under vmap."""
+    after the first compiles. With one network per agent (the SK configs'), which TorchRL runs under vmap, and with
+    shared networks, whose sparse first layers are operators of the graph: their inputs' entries, as many as the
+    minibatch has, stay outside it."""
     config = tiny_config(tmp_path, "runtime.compile_update=true", "anneal_lr=true", "shaping_weight=1",
-                         "shaping_anneal_steps=200", "share_params=false", updates=4)
+                         "shaping_anneal_steps=200", f"share_params={share_params}", updates=4)
     torch._dynamo.reset()
     counters.clear()
     graphs, rates = [], []
