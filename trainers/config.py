@@ -19,6 +19,7 @@ import difflib
 import functools
 import math
 import random
+import shutil
 import types
 import typing
 from dataclasses import dataclass
@@ -381,6 +382,9 @@ class TrainConfig:
         if runtime.collector not in COLLECTORS:
             raise ConfigError(f"runtime.collector={runtime.collector!r}: choose one of {', '.join(COLLECTORS)}")
         check_device(runtime.device, "runtime.device")
+        for key in ("compile_update", "compile_policy"):
+            if getattr(runtime, key) and not runtime.on_gpu:
+                check_cpp_compiler(f"runtime.{key}")
 
     def check_run_location(self) -> None:
         """Refuses a run directory that cannot be made because a file stands where a folder must be. It looks at
@@ -508,6 +512,17 @@ class EvalConfig:
                     )
         check_device(self.runtime.device, "runtime.device")
         return self
+
+
+def check_cpp_compiler(key: str) -> None:
+    """Refuses `key`=true where torch.compile would find no C++ compiler for its CPU kernels (Inductor's
+    `cpp.cxx`), which it would only say at the first compiled call, deep inside a run."""
+    import torch._inductor.config  # only where a run compiles (a second's import)
+
+    names = [name for name in torch._inductor.config.cpp.cxx if name]
+    if not any(shutil.which(name) for name in names):
+        raise ConfigError(f"{key}=true compiles CPU kernels with a C++ compiler, and none of {', '.join(names)} is "
+                          f"on the PATH: install one (e.g. g++, or name it in CXX) or set {key}=false")
 
 
 def check_device(device: str, key: str = "device") -> None:

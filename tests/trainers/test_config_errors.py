@@ -180,6 +180,19 @@ def test_bad_eval_overrides_are_refused(override, message):
         load_config(None, [override], schema=EvalConfig)
 
 
+def test_compiling_on_a_cpu_is_refused_where_no_cpp_compiler_is_on_the_path(monkeypatch):
+    import trainers.config
+
+    for key in ("compile_update", "compile_policy"):
+        load_config(None, [f"runtime.{key}=true"])  # this machine has one
+    monkeypatch.setattr(trainers.config.shutil, "which", lambda name: None)
+    for key in ("compile_update", "compile_policy"):
+        with pytest.raises(ConfigError, match=rf"^runtime\.{key}=true compiles CPU kernels with a C\+\+ compiler, "
+                                              rf"and none of .+ is on the PATH: .* or set runtime\.{key}=false$"):
+            load_config(None, [f"runtime.{key}=true"])
+    load_config(None, [])  # eager runs need none
+
+
 def test_cuda_is_refused_where_this_machine_has_no_such_gpu(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     for device in ("cuda", "cuda:0"):
