@@ -118,27 +118,23 @@ class NonZeroEntries:
         return gradient
 
     def _block_transposes(self, block_rows: int) -> list[torch.Tensor]:
-        """x.T of each block of `block_rows` rows of this input, as CSR matrices [in, block_rows] (one sort of the
-        entries by block, then column, for the PPO epochs)."""
+        """x.T of each block of `block_rows` rows of this input, as CSR matrices [in, block_rows]: the entries
+        sorted by block, then column, then row, once for the PPO epochs, and cut into blocks."""
         if self._blocks is None or self._blocks[0] != block_rows:
-            self._blocks = (block_rows, _block_transposes(self, block_rows))
+            in_features, num_blocks = self.shape[1], self.shape[0] // block_rows
+            blocks = torch.div(self.rows, block_rows, rounding_mode="floor")
+            key = blocks * in_features + self.cols
+            order = stable_order(key, num_blocks * in_features)
+            rows, values = _gathered(order, self.rows - blocks * block_rows, self.values)
+            col_counts = torch.bincount(key, minlength=num_blocks * in_features).reshape(num_blocks, in_features)
+            col_offsets = torch.zeros(num_blocks, in_features + 1, dtype=torch.int64)
+            torch.cumsum(col_counts, 1, out=col_offsets[:, 1:])
+            starts = self.row_offsets[torch.arange(num_blocks + 1) * block_rows].tolist()
+            transposes = [torch.sparse_csr_tensor(col_offsets[block], rows[start:end], values[start:end],
+                                                  (in_features, block_rows), check_invariants=False)
+                          for block, (start, end) in enumerate(zip(starts[:-1], starts[1:]))]
+            self._blocks = (block_rows, transposes)
         return self._blocks[1]
-
-
-def _block_transposes(entries: NonZeroEntries, block_rows: int) -> list[torch.Tensor]:
-    """`NonZeroEntries._block_transposes`: the entries sorted by block, then column, then row, cut into blocks."""
-    in_features, num_blocks = entries.shape[1], entries.shape[0] // block_rows
-    blocks = torch.div(entries.rows, block_rows, rounding_mode="floor")
-    key = blocks * in_features + entries.cols
-    order = stable_order(key, num_blocks * in_features)
-    rows, values = _gathered(order, entries.rows - blocks * block_rows, entries.values)
-    col_counts = torch.bincount(key, minlength=num_blocks * in_features).reshape(num_blocks, in_features)
-    col_offsets = torch.zeros(num_blocks, in_features + 1, dtype=torch.int64)
-    torch.cumsum(col_counts, 1, out=col_offsets[:, 1:])
-    starts = entries.row_offsets[torch.arange(num_blocks + 1) * block_rows].tolist()
-    return [torch.sparse_csr_tensor(col_offsets[block], rows[start:end], values[start:end],
-                                    (in_features, block_rows), check_invariants=False)
-            for block, (start, end) in enumerate(zip(starts[:-1], starts[1:]))]
 
 
 def flat_nonzero(flat: torch.Tensor) -> torch.Tensor:
