@@ -2,18 +2,23 @@
 # Every GPU check and benchmark in one call, on a machine with CUDA torch and JAX. Without a package index,
 # TorchRL's wheels come from .whl/ (`make gpu-offline`).
 #
-# The main job (`make main DEVICE=cuda` less its set-up: the user's first command) starts in the background at once,
-# with its own wall time; the rows run meanwhile, each once, in order of what they tell: the paper's protocol with
-# the default collector first, ours against the pure-JAX yardstick in the same run. A row is skipped (saying so)
-# once less than its timeout is left of BUDGET_S seconds (default 540: one call of a 10-minute limit, with set-up).
-# Each run writes a fresh record, benchmarks/results/gpu/<date>_<device>.json and .md (benchmarks/gpu_record.py):
-# per row the command, ours, the yardstick, the ratio and PASS/FAIL against the goals; raw outputs beside it.
+# The rows run one at a time, alone on the machine, in order of what they tell: the paper's protocol with the default
+# collector first, ours against the pure-JAX yardstick in the same run; the main job (`make main DEVICE=cuda` less its
+# set-up: the user's first command) last, with what is left. A row is skipped (saying so) once less than its timeout
+# is left of BUDGET_S seconds (default 540: one call of a 10-minute limit, with set-up), counted from the script's
+# start, less RESERVE_S (default 20) kept for the record. Every row goes into the record with its status (finished,
+# failed, timed out, skipped) and the tail of its output: benchmarks/gpu_record.py writes
+# $RESULTS/<date>_<device>.json and .md (RESULTS defaults to benchmarks/results/gpu; on a lent machine, the folder
+# that comes back), per row the command, ours, the yardstick, the ratio and PASS/FAIL against the goals, and the raw
+# outputs in a folder beside them.
 #
 # DEVICE=cpu SIZE=tiny: a dry run of every path in seconds (the suite runs it, so the script cannot rot between
 # lendings). ONLY=<regex> runs the rows whose name matches it (e.g. ONLY=main for the main job alone).
+# EXTRA_ROW="NAME TIMEOUT COMMAND..." adds a row of your own after the others, before the main job.
 set -uo pipefail
 device=${DEVICE:-cuda}
 budget=${BUDGET_S:-540}
+reserve=${RESERVE_S:-20}
 results=${RESULTS:-benchmarks/results/gpu}
 raw=$(mktemp -d)
 records=$raw/records.jsonl
@@ -23,6 +28,10 @@ if [[ ${SIZE:-full} == tiny ]]; then
         distill_epochs=1 eval_episodes=0 runtime.threads=1"
 else
     protocol=protocol jaxmarl=jaxmarl ik=ik updates=3 repeats=3 envs=192 steps=300 main_args=""
+fi
+# Where the machine has python3 alone, `python` (every row's command) is python3.
+if ! command -v python >/dev/null; then
+    mkdir -p "$raw/bin" && ln -s "$(command -v python3)" "$raw/bin/python" && export PATH=$raw/bin:$PATH
 fi
 if ! python -c "import torchrl" 2>/dev/null; then
     python -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl
@@ -40,32 +49,24 @@ fi
   python -c "import torch, jax; print('torch', torch.__version__, torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no CUDA', '| jax', jax.__version__, jax.devices())"
 } 2>&1 | tee "$raw/device.txt"
 
-# row NAME TIMEOUT COMMAND...: runs COMMAND with TIMEOUT seconds, its output (warnings dropped) into NAME.txt.
+# row NAME TIMEOUT COMMAND...: runs COMMAND with TIMEOUT seconds, its output into NAME.txt (shown less warnings), and
+# its status into the record; its figures, where it has any, it writes itself (`--record`).
 row() {
-    local name=$1 limit=$2
+    local name=$1 limit=$2 started=$SECONDS status
     shift 2
     [[ -n ${ONLY:-} && ! $name =~ $ONLY ]] && return
-    if (( budget - SECONDS < limit )); then
-        echo "== $name skipped (${limit} s needed, $(( budget - SECONDS )) s left)"
-        printf '{"row": "%s", "command": "%s", "skipped": true}\n' "$name" "$*" >> "$records"
+    if (( limit <= 0 || budget - reserve - SECONDS < limit )); then
+        echo "== $name skipped (${limit} s needed, $(( budget - reserve - SECONDS )) s left)"
+        python benchmarks/gpu_record.py status "$records" "$name" skipped 0 "$*"
         return
     fi
     echo "== $name: $*"
-    GPU_CHECK_ROW=$name timeout "$limit" "$@" 2>&1 | grep -v Warning | tee "$raw/$name.txt"
+    GPU_CHECK_ROW=$name timeout "$limit" "$@" > "$raw/$name.txt" 2>&1
+    status=$?
+    grep -v Warning "$raw/$name.txt"
+    python benchmarks/gpu_record.py status "$records" "$name" "$status" $(( SECONDS - started )) "$*" \
+        --output "$raw/$name.txt"
 }
-
-# The main job, from the start, in the background: its wall time is the user's.
-if [[ -z ${ONLY:-} || main =~ $ONLY ]]; then
-    (
-        started=$SECONDS
-        timeout "$budget" python -m trainers.train_command configs/main.yaml runtime.device="$device" \
-            run_dir="$raw/main" progress=false $main_args > "$raw/main.txt" 2>&1
-        status=$?
-        printf '{"row": "main", "command": "kitchen-train configs/main.yaml runtime.device=%s %s", "seconds": %d, "status": %d}\n' \
-            "$device" "$(echo $main_args)" $((SECONDS - started)) $status >> "$records"
-    ) &
-    main_job=$!
-fi
 
 reference="python benchmarks/train.py reference --device $device --threads 1 --updates $updates --repeats $repeats --record $records"
 # The headline: the paper's protocol (c) with the default collector (the teams act inside the kitchens' XLA
@@ -90,7 +91,7 @@ row jaxmarl_update_compiled 150 $reference --setting $jaxmarl --update-compiled 
 # The SK configs' networks, one per agent (inside XLA too), against the yardstick's per-agent networks.
 [[ $protocol == protocol ]] && row protocol_sk 150 $reference --setting protocol_sk
 # The syncs torch reports in two updates (its warnings are the output: kept whole).
-if [[ -z ${ONLY:-} || sync_audit =~ $ONLY ]] && (( budget - SECONDS >= 90 )) && [[ $device == cuda ]]; then
+if [[ -z ${ONLY:-} || sync_audit =~ $ONLY ]] && (( budget - reserve - SECONDS >= 90 )) && [[ $device == cuda ]]; then
     timeout 90 python -c "
 import sys, warnings, torch
 warnings.simplefilter('always')
@@ -103,5 +104,8 @@ train.main()
     echo "torch sync warnings in 2 updates at 32 x 256: $(grep -c synchronizing "$raw/sync_audit.txt")"
 fi
 
-[[ -n ${main_job:-} ]] && wait "$main_job"
-python benchmarks/gpu_record.py "$records" "$raw" --out "$results"
+[[ -n ${EXTRA_ROW:-} ]] && row $EXTRA_ROW
+# The main job last, alone, with what is left of the budget: its wall time is the user's.
+row main $(( budget - reserve - SECONDS )) python -m trainers.train_command configs/main.yaml runtime.device="$device" \
+    run_dir="$raw/main" progress=false $main_args
+python benchmarks/gpu_record.py write "$records" "$raw" --out "$results"

@@ -28,6 +28,7 @@ collect with `KitchenCollector` (`trainers.rollout.make_collector` picks).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
@@ -289,6 +290,11 @@ def xla_chains(env: EnvBase, policy) -> tuple[Chain, Chain] | None:
 
 _PROGRAMS = ProgramCache(kept=8)
 
+# On a GPU, XLA's command buffers (its CUDA graphs of a program's kernels) fail to update this program's
+# device-to-device copies between calls (CUDA_ERROR_INVALID_VALUE, jax 0.11.2 on an H200), so the rollout is compiled
+# without them: the host launches it once per batch either way. No effect on a CPU.
+COMPILER_OPTIONS = {"xla_gpu_enable_command_buffer": ""}
+
 
 def rollout_program(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> Callable:
     """The jitted rollout of `steps` steps of every kitchen of `env` with the teams acting by `chains` (built once
@@ -343,7 +349,7 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> 
         record = (carrier, acted, next_network_states, tuple(stepped))
         return (next_states, next_deliveries, env_key, act_keys, (next_observed, next_memory)), record
 
-    @jax.jit
+    @functools.partial(jax.jit, compiler_options=COMPILER_OPTIONS)
     def rollout(weights, kitchens, act_keys, carrier):
         start_states, states, deliveries, env_key = kitchens
         carry = (states, deliveries, env_key, act_keys, carrier)

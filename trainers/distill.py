@@ -200,7 +200,8 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
     identity = model_identity(config.architecture, obs_shape, config.hidden, config.share_params)
     parts = {"actor": actor_critic.actor, "critic": actor_critic.critic, "optimizer": optimizer,
              "env": TeamKitchens(kitchen, 0)}
-    policy = GuidedPolicy(actor_critic.acting_policy(), ScriptedCook(config.distill_teacher(0)))
+    teacher = ScriptedCook(config.distill_teacher(0)).to(config.runtime.device)
+    policy = GuidedPolicy(actor_critic.acting_policy(), teacher)
 
     done_rounds, env_steps, rng = 0, 0, None
     if resume:

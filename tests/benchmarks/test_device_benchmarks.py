@@ -60,23 +60,30 @@ def test_device_busy_time_counts_overlapping_kernels_once_and_annotations_not_at
 
 
 @pytest.mark.slow
-def test_the_gpu_checks_dry_run_times_the_default_collector_and_the_main_job_and_writes_a_record(tmp_path):
-    """`DEVICE=cpu SIZE=tiny benchmarks/gpu_checks.sh`, its headline row, a benchmark and the main job: the script
-    runs as it will on a GPU, and its record holds what each row measured, with the verdicts."""
+def test_the_gpu_checks_dry_run_times_the_default_collector_and_the_main_job_and_records_every_row(tmp_path):
+    """`DEVICE=cpu SIZE=tiny benchmarks/gpu_checks.sh`, its headline row, a benchmark, a row that crashes and the main
+    job: the script runs as it will on a GPU, and its record holds every row it started, with its status and what it
+    measured, the crashed one as failed with the end of its output."""
     root = Path(__file__).resolve().parents[2]
     environment = {**os.environ, "DEVICE": "cpu", "SIZE": "tiny", "RESULTS": str(tmp_path),
-                   "ONLY": "protocol_default|collection|main",
+                   "ONLY": "protocol_default|collection|crash|main",
+                   "EXTRA_ROW": "crash 60 python -c raise(SystemExit('the_row_crashed'))",
                    "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}"}
     done = subprocess.run(["bash", "benchmarks/gpu_checks.sh"], cwd=root, env=environment, capture_output=True,
                           text=True, timeout=900)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     (record,) = tmp_path.glob("*.json")
     rows = {row["row"]: row for row in json.loads(record.read_text())["rows"]}
-    assert set(rows) == {"protocol_default", "main"}
+    assert list(rows) == ["protocol_default", "collection", "crash", "main"]  # in order, the main job last
     headline = rows["protocol_default"]
     assert headline["collector"] == TrainConfig().runtime.collector  # the default collector, timed first
     assert headline["ours"] > 0 and headline["ratio"] == pytest.approx(headline["ours"] / headline["reference"])
-    assert headline["verdict"] in ("PASS", "FAIL") and rows["main"]["status"] == 0 and rows["main"]["seconds"] > 0
-    assert "| protocol_default |" in record.with_suffix(".md").read_text()
+    assert headline["verdict"] in ("PASS", "FAIL") and headline["status"] == "finished"
+    assert rows["main"]["status"] == "finished" and rows["main"]["seconds"] > 0
+    crashed = rows["crash"]
+    assert (crashed["status"], crashed["exit"], crashed["verdict"]) == ("failed", 1, "failed")
+    assert "the_row_crashed" in crashed["tail"]
+    markdown = record.with_suffix(".md").read_text()
+    assert "| protocol_default | finished |" in markdown and "## crash: failed" in markdown
     assert "xla rollout step" in (record.with_suffix("") / "collection.txt").read_text()  # its raw output kept
     assert not (root / "benchmarks" / "results" / "gpu" / record.name).exists()  # the dry run's record stays out
