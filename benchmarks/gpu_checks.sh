@@ -83,6 +83,8 @@ row collection 90 python benchmarks/collection.py --setting ik --envs $envs --st
 # The same for the main job's team (the agent-centred MLP at hidden 128), whose default collector is the XLA one too.
 row ego_rollout 90 python benchmarks/collection.py --setting ik --envs $envs --steps $steps --device "$device" \
     architecture=ego_mlp hidden=128
+# How the XLA rollout takes its inputs from torch: copied (the default), without command buffers, shared.
+row xla_inputs 120 python benchmarks/xla_rollout_inputs.py --envs $envs --device "$device"
 # The other settings: one team at the paper's shape (b), JaxMARL's (a).
 row ik_default 150 $reference --setting $ik
 row jaxmarl_default 150 $reference --setting $jaxmarl

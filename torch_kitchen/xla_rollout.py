@@ -28,7 +28,6 @@ collect with `KitchenCollector` (`trainers.rollout.make_collector` picks).
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
@@ -290,11 +289,6 @@ def xla_chains(env: EnvBase, policy) -> tuple[Chain, Chain] | None:
 
 _PROGRAMS = ProgramCache(kept=8)
 
-# On a GPU, XLA's command buffers (its CUDA graphs of a program's kernels) fail to update this program's
-# device-to-device copies between calls (CUDA_ERROR_INVALID_VALUE, jax 0.11.2 on an H200), so the rollout is compiled
-# without them: the host launches it once per batch either way. No effect on a CPU.
-COMPILER_OPTIONS = {"xla_gpu_enable_command_buffer": ""}
-
 
 def rollout_program(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> Callable:
     """The jitted rollout of `steps` steps of every kitchen of `env` with the teams acting by `chains` (built once
@@ -349,7 +343,7 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> 
         record = (carrier, acted, next_network_states, tuple(stepped))
         return (next_states, next_deliveries, env_key, act_keys, (next_observed, next_memory)), record
 
-    @functools.partial(jax.jit, compiler_options=COMPILER_OPTIONS)
+    @jax.jit
     def rollout(weights, kitchens, act_keys, carrier):
         start_states, states, deliveries, env_key = kitchens
         carry = (states, deliveries, env_key, act_keys, carrier)
@@ -390,7 +384,11 @@ class XlaCollector(InPlaceCollector):
         self._carrier = self._carrier_of(first)
 
     def _to_jax(self, tensor: torch.Tensor) -> jax.Array:
-        return jax.device_put(jax.dlpack.from_dlpack(tensor.detach().contiguous()), self.kitchen_env.jax_device)
+        """A copy in XLA's own memory: on a GPU, the program's command buffers (XLA's CUDA graphs) fail to update
+        their copies from torch's memory at the next call (CUDA_ERROR_INVALID_VALUE, jax 0.11.2 on an H200), and the
+        program runs 1.55x faster with them than compiled without them (BENCHMARKS.md, "A fourth lending")."""
+        shared = jax.device_put(jax.dlpack.from_dlpack(tensor.detach().contiguous()), self.kitchen_env.jax_device)
+        return jnp.array(shared, copy=True)
 
     def _carrier_of(self, tensordict: TensorDictBase) -> tuple:
         """The env's reset output as the program carries it: ((observation, scalars [B, 6], done), (is_init, policy

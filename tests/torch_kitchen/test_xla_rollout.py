@@ -167,3 +167,16 @@ def test_the_xla_collector_refuses_a_recurrent_team_without_its_transforms_or_wi
     more = TransformedEnv(env.base_env, Compose(*transforms, InitTracker(init_key="started")))
     with pytest.raises(ValueError, match="KitchenCollector"):
         XlaCollector(more, policy, frames)
+
+
+def test_the_program_reads_copies_in_xla_memory_not_the_teams_tensors(tmp_path):
+    """On a GPU, the program's command buffers fail at its next call on inputs in torch's memory (BENCHMARKS.md,
+    "A fourth lending"): what it reads from torch is copied into XLA's own buffers, so a tensor written after the
+    hand-over leaves the program's input as it was."""
+    env, policy, config = env_and_policy(tmp_path, ["architecture=mlp"])
+    collector = XlaCollector(env, policy, env.batch_size.numel() * config.rollout_steps, -1)
+    tensor = torch.arange(6.0)
+    handed = collector._to_jax(tensor)
+    assert handed.unsafe_buffer_pointer() != tensor.data_ptr()
+    tensor += 1
+    assert handed.tolist() == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
