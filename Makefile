@@ -37,6 +37,10 @@ main: setup
 		$(BIN)/kitchen-train configs/main.yaml runtime.device=$(DEVICE); \
 	fi
 
+# The bit-for-bit tests run a second time with every library held to AVX2 kernels (torch's own, oneDNN's, MKL's and
+# XLA's), so that a machine with AVX-512 checks what one without computes (docs/training.md, "Bit for bit").
+AVX2 := ATEN_CPU_CAPABILITY=avx2 ONEDNN_MAX_CPU_ISA=AVX2 MKL_ENABLE_INSTRUCTIONS=AVX2 \
+	XLA_FLAGS="--xla_cpu_max_isa=AVX2 --xla_backend_optimization_level=0"
 # The browser test of kitchen-play drives Debian's Chromium: installed here where apt can, skipped (saying so) elsewhere.
 # The suite runs on TEST_WORKERS processes (pytest-xdist), each test file on one of them, torch on one thread each.
 TEST_WORKERS ?= 2
@@ -45,6 +49,7 @@ test: setup
 		(apt-get install -y -q chromium || (apt-get update -q && apt-get install -y -q chromium)) >/dev/null 2>&1 || \
 		echo "no Chromium could be installed: the browser test will be skipped"
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=10
+	$(AVX2) $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m bitwise
 
 # tests/durations.json, the order in which make test hands its files to the workers: each file's seconds in a full run.
 test-durations: setup

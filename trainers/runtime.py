@@ -182,14 +182,30 @@ class Learner:
             yield minibatches[0] if len(minibatches) == 1 else torch.stack(minibatches)
 
 
-class ShardPool(ThreadPoolExecutor):
+def with_torch_threads(threads: int) -> None:
+    """A pool thread's start: torch's thread count (`runtime.threads`) set in it too. A new thread starts with
+    OpenMP's default of one thread per core whatever `torch.set_num_threads` said in the main thread, and oneDNN's
+    products, run on those threads, split a long sum between them on AVX2 processors: another order of summation
+    than the same product on the main thread (docs/training.md, "Bit for bit")."""
+    torch.set_num_threads(threads)
+
+
+class TeamPool(ThreadPoolExecutor):
+    """Threads on which the teams learn at once, each with `threads` torch threads (`with_torch_threads`)."""
+
+    def __init__(self, workers: int, threads: int, thread_name_prefix: str = "team"):
+        super().__init__(workers, thread_name_prefix=thread_name_prefix, initializer=with_torch_threads,
+                         initargs=(threads,))
+
+
+class ShardPool(TeamPool):
     """The threads of a team's minibatch shards, whose `map` runs them at once or one after the other, whichever
     took less time over the last minibatches: the numbers are the same either way, but beside another busy
     process, a thread descheduled mid-minibatch holds up the step. Every `explore_every` maps it times the other
     way again, so it comes back when the machine is quiet."""
 
-    def __init__(self, workers: int, explore_every: int = 32):
-        super().__init__(workers, thread_name_prefix="shard")
+    def __init__(self, workers: int, threads: int, explore_every: int = 32):
+        super().__init__(workers, threads, thread_name_prefix="shard")
         self.explore_every, self.maps = explore_every, 0
         self.seconds = {True: None, False: None}  # at once?: a moving average of a map's seconds
 
@@ -219,7 +235,8 @@ def learning_pool(config: TrainConfig, num_teams: int) -> ThreadPoolExecutor | N
     workers = min(workers, num_teams if num_teams > 1 else minibatch_shards(config))
     if workers < 2:
         return None
-    return ThreadPoolExecutor(workers, thread_name_prefix="team") if num_teams > 1 else ShardPool(workers)
+    threads = config.runtime.threads
+    return TeamPool(workers, threads) if num_teams > 1 else ShardPool(workers, threads)
 
 
 class UpdateRunner:

@@ -36,6 +36,7 @@ def torchrl_collector(env, policy, frames):
     ["architecture=gnn", "runtime.teams=2"],
     ["algorithm=e3t", "architecture=e3t_mlp"],
 ], ids=["mlp", "mlp-3-teams", "lstm", "gnn-2-teams", "e3t"])
+@pytest.mark.bitwise
 def test_the_kitchen_collector_collects_the_batches_of_torchrls_collector(tmp_path, overrides):
     overrides = ["max_steps=10", *overrides]
     env, policy, config = env_and_policy(tmp_path / "torchrl", overrides)
@@ -63,6 +64,7 @@ def assert_same_batches(ours, theirs):
 
 
 @pytest.mark.parametrize("architecture", ["mlp", "mlp_lstm"])
+@pytest.mark.bitwise
 def test_env_rollout_is_torchrls_rollout_and_continues_where_it_ended(tmp_path, architecture):
     """`env.rollout(T, policy, break_when_any_done=False)`, then continued with `auto_reset=False` from the last
     step's successor (TorchRL's documented loop), gives what TorchRL's own `EnvBase.rollout` gives."""

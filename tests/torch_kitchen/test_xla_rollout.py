@@ -55,6 +55,7 @@ def xla_batches(tmp_path, overrides, count=3):
                                        ["architecture=mlp_lstm", "runtime.teams=2", "levels=infinite"]],
                          ids=["mlp", "mlp-2-teams", "ego_mlp-2-teams", "mlp_lstm-per-agent-2-teams", "gnn-2-teams",
                               "gnn_lstm", "mlp_lstm-2-teams"])
+@pytest.mark.bitwise
 def test_the_xla_rollout_steps_the_kitchens_as_the_kitchen_collector_does_with_its_actions(tmp_path, overrides):
     overrides = ["max_steps=10", *overrides]
     ours, env, _, config = xla_batches(tmp_path / "xla", overrides)
@@ -81,6 +82,7 @@ def test_the_xla_rollout_steps_the_kitchens_as_the_kitchen_collector_does_with_i
 @pytest.mark.parametrize("overrides", [["architecture=mlp"], ["architecture=ego_mlp"], ["architecture=gnn"],
                                        ["architecture=gnn", "share_params=false"]],
                          ids=["mlp", "ego_mlp", "gnn", "gnn-per-agent"])
+@pytest.mark.bitwise
 def test_the_xla_policy_is_the_teams_networks_and_draws_from_their_streams(tmp_path, overrides):
     overrides = ["max_steps=10", *overrides, "runtime.teams=2", "levels=infinite"]
     batches, env, policy, _ = xla_batches(tmp_path / "first", overrides, count=2)
@@ -114,6 +116,7 @@ def assert_draws_from_the_teams_streams(tmp_path, overrides, batches):
 
 @pytest.mark.parametrize("architecture,teams,share", [("mlp_lstm", 2, "true"), ("gnn_lstm", 1, "true"),
                                                        ("mlp_lstm", 1, "false")])
+@pytest.mark.bitwise
 def test_the_xla_recurrent_policy_is_the_teams_lstms_and_draws_from_their_streams(tmp_path, architecture, teams,
                                                                                   share):
     overrides = ["max_steps=10", f"architecture={architecture}", f"runtime.teams={teams}", "levels=infinite",

@@ -11,6 +11,7 @@ from trainers.train_command import main
 from trainers.training_team import team_configs
 
 
+@pytest.mark.bitwise
 def test_a_run_collecting_with_torchrls_collector_learns_what_the_kitchen_collector_learns(tmp_path):
     # Episodes of 10 steps in batches of 16: resets inside batches, and three updates.
     overrides = ("max_steps=10", "architecture=mlp_lstm")
@@ -19,6 +20,7 @@ def test_a_run_collecting_with_torchrls_collector_learns_what_the_kitchen_collec
     assert_same_run(kitchen, torchrl)
 
 
+@pytest.mark.bitwise
 def test_a_run_collecting_inside_xla_resumes_as_it_ran_and_its_teams_learn_as_their_seeds_alone(tmp_path):
     overrides = ("runtime.collector=xla", "max_steps=10", "checkpoint_every=1")
     teams = train_teams(team_configs(tiny_config(tmp_path / "teams", "runtime.teams=2", *overrides, updates=3)))

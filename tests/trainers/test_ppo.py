@@ -128,6 +128,7 @@ def test_every_architecture_trains_and_reloads(tmp_path, architecture, share_par
 
 
 @pytest.mark.parametrize("architecture, algorithm", [("mlp", "ippo"), ("mlp_lstm", "ippo"), ("e3t_mlp", "e3t")])
+@pytest.mark.bitwise
 def test_a_crashed_run_resumes_from_its_checkpoint_with_the_same_metrics(tmp_path, architecture, algorithm):
     common = (f"architecture={architecture}", f"algorithm={algorithm}", "checkpoint_every=2", "shaping_weight=1",
               "shaping_anneal_steps=256", *(["algorithm_config.partner_policy=copy"] if algorithm == "e3t" else []))
@@ -454,6 +455,7 @@ def test_help_lists_every_config_key_and_hyperparameters_reach_tensorboard(tmp_p
 
 
 @pytest.mark.slow
+@pytest.mark.bitwise
 def test_a_compiled_acting_policy_takes_the_same_actions_and_learns_the_same(tmp_path, monkeypatch):
     """torch.compile'd collection through the kitchen collector (the XLA one acts without torch): the same sampled
     actions (so the same returns), log-probabilities equal to float32 rounding (fused kernels), hence the same losses
@@ -525,6 +527,7 @@ def team_and_minibatch(config, tmp_path):
 
 
 @pytest.mark.parametrize("architecture", ["mlp", "gnn"])
+@pytest.mark.bitwise
 def test_a_ppo_step_moves_the_weights_bit_for_bit_as_backward_clipping_and_fused_adam_do(tmp_path, architecture):
     """The step written once for K teams (`ppo_step`, a team dim of 1 here) is what a team's step was before it:
     backward(), `clip_grad_norm_` and its fused Adam."""
@@ -552,6 +555,7 @@ def test_a_ppo_step_moves_the_weights_bit_for_bit_as_backward_clipping_and_fused
     ["architecture=mlp_lstm", "share_params=false"],  # recurrent sequences, one network per agent (vmapped)
     ["architecture=gnn"],
 ], ids=["mlp", "lstm-per-agent", "gnn"])
+@pytest.mark.bitwise
 def test_a_minibatch_in_shards_has_the_losses_and_gradient_of_the_whole_on_threads_or_not(tmp_path, overrides):
     config = tiny_config(tmp_path, *overrides, "shaping_weight=1")
     team, minibatch = team_and_minibatch(config, tmp_path)

@@ -10,11 +10,12 @@ from test_ppo import MAIN_CONFIG, read_metrics, tiny_config
 from tiny import TINY
 
 from torch_kitchen.env import KitchenEnv
+from torch_kitchen.onednn_linear import OneDNNProduct
 from torch_kitchen.teams import RandomStream
 from trainers.checkpoint import load_checkpoint
 from trainers.config import ConfigError
 from trainers.ppo import train, train_teams
-from trainers.runtime import ShardPool, learning_pool
+from trainers.runtime import ShardPool, TeamPool, learning_pool
 from trainers.train_command import main
 from trainers.training_team import team_configs
 
@@ -39,6 +40,7 @@ def assert_same_run(team_run, single_run):
     # Alone, a team's minibatch shards run on threads at once; beside other teams, one after the other.
     ["architecture=mlp_lstm", "share_params=false", "runtime.minibatch_shards=2"],
 ], ids=["ippo-infinite", "lstm", "e3t", "shards"])
+@pytest.mark.bitwise
 def test_each_team_of_a_multi_team_run_is_the_run_of_its_seed_alone(tmp_path, overrides):
     # Two teams learn at once on threads, the third after them: each as it would alone (whose shards, if any,
     # run on two threads at once).
@@ -49,6 +51,7 @@ def test_each_team_of_a_multi_team_run_is_the_run_of_its_seed_alone(tmp_path, ov
         assert_same_run(run, train(tiny_config(tmp_path / "single", f"seed={seed}", *overrides)))
 
 
+@pytest.mark.bitwise
 def test_a_team_of_a_multi_team_run_resumes_alone_and_teams_resume_together(tmp_path):
     assert main([*tiny_args(tmp_path / "teams"), "runtime.teams=2", "total_steps=64"]) == 0
     team0, team1 = tmp_path / "teams" / "main" / "seed0", tmp_path / "teams" / "main" / "seed1"
@@ -90,6 +93,7 @@ def observations(env: KitchenEnv, actions: torch.Tensor) -> torch.Tensor:
     return torch.stack(seen)
 
 
+@pytest.mark.bitwise
 def test_the_env_teams_see_the_levels_of_one_team_envs_with_their_seeds():
     teams = KitchenEnv(num_envs=6, levels="infinite", max_steps=3, seed=[3, 9])
     actions = torch.randint(6, (8, 6, 2), generator=torch.Generator().manual_seed(0))
@@ -139,6 +143,23 @@ def test_a_team_alone_runs_its_shards_on_a_shard_pool(tmp_path, monkeypatch):
     assert not isinstance(learning_pool(tiny_config(tmp_path, "runtime.minibatch_shards=2"), 3), ShardPool)
 
 
+@pytest.mark.bitwise
+@pytest.mark.parametrize("pool", [lambda: TeamPool(2, 1), lambda: ShardPool(2, 1)], ids=["teams", "shards"])
+def test_a_pool_threads_products_sum_as_the_main_threads(pool):
+    """A oneDNN product on a team's or a shard's thread is the main thread's, bit for bit: the thread takes the run's
+    torch threads (1 here) when it starts. Left at OpenMP's default of one per core, oneDNN's AVX2 kernels split this
+    product's sum between two threads (run with ONEDNN_MAX_CPU_ISA=AVX2, as `make test`'s second pass does). The
+    weight is read transposed, as the gradients' products read their operands."""
+    generator = torch.Generator().manual_seed(0)
+    row, weight = torch.randn(1, 4096, generator=generator), torch.randn(4096, 256, generator=generator).t()
+
+    def product():
+        return OneDNNProduct.apply(row, weight, None)
+
+    with pool() as threads:
+        assert torch.equal(threads.submit(product).result(), product())
+
+
 def test_a_shard_pool_runs_the_shards_the_faster_way_and_times_the_other_now_and_then():
     caller = threading.current_thread()
     on_threads = []  # per shard run: whether it ran on the pool's threads
@@ -150,7 +171,7 @@ def test_a_shard_pool_runs_the_shards_the_faster_way_and_times_the_other_now_and
         return 2 * x
 
     ways = []  # per map: whether its shards ran at once
-    with ShardPool(2, explore_every=8) as pool:
+    with ShardPool(2, 1, explore_every=8) as pool:
         for _ in range(17):
             on_threads.clear()
             assert list(pool.map(shard, [1, 2, 3])) == [2, 4, 6]  # the same results either way
@@ -161,6 +182,7 @@ def test_a_shard_pool_runs_the_shards_the_faster_way_and_times_the_other_now_and
 
 
 @pytest.mark.parametrize("architecture", ["mlp", "ego_mlp"])
+@pytest.mark.bitwise
 def test_stacked_teams_act_as_the_teams_one_after_another_at_one_teams_launches(tmp_path, architecture):
     """The teams' networks stacked and vmapped (the GPU's way) give each team's logits and values to float rounding
     and, sampled in each team's own stream, its actions; restacked, the weights are the teams' after an optimizer's
