@@ -51,6 +51,10 @@ SHRINK = {
     "scripts/reproduce.py": ["--teams", "1", "--rollouts", "1", "--heldout", "1", "--max-steps", "16", "--jobs", "1",
                              "--no-human-proxies", *TRAIN_SHRINK],
 }
+# The paper's grid (36 conditions) in three of its corners: an IK condition with an SK one of its family, and the
+# grid's last IK condition (tests/trainers/test_config.py loads every condition of every protocol).
+SHRINK["scripts/reproduce.py configs/protocols/paper.yaml"] = [
+    *SHRINK["scripts/reproduce.py"], "--conditions", "ippo_mlp_ik", "ippo_mlp_sk_cramped_room", "e3t_gnn_ik"]
 GPU = "a GPU"
 # What runs elsewhere or not at all here: (a pattern of the command line, why).
 NOT_HERE = [
