@@ -176,7 +176,7 @@ class PartnerMixture(TensorDictModuleBase):
         else:
             with torch.no_grad():
                 partner_logits = self.partner(tensordict.select(*self.partner.in_keys, strict=False)).get(LOGITS)
-            partner_action = torch.distributions.Categorical(logits=partner_logits).sample()
+            partner_action = torch.distributions.Categorical(logits=partner_logits, validate_args=False).sample()
         uniform = torch.rand(mixed.shape, device=mixed.device) < self.epsilon
         random_action = torch.randint_like(action, NUM_ACTIONS)
         partner_action = torch.where(uniform, random_action, partner_action)

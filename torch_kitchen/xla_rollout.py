@@ -146,11 +146,12 @@ def chain_weights(network: nn.Module) -> list[torch.Tensor]:
     return weights
 
 
-def run_chain(chain: Chain, weights: Sequence[jax.Array], x: jax.Array, state: tuple = ()
+def run_chain(chain: Chain, weights: Sequence[jax.Array], x: jax.Array, state: tuple = (), on_gpu: bool = False
               ) -> tuple[jax.Array, tuple]:
     """What the torch chain computes on x (uint8 observations are cast to float32 at the first linear layer), in
     float32 at full precision, and its LSTM's next state: state (h, c) float32 [..., 1, hidden] each, as the env
-    carries them, () for a chain without an LSTM. -> (output, next state)."""
+    carries them, () for a chain without an LSTM. -> (output, next state). `on_gpu`: the program runs on a GPU, and
+    takes the layers' ways that suit it (`agent_window`'s one gather); the same numbers either way."""
     weights = iter(weights)
     for op, *args in chain:
         if op == "flatten":
@@ -168,11 +169,11 @@ def run_chain(chain: Chain, weights: Sequence[jax.Array], x: jax.Array, state: t
             (agent_chain,) = args
             agents = x.ndim - 4  # the agent dim, after as many leading dims in every input and output
             x, state = jax.vmap(lambda agent_weights, view, agent_state: run_chain(agent_chain, agent_weights, view,
-                                                                                   agent_state),
+                                                                                   agent_state, on_gpu),
                                 in_axes=(0, agents, agents), out_axes=agents)(list(weights), x, state)
         else:
             if op == "egocentric":
-                x = agent_window(x)
+                x = agent_window(x, one_gather=on_gpu)
             x = dense(x, next(weights), next(weights))
     return x, state
 
@@ -298,7 +299,8 @@ def rollout_program(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) ->
     state, value state)), the policy's next input as the env's programs and transforms give it (a state (h, c)
     [B, 2, 1, h] each, () without an LSTM), and records = (carrier, (logits, action, log-prob, value), (next policy
     state, next value state), (next observation, next scalars, next done))."""
-    key = (env.jax_env.settings, env.num_envs, env.teams, env.pinned_levels is not None, chains, steps)
+    key = (env.jax_env.settings, env.num_envs, env.teams, env.pinned_levels is not None, chains, steps,
+           env.jax_device.platform)
     return _PROGRAMS.get(key, lambda: _build_rollout(env, chains, steps))
 
 
@@ -306,13 +308,14 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> 
     programs = kitchen_programs(env.jax_env, env.num_envs, env.teams, env.pinned_levels is not None, packed=False)
     policy_chain, value_chain = chains
     teams, team_size = env.teams, env.team_size
+    on_gpu = env.jax_device.platform != "cpu"
 
     def act(weights, keys, observation, states):
         def team(policy_weights, value_weights, key, observation, policy_state, value_state):
-            logits, policy_state = run_chain(policy_chain, policy_weights, observation, policy_state)
+            logits, policy_state = run_chain(policy_chain, policy_weights, observation, policy_state, on_gpu)
             action = jax.random.categorical(key, logits)
             log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), action[..., None], -1)[..., 0]
-            value, value_state = run_chain(value_chain, value_weights, observation, value_state)
+            value, value_state = run_chain(value_chain, value_weights, observation, value_state, on_gpu)
             return (logits, action, log_prob, value), (policy_state, value_state)
 
         by_team = jax.tree.map(lambda value: value.reshape(teams, team_size, *value.shape[1:]), (observation, *states))

@@ -72,7 +72,7 @@ class ZooPartners(TensorDictModuleBase):
             kitchens = (zoo_cook == index).any(-1).nonzero().squeeze(-1)
             if len(kitchens):
                 logits = cook(observation.index_select(0, kitchens))  # [k, 2, 6]: both seats, one is kept
-                drawn = torch.distributions.Categorical(logits=logits).sample()
+                drawn = torch.distributions.Categorical(logits=logits, validate_args=False).sample()
                 seated = zoo_cook.index_select(0, kitchens) == index
                 action = action.index_copy(0, kitchens, torch.where(seated, drawn, action.index_select(0, kitchens)))
         tensordict.set(ACTION, action)

@@ -7,12 +7,13 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from torch_kitchen.egocentric import EgocentricLinear
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.graph import build_graph
 from torch_kitchen.keys import LOGITS, OBSERVATION
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.models.networks import GraphEncoder
-from torch_kitchen.xla_layers import graph_scene, graph_weights
+from torch_kitchen.xla_layers import agent_window, graph_scene, graph_weights
 
 HIDDEN = 16
 TOLERANCE = dict(atol=1e-5, rtol=1e-5)
@@ -94,3 +95,14 @@ def test_gnn_policy_runs_on_the_jax_encoder(observations, size):
         from_jax = head(torch.from_numpy(np.array(scene)))
 
     torch.testing.assert_close(from_jax, logits, **TOLERANCE)
+
+
+@pytest.mark.parametrize("size", ["7x7", "4x5"])
+def test_the_agent_window_is_the_layers_by_a_loop_over_kitchens_or_one_gather(observations, size):
+    """The CPU's way (`lax.map`) and the GPU's (one gather) give `EgocentricLinear.window`'s windows exactly."""
+    views = observations[size]  # [B, 2, H, W, C]
+    layer = EgocentricLinear(tuple(views.shape[-3:]), HIDDEN)
+    expected = layer.window(views).numpy()  # [B, 2, (2H - 1) * (2W - 1) * C]
+    for one_gather in (False, True):
+        windows = jax.jit(agent_window, static_argnums=1)(jnp.asarray(views.numpy()), one_gather)
+        np.testing.assert_array_equal(np.asarray(windows), expected, err_msg=f"one_gather={one_gather}")
