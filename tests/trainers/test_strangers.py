@@ -12,7 +12,7 @@ from torch_kitchen.conventions import STRANGER, TRAIN, Convention, Zoo, ZooMembe
 from trainers.config import EvalConfig
 from trainers.evaluation import evaluate, main
 from trainers.evaluation.partners import StrangerOutcomes
-from trainers.evaluation.tables import iqm_interval, stranger_rows
+from trainers.evaluation.tables import iqm_interval, markdown_strangers, stranger_rows
 from trainers.evaluation.teams import convention_team
 
 STRANGERS = [Convention(name="left_first", move_order="WENS"), Convention(name="server", role="server")]
@@ -41,9 +41,25 @@ def test_the_normalised_score_divides_by_two_of_the_stranger_and_rows_aggregate_
     expected = np.array([1.5, 0.5, 0.5, 0.5, 2.0, 2.0, 0.0, 1.5])  # t0s0 seats, t0s1, t1s0, t1s1
     np.testing.assert_allclose(outcomes.normalised.ravel(), expected)
     (row,) = stranger_rows(outcomes)
-    assert row["pairs"] == 8 and row["deliveries"] == pytest.approx(with_team.mean())
-    assert row["normalised"] == pytest.approx(expected.mean())
+    assert row["pairs"] == 8 and row["deliveries"] == pytest.approx(with_team.mean()) and row["left_out"] == ""
+    assert row["normalised"] == pytest.approx(with_team.mean() / alone.mean())  # a ratio of the columns' means
     assert row["iqm"] == pytest.approx(np.sort(expected)[2:6].mean())  # 0.5, 0.5, 1.5, 1.5
+
+
+def test_a_stranger_that_never_delivers_with_itself_is_left_out_of_the_normalised_score_and_named():
+    teams = [convention_team(Convention(name=f"t{i}"), (7, 7, 26), condition="c") for i in range(2)]
+    strangers = [convention_team(Convention(name=name), (7, 7, 26)) for name in ("cooks", "idle")]
+    with_team = np.array([[[[3.0], [1.0]], [[2.0], [2.0]]], [[[4.0], [4.0]], [[0.0], [6.0]]]])  # [T, S, 2, G]
+    alone = np.array([[2.0], [0.0]])  # "idle" never delivers with itself
+    outcomes = StrangerOutcomes(teams, strangers, [("held-out (1)", ["heldout_000"])], with_team, alone)
+    (row,) = stranger_rows(outcomes)
+    assert row["left_out"] == "idle" and row["pairs"] == 4  # teams x the one stranger that cooks x seats
+    assert row["deliveries"] == pytest.approx(with_team.mean())  # beside every stranger
+    assert (row["scored_deliveries"], row["scored_alone"]) == (pytest.approx(3.0), pytest.approx(2.0))
+    assert row["normalised"] == pytest.approx(1.5)  # the two columns beside it, 3.0 / 2.0
+    assert row["iqm"] == pytest.approx(np.sort([1.5, 0.5, 2.0, 2.0])[1:3].mean())
+    table = markdown_strangers([row], ["cooks", "idle"], rollouts=1)
+    assert "| 2.75 | 3.00 | 2.00 | 1.50 |" in table and "| 4 | idle |" in table
 
 
 def test_every_team_plays_beside_every_stranger_in_both_seats_and_is_scored_against_two_of_it(tmp_path):

@@ -220,25 +220,35 @@ def stranger_pair_rows(outcomes: StrangerOutcomes) -> list[dict]:
 
 
 def stranger_rows(outcomes: StrangerOutcomes, seed: int = 0) -> list[dict]:
-    """Per condition and grid group (where its teams are at home): mean deliveries with the strangers, the mean and
-    the IQM of the normalised score over its teams x strangers x seats, with a 95% bootstrap interval, and the IQM
-    over the strangers' best responses where they have one (BR-Prox)."""
-    normalised, over_best = outcomes.normalised, outcomes.over_best
+    """Per condition and grid group (where its teams are at home): mean deliveries with every stranger; then, over
+    the strangers that deliver with themselves on that group (the others are left out of the normalised score, and
+    named), mean deliveries with them, two of them alone, and the normalised score as a ratio of those two means,
+    with the IQM of the pairs' own ratios (teams x those strangers x seats, `pairs` of them) and its 95% bootstrap
+    interval; and the IQM over the strangers' best responses where they have one (BR-Prox)."""
+    over_best = outcomes.over_best
     rows = []
     for condition in dict.fromkeys(team.condition for team in outcomes.teams):
         members = [t for t, team in enumerate(outcomes.teams) if team.condition == condition]
         for g, (group, names) in enumerate(outcomes.groups):
             if not all(at_home(outcomes.teams[members[0]], name) for name in names):
                 continue
-            ratios = normalised[members, :, :, g]
+            scored = np.flatnonzero(outcomes.alone[:, g] > 0)
+            left_out = [stranger.name for s, stranger in enumerate(outcomes.strangers) if s not in scored]
+            together = outcomes.with_team[members][:, scored, :, g]
+            alone = outcomes.alone[scored, g]
+            ratios = together / alone[None, :, None]
             middle, low, high = iqm_interval(ratios, seed=seed)
             proximity = over_best[members, :, :, g]
             br_middle, br_low, br_high = iqm_interval(proximity, seed=seed)
+            scored_deliveries = float(together.mean()) if scored.size else math.nan
+            scored_alone = float(alone.mean()) if scored.size else math.nan
             rows.append({
                 "condition": condition, "grids": group, "pairs": int(ratios.size),
                 "deliveries": float(outcomes.with_team[members, :, :, g].mean()),
                 "strangers_alone": float(outcomes.alone[:, g].mean()),
-                "normalised": float(np.nanmean(ratios)) if not np.isnan(ratios).all() else math.nan,
+                "scored_deliveries": scored_deliveries, "scored_alone": scored_alone,
+                "normalised": scored_deliveries / scored_alone if scored.size else math.nan,
+                "left_out": " ".join(left_out),
                 "iqm": middle, "iqm_low": low, "iqm_high": high, "br_pairs": int((~np.isnan(proximity)).sum()),
                 "br_iqm": br_middle, "br_iqm_low": br_low, "br_iqm_high": br_high,
             })  # fmt: skip
@@ -249,20 +259,24 @@ def markdown_strangers(rows: list[dict], strangers: Sequence[str], rollouts: int
     with_best = any(row["br_pairs"] for row in rows)
     lines = [
         f"With the held-out strangers ({len(strangers)}: {', '.join(strangers)}), the team in either seat, "
-        f"{rollouts} rollouts per pair and grid. Deliveries: the mean over the condition's teams x strangers x "
-        "seats. Normalised: deliveries over two of that stranger's on the same grids (1.0: as good a partner to it "
-        "as its own kind); IQM: their interquartile mean over teams x strangers x seats, [95% bootstrap interval]."
+        f"{rollouts} rollouts per pair and grid. With every stranger: mean deliveries over the condition's teams x "
+        "strangers x seats. The normalised score leaves out, per grid group, the strangers that never deliver with "
+        "themselves there (named): over the others, mean deliveries with them, two of them alone, and normalised, "
+        "the first over the second (a ratio of means: 1.0 is as good a partner to them as their own kind); IQM: the "
+        "interquartile mean of each pair's own ratio over teams x those strangers x seats (pairs), [95% bootstrap "
+        "interval]."
         + (" Over the best response: deliveries with a stranger over its best response's with it (ZSC-Eval's "
            "BR-Prox), IQM over the pairs of the strangers that have one." if with_best else ""),
         "",
-        "| condition | grids | with strangers | strangers alone | normalised | IQM normalised | pairs |"
-        + (" over the best response (IQM) |" if with_best else ""),
-        "|---|---|---:|---:|---:|---:|---:|" + ("---:|" if with_best else ""),
+        "| condition | grids | with every stranger | with those that cook | those alone | normalised | "
+        "IQM normalised | pairs | left out |" + (" over the best response (IQM) |" if with_best else ""),
+        "|---|---|---:|---:|---:|---:|---:|---:|---|" + ("---:|" if with_best else ""),
     ]
     for row in rows:
         best = (f" {row['br_iqm']:.2f} [{row['br_iqm_low']:.2f}, {row['br_iqm_high']:.2f}] ({row['br_pairs']}) |"
                 if with_best else "")
-        lines.append(f"| {row['condition']} | {row['grids']} | {row['deliveries']:.2f} | {row['strangers_alone']:.2f} "
-                     f"| {row['normalised']:.2f} | {row['iqm']:.2f} [{row['iqm_low']:.2f}, {row['iqm_high']:.2f}] | "
-                     f"{row['pairs']} |" + best)
+        lines.append(f"| {row['condition']} | {row['grids']} | {row['deliveries']:.2f} | "
+                     f"{row['scored_deliveries']:.2f} | {row['scored_alone']:.2f} | {row['normalised']:.2f} | "
+                     f"{row['iqm']:.2f} [{row['iqm_low']:.2f}, {row['iqm_high']:.2f}] | {row['pairs']} | "
+                     f"{row['left_out'] or '-'} |" + best)
     return "\n".join(lines) + "\n"
