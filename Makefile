@@ -38,11 +38,10 @@ main: setup
 	fi
 
 # The bit-for-bit tests run a second time with every library held to AVX2 kernels (torch's own, oneDNN's, MKL's and
-# XLA's), so that a machine with AVX-512 checks what one without computes (docs/training.md, "Bit for bit"). Inductor's
-# kernels go to a cache of their own: its cache does not tell kernels compiled for AVX2 from AVX-512 ones, and one
-# loaded by the other kind of process computes wrong numbers.
+# XLA's), so that a machine with AVX-512 checks what one without computes (docs/training.md, "Bit for bit"); each
+# capability keeps its own Inductor cache (tests/conftest.py).
 AVX2 := ATEN_CPU_CAPABILITY=avx2 ONEDNN_MAX_CPU_ISA=AVX2 MKL_ENABLE_INSTRUCTIONS=AVX2 \
-	XLA_FLAGS="--xla_cpu_max_isa=AVX2 --xla_backend_optimization_level=0" TORCHINDUCTOR_CACHE_DIR=$(CURDIR)/$(VENV)/inductor-avx2
+	XLA_FLAGS="--xla_cpu_max_isa=AVX2 --xla_backend_optimization_level=0"
 # The browser test of kitchen-play drives Debian's Chromium: installed here where apt can, skipped (saying so) elsewhere.
 # The suite runs on TEST_WORKERS processes (pytest-xdist), each test file on one of them, torch on one thread each.
 TEST_WORKERS ?= 2

@@ -29,6 +29,13 @@ if CACHE not in os.environ:
 os.environ.setdefault("XLA_FLAGS", "--xla_backend_optimization_level=0")
 
 
+# Inductor's compiled kernels in a cache per CPU capability: torch's cache does not tell kernels compiled under
+# ATEN_CPU_CAPABILITY=avx2 (make test's second pass) from the default ones, and a process that loads the other's
+# computes wrong numbers and can corrupt its heap (docs/training.md, "Bit for bit").
+os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", os.path.join(
+    tempfile.gettempdir(), f"kitchen-tests-inductor-{os.environ.get('ATEN_CPU_CAPABILITY', 'default').lower()}"))
+
+
 def pytest_unconfigure(config):
     if _own_cache is not None and not hasattr(config, "workerinput"):  # the run's first process, not a worker
         shutil.rmtree(_own_cache, ignore_errors=True)
