@@ -29,9 +29,14 @@ def mean(scores: np.ndarray) -> np.ndarray:
     return scores.mean(axis=(-2, -1))
 
 
+def interquartile_mean(values: np.ndarray, axis: int = -1) -> np.ndarray:
+    """The mean of the middle half of the values along `axis` (a quarter cut off at either end)."""
+    return stats.trim_mean(values, 0.25, axis=axis)
+
+
 def iqm(scores: np.ndarray) -> np.ndarray:
     """The interquartile mean over runs and tasks (rliable's `aggregate_iqm`): [..., runs, tasks] -> [...]."""
-    return stats.trim_mean(scores.reshape(*scores.shape[:-2], -1), 0.25, axis=-1)
+    return interquartile_mean(scores.reshape(*scores.shape[:-2], -1))
 
 
 class Estimate(NamedTuple):

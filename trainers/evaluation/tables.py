@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy import stats
 
+from trainers.evaluation.intervals import interquartile_mean
 from trainers.evaluation.pairs import CROSS, HUMAN, PARTNER, SP, XP, Outcomes, cross_condition, is_heldout
 from trainers.evaluation.teams import Team
 
@@ -171,11 +172,6 @@ def visit_shares(outcomes: Outcomes, grid_name: str) -> list[tuple[str, str, np.
 
 
 # ------------------------------------------------------------------------------------------------- strangers
-def iqm(values: np.ndarray, axis: int = -1) -> np.ndarray:
-    """The interquartile mean: the mean of the middle half of the values (a quarter cut off at either end)."""
-    return stats.trim_mean(values, 0.25, axis=axis)
-
-
 def bootstrap_interval(values, statistic, confidence: float = 0.95, resamples: int = 2000, seed: int = 0
                        ) -> tuple[float, float, float]:
     """(statistic, low, high): `statistic` (a function of an array and an `axis`) of the values that are not NaN,
@@ -195,7 +191,7 @@ def bootstrap_interval(values, statistic, confidence: float = 0.95, resamples: i
 
 def iqm_interval(values, confidence: float = 0.95, resamples: int = 2000, seed: int = 0) -> tuple[float, ...]:
     """(IQM, low, high): the interquartile mean with its bootstrap interval (`bootstrap_interval`)."""
-    return bootstrap_interval(values, iqm, confidence, resamples, seed)
+    return bootstrap_interval(values, interquartile_mean, confidence, resamples, seed)
 
 
 def stranger_pair_rows(outcomes: StrangerOutcomes) -> list[dict]:
