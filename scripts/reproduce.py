@@ -52,6 +52,14 @@ from trainers.behaviour_cloning import ProxySettings
 from trainers.composer import load_config
 from trainers.config import PLANNER_START, ConfigError, DeviceConfig, EvalConfig, TrainConfig
 from trainers.evaluation import HUMAN_PROXY_RUN, SCRIPTED_CONDITION, cross_condition, evaluate
+from trainers.evaluation.claims import (
+    PAPER_STEPS,
+    SeedScores,
+    beyond_teacher,
+    family_claims,
+    shared_teacher,
+    stranger_claims,
+)
 from trainers.humans import fetch
 from trainers.humans import train as train_proxies
 from trainers.machine import machine_name
@@ -60,17 +68,14 @@ from trainers.train_command import train_config_file
 
 ROOT = Path(__file__).resolve().parents[1]
 MAIN_JOB = ROOT / "configs" / "main.yaml"  # the README's planner-guided team, whose budget a section is set beside
-HELDOUT = "held-out"
-PAPER_STEPS = 2e9  # env steps per team in the paper
-# Deliveries in cross-play on held-out levels the paper reports for IK teams at 2e9 steps (Fig. 7), per family.
-PAPER_HELDOUT_XP = {"MLP": 9, "GNN": 10}
 SCRATCH = "IPPO from scratch"  # the paper's learner, a family's unless it names another
 
 TITLE = "# Results: the paper's experiment at a reduced budget"
 WHOLE = "all"  # the one section of a protocol that names none
 SECTION_START, SECTION_END = "<!-- section: {} -->", "<!-- /section: {} -->"
 CLAIMS_START, CLAIMS_END = "<!-- claims -->", "<!-- /claims -->"
-CLAIMS_HEADER = ["| family | learner | claim | here | at this budget |", "|---|---|---|---|---|"]
+CLAIMS_HEADER = ["| family | learner | claim | here: aggregate [95% interval over seeds] | at this budget |",
+                 "|---|---|---|---|---|"]
 
 
 def condition_entry(entry: str | dict) -> tuple[str, list[str]]:
@@ -168,102 +173,6 @@ def value(summary: dict, condition: str, grids: str, key: str) -> float:
     return float(row[key]) if row is not None and row[key] != "" else math.nan
 
 
-def heldout_grids(summary: dict) -> str | None:
-    """The summary's held-out group, e.g. "held-out (100)"; None where it has none."""
-    return next((grids for _, grids in summary if grids.startswith(HELDOUT)), None)
-
-
-def claims(summary: dict, family: str, ik: str, sk: dict[str, str], budget: int, learner: str = SCRATCH,
-           paper: str | None = None) -> list[str]:
-    """Markdown rows: each of the paper's claims for one family (an IK condition, layout -> its SK condition) and
-    the learner it was tested under, what came out here, and whether it holds at this budget (env steps per team).
-    A family without SK conditions has only its held-out claim; `paper`: the paper's family whose held-out figure
-    applies (default: this one's name)."""
-    heldout = heldout_grids(summary)
-    rows = []
-    if sk:
-        ik_xp = {layout: value(summary, ik, layout, "xp") for layout in sk}
-        sk_xp = {layout: value(summary, condition, layout, "xp") for layout, condition in sk.items()}
-        wins = sum(ik_xp[layout] > sk_xp[layout] for layout in sk)
-        pairs = ", ".join(f"{layout.removesuffix('_7x7')} {ik_xp[layout]:.2f} vs {sk_xp[layout]:.2f}" for layout in sk)
-        rows.append(("IK beats SK in cross-play on the 5 layouts (Fig. 3a)", pairs, f"{wins} of {len(sk)} layouts"))
-        if heldout:
-            sk_sp = [value(summary, condition, heldout, "sp") for condition in sk.values()]
-            rows.append(("SK scores 0 on generated levels, even in self-play (Fig. 7)",
-                         f"SK self-play on {heldout}: {min(sk_sp):.2f} to {max(sk_sp):.2f}",
-                         "holds" if max(sk_sp) < 0.5 else "does not hold"))
-    if heldout and (paper or family) in PAPER_HELDOUT_XP:
-        paper, ik_heldout = PAPER_HELDOUT_XP[paper or family], value(summary, ik, heldout, "xp")
-        at_paper_budget = ("holds" if ik_heldout >= paper - 1 else "does not hold") if budget >= PAPER_STEPS else (
-            f"{budget:.1e} steps, not 2e9: not comparable")
-        rows.append((f"IK reaches about {paper} deliveries in cross-play on held-out levels at 2e9 steps (Fig. 7)",
-                     f"IK on {heldout}: self-play {value(summary, ik, heldout, 'sp'):.2f}, cross-play "
-                     f"{ik_heldout:.2f}", at_paper_budget))
-    if sk:
-        ik_gap = [value(summary, ik, layout, "gap") for layout in sk]
-        sk_gap = [value(summary, condition, layout, "gap") for layout, condition in sk.items()]
-        smaller = sum(a < b for a, b in zip(ik_gap, sk_gap))
-        rows.append(("The SP - XP gap is smaller for IK (Fig. 3b)",
-                     f"mean gap IK {sum(ik_gap) / len(ik_gap):.2f}, SK {sum(sk_gap) / len(sk_gap):.2f}",
-                     f"smaller on {smaller} of {len(sk)} layouts"))
-        rows.extend(outside_partners(summary, ik, sk))
-    return [f"| {family} | {learner} | {claim} | {ours} | {verdict} |" for claim, ours, verdict in rows]
-
-
-def outside_partners(summary: dict, ik: str, sk: dict[str, str]) -> list[tuple[str, str, str]]:
-    """Claims rows (claim, here, verdict) on partners outside every population: the scripted cook beside IK and
-    beside each SK team at home, and the human proxies beside IK where the evaluation seated them (against two
-    proxies together)."""
-    rows = []
-    ik_cook = {layout: value(summary, ik, layout, "partner") for layout in sk}
-    sk_cook = {layout: value(summary, condition, layout, "partner") for layout, condition in sk.items()}
-    if not any(math.isnan(score) for score in [*ik_cook.values(), *sk_cook.values()]):
-        wins = sum(ik_cook[layout] > sk_cook[layout] for layout in sk)
-        rows.append(("IK plays with a partner outside its population better than SK: the scripted cook",
-                     ", ".join(f"{layout.removesuffix('_7x7')} {ik_cook[layout]:.2f} vs {sk_cook[layout]:.2f}"
-                               for layout in sk), f"{wins} of {len(sk)} layouts"))
-    seated = [grids for condition, grids in summary
-              if condition == ik and not math.isnan(value(summary, ik, grids, "human"))]
-    with_proxy = [(grids, value(summary, ik, grids, "human"), value(summary, f"human_proxy_{grids}", grids, "sp"))
-                  for grids in seated]
-    if with_proxy:
-        above = sum(score >= proxies for _, score, proxies in with_proxy)
-        rows.append(("IK plays with a partner outside its population: the human proxies",
-                     ", ".join(f"{grids.removesuffix('_in_7x7')} {score:.2f} (two proxies {proxies:.2f})"
-                               for grids, score, proxies in with_proxy),
-                     f"at least two proxies' on {above} of {len(with_proxy)} layouts"))
-    return rows
-
-
-def shared_teacher(summary: dict, family: str, learner: str, pairs: list[list[str]]) -> list[str]:
-    """Claims rows: for each cross pair of a family's IK condition with teams that imitated another teacher (or
-    learned otherwise), how the IK teams' cross-play between their own seeds compares with that pair's, on the
-    held-out levels: what a shared teacher adds to cross-play."""
-    heldout = heldout_grids(summary)
-    rows = []
-    for ik, partner in pairs if heldout else []:
-        within, across = value(summary, ik, heldout, "xp"), value(summary, cross_condition(ik, partner), heldout, "xp")
-        if not math.isnan(within) and not math.isnan(across):
-            rows.append(f"| {family} | {learner} | Imitating one teacher inflates cross-play (IK x IK against IK x "
-                        f"{partner}) | {heldout}: {within:.2f} against {across:.2f} | "
-                        f"{'inflated' if within > across else 'not inflated'} by {within - across:+.2f} |")
-    return rows
-
-
-def beyond_teacher(summary: dict, family: str, learner: str, ik: str) -> list[str]:
-    """Claims row for a family that imitated the scripted cook first: whether its IK teams outplay their teacher on
-    the held-out levels, in self-play and in cross-play, against the cook's own self-play there."""
-    heldout = heldout_grids(summary)
-    sp, xp = (value(summary, ik, heldout, key) for key in ("sp", "xp")) if heldout else (math.nan, math.nan)
-    cook = value(summary, SCRIPTED_CONDITION, heldout, "sp") if heldout else math.nan
-    if math.isnan(cook) or math.isnan(sp):
-        return []
-    beyond = [name for name, score in (("self-play", sp), ("cross-play", xp)) if score > cook]
-    return [f"| {family} | {learner} | A team beyond its teacher: IK above the scripted cook's own self-play on "
-            f"held-out levels | {heldout}: IK self-play {sp:.2f}, cross-play {xp:.2f}; the cook {cook:.2f} | "
-            f"{'holds in ' + ' and '.join(beyond) if beyond else 'does not hold'} |"]
-
-
 def cross_pairs(summary: dict, pairs: list[list[str]]) -> list[str]:
     """Markdown rows: each pair a protocol adds, its cross-play beside each side's cross-play between its own
     seeds, on every grid group where the pair was measured (n/a where a side has no cross-play there)."""
@@ -275,69 +184,6 @@ def cross_pairs(summary: dict, pairs: list[list[str]]) -> list[str]:
                 values = [value(summary, name, grids, "xp") for name in (pair, first, second)]
                 cells = " | ".join("n/a" if math.isnan(v) else f"{v:.2f}" for v in values)
                 rows.append(f"| {first} | {second} | {grids} | {cells} |")
-    return rows
-
-
-def read_strangers(eval_dir: Path) -> tuple[dict[tuple[str, str], dict], list[dict]]:
-    """The evaluation's rows beside the held-out strangers: per (condition, grids) (`strangers.csv`) and per team,
-    stranger and seat (`strangers_pairs.csv`); empty where it seated none."""
-    if not (eval_dir / "strangers.csv").is_file():
-        return {}, []
-    with open(eval_dir / "strangers_pairs.csv") as handle:
-        pairs = list(csv.DictReader(handle))
-    return read_summary(eval_dir / "strangers.csv"), pairs
-
-
-def stranger_claims(strangers: dict, pairs: list[dict], summary: dict, families: dict, compared: dict) -> list[str]:
-    """Claims rows beside the held-out strangers: each family's IK against its SK teams at home on every layout;
-    and, of the conditions `compared` names (one_teacher, diverse_teachers, zoo_partners), the cross-play a shared
-    teacher adds over play with strangers, whether zoo partners in training raise play with strangers by more than
-    the bootstrap intervals, and whether a condition is a better partner to every stranger than that stranger's own
-    kind, all on the held-out levels."""
-    if not strangers:
-        return []  # a section evaluated without strangers
-    heldout = heldout_grids(strangers)
-    rows = []
-    for family, (ik, sk, learner, _) in families.items():
-        if sk:
-            ours = {layout: value(strangers, ik, layout, "deliveries") for layout in sk}
-            theirs = {layout: value(strangers, condition, layout, "deliveries") for layout, condition in sk.items()}
-            wins = sum(ours[layout] > theirs[layout] for layout in sk)
-            rows.append(f"| {family} | {learner} | IK beats SK beside held-out strangers on the 5 layouts (Fig. 3a, "
-                        "with partners no team saw) | " + ", ".join(
-                            f"{layout.removesuffix('_7x7')} {ours[layout]:.2f} vs {theirs[layout]:.2f}"
-                            for layout in sk) + f" | {wins} of {len(sk)} layouts |")
-    if not heldout:
-        return rows
-    # A compared condition's row says which of the compared it is (its own learner is its config's, not a family's).
-    role = {condition: f"compared as {key.replace('_', ' ')}" for key, condition in compared.items()}
-    one, diverse, zoo = (compared.get(key) for key in ("one_teacher", "diverse_teachers", "zoo_partners"))
-    if one and diverse:
-        inflation = {c: value(summary, c, heldout, "xp") - value(strangers, c, heldout, "deliveries")
-                     for c in (one, diverse)}
-        lower = inflation[diverse] < inflation[one]
-        rows.append(f"| {diverse} | {role[diverse]} | Diverse teachers lower the cross-play inflation of one teacher "
-                    f"(XP between seeds minus play with strangers) | {heldout}: {one} {inflation[one]:+.2f}, {diverse} "
-                    f"{inflation[diverse]:+.2f} | {'holds' if lower else 'does not hold'} |")
-    if one and zoo:
-        (low, high), (zoo_low, zoo_high) = ((value(strangers, c, heldout, "iqm_low"),
-                                             value(strangers, c, heldout, "iqm_high")) for c in (one, zoo))
-        iqm_one, iqm_zoo = value(strangers, one, heldout, "iqm"), value(strangers, zoo, heldout, "iqm")
-        rows.append(f"| {zoo} | {role[zoo]} | Zoo partners in training raise play with strangers on held-out levels, "
-                    f"by more than the bootstrap interval | normalised IQM {iqm_zoo:.2f} "
-                    f"[{zoo_low:.2f}, {zoo_high:.2f}] against {one}'s {iqm_one:.2f} [{low:.2f}, {high:.2f}] | "
-                    f"{'holds' if zoo_low > high else 'does not hold'} |")
-    for condition in dict.fromkeys(c for c in (one, diverse, zoo) if c):
-        per_stranger = {}
-        for row in pairs:
-            if row["condition"] == condition and row["grids"] == heldout:
-                per_stranger.setdefault(row["stranger"], []).append(float(row["normalised"]))
-        if per_stranger:
-            above = sum(sum(scores) / len(scores) > 1.0 for scores in per_stranger.values())
-            verdict = "holds" if above == len(per_stranger) else "does not hold"
-            rows.append(f"| {condition} | {role[condition]} | Beyond each stranger's own kind: normalised > 1.0 beside "
-                        f"every stranger on held-out levels (moonshot) | above 1.0 beside {above} of "
-                        f"{len(per_stranger)} strangers | {verdict} |")
     return rows
 
 
@@ -469,7 +315,8 @@ def section_markdown(section: Section, facts: RunFacts, config: TrainConfig, eva
                      eval_seconds: float, pictures: list[str]) -> str:
     """The section's text, between its markers: how it was made, its claims, cross pairs, tables and figures."""
     summary = read_summary(eval_dir / "summary.csv")
-    strangers, stranger_pairs = read_strangers(eval_dir)
+    scores = SeedScores.read(eval_dir)
+    planner = config.init_from == PLANNER_START
     own = {name: facts.own_overrides[name] for name in section.conditions if facts.own_overrides[name]}
     lines = [
         SECTION_START.format(section.name),
@@ -505,13 +352,7 @@ def section_markdown(section: Section, facts: RunFacts, config: TrainConfig, eva
         "",
         CLAIMS_START,
         *CLAIMS_HEADER,
-        *(row for family, (ik, sk, learner, paper) in section.families.items()
-          for row in claims(summary, family, ik, sk, config.total_steps, learner, paper)),
-        *(row for family, (ik, _, learner, _) in section.families.items()
-          for row in shared_teacher(summary, family, learner, [pair for pair in section.cross if pair[0] == ik])),
-        *(row for family, (ik, _, learner, _) in section.families.items()
-          for row in (beyond_teacher(summary, family, learner, ik) if config.init_from == PLANNER_START else [])),
-        *stranger_claims(strangers, stranger_pairs, summary, section.families, section.compared or {}),
+        *claims_table(section, scores, config.total_steps, planner),
         CLAIMS_END,
         "",
         *([
@@ -547,6 +388,20 @@ def copy_figures(eval_dir: Path, results: Path, section: str) -> list[str]:
         shutil.copy(picture, figures / picture.name)
         pictures.append(f"![{picture.stem}](docs/results/{section}/{picture.name})")
     return pictures
+
+
+def claims_table(section: Section, scores: SeedScores, budget: int, planner: bool) -> list[str]:
+    """The section's claims rows: each family's claims (and, for a planner-guided family, whether it outplays its
+    teacher), what a shared teacher adds to each cross pair of its IK condition, and the claims beside the
+    strangers."""
+    rows = []
+    for family, (ik, sk, learner, paper) in section.families.items():
+        found = family_claims(scores, family, ik, sk, budget, paper)
+        found += [row for first, second in section.cross if first == ik for row in shared_teacher(scores, ik, second)]
+        found += beyond_teacher(scores, ik) if planner else []
+        rows += [(family, learner, row) for row in found]
+    rows += stranger_claims(scores, section.families, section.compared or {})
+    return [f"| {who} | {learner} | {claim} | {here} | {decided} |" for who, learner, (claim, here, decided) in rows]
 
 
 def read_sections(text: str) -> dict[str, str]:

@@ -85,6 +85,15 @@ def test_the_evaluator_reports_exactly_the_known_counts(tmp_path, booth_files):
     assert int(summary["cooks x halves", "two_booths"]["xp_pairs"]) == 8
     assert "| cooks | two_booths | 7.00 ± 7.00 (2) | 7.00 ± 0.00 (2) | 0.00 |" in (out / "eval.md").read_text()
 
+    # Per seed, the unit the claims' intervals resample: the working cook's pairs of each kind, in either seat.
+    with open(out / "seeds.csv") as handle:
+        seeds = {(row["team"], row["grids"], row["kind"], row["with"]): row for row in csv.DictReader(handle)}
+    working = {key[2:]: float(row["deliveries"]) for key, row in seeds.items()
+               if key[:2] == ("cooks/seed0", "two_booths")}
+    assert working == {("sp", ""): 14, ("xp", ""): 7, ("cross", "halves"): 10.5}  # with halves: 7, 14, 14, 7
+    assert int(seeds["cooks/seed0", "two_booths", "cross", "halves"]["pairs"]) == 4
+    assert float(seeds["cooks/seed3", "two_booths", "sp", ""]["deliveries"]) == 0  # the idle cook with itself
+
 
 def test_every_team_also_plays_with_the_scripted_cook_in_both_seats(tmp_path, booth_files):
     runs = {name: save_scripted_team(tmp_path / f"{name}.pt", name, seed=k) for k, name in enumerate(WORKING)}

@@ -11,8 +11,9 @@ from jax_env import save_layout
 from torch_kitchen.conventions import STRANGER, TRAIN, Convention, Zoo, ZooMember, generator_settings, save_zoo
 from trainers.config import EvalConfig
 from trainers.evaluation import evaluate, main
+from trainers.evaluation.intervals import interquartile_mean, interval, iqm
 from trainers.evaluation.partners import StrangerOutcomes
-from trainers.evaluation.tables import iqm_interval, markdown_strangers, stranger_rows
+from trainers.evaluation.tables import markdown_strangers, seeds_interval, stranger_rows
 from trainers.evaluation.teams import convention_team
 
 STRANGERS = [Convention(name="left_first", move_order="WENS"), Convention(name="server", role="server")]
@@ -24,12 +25,12 @@ def _zoo(path, size=7, generator=None):
     return save_zoo(Zoo(0, size, generator or generator_settings(size), members), path)
 
 
-def test_the_interquartile_mean_and_its_bootstrap_interval_on_a_hand_computed_example():
-    middle, low, high = iqm_interval([8, 1, 7, 2, 6, 3, 5, 4, np.nan])  # NaN left out
-    assert middle == pytest.approx(4.5)  # the mean of 3, 4, 5, 6
-    assert 1 < low < 4.5 < high < 8
-    assert iqm_interval([2.0, 2.0]) == (2.0, 2.0, 2.0) and np.isnan(iqm_interval([np.nan])[0])
-    assert iqm_interval(np.arange(12.0)) == iqm_interval(np.arange(12.0))  # seeded
+def test_the_iqm_beside_strangers_resamples_seeds_within_each_stranger_over_seat_averaged_scores():
+    scores = np.array([[[8, 6], [1, np.nan]], [[1, 3], [7, 5]], [[2, 2], [4, 4]]], dtype=float)  # [teams, S, seats]
+    middle, low, high = seeds_interval(scores)
+    assert middle == pytest.approx(interquartile_mean(np.array([7, 2, 2])))  # stranger 1 has a NaN: left out
+    assert (middle, low, high) == tuple(interval(np.array([[7.0], [2.0], [2.0]]), iqm))  # rliable's interval
+    assert np.isnan(seeds_interval(np.full((2, 1, 2), np.nan))[0])
 
 
 def test_the_normalised_score_divides_by_two_of_the_stranger_and_rows_aggregate_teams_x_strangers_x_seats():
@@ -43,7 +44,8 @@ def test_the_normalised_score_divides_by_two_of_the_stranger_and_rows_aggregate_
     (row,) = stranger_rows(outcomes)
     assert row["pairs"] == 8 and row["deliveries"] == pytest.approx(with_team.mean()) and row["left_out"] == ""
     assert row["normalised"] == pytest.approx(with_team.mean() / alone.mean())  # a ratio of the columns' means
-    assert row["iqm"] == pytest.approx(np.sort(expected)[2:6].mean())  # 0.5, 0.5, 1.5, 1.5
+    # Seats averaged, a score per team and stranger: 1.0, 0.5, 2.0, 0.75; the middle half 0.75 and 1.0.
+    assert row["iqm"] == pytest.approx(0.875)
 
 
 def test_a_stranger_that_never_delivers_with_itself_is_left_out_of_the_normalised_score_and_named():
@@ -57,7 +59,7 @@ def test_a_stranger_that_never_delivers_with_itself_is_left_out_of_the_normalise
     assert row["deliveries"] == pytest.approx(with_team.mean())  # beside every stranger
     assert (row["scored_deliveries"], row["scored_alone"]) == (pytest.approx(3.0), pytest.approx(2.0))
     assert row["normalised"] == pytest.approx(1.5)  # the two columns beside it, 3.0 / 2.0
-    assert row["iqm"] == pytest.approx(np.sort([1.5, 0.5, 2.0, 2.0])[1:3].mean())
+    assert row["iqm"] == pytest.approx(interquartile_mean(np.array([1.0, 2.0])))  # the two teams' seats averaged
     table = markdown_strangers([row], ["cooks", "idle"], rollouts=1)
     assert "| 2.75 | 3.00 | 2.00 | 1.50 |" in table and "| 4 | idle |" in table
 

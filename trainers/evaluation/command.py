@@ -25,6 +25,7 @@ from trainers.evaluation.tables import (
     markdown_strangers,
     markdown_summary,
     pair_rows,
+    seed_rows,
     stranger_pair_rows,
     stranger_rows,
     summary_rows,
@@ -101,6 +102,7 @@ def evaluate(config: EvalConfig) -> Path:
     write_csv(pair_rows(outcomes), out / "pairs.csv")
     summary = summary_rows(outcomes)
     write_csv(summary, out / "summary.csv")
+    write_csv(seed_rows(outcomes), out / "seeds.csv")
     table = markdown_summary(summary, config.rollouts)
     written = draw_figures(outcomes, summary, out)
     if strangers:

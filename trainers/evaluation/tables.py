@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy import stats
 
-from trainers.evaluation.intervals import interquartile_mean
+from trainers.evaluation.intervals import interval, iqm
 from trainers.evaluation.pairs import CROSS, HUMAN, PARTNER, SP, XP, Outcomes, cross_condition, is_heldout
 from trainers.evaluation.teams import Team
 
@@ -123,6 +123,33 @@ def summary_rows(outcomes: Outcomes) -> list[dict]:
     return rows
 
 
+SEED_KINDS = {SP: "sp", XP: "xp", PARTNER: "partner", HUMAN: "human", CROSS: "cross"}
+
+
+def seed_rows(outcomes: Outcomes) -> list[dict]:
+    """One row per team, grid group (where it is at home) and kind of pair (sp, xp, partner, human, cross with
+    another condition): the team's mean deliveries over its pairs of that kind, in either seat. A seed is the unit
+    the claims' intervals resample (rliable's runs); the outside partners have their self-play row only."""
+    rows = []
+    for t, team in enumerate(outcomes.teams):
+        kinds = dict.fromkeys(
+            (m.kind, outcomes.teams[m.seat1 if m.seat0 == t else m.seat0].condition if m.kind == CROSS else "")
+            for m in outcomes.matchups
+            if t in (m.seat0, m.seat1) and (m.kind == SP or not team.is_outside_partner))  # fmt: skip
+        for group, names in grid_groups(outcomes):
+            if not all(at_home(team, name) for name in names):
+                continue
+            for kind, partner in kinds:
+                scores = pair_scores(outcomes, lambda m, a, b, kind=kind, partner=partner: (
+                    m.kind == kind and t in (m.seat0, m.seat1)
+                    and (not partner or partner == (b if m.seat0 == t else a).condition)), names)
+                if scores.size:
+                    rows.append({"condition": team.condition, "team": team.name, "grids": group,
+                                 "kind": SEED_KINDS[kind], "with": partner,
+                                 "deliveries": round(float(scores.mean()), 4), "pairs": int(scores.size)})
+    return rows
+
+
 def markdown_summary(rows: list[dict], rollouts: int) -> str:
     def cell(row, kind):
         mean, stderr, pairs = row[kind], row[f"{kind}_stderr"], row[f"{kind}_pairs"]
@@ -189,9 +216,15 @@ def bootstrap_interval(values, statistic, confidence: float = 0.95, resamples: i
     return middle, float(interval.low), float(interval.high)
 
 
-def iqm_interval(values, confidence: float = 0.95, resamples: int = 2000, seed: int = 0) -> tuple[float, ...]:
-    """(IQM, low, high): the interquartile mean with its bootstrap interval (`bootstrap_interval`)."""
-    return bootstrap_interval(values, interquartile_mean, confidence, resamples, seed)
+def seeds_interval(scores: np.ndarray, seed: int = 0) -> tuple[float, float, float]:
+    """(IQM, low, high) of scores [teams, strangers, seats] over the strangers where every team has a score in
+    every seat (seats averaged: a task is a stranger), with rliable's stratified bootstrap over the teams (seeds) within each
+    stranger; NaN where no stranger has scores."""
+    per_stranger = scores.mean(axis=2)
+    per_stranger = per_stranger[:, ~np.isnan(per_stranger).any(axis=0)]
+    if per_stranger.size == 0:
+        return math.nan, math.nan, math.nan
+    return tuple(interval(per_stranger, iqm, seed=seed))
 
 
 def stranger_pair_rows(outcomes: StrangerOutcomes) -> list[dict]:
@@ -219,8 +252,8 @@ def stranger_rows(outcomes: StrangerOutcomes, seed: int = 0) -> list[dict]:
     """Per condition and grid group (where its teams are at home): mean deliveries with every stranger; then, over
     the strangers that deliver with themselves on that group (the others are left out of the normalised score, and
     named), mean deliveries with them, two of them alone, and the normalised score as a ratio of those two means,
-    with the IQM of the pairs' own ratios (teams x those strangers x seats, `pairs` of them) and its 95% bootstrap
-    interval; and the IQM over the strangers' best responses where they have one (BR-Prox)."""
+    with the IQM over teams x those strangers of each team's ratio (`seeds_interval`; `pairs` counts teams x
+    strangers x seats); and the IQM over the strangers' best responses where they have one (BR-Prox)."""
     over_best = outcomes.over_best
     rows = []
     for condition in dict.fromkeys(team.condition for team in outcomes.teams):
@@ -230,12 +263,12 @@ def stranger_rows(outcomes: StrangerOutcomes, seed: int = 0) -> list[dict]:
                 continue
             scored = np.flatnonzero(outcomes.alone[:, g] > 0)
             left_out = [stranger.name for s, stranger in enumerate(outcomes.strangers) if s not in scored]
-            together = outcomes.with_team[members][:, scored, :, g]
+            together = outcomes.with_team[members][:, scored][..., g]  # [teams, strangers, seats]
             alone = outcomes.alone[scored, g]
             ratios = together / alone[None, :, None]
-            middle, low, high = iqm_interval(ratios, seed=seed)
-            proximity = over_best[members, :, :, g]
-            br_middle, br_low, br_high = iqm_interval(proximity, seed=seed)
+            middle, low, high = seeds_interval(ratios, seed)
+            proximity = over_best[members][..., g]
+            br_middle, br_low, br_high = seeds_interval(proximity, seed)
             scored_deliveries = float(together.mean()) if scored.size else math.nan
             scored_alone = float(alone.mean()) if scored.size else math.nan
             rows.append({
@@ -259,8 +292,9 @@ def markdown_strangers(rows: list[dict], strangers: Sequence[str], rollouts: int
         "strangers x seats. The normalised score leaves out, per grid group, the strangers that never deliver with "
         "themselves there (named): over the others, mean deliveries with them, two of them alone, and normalised, "
         "the first over the second (a ratio of means: 1.0 is as good a partner to them as their own kind); IQM: the "
-        "interquartile mean of each pair's own ratio over teams x those strangers x seats (pairs), [95% bootstrap "
-        "interval]."
+        "interquartile mean over teams x those strangers of each team's ratio beside each (seats averaged; pairs: "
+        "teams x strangers x seats), [95% interval: rliable's stratified bootstrap over the teams, the seeds, within "
+        "each stranger]."
         + (" Over the best response: deliveries with a stranger over its best response's with it (ZSC-Eval's "
            "BR-Prox), IQM over the pairs of the strangers that have one." if with_best else ""),
         "",
