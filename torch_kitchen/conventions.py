@@ -20,8 +20,10 @@ the held-out strangers (`load_zoo`; the project ships `ZOO_FILE`).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import random
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -81,6 +83,15 @@ class Convention:
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
 
+    @property
+    def fingerprint(self) -> str:
+        """A hash of how it plays (every parameter but its name): the same convention under another name, or drawn
+        into another zoo file, has the same fingerprint."""
+        values = {key: value for key, value in self.as_dict().items() if key != "name"}
+        values["preferences"] = {event: weight for event, weight in sorted(self.preferences.items()) if weight}
+        text = json.dumps(values, sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
     @classmethod
     def from_dict(cls, values: dict) -> Convention:
         """A convention from plain values (a zoo file's entry); unknown keys refused in one line."""
@@ -103,6 +114,11 @@ class Convention:
         return (f"{self.role}, hand-overs {self.handover}, {preferences or 'no preferences'}, moves "
                 f"{self.move_order}, T goal {self.goal_temperature:g} move {self.move_temperature:g}, "
                 f"noise {self.noise:g}")
+
+
+def fingerprints(conventions: Iterable[Convention]) -> dict[str, str]:
+    """{fingerprint: name} of conventions: what a run records of the conventions it trained or distilled with."""
+    return {convention.fingerprint: convention.name for convention in conventions}
 
 
 def draw_convention(rng: random.Random, name: str) -> Convention:

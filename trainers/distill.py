@@ -33,6 +33,7 @@ from torchrl.modules import set_recurrent_mode
 from tqdm import tqdm
 
 from jax_env import NUM_ACTIONS
+from torch_kitchen.conventions import fingerprints
 from torch_kitchen.keys import ACTION, LOGITS, OBSERVATION, VALUE, VALUE_TARGET
 from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.scripted import ScriptedCook
@@ -242,6 +243,7 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
                 "config": config.to_dict(), "model": identity,
                 **{name: part.state_dict() for name, part in parts.items()},
                 "algorithm": {}, "update": round_ + 1, "env_steps": env_steps, "rng": capture_rng_states(),
+                "met": fingerprints(config.distill_teacher(r) for r in range(round_ + 1)),
             })  # fmt: skip
             bar.update(1)
             bar.set_postfix(agreement=f"{metrics['distill/agreement']:.2f}",

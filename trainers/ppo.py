@@ -204,6 +204,7 @@ def start_from(team: TrainingTeam) -> None:
     check_identity(state, team.identity)
     team.parts["actor"].load_state_dict(state["actor"])
     team.parts["critic"].load_state_dict(state["critic"])
+    team.met.update(state.get("met", {}))  # what the start met, the team met
 
 
 def resume_or_start(teams: Sequence[TrainingTeam], resume: bool) -> list[dict | None]:

@@ -57,6 +57,7 @@ def restore(team: TrainingTeam) -> dict:
         part.load_state_dict(state[name])
     team.algorithm.load_state_dict(state["algorithm"])
     team.update, team.env_steps = state["update"], state["env_steps"]
+    team.met.update(state.get("met", {}))
     return state
 
 

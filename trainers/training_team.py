@@ -16,6 +16,7 @@ from torchrl.envs import Transform
 from torchrl.objectives import ClipPPOLoss
 from torchrl.record.loggers import Logger
 
+from torch_kitchen.conventions import fingerprints
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.keys import ACTION, ADVANTAGE, LOG_PROB, VALUE, VALUE_TARGET
 from torch_kitchen.models import ActorCritic, make_actor_critic
@@ -109,6 +110,8 @@ class TrainingTeam:
     update: int = 0
     env_steps: int = 0
     loggers: list[Logger] = dataclasses.field(default_factory=list)
+    # {fingerprint: name} of the scripted conventions it met: its algorithm's, and its init_from run's
+    met: dict[str, str] = dataclasses.field(default_factory=dict)
 
     @property
     def checkpoint_path(self) -> Path:
@@ -125,6 +128,7 @@ class TrainingTeam:
             "update": self.update,
             "env_steps": self.env_steps,
             "rng": rng,
+            "met": dict(sorted(self.met.items())),
         })  # fmt: skip
 
 
@@ -158,6 +162,7 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
                   **({} if own_networks else {"given": True})},  # networks passed from Python: not rebuilt by name
         parts={"actor": actor_critic.actor, "critic": actor_critic.critic, "optimizer": optimizer,
                "env": TeamKitchens(kitchen, index)},
+        met=fingerprints(algorithm.met_conventions()),
     )  # fmt: skip
     return team
 

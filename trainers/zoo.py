@@ -41,6 +41,7 @@ from torch_kitchen.conventions import (
     Zoo,
     ZooMember,
     draw_convention,
+    fingerprints,
     generator_settings,
     load_zoo,
     save_zoo,
@@ -190,6 +191,7 @@ def save_cook(convention: Convention, run_dir: str | Path, kitchen_size: int = 7
     save_checkpoint(run / "checkpoints" / LATEST, {
         "config": config.to_dict(), "model": {**identity, "options": {"convention": convention.as_dict()}},
         "actor": {}, "critic": {}, "update": 0, "env_steps": config.planned_steps,
+        "met": fingerprints([convention]),
     })  # fmt: skip
     save_config(config, run / "config.yaml")
     return run

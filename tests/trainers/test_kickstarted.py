@@ -4,6 +4,7 @@
 import pytest
 from test_ppo import read_metrics, tiny_config
 
+from torch_kitchen.conventions import Convention, fingerprints
 from trainers.algorithms import check_algorithm
 from trainers.algorithms.kickstarted import KickstartedSettings, teacher_weight
 from trainers.checkpoint import load_checkpoint
@@ -43,6 +44,7 @@ def test_a_resumed_run_keeps_the_teacher_weight_schedule(tmp_path):
     run = train(config, on_update=lambda update, metrics: update == 1)  # stopped after one update
     assert train_main(["--resume", str(run)]) == 0
     assert load_checkpoint(run)["algorithm"] == {"env_steps": 192}
+    assert load_checkpoint(run)["met"] == fingerprints([Convention()])  # its teacher, the scripted cook, recorded
     weights = [weight for _, weight in read_metrics(run)["charts/teacher_weight"]]
     assert weights == [weight for _, weight in read_metrics(whole)["charts/teacher_weight"]] == [1.0, 0.5, 0.0]
 

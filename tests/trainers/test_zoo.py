@@ -17,6 +17,7 @@ from torch_kitchen.conventions import (
     Convention,
     Zoo,
     ZooMember,
+    fingerprints,
     generator_settings,
     load_zoo,
     save_zoo,
@@ -30,6 +31,7 @@ from trainers.checkpoint import load_checkpoint
 from trainers.distill import DATA, TEACHER_PROBS, distill
 from trainers.distill import main as distill_main
 from trainers.evaluation import load_team
+from trainers.evaluation import main as eval_main
 from trainers.ppo import train
 from trainers.rollout import make_collector
 from trainers.train_command import main as train_main
@@ -139,6 +141,7 @@ def test_zoo_ippo_learns_beside_zoo_cooks_and_resumes_bit_for_bit(tmp_path, zoo_
     assert train_main(["--resume", str(stopped_config.run_path)]) == 0
     final, straight = load_checkpoint(stopped_config.run_path), load_checkpoint(whole)
     assert final["algorithm"]["zoo_seats"]  # the seats' generator and draws travel with the checkpoint
+    assert final["met"] == fingerprints(TEACHERS)  # every training convention it met, kept through the resume
     for part in ("actor", "critic", "algorithm"):
         torch.testing.assert_close(final[part], straight[part], rtol=0, atol=0)
 
@@ -160,9 +163,32 @@ def test_distillation_from_several_teachers_labels_each_round_with_its_teacher_a
     assert distill_main(["--resume", str(stopped)]) == 0
     for part in ("actor", "critic", "optimizer", "env"):
         torch.testing.assert_close(load_checkpoint(stopped)[part], load_checkpoint(straight)[part], rtol=0, atol=0)
+    assert load_checkpoint(straight)["met"] == fingerprints(straight_config.distill_teacher(r) for r in range(3))
     per_seed = [tiny_config(tmp_path, f"zoo={zoo_file}", "distill_teachers=[west_first,loader]", f"seed={seed}")
                 for seed in range(3)]
     assert [config.distill_teacher(2).name for config in per_seed] == ["west_first", "loader", "west_first"]
+
+
+def test_a_team_is_never_scored_beside_a_convention_it_met_whatever_zoo_file_or_name_it_has(tmp_path, zoo_file,
+                                                                                           capsys):
+    # The loader trains beside a team in zoo_ippo; a second team starts from that one (init_from) and inherits it.
+    met = train(tiny_config(tmp_path / "met", "algorithm=zoo_ippo", f"zoo={zoo_file}", "levels=infinite",
+                            "algorithm_config.zoo_conventions=[loader]", updates=1))
+    child = train(tiny_config(tmp_path / "child", f"init_from={met}", "levels=infinite", updates=1))
+    assert load_checkpoint(child)["met"] == fingerprints([TEACHERS[1]])
+    # A second zoo file draws the same convention under another name, as a held-out stranger.
+    renamed = Convention(**{**TEACHERS[1].as_dict(), "name": "cook_9_001"})
+    assert renamed.fingerprint == TEACHERS[1].fingerprint != Convention(role="loader", noise=0.1).fingerprint
+    other = save_zoo(Zoo(9, 7, generator_settings(7), [ZooMember(renamed, STRANGER, 1.0, 1.0, {})]),
+                     tmp_path / "other.yaml")
+    out = tmp_path / "eval"
+    code = eval_main(["configs/eval/paper.yaml", f"conditions={{child: {child}}}", "heldout=0",
+                      "layouts=[cramped_room_7x7]", f"strangers={other}", f"out_dir={out}", "progress=false",
+                      "cross=[]", "gifs=[]"])
+    error = capsys.readouterr().err
+    assert code == 2 and error.count("\n") == 1, error
+    assert "child/seed0 trained with the convention 'loader', which is the held-out stranger 'cook_9_001'" in error
+    assert not out.exists()  # nothing written
 
 
 def test_a_cook_of_the_zoo_is_saved_and_loaded_as_a_team_with_its_convention(tmp_path, zoo_file, capsys):

@@ -14,6 +14,7 @@ this order (all but `process_minibatch`, which standardises the advantages, do n
                   loss_actor()            the actor that ClipPPOLoss differentiates
                   configure_loss(loss)    e.g. a loss mask
                   parameters()            trained by the optimizer beside the loss module's
+                  met_conventions()       the scripted conventions it trains beside or imitates (recorded)
     every update  process_batch(batch)            after GAE, before the epochs
                   process_minibatch(minibatch)    before the PPO loss of each minibatch (and before it is split
                                                   into shards, `minibatch_shards`)
@@ -42,6 +43,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import Transform
 from torchrl.objectives import ClipPPOLoss
 
+from torch_kitchen.conventions import Convention
 from torch_kitchen.keys import ADVANTAGE
 from torch_kitchen.models import ActorCritic
 from trainers.config import ConfigError, TrainConfig, settings_from
@@ -111,6 +113,11 @@ class Algorithm:
             )
 
     # ---------------------------------------------------------------- set-up
+    def met_conventions(self) -> list[Convention]:
+        """The scripted conventions the team trains beside or imitates: its run records their fingerprints, so that
+        no evaluation scores it beside one of them as a held-out stranger."""
+        return []
+
     def check(self) -> None:
         """Raises a ConfigError if the model cannot be trained by this algorithm."""
 

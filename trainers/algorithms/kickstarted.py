@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDictBase
 
+from torch_kitchen.conventions import Convention
 from torch_kitchen.keys import OBSERVATION
 from torch_kitchen.scripted import ScriptedCook
 from trainers.algorithms.anchored import action_log_probs
@@ -62,6 +63,9 @@ class KickstartedIPPO(IPPO):
     def check(self) -> None:
         super().check()
         self.check_feed_forward("the cook")
+
+    def met_conventions(self) -> list[Convention]:
+        return [self.config.distill_teacher()]
 
     def process_batch(self, batch: TensorDictBase) -> None:
         self.weight.fill_(teacher_weight(self.settings, self.env_steps))

@@ -84,6 +84,9 @@ class ZooIPPO(Algorithm):
     def env_transforms(self) -> list[Transform]:
         return [self.seats]
 
+    def met_conventions(self) -> list[Convention]:
+        return list(self.conventions)
+
     def acting_modules(self) -> list[TensorDictModuleBase]:
         return [ZooPartners(self.conventions).to(self.config.runtime.device)]
 

@@ -14,7 +14,7 @@ import torch
 from jax_env import EXPANDED_LAYOUTS, load_layout
 from jax_env.generator import SIZES as GENERATOR_SIZES
 from jax_env.layouts import padded_layouts
-from torch_kitchen.conventions import ConventionError, load_zoo
+from torch_kitchen.conventions import Convention, ConventionError, load_zoo
 from trainers.checkpoint import CheckpointError
 from trainers.composer import config_help, load_config, save_config
 from trainers.config import ConfigError, DeviceConfig, EvalConfig
@@ -66,6 +66,17 @@ def load_best_responses(runs: dict[str, str], strangers: list[str], evaluated: l
     return found
 
 
+def refuse_met_strangers(teams: list, strangers: list[Convention], zoo_file: str) -> None:
+    """A team that trained or distilled with a convention (by content: its fingerprint, whatever zoo file it came
+    from or name it had) is never scored beside it as a held-out stranger: a ConfigError in one line."""
+    for team in teams:
+        for stranger in strangers:
+            if stranger.fingerprint in team.met:
+                raise ConfigError(f"{team.name} trained with the convention {team.met[stranger.fingerprint]!r}, "
+                                  f"which is the held-out stranger {stranger.name!r} of {zoo_file} (fingerprint "
+                                  f"{stranger.fingerprint}): a stranger is a partner no evaluated team met")
+
+
 def evaluate(config: EvalConfig) -> Path:
     """Loads the population, plays every matchup, writes tables, figures and GIFs to `config.out_dir`."""
     device = config.runtime.device
@@ -79,6 +90,7 @@ def evaluate(config: EvalConfig) -> Path:
     teams, matchups = make_matchups(population, config.cross, partner)
     proxies = load_human_proxies(config.human_proxies, grids, device) if config.human_proxies else {}
     zoo = load_zoo(config.strangers, config.kitchen_size) if config.strangers else None
+    refuse_met_strangers(evaluated, zoo.strangers if zoo else [], config.strangers)
     strangers = [convention_team(convention, (*grids[0].shape, 26), device, condition=STRANGERS_CONDITION)
                  for convention in (zoo.strangers if zoo else [])]
     best_responses = load_best_responses(config.best_responses, [s.name for s in strangers], evaluated, device)

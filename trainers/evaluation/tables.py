@@ -218,8 +218,8 @@ def bootstrap_interval(values, statistic, confidence: float = 0.95, resamples: i
 
 def seeds_interval(scores: np.ndarray, seed: int = 0) -> tuple[float, float, float]:
     """(IQM, low, high) of scores [teams, strangers, seats] over the strangers where every team has a score in
-    every seat (seats averaged: a task is a stranger), with rliable's stratified bootstrap over the teams (seeds) within each
-    stranger; NaN where no stranger has scores."""
+    every seat (seats averaged: a task is a stranger), with rliable's stratified bootstrap over the teams (seeds)
+    within each stranger; NaN where no stranger has scores."""
     per_stranger = scores.mean(axis=2)
     per_stranger = per_stranger[:, ~np.isnan(per_stranger).any(axis=0)]
     if per_stranger.size == 0:

@@ -4,13 +4,13 @@ the scripted cook as a team."""
 from __future__ import annotations
 
 import glob
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
 from jax_env import layout_name
-from torch_kitchen.conventions import Convention
+from torch_kitchen.conventions import Convention, fingerprints
 from torch_kitchen.cpu_kernels import accelerate_cpu
 from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.scripted import SCRIPTED_COOK, scripted_actor_critic
@@ -35,6 +35,7 @@ class Team:
     obs_shape: tuple[int, int, int]
     checkpoint: str
     env_steps: int | None = None
+    met: dict[str, str] = field(default_factory=dict)  # {fingerprint: name} of the conventions it trained with
 
     @property
     def fully_trained(self) -> bool:
@@ -112,7 +113,7 @@ def load_team(checkpoint: str | Path, device: str = "cpu", condition: str = "",
     actor_critic.critic.to(device).eval()
     condition = condition or config.name
     return Team(f"{condition}/seed{config.seed}", condition, config, actor_critic, tuple(model["obs_shape"]), where,
-                state.get("env_steps"))
+                state.get("env_steps"), dict(state.get("met", {})))
 
 
 def scripted_cook_team(obs_shape: tuple[int, int, int], device: str = "cpu") -> Team:
@@ -125,7 +126,7 @@ def convention_team(convention: Convention, obs_shape: tuple[int, int, int], dev
     """The scripted cook of `convention` as a team (both seats), named after the convention; at home anywhere."""
     config = TrainConfig(name=convention.name, architecture=SCRIPTED_COOK, runtime=RuntimeConfig(device=device))
     return Team(name or convention.name, condition or convention.name, config, scripted_actor_critic(convention),
-                tuple(obs_shape), "(scripted)")
+                tuple(obs_shape), "(scripted)", met=fingerprints([convention]))
 
 
 def load_population(conditions: dict[str, str | list[str]], device: str = "cpu") -> dict[str, list[Team]]:
