@@ -48,7 +48,9 @@ import torch
 import yaml
 
 from jax_env import EXPANDED_LAYOUTS, PADDED_LAYOUTS
+from torch_kitchen.conventions import load_zoo
 from trainers.behaviour_cloning import ProxySettings
+from trainers.checkpoint import LATEST, load_checkpoint
 from trainers.composer import load_config
 from trainers.config import PLANNER_START, ConfigError, DeviceConfig, EvalConfig, TrainConfig
 from trainers.evaluation import HUMAN_PROXY_RUN, SCRIPTED_CONDITION, cross_condition, evaluate
@@ -65,6 +67,7 @@ from trainers.humans import train as train_proxies
 from trainers.machine import machine_name
 from trainers.resume import RunStopped
 from trainers.train_command import train_config_file
+from trainers.training_team import team_configs
 
 ROOT = Path(__file__).resolve().parents[1]
 MAIN_JOB = ROOT / "configs" / "main.yaml"  # the README's planner-guided team, whose budget a section is set beside
@@ -89,6 +92,30 @@ def condition_entry(entry: str | dict) -> tuple[str, list[str]]:
     return entry["config"], overrides
 
 
+def with_best_responses(protocol: dict) -> dict:
+    """The protocol with a condition per held-out stranger of each section that asks for best responses
+    (`best_responses: {config:, overrides:}` beside its `strangers` zoo): "best_response_<stranger>", one team
+    trained beside that stranger alone in every kitchen (algorithm zoo_ippo), the section's `best_responses`
+    then naming stranger -> condition. They are evaluation instruments: trained with their section, never among the
+    teams it evaluates."""
+    if not any("best_responses" in section for section in protocol.get("sections", {}).values()):
+        return protocol
+    conditions, sections = dict(protocol["conditions"]), {}
+    for name, section in protocol["sections"].items():
+        sections[name] = section = dict(section)
+        if "best_responses" not in section:
+            continue
+        path, overrides = condition_entry(section["best_responses"])
+        zoo = section["strangers"]
+        section["best_responses"] = {stranger.name: f"best_response_{stranger.name}"
+                                     for stranger in load_zoo(zoo).strangers}
+        for stranger, condition in section["best_responses"].items():
+            conditions[condition] = {"config": path, "overrides": [
+                *overrides, "algorithm=zoo_ippo", f"algorithm_config.best_response_to={stranger}", f"zoo={zoo}",
+                "runtime.teams=1"]}
+    return {**protocol, "conditions": conditions, "sections": sections}
+
+
 def protocol_sections(protocol: dict) -> dict[str, dict]:
     """RESULTS.md's sections of a protocol: name -> {"title", "conditions"}; one section of every condition where
     the protocol names none."""
@@ -106,7 +133,8 @@ def named_conditions(protocol: dict, sections: list[str] | None, conditions: lis
         raise ValueError(f"--sections: {', '.join(unknown)} not in the protocol, which has {', '.join(known)}")
     # A section's own conditions and those its claims compare it with (trained by another section, reused if there).
     return [*(name for section in sections or [] for name in (*known[section]["conditions"],
-                                                               *known[section].get("compared", {}).values())),
+                                                               *known[section].get("compared", {}).values(),
+                                                               *known[section].get("best_responses", {}).values())),
             *(conditions or [])]
 
 
@@ -129,13 +157,23 @@ def select_conditions(protocol: dict, names: list[str] | None) -> tuple[dict, li
     return selected, [name for name in protocol["conditions"] if name not in names]
 
 
+def trained_before(name: str, path: str, overrides: list[str], teams: int, runs: Path) -> bool:
+    """Whether every team of a condition has a checkpoint at the end of its budget (an earlier run trained it)."""
+    configs = team_configs(load_config(path, condition_overrides(name, overrides, teams, runs)))
+    paths = [config.run_path / "checkpoints" / LATEST for config in configs]
+    return all(path.is_file() and load_checkpoint(path)["env_steps"] >= config.planned_steps
+               for path, config in zip(paths, configs))
+
+
 def train_condition(name: str, path: str, overrides: list[str], teams: int, runs: Path) -> float:
     """Trains (or resumes, or skips) one condition's teams together; returns the wall seconds."""
     return train_config_file(path, condition_overrides(name, overrides, teams, runs))
 
 
 def condition_overrides(name: str, overrides: list[str], teams: int, runs: Path) -> list[str]:
-    return [*overrides, f"name={name}", f"runtime.teams={teams}", f"run_dir={runs}"]
+    """The protocol's seeds per condition first, so that a condition's own `runtime.teams` (a best response's one)
+    keeps its count."""
+    return [f"runtime.teams={teams}", *overrides, f"name={name}", f"run_dir={runs}"]
 
 
 def train_conditions(entries: dict[str, tuple[str, list[str]]], teams: int, runs: Path, jobs: int) -> dict[str, float]:
@@ -201,6 +239,7 @@ class Section:
     cross: list[list[str]]
     left_out: list[str]
     strangers: str = ""  # a zoo file whose held-out strangers every team plays beside
+    best_responses: dict[str, str] | None = None  # stranger -> the condition of its best response (BR-Prox)
     compared: dict[str, str] | None = None  # one_teacher, diverse_teachers, zoo_partners: conditions of the claims
 
 
@@ -222,8 +261,10 @@ def sections_run(full: dict, protocol: dict, entries: dict[str, tuple[str, list[
         partners = [*(sk for _, sks, _, _ in families.values() for sk in sks.values()), *(pair[1] for pair in cross)]
         evaluated = [condition for condition in protocol["conditions"] if condition in {*conditions, *partners}]
         left_out = [condition for condition in section["conditions"] if condition not in conditions]
+        responses = {stranger: condition for stranger, condition in section.get("best_responses", {}).items()
+                     if condition in protocol["conditions"]}
         sections.append(Section(name, section["title"], conditions, evaluated, families, cross, left_out,
-                                section.get("strangers", ""), section.get("compared", {})))
+                                section.get("strangers", ""), responses, section.get("compared", {})))
     return sections
 
 
@@ -264,6 +305,8 @@ def evaluate_section(section: Section, out: Path, evaluation: dict, device: str,
         cross=[*([ik, name] for ik, sk, _, _ in section.families.values() for name in sk.values()), *section.cross],
         layouts=[*EXPANDED_LAYOUTS, *(PADDED_LAYOUTS if proxies else [])], heldout=evaluation["heldout"],
         human_proxies=str(proxies or ""), strangers=section.strangers,
+        best_responses={stranger: str(out / "runs" / condition / "seed0")
+                        for stranger, condition in (section.best_responses or {}).items()},
         rollouts=evaluation["rollouts"], max_steps=evaluation.get("max_steps", 256), workers=workers,
         heatmaps=evaluation.get("heatmaps", []), runtime=DeviceConfig(device=device),
         out_dir=str(out / "eval" / section.name), progress=False,
@@ -287,6 +330,7 @@ class RunFacts:
     eval_workers: int  # the processes playing each section's evaluation
     training_seconds: float  # wall time of all the command's training
     condition_seconds: dict[str, float]  # each condition's, in its own process
+    reused: list[str]  # conditions an earlier run had trained already: this one trained nothing of them
     evaluation: dict
     proxies: Path | None
 
@@ -323,7 +367,7 @@ def section_markdown(section: Section, facts: RunFacts, config: TrainConfig, eva
         f"## {section.title}",
         "",
         f"Written by `{facts.command}` on {facts.date} (protocol `{facts.protocol}`). Every number in this section "
-        "was measured by that run.",
+        "was measured by that run's evaluation, of teams it trained or, where the time line says so, reused.",
         "",
         budget(config, facts.teams),
         *([f"- **Conditions:** {len(section.conditions)} of the section's "
@@ -332,10 +376,14 @@ def section_markdown(section: Section, facts: RunFacts, config: TrainConfig, eva
         f"- **Shared overrides:** `{' '.join(facts.overrides)}`.",
         *(f"- **{name}** adds `{' '.join(overrides)}`." for name, overrides in own.items()),
         f"- **Machine:** {facts.machine}. **Time:** training {facts.training_seconds / 60:.0f} min of wall time for "
-        f"the command's {len(facts.condition_seconds)} conditions, {facts.jobs} at a time ("
-        + ", ".join(f"{name} {facts.condition_seconds[name] / 60:.1f} min" for name in section.conditions)
-        + f", each in its own process: distillation, collection and updates); evaluation {eval_seconds / 60:.1f} min "
-        f"({facts.eval_workers} process{'es' if facts.eval_workers > 1 else ''}).",
+        f"the command's {len(facts.condition_seconds) - len(facts.reused)} conditions trained, {facts.jobs} at a "
+        "time, each in its own process (distillation, collection and updates): "
+        + ", ".join(f"{name} reused (trained by an earlier run)" if name in facts.reused
+                    else f"{name} {facts.condition_seconds[name] / 60:.1f} min"
+                    for name in dict.fromkeys([*section.evaluated, *(section.best_responses or {}).values()])
+                    if name in facts.condition_seconds)
+        + f"; evaluation {eval_seconds / 60:.1f} min ({facts.eval_workers} process"
+        f"{'es' if facts.eval_workers > 1 else ''}).",
         f"- **Evaluation:** the 5 expanded layouts and {facts.evaluation['heldout']} held-out levels, "
         f"{facts.evaluation['rollouts']} rollouts of {facts.evaluation.get('max_steps', 256)} steps per pair and grid; "
         "the scripted cook "
@@ -468,7 +516,7 @@ def main(argv=None) -> int:
     if args.jobs < 1:
         parser.error(f"--jobs must be at least 1, got {args.jobs}")
     try:
-        full = yaml.safe_load(Path(args.protocol).read_text())
+        full = with_best_responses(yaml.safe_load(Path(args.protocol).read_text()))
         protocol, _ = select_conditions(full, named_conditions(full, args.sections, args.conditions))
         proxies = None if args.no_human_proxies else proxy_settings(protocol.get("evaluation", {}).get("human_proxies"))
     except OSError as error:
@@ -484,6 +532,7 @@ def main(argv=None) -> int:
                for name, (path, own) in entries.items()}
     started = time.perf_counter()
     try:
+        reused = [name for name, (path, own) in trained.items() if trained_before(name, path, own, teams, out / "runs")]
         seconds = train_conditions(trained, teams, out / "runs", args.jobs)
     except RunStopped as error:
         print(f"reproduce: {error}; run the same command again to continue", file=sys.stderr)
@@ -503,7 +552,7 @@ def main(argv=None) -> int:
         protocol=args.protocol, date=datetime.date.today().isoformat(), machine=machine, teams=teams,
         overrides=overrides, own_overrides={name: own for name, (_, own) in entries.items()}, jobs=args.jobs,
         eval_workers=min(args.jobs, os.cpu_count() or 1) if device == "cpu" else 1,
-        training_seconds=time.perf_counter() - started, condition_seconds=seconds, evaluation=evaluation,
+        training_seconds=time.perf_counter() - started, condition_seconds=seconds, reused=reused, evaluation=evaluation,
         proxies=human_proxies(out / "humans", proxies) if proxies else None,
     )  # fmt: skip
     written = {}

@@ -7,6 +7,7 @@ import yaml
 from scripted_cook import save_scripted_team
 from tiny import script_module
 
+from torch_kitchen.conventions import STRANGER, Convention, Zoo, ZooMember, generator_settings, save_zoo
 from trainers.composer import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -69,6 +70,7 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     monkeypatch.setattr(reproduce, "human_proxies", lambda out, settings: pytest.fail("fetched the human proxies"))
     assert reproduce.main([*argv, "--no-human-proxies"]) == 0
     assert "| with the human proxy |" not in results.read_text()
+    assert "ik reused (trained by an earlier run), sk_cramped reused" in results.read_text()  # said, not timed
     assert {p: p.stat().st_mtime_ns for p in out.glob("runs/*/seed*/checkpoints/latest.pt")} == stamps
     monkeypatch.setattr(reproduce, "human_proxies", scripted_proxy)
     # Run again with a setting changed: the runs trained with the old one are refused in one line, not reused.
@@ -181,3 +183,33 @@ def test_a_distilled_sections_budget_is_set_beside_the_main_jobs():
     main_jobs = load_config(ROOT / "configs/ippo/ego_mlp_ik.yaml", ["init_from=scripted_cook", "total_steps=1572864"])
     assert "trains 1,572,864 steps after 6 rounds of 8 passes, the same budget)" in reproduce.budget(main_jobs, teams=3)
     assert "main job" not in reproduce.budget(load_config(ROOT / "configs/ippo/mlp_ik.yaml"), teams=3)
+
+
+def test_a_strangers_section_trains_a_best_response_per_stranger_and_never_evaluates_it(tmp_path, monkeypatch):
+    members = [ZooMember(Convention(name=name, role=role), STRANGER, 1.0, 1.0, {})
+               for name, role in (("server", "server"), ("loader", "loader"))]
+    zoo = str(save_zoo(Zoo(0, 7, generator_settings(7), members), tmp_path / "zoo.yaml"))
+    protocol = reproduce.with_best_responses({
+        "conditions": {"ik": "a.yaml", "sk": "b.yaml", "other": "c.yaml"},
+        "families": {"MLP": {"ik": "ik", "sk": []}},
+        "sections": {"strangers": {"title": "S", "conditions": ["ik", "sk"], "strangers": zoo,
+                                   "best_responses": {"config": "a.yaml", "overrides": [["hidden=8"], "lr=0.1"]}},
+                     "plain": {"title": "P", "conditions": ["other"]}}})
+    assert protocol["sections"]["strangers"]["best_responses"] == {"server": "best_response_server",
+                                                                   "loader": "best_response_loader"}
+    assert protocol["conditions"]["best_response_loader"] == {"config": "a.yaml", "overrides": [
+        "hidden=8", "lr=0.1", "algorithm=zoo_ippo", "algorithm_config.best_response_to=loader", f"zoo={zoo}",
+        "runtime.teams=1"]}
+    # Trained with the section (one team each: a condition's own count comes after the protocol's), never evaluated.
+    assert reproduce.named_conditions(protocol, ["strangers"], None) == ["ik", "sk", "best_response_server",
+                                                                         "best_response_loader"]
+    assert reproduce.condition_overrides("br", ["runtime.teams=1"], 5, tmp_path)[:2] == ["runtime.teams=5",
+                                                                                          "runtime.teams=1"]
+    [section] = [s for s in reproduce.sections_run(protocol, protocol, {}) if s.name == "strangers"]
+    assert section.evaluated == ["ik", "sk"] and section.best_responses["server"] == "best_response_server"
+    seen = {}
+    monkeypatch.setattr(reproduce, "evaluate", lambda config: seen.setdefault("config", config))
+    reproduce.evaluate_section(section, tmp_path, {"heldout": 1, "rollouts": 1}, "cpu", None, 1)
+    assert seen["config"].best_responses == {name: str(tmp_path / "runs" / f"best_response_{name}" / "seed0")
+                                             for name in ("server", "loader")}
+    assert set(seen["config"].conditions) == {"ik", "sk"}
