@@ -176,6 +176,28 @@ def draw_stranger_heatmap(teams: list[str], strangers: list[str], normalised: np
     return path
 
 
+def draw_clash_heatmap(names: list[str], deliveries: np.ndarray, grids: str, path: Path) -> Path:
+    """Convention x convention: deliveries [n, n] of the row's convention in seat 0 beside the column's in seat 1, on
+    the grid group `grids`; the diagonal is each convention with itself. Cells written in for a dozen or fewer."""
+    n = len(names)
+    figure, axis = plt.subplots(figsize=(2.5 + 0.32 * n, 2.0 + 0.3 * n))
+    image = axis.imshow(deliveries, cmap="viridis", aspect="auto")
+    if n <= 12:
+        for (row, column), value in np.ndenumerate(deliveries):
+            axis.text(column, row, f"{value:.1f}", ha="center", va="center", fontsize=7,
+                      color="black" if value > deliveries.mean() else "white")
+    axis.set_xticks(range(n), names, rotation=70, ha="right", fontsize=6)
+    axis.set_yticks(range(n), names, fontsize=6)
+    axis.set_xlabel("seat 1", fontsize=8)
+    axis.set_ylabel("seat 0", fontsize=8)
+    figure.colorbar(image, ax=axis, fraction=0.04, pad=0.02).set_label("deliveries per episode", fontsize=8)
+    axis.set_title(f"Convention x convention: {grids}", fontsize=9)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+    return path
+
+
 def read_scalar(run: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
     """(env steps, values) of one scalar a run logged to CSV (`loggers` holds csv), e.g. "charts/shaped_return";
     empty arrays where it was not logged."""

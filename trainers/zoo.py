@@ -4,6 +4,7 @@
     kitchen-zoo draw --candidates 8 --keep 4 --strangers 2 --levels 8 --table-heldout 4 --out /tmp/zoo   # tiny
     kitchen-zoo show configs/zoo/zoo.yaml                # its conventions, one a line
     kitchen-zoo save cook_0_136 --run-dir runs/zoo       # a cook as a run kitchen-eval and kitchen-play read
+    kitchen-zoo clash configs/zoo/zoo.yaml --heldout 20  # convention x convention cross-play: do they clash?
 
 `draw` draws `candidates` conventions from `seed` (`torch_kitchen.conventions.draw_convention`), plays each with
 itself on `levels` generated *training* levels of the zoo's seed (never a held-out one), and drops those that do
@@ -11,11 +12,16 @@ not cook: two of a convention must deliver in at least `min_cooked` of the level
 low return). Each cook's event counts per episode (`torch_kitchen.events`) make its profile; of the cooks, `keep`
 are chosen whose profiles lie apart, greedily by the determinant of their similarity (an RBF kernel over the
 profiles standardised per event, as ZSC-Eval keeps its partners by the determinant of their event-count similarity),
-and one in every `keep // strangers` of them in the order chosen becomes a held-out *stranger*: no shipped config
-trains with one (`tests/trainers/test_zoo.py`), and a training config that names one is refused. The rest are the
-conventions to train with. The zoo file (`zoo.yaml`) holds the conventions, their split and their measurements,
-and the generator and kitchen size the levels came from; its table (`zoo.md`) shows each convention's self-play on
-the 5 expanded layouts and the held-out levels, its events and its role, written by the same command.
+`strangers` of them held-out *strangers* and the rest conventions to train with. Which conventions may be strangers
+is decided by content: one in four of all conventions, by their fingerprint (`stranger_by_content`), can only ever
+be a stranger, so a second draw, with any seed or `--strangers`, never trains with a stranger of the first. No shipped
+config trains with a stranger (`tests/trainers/test_zoo.py`), a training config that names one is refused, and
+`kitchen-eval` refuses to seat a team beside a convention it met. `clash` (and `draw`, on `--clash-heldout` levels)
+plays every convention beside every other, both seats, and says whether they clash: whether a convention delivers less
+beside the others than beside itself, with an interval over the conventions. The zoo file (`zoo.yaml`) holds the
+conventions, their split and their measurements, and the generator and kitchen size the levels came from; its table
+(`zoo.md`) shows each convention's self-play on the 5 expanded layouts and the held-out levels, its events and its
+role, and the clash table, written by the same command.
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from __future__ import annotations
 import argparse
 import random
 import sys
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -51,8 +58,11 @@ from torch_kitchen.scripted import SCRIPTED_COOK
 from trainers.checkpoint import LATEST, model_identity, save_checkpoint
 from trainers.composer import save_config
 from trainers.config import ConfigError, TrainConfig
-from trainers.evaluation.pairs import SP, Matchup, evaluation_grids, is_heldout, play
+from trainers.evaluation.intervals import interval, mean, verdict
+from trainers.evaluation.pairs import SP, XP, Matchup, evaluation_grids, is_heldout, play
+from trainers.evaluation.tables import grid_groups, write_csv
 from trainers.evaluation.teams import convention_team
+from trainers.figures import draw_clash_heatmap
 from trainers.levels import sample_batch
 
 
@@ -70,23 +80,41 @@ def similarity(profiles: np.ndarray) -> np.ndarray:
     return np.exp(-distances / (2 * profiles.shape[1]))
 
 
-def select_diverse(profiles: np.ndarray, keep: int) -> list[int]:
+def select_diverse(profiles: np.ndarray, keep: int, pools: np.ndarray | None = None,
+                   quotas: dict[int, int] | None = None) -> list[int]:
     """Indices of `keep` profiles in the order chosen: first the one furthest from the mean, then each time the one
-    that makes the determinant of the chosen ones' similarity largest (a greedy volume of their spread)."""
+    that makes the determinant of the chosen ones' similarity largest (a greedy volume of their spread). With
+    `pools` (an int per profile) and `quotas` (pool -> how many), at most that many of each pool."""
+    pools = np.zeros(len(profiles), dtype=int) if pools is None else np.asarray(pools)
+    quotas = quotas or {0: keep}
+    open_ = [i for i in range(len(profiles)) if quotas.get(int(pools[i]), 0) > 0]
+    if not open_:
+        return []
     kernel = similarity(profiles)
-    chosen = [int(((profiles - profiles.mean(0)) ** 2).sum(1).argmax())]
+    spread = ((profiles - profiles.mean(0)) ** 2).sum(1)
+    chosen = [max(open_, key=lambda i: spread[i])]
     while len(chosen) < min(keep, len(profiles)):
+        taken = Counter(int(pools[i]) for i in chosen)
         best, best_logdet = None, -np.inf
         for candidate in range(len(profiles)):
-            if candidate in chosen:
+            if candidate in chosen or taken[int(pools[candidate])] >= quotas.get(int(pools[candidate]), 0):
                 continue
             rows = [*chosen, candidate]
             sign, logdet = np.linalg.slogdet(kernel[np.ix_(rows, rows)])
             logdet = logdet if sign > 0 else -np.inf
             if best is None or logdet > best_logdet:
                 best, best_logdet = candidate, logdet
+        if best is None:
+            break  # every pool's quota met, or no candidate left in an open one
         chosen.append(best)
     return chosen
+
+
+def stranger_by_content(convention: Convention) -> bool:
+    """Whether a convention can only ever be a held-out stranger: a quarter of all conventions, by their fingerprint
+    (how they play, not their name or the draw that found them), so that no zoo file, however drawn, trains with a
+    convention another one holds out."""
+    return int(convention.fingerprint, 16) % STRANGER_SHARE == 0
 
 
 def mean_similarity(profiles: np.ndarray) -> float:
@@ -94,6 +122,9 @@ def mean_similarity(profiles: np.ndarray) -> float:
     kernel = similarity(profiles)
     n = len(profiles)
     return float((kernel.sum() - n) / max(n * (n - 1), 1))
+
+
+STRANGER_SHARE = 4  # one convention in four, by content, is a stranger (`stranger_by_content`)
 
 
 # ------------------------------------------------------------------------------------------------- drawing
@@ -130,20 +161,96 @@ def draw_zoo(seed: int = 0, candidates: int = 96, keep: int = 32, strangers: int
                           f"{min_cooked:.0%} of {levels} levels), fewer than keep={keep}: draw more candidates")
     mean_events = events.mean(1)  # [n, E]
     profiles = event_profiles(mean_events[cooks])
-    order = select_diverse(profiles, keep)
-    step = max(1, keep // max(strangers, 1))
+    pools = np.array([stranger_by_content(drawn[i]) for i in cooks], dtype=int)  # 1: a stranger's pool
+    if (pools == 0).sum() < keep - strangers or (pools == 1).sum() < strangers:
+        raise ConfigError(f"of the {len(cooks)} conventions that cook, {(pools == 0).sum()} may train and "
+                          f"{(pools == 1).sum()} are strangers by content, for keep={keep} with strangers={strangers}: "
+                          "draw more candidates")
+    order = select_diverse(profiles, keep, pools, {0: keep - strangers, 1: strangers})
     random_pick = np.random.default_rng(seed)
     random_similarity = np.mean([mean_similarity(profiles[random_pick.choice(len(cooks), keep, replace=False)])
                                  for _ in range(100)])
     members = []
-    for position, chosen in enumerate(order):
+    for chosen in order:
         i = cooks[chosen]
-        split = STRANGER if strangers and position % step == step - 1 and position // step < strangers else TRAIN
+        split = STRANGER if pools[chosen] else TRAIN
         members.append(ZooMember(drawn[i], split, float(deliveries[i].mean()), float(cooked[i]),
                                  dict(zip(EVENTS, map(float, mean_events[i])))))
     return Zoo(seed, kitchen_size, generator_settings(kitchen_size), members, drawn=candidates, levels=levels,
                similarity={"kept": round(mean_similarity(profiles[order]), 4),
                            "random": round(float(random_similarity), 4), "cooks": len(cooks)})
+
+
+# ------------------------------------------------------------------------------------------------- clashes
+def cross_play(conventions: Sequence[Convention], grids: list, rollouts: int, seed: int, max_envs: int,
+               workers: int, progress: bool, max_steps: int = 256) -> tuple[np.ndarray, list[str]]:
+    """(deliveries [n, n, groups], the groups' names): convention i in seat 0 beside convention j in seat 1, mean
+    deliveries per episode on each grid group (each classic layout, then the held-out levels together)."""
+    obs_shape = (*grids[0].shape, 26)
+    teams = [convention_team(convention, obs_shape) for convention in conventions]
+    n = len(teams)
+    matchups = [Matchup(i, j, SP if i == j else XP) for i in range(n) for j in range(n)]
+    outcomes = play(teams, matchups, grids, rollouts, max_steps, max_envs, seed, progress=progress, workers=workers)
+    groups = grid_groups(outcomes)
+    per_grid = outcomes.deliveries.mean(-1)  # [n * n, G]
+    by_group = [per_grid[:, [g for g, grid in enumerate(grids) if grid.name in names]].mean(1) for _, names in groups]
+    return np.stack(by_group, axis=1).reshape(n, n, len(groups)), [name for name, _ in groups]
+
+
+def same_minus_cross(deliveries: np.ndarray) -> np.ndarray:
+    """float [n]: each convention with itself minus its mean with the others (either seat), from deliveries [n, n]."""
+    n = len(deliveries)
+    off = ~np.eye(n, dtype=bool)
+    cross = ((deliveries * off).sum(1) + (deliveries * off).sum(0)) / (2 * (n - 1))
+    return np.diag(deliveries) - cross
+
+
+def clash_rows(deliveries: np.ndarray, groups: list[str]) -> list[dict]:
+    """Per grid group: same-convention and cross-convention mean deliveries and the difference over conventions
+    (each convention's own, `same_minus_cross`), with its 95% bootstrap interval over the conventions, and whether
+    the conventions clash there (cross below same: the interval above 0)."""
+    rows = []
+    for g, group in enumerate(groups):
+        matrix = deliveries[..., g]
+        gap = interval(same_minus_cross(matrix)[:, None], mean)
+        off = ~np.eye(len(matrix), dtype=bool)
+        rows.append({"grids": group, "same": float(np.diag(matrix).mean()), "cross": float(matrix[off].mean()),
+                     "difference": gap.value, "low": gap.low, "high": gap.high, "clash": verdict(gap)})
+    return rows
+
+
+def clash_table(rows: list[dict], conventions: int) -> str:
+    lines = [
+        f"Cross-play between the {conventions} conventions (each in seat 0 beside each in seat 1): with itself "
+        "(same) against with the others (cross), mean deliveries per episode; the difference is each convention's "
+        "own (with itself minus with the others), averaged, [95% bootstrap interval over the conventions]. The "
+        "conventions clash where cross lies below same: the interval above 0.",
+        "",
+        "| grids | same convention | cross convention | same - cross | cross below same |",
+        "|---|---:|---:|---:|---|",
+    ]
+    lines += [f"| {row['grids']} | {row['same']:.2f} | {row['cross']:.2f} | {row['difference']:+.2f} "
+              f"[{row['low']:+.2f}, {row['high']:+.2f}] | {row['clash']} |" for row in rows]
+    return "\n".join(lines) + "\n"
+
+
+def clash(zoo: Zoo, out: Path, heldout: int, rollouts: int, seed: int, workers: int, progress: bool) -> str:
+    """The zoo's convention x convention cross-play on the classic layouts and `heldout` held-out levels: writes
+    clash.csv (every pair and grid group) and heatmap_clash.png (the held-out levels, or the last group), returns
+    the table."""
+    size = zoo.kitchen_size
+    layouts = list(EXPANDED_LAYOUTS) if size == 7 else list(padded_layouts(size))
+    conventions = [member.convention for member in zoo.members]
+    deliveries, groups = cross_play(conventions, evaluation_grids(layouts, heldout, size), rollouts, seed, 4096,
+                                    workers, progress)
+    names = [f"{m.name}*" if m.split == STRANGER else m.name for m in zoo.members]
+    out.mkdir(parents=True, exist_ok=True)
+    write_csv([{"seat0": zoo.members[i].name, "seat1": zoo.members[j].name, "grids": group,
+                "deliveries": round(float(deliveries[i, j, g]), 4)}
+               for i in range(len(names)) for j in range(len(names)) for g, group in enumerate(groups)],
+              out / "clash.csv")
+    draw_clash_heatmap(names, deliveries[..., -1], groups[-1], out / "heatmap_clash.png")
+    return clash_table(clash_rows(deliveries, groups), len(names))
 
 
 # -------------------------------------------------------------------------------------------------- table
@@ -212,8 +319,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     draw.add_argument("--kitchen-size", type=int, default=7, choices=GENERATOR_SIZES)
     draw.add_argument("--table-heldout", type=int, default=100, help="held-out levels in the table")
     draw.add_argument("--table-rollouts", type=int, default=2, help="episodes per grid in the table")
+    draw.add_argument("--clash-heldout", type=int, default=20,
+                      help="held-out levels of the convention x convention cross-play (0: the classic layouts only)")
     draw.add_argument("--workers", type=int, default=1, help="processes that play at once")
     draw.add_argument("--out", default=str(Path(ZOO_FILE).parent), help="folder of zoo.yaml and zoo.md")
+    clashes = verbs.add_parser("clash", help="convention x convention cross-play of a zoo: clash.md, .csv and heat map")
+    clashes.add_argument("zoo", nargs="?", default=ZOO_FILE)
+    clashes.add_argument("--heldout", type=int, default=20, help="held-out levels beside the classic layouts")
+    clashes.add_argument("--rollouts", type=int, default=1, help="episodes per pair and grid")
+    clashes.add_argument("--seed", type=int, default=0)
+    clashes.add_argument("--workers", type=int, default=1, help="processes that play at once")
+    clashes.add_argument("--out", default="results/clash", help="folder of clash.md, clash.csv, heatmap_clash.png")
     show = verbs.add_parser("show", help="print a zoo file's conventions")
     show.add_argument("zoo", nargs="?", default=ZOO_FILE)
     save = verbs.add_parser("save", help="save cooks of a zoo as runs that kitchen-eval and kitchen-play read")
@@ -233,6 +349,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             for name in args.names:
                 print(f"wrote {save_cook(zoo.convention(name), args.run_dir, zoo.kitchen_size)}")
             return 0
+        if args.verb == "clash":
+            out = Path(args.out)
+            table = clash(load_zoo(args.zoo), out, args.heldout, args.rollouts, args.seed, args.workers, True)
+            (out / "clash.md").write_text(f"# Convention x convention: {args.zoo}\n\n" + table
+                                          + "\n![convention x convention](heatmap_clash.png)\n")
+            print(table)
+            print(f"wrote {out / 'clash.md'}, {out / 'clash.csv'}, {out / 'heatmap_clash.png'}")
+            return 0
         if not 0 <= args.strangers <= args.keep <= args.candidates:
             raise ConfigError(f"need 0 <= strangers <= keep <= candidates, got {args.strangers}, {args.keep}, "
                               f"{args.candidates}")
@@ -240,10 +364,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                        args.min_cooked, workers=args.workers)
         table = zoo_table(zoo, args.table_heldout, args.table_rollouts, args.seed, 4096, args.workers, True)
         out = Path(args.out)
+        table += ("\n## Do the conventions clash?\n\n"
+                  + clash(zoo, out, args.clash_heldout, 1, args.seed, args.workers, True)
+                  + "\n![convention x convention](heatmap_clash.png)\n")
         print(f"wrote {save_zoo(zoo, out / 'zoo.yaml')}")
         (out / "zoo.md").write_text(f"# The zoo\n\n`kitchen-zoo draw --seed {args.seed} --candidates "
                                     f"{args.candidates} --keep {args.keep} --strangers {args.strangers} --levels "
-                                    f"{args.levels}`\n\n" + table)
+                                    f"{args.levels} --clash-heldout {args.clash_heldout}`\n\n" + table)
         print(table)
         print(f"wrote {out / 'zoo.md'}")
     except (ConfigError, ConventionError) as error:

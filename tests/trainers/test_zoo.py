@@ -6,9 +6,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from scripted_cook import TWO_BOOTHS
 from tensordict import TensorDict
 from test_ppo import tiny_config
 
+from jax_env import load_layout, save_layout
 from jax_env.generator import heldout_grids
 from torch_kitchen.conventions import (
     STRANGER,
@@ -35,7 +37,15 @@ from trainers.evaluation import main as eval_main
 from trainers.ppo import train
 from trainers.rollout import make_collector
 from trainers.train_command import main as train_main
-from trainers.zoo import draw_zoo, select_diverse, zoo_levels
+from trainers.zoo import (
+    clash_rows,
+    cross_play,
+    draw_zoo,
+    same_minus_cross,
+    select_diverse,
+    stranger_by_content,
+    zoo_levels,
+)
 from trainers.zoo import main as zoo_main
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -56,14 +66,41 @@ def test_the_diverse_selection_takes_the_profiles_furthest_apart_first():
     assert set(chosen) == {2, 3} | {chosen[2]} and chosen[2] in (0, 1, 4)  # the two corners, then one of the middle
 
 
+def test_conventions_clash_where_each_plays_better_with_itself_than_with_the_others():
+    # A crafted pair that clashes: each delivers 4 with itself, 1 beside the other (either seat); and one that
+    # does not (2 whoever sits beside whom).
+    clashing = np.array([[4.0, 1.0], [1.0, 4.0]])
+    np.testing.assert_allclose(same_minus_cross(clashing), [3.0, 3.0])
+    [row] = clash_rows(clashing[..., None], ["held-out (1)"])
+    assert (row["same"], row["cross"], row["difference"], row["clash"]) == (4.0, 1.0, 3.0, "holds")
+    [row] = clash_rows(np.full((2, 2, 1), 2.0), ["held-out (1)"])
+    assert row["difference"] == 0 and row["clash"] == "inconclusive"
+    # Asymmetric seats count both ways: with the others means in either seat.
+    np.testing.assert_allclose(same_minus_cross(np.array([[4.0, 2.0], [0.0, 3.0]])), [3.0, 2.0])
+
+
+def test_cross_play_seats_every_convention_beside_every_other_in_both_seats(tmp_path):
+    booths = load_layout(save_layout(TWO_BOOTHS, str(tmp_path / "two_booths.txt")))
+    deliveries, groups = cross_play(TEACHERS[:2], [booths], rollouts=1, seed=0, max_envs=8, workers=1,
+                                    progress=False)
+    assert deliveries.shape == (2, 2, 1) and groups == ["two_booths"]
+    assert (deliveries == deliveries[0, 0, 0]).all() and deliveries[0, 0, 0] > 0  # each cooks in its own booth
+
+
 def test_a_zoo_is_drawn_the_same_for_a_seed_on_its_training_levels():
-    first, again = (draw_zoo(seed=5, candidates=6, keep=2, strangers=1, levels=4, min_cooked=0.5, max_steps=128,
+    first, again = (draw_zoo(seed=0, candidates=6, keep=2, strangers=1, levels=4, min_cooked=0.5, max_steps=128,
                              progress=False) for _ in range(2))
     assert first == again and len(first.members) == 2
     assert [m.split for m in first.members] == [TRAIN, STRANGER] and first.strangers[0] not in first.training
     assert all(member.cooked >= 0.5 for member in first.members) and first.similarity["cooks"] >= 2
+    # The split is by content: drawn again from the same seed with no strangers asked for, the first draw's stranger
+    # is still no training convention (a quarter of all conventions can only ever be strangers).
+    again_without = draw_zoo(seed=0, candidates=6, keep=2, strangers=0, levels=4, min_cooked=0.5, max_steps=128,
+                             progress=False)
+    assert all(stranger_by_content(c) for c in first.strangers) and len(again_without.training) == 2
+    assert not fingerprints(first.strangers).keys() & fingerprints(again_without.training).keys()
     held_out = {grid.tobytes() for grid in np.asarray(heldout_grids())}
-    assert not any(level.grid.tobytes() in held_out for level in zoo_levels(5, 64, 7))  # never a held-out grid
+    assert not any(level.grid.tobytes() in held_out for level in zoo_levels(0, 64, 7))  # never a held-out grid
 
 
 def test_the_shipped_zoo_holds_diverse_cooks_and_no_shipped_config_trains_with_a_stranger():
