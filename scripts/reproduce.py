@@ -92,27 +92,39 @@ def condition_entry(entry: str | dict) -> tuple[str, list[str]]:
     return entry["config"], overrides
 
 
-def with_best_responses(protocol: dict) -> dict:
-    """The protocol with a condition per held-out stranger of each section that asks for best responses
-    (`best_responses: {config:, overrides:}` beside its `strangers` zoo): "best_response_<stranger>", one team
-    trained beside that stranger alone in every kitchen (algorithm zoo_ippo), the section's `best_responses`
-    then naming stranger -> condition. They are evaluation instruments: trained with their section, never among the
-    teams it evaluates."""
-    if not any("best_responses" in section for section in protocol.get("sections", {}).values()):
+# The evaluation instruments a strangers section may train, one run per held-out stranger: the overrides that make
+# a run of the section's `best_responses` or `learned_strangers` entry ({config:, overrides:}) one for `stranger`.
+INSTRUMENTS = {
+    "best_responses": ("best_response_{}", lambda stranger: [
+        "algorithm=zoo_ippo", f"algorithm_config.best_response_to={stranger}"]),  # IPPO beside it in every kitchen
+    "learned_strangers": ("learned_{}", lambda stranger: [
+        f"distill_teachers=[{stranger}]", "learned_stranger=true", "snapshots=3"]),  # distilled from it, then IPPO
+}
+
+
+def with_instruments(protocol: dict) -> dict:
+    """The protocol with a condition per held-out stranger of each section's `strangers` zoo and instrument it asks
+    for (`INSTRUMENTS`: a best response, for BR-Prox; a learned stranger, a policy distilled from the stranger and
+    trained on, seated as a stranger at a third, two thirds and the end of its training), one team each; the
+    section's entry then names stranger -> condition, and `learned_strangers: {runs: [...]}` adds conditions trained
+    elsewhere (SK teams from scratch, say) as learned strangers where they were trained. Instruments train with
+    their section and are never among the teams it evaluates."""
+    if not any(key in section for section in protocol.get("sections", {}).values() for key in INSTRUMENTS):
         return protocol
     conditions, sections = dict(protocol["conditions"]), {}
     for name, section in protocol["sections"].items():
         sections[name] = section = dict(section)
-        if "best_responses" not in section:
-            continue
-        path, overrides = condition_entry(section["best_responses"])
-        zoo = section["strangers"]
-        section["best_responses"] = {stranger.name: f"best_response_{stranger.name}"
-                                     for stranger in load_zoo(zoo).strangers}
-        for stranger, condition in section["best_responses"].items():
-            conditions[condition] = {"config": path, "overrides": [
-                *overrides, "algorithm=zoo_ippo", f"algorithm_config.best_response_to={stranger}", f"zoo={zoo}",
-                "runtime.teams=1"]}
+        for key, (pattern, own) in INSTRUMENTS.items():
+            if key not in section:
+                continue
+            entry = section[key]
+            path, overrides = condition_entry(entry)
+            zoo = section["strangers"]
+            section[key] = {stranger.name: pattern.format(stranger.name) for stranger in load_zoo(zoo).strangers}
+            for stranger, condition in section[key].items():
+                conditions[condition] = {"config": path, "overrides": [
+                    *overrides, *own(stranger), f"zoo={zoo}", "runtime.teams=1"]}
+            section[key].update({run: run for run in entry.get("runs", [])})
     return {**protocol, "conditions": conditions, "sections": sections}
 
 
@@ -131,11 +143,17 @@ def named_conditions(protocol: dict, sections: list[str] | None, conditions: lis
     unknown = [name for name in sections or [] if name not in known]
     if unknown:
         raise ValueError(f"--sections: {', '.join(unknown)} not in the protocol, which has {', '.join(known)}")
-    # A section's own conditions and those its claims compare it with (trained by another section, reused if there).
-    return [*(name for section in sections or [] for name in (*known[section]["conditions"],
-                                                               *known[section].get("compared", {}).values(),
-                                                               *known[section].get("best_responses", {}).values())),
+    return [*(name for section in sections or [] for name in section_conditions(known[section])),
             *(conditions or [])]
+
+
+def section_conditions(section: dict) -> list[str]:
+    """What a section trains and evaluates: its own conditions, those its claims compare it with (trained by another
+    section, reused if there) and its instruments (a learned stranger trained elsewhere, where its entry is its own
+    name, is reused only)."""
+    instruments = [condition for key in INSTRUMENTS for name, condition in section.get(key, {}).items()
+                   if name != condition]
+    return [*section["conditions"], *section.get("compared", {}).values(), *instruments]
 
 
 def select_conditions(protocol: dict, names: list[str] | None) -> tuple[dict, list[str]]:
@@ -240,6 +258,7 @@ class Section:
     left_out: list[str]
     strangers: str = ""  # a zoo file whose held-out strangers every team plays beside
     best_responses: dict[str, str] | None = None  # stranger -> the condition of its best response (BR-Prox)
+    learned_strangers: dict[str, str] | None = None  # name -> the condition of a learned stranger
     compared: dict[str, str] | None = None  # one_teacher, diverse_teachers, zoo_partners: conditions of the claims
 
 
@@ -264,7 +283,8 @@ def sections_run(full: dict, protocol: dict, entries: dict[str, tuple[str, list[
         responses = {stranger: condition for stranger, condition in section.get("best_responses", {}).items()
                      if condition in protocol["conditions"]}
         sections.append(Section(name, section["title"], conditions, evaluated, families, cross, left_out,
-                                section.get("strangers", ""), responses, section.get("compared", {})))
+                                section.get("strangers", ""), responses, section.get("learned_strangers", {}),
+                                section.get("compared", {})))
     return sections
 
 
@@ -307,6 +327,9 @@ def evaluate_section(section: Section, out: Path, evaluation: dict, device: str,
         human_proxies=str(proxies or ""), strangers=section.strangers,
         best_responses={stranger: str(out / "runs" / condition / "seed0")
                         for stranger, condition in (section.best_responses or {}).items()},
+        learned_strangers={name: str(out / "runs" / condition / "seed*")
+                           for name, condition in (section.learned_strangers or {}).items()
+                           if any((out / "runs" / condition).glob("seed*/checkpoints/latest.pt"))},
         rollouts=evaluation["rollouts"], max_steps=evaluation.get("max_steps", 256), workers=workers,
         heatmaps=evaluation.get("heatmaps", []), runtime=DeviceConfig(device=device),
         out_dir=str(out / "eval" / section.name), progress=False,
@@ -380,7 +403,8 @@ def section_markdown(section: Section, facts: RunFacts, config: TrainConfig, eva
         "time, each in its own process (distillation, collection and updates): "
         + ", ".join(f"{name} reused (trained by an earlier run)" if name in facts.reused
                     else f"{name} {facts.condition_seconds[name] / 60:.1f} min"
-                    for name in dict.fromkeys([*section.evaluated, *(section.best_responses or {}).values()])
+                    for name in dict.fromkeys([*section.evaluated, *(section.best_responses or {}).values(),
+                                               *(section.learned_strangers or {}).values()])
                     if name in facts.condition_seconds)
         + f"; evaluation {eval_seconds / 60:.1f} min ({facts.eval_workers} process"
         f"{'es' if facts.eval_workers > 1 else ''}).",
@@ -516,7 +540,7 @@ def main(argv=None) -> int:
     if args.jobs < 1:
         parser.error(f"--jobs must be at least 1, got {args.jobs}")
     try:
-        full = with_best_responses(yaml.safe_load(Path(args.protocol).read_text()))
+        full = with_instruments(yaml.safe_load(Path(args.protocol).read_text()))
         protocol, _ = select_conditions(full, named_conditions(full, args.sections, args.conditions))
         proxies = None if args.no_human_proxies else proxy_settings(protocol.get("evaluation", {}).get("human_proxies"))
     except OSError as error:

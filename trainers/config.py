@@ -33,7 +33,7 @@ from omegaconf.errors import OmegaConfBaseException
 from jax_env import EXPANDED_LAYOUTS, classify_layout, load_layout
 from jax_env.generator import NUM_HELDOUT_GENERATED, GeneratorConfig
 from jax_env.generator import SIZES as GENERATOR_SIZES
-from torch_kitchen.conventions import TRAIN, ZOO_FILE, Convention, ConventionError, load_zoo
+from torch_kitchen.conventions import STRANGER, TRAIN, ZOO_FILE, Convention, ConventionError, load_zoo
 
 
 class ConfigError(ValueError):
@@ -110,8 +110,8 @@ class RuntimeConfig(DeviceConfig):
 
 
 # What a resumed run may change besides its run options: where it is kept, how long it runs, what it writes.
-RESUMABLE = ("name", "run_dir", "total_steps", "checkpoint_every", "loggers", "progress", "eval_episodes",
-             "eval_heldout", "gif")
+RESUMABLE = ("name", "run_dir", "total_steps", "checkpoint_every", "snapshots", "loggers", "progress",
+             "eval_episodes", "eval_heldout", "gif")
 
 
 @dataclass
@@ -211,12 +211,20 @@ class TrainConfig:
     zoo: str = option(
         ZOO_FILE, "the zoo file (kitchen-zoo) whose training conventions distill_teachers and algorithm zoo_ippo name"
     )
+    learned_stranger: bool = option(
+        False, "a learned stranger: distill_teachers name the zoo's held-out strangers, and the run is an evaluation "
+               "partner (kitchen-eval's learned_strangers), never a team kitchen-eval evaluates"
+    )
 
     # --- logging, checkpoints, final evaluation
     checkpoint_every: int = option(
         10,
         "updates between checkpoints (one is always written at the end)",
         group="logging, checkpoints, final evaluation",
+    )
+    snapshots: int = option(
+        0, "keep a copy of the checkpoint at each k/snapshots of the run's updates (checkpoints/snapshot_<k>.pt; 3: "
+           "FCP's partners at a third, two thirds and the end); 0: none"
     )
     loggers: list[str] = option(
         ["tensorboard", "csv"], f"TorchRL loggers, each under the run directory: {', '.join(LOGGERS)}"
@@ -296,7 +304,12 @@ class TrainConfig:
             name = names[self.seed % len(names)]
         else:
             name = names[random.Random(f"{self.seed}/{round_}").randrange(len(names))]
-        return load_zoo(self.zoo, self.kitchen_size).convention(name, splits=(TRAIN,))
+        return load_zoo(self.zoo, self.kitchen_size).convention(name, splits=self.teacher_splits)
+
+    @property
+    def teacher_splits(self) -> tuple[str, ...]:
+        """The zoo's split `distill_teachers` name: its strangers for a learned stranger, else its training split."""
+        return (STRANGER,) if self.learned_stranger else (TRAIN,)
 
     def check(self) -> TrainConfig:
         """Refuses values no run can use, before any work starts. Touches neither the file system nor the levels:
@@ -309,12 +322,14 @@ class TrainConfig:
         distilling = ["distill_rounds", "distill_kitchens", "distill_epochs", "distill_minibatch"]
         _at_least(self, [*counts, "checkpoint_every", *distilling], 1)
         weights = ["entropy_coef", "value_coef", "shaping_weight"]
-        _at_least(self, ["eval_episodes", "shaping_anneal_steps", *weights], 0)
+        _at_least(self, ["eval_episodes", "snapshots", "shaping_anneal_steps", *weights], 0)
         if sorted(self.distill_move_order) != sorted("NSEW"):
             raise ConfigError(f"distill_move_order must be a permutation of NSEW, got {self.distill_move_order!r}")
         if self.distill_teacher_mix not in TEACHER_MIXES:
             raise ConfigError(f"distill_teacher_mix must be one of {', '.join(TEACHER_MIXES)}, got "
                               f"{self.distill_teacher_mix!r}")
+        if self.learned_stranger and not self.distill_teachers:
+            raise ConfigError("learned_stranger distils from held-out strangers: name them in distill_teachers")
         if self.distill_teachers:
             if self.distill_move_order != "NSEW":
                 raise ConfigError("distill_move_order sets the scripted cook's moves; distill_teachers have their own "
@@ -322,7 +337,7 @@ class TrainConfig:
             try:
                 zoo = load_zoo(self.zoo, self.kitchen_size)
                 for name in self.distill_teachers:
-                    zoo.convention(name, splits=(TRAIN,))
+                    zoo.convention(name, splits=self.teacher_splits)
             except ConventionError as error:
                 raise ConfigError(f"distill_teachers: {error}") from None
         for name in ("lr", "adam_eps", "clip_epsilon", "max_grad_norm", "distill_lr"):
@@ -460,6 +475,10 @@ class EvalConfig:
     best_responses: dict[str, str] = option(
         {}, "held-out stranger -> the run of its best response (kitchen-train algorithm=zoo_ippo "
             "algorithm_config.best_response_to=NAME): the teams are also scored over it (BR-Prox)"
+    )
+    learned_strangers: dict[str, str | list[str]] = option(
+        {}, "name -> runs or globs of learned strangers (policies no evaluated team met: learned_stranger runs, "
+            "whose snapshots each join, or teams trained apart), seated beside every team as the strangers are"
     )
 
     # --- where and how long

@@ -14,6 +14,7 @@ the command line is `trainers.train_command`'s.
 
 from __future__ import annotations
 
+import math
 import signal
 import sys
 import time
@@ -404,15 +405,24 @@ class Progress:
         self.bar.close()
 
 
+def snapshot_index(config: TrainConfig, update: int) -> int:
+    """k where `update` is the k-th of the run's `snapshots` (at k/snapshots of its updates, rounded up); else 0."""
+    points = [math.ceil(k * config.num_updates / config.snapshots) for k in range(1, config.snapshots + 1)]
+    return points.index(update) + 1 if update in points else 0
+
+
 def checkpoint_or_stop(teams: Sequence[TrainingTeam], asked: bool, signum: int | None, total_steps: int) -> bool:
     """After an update: every team checkpointed every `checkpoint_every` updates and at the last (the run's, or
     one `on_update` asked for); returns whether that was the last. RunStopped after a checkpoint where a signal
     came (`signum`)."""
     lead, update = teams[0].config, teams[0].update
     last = update == lead.num_updates or asked or signum is not None
-    if last or update % lead.checkpoint_every == 0:
+    snapshot = snapshot_index(lead, update)
+    if last or update % lead.checkpoint_every == 0 or snapshot:
         for team in teams:
             team.checkpoint()
+            if snapshot:
+                team.snapshot(snapshot)
     if signum is not None:
         steps = sum(team.env_steps for team in teams)
         raise RunStopped(signum, f"stopped by {signal.Signals(signum).name} at update {update} "

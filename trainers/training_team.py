@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import shutil
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -130,6 +131,10 @@ class TrainingTeam:
             "rng": rng,
             "met": dict(sorted(self.met.items())),
         })  # fmt: skip
+
+    def snapshot(self, k: int) -> Path:
+        """A copy of the checkpoint just written, kept as checkpoints/snapshot_<k>.pt (`snapshots`)."""
+        return Path(shutil.copyfile(self.checkpoint_path, self.checkpoint_path.with_name(f"snapshot_{k}.pt")))
 
 
 def team_configs(config: TrainConfig) -> list[TrainConfig]:

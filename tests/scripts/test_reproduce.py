@@ -185,31 +185,41 @@ def test_a_distilled_sections_budget_is_set_beside_the_main_jobs():
     assert "main job" not in reproduce.budget(load_config(ROOT / "configs/ippo/mlp_ik.yaml"), teams=3)
 
 
-def test_a_strangers_section_trains_a_best_response_per_stranger_and_never_evaluates_it(tmp_path, monkeypatch):
+def test_a_strangers_section_trains_its_instruments_per_stranger_and_never_evaluates_them(tmp_path, monkeypatch):
     members = [ZooMember(Convention(name=name, role=role), STRANGER, 1.0, 1.0, {})
                for name, role in (("server", "server"), ("loader", "loader"))]
     zoo = str(save_zoo(Zoo(0, 7, generator_settings(7), members), tmp_path / "zoo.yaml"))
-    protocol = reproduce.with_best_responses({
+    protocol = reproduce.with_instruments({
         "conditions": {"ik": "a.yaml", "sk": "b.yaml", "other": "c.yaml"},
         "families": {"MLP": {"ik": "ik", "sk": []}},
         "sections": {"strangers": {"title": "S", "conditions": ["ik", "sk"], "strangers": zoo,
-                                   "best_responses": {"config": "a.yaml", "overrides": [["hidden=8"], "lr=0.1"]}},
+                                   "best_responses": {"config": "a.yaml", "overrides": [["hidden=8"], "lr=0.1"]},
+                                   "learned_strangers": {"config": "a.yaml", "runs": ["other"]}},
                      "plain": {"title": "P", "conditions": ["other"]}}})
-    assert protocol["sections"]["strangers"]["best_responses"] == {"server": "best_response_server",
-                                                                   "loader": "best_response_loader"}
+    section = protocol["sections"]["strangers"]
+    assert section["best_responses"] == {"server": "best_response_server", "loader": "best_response_loader"}
+    assert section["learned_strangers"] == {"server": "learned_server", "loader": "learned_loader", "other": "other"}
     assert protocol["conditions"]["best_response_loader"] == {"config": "a.yaml", "overrides": [
         "hidden=8", "lr=0.1", "algorithm=zoo_ippo", "algorithm_config.best_response_to=loader", f"zoo={zoo}",
         "runtime.teams=1"]}
-    # Trained with the section (one team each: a condition's own count comes after the protocol's), never evaluated.
-    assert reproduce.named_conditions(protocol, ["strangers"], None) == ["ik", "sk", "best_response_server",
-                                                                         "best_response_loader"]
+    assert protocol["conditions"]["learned_server"]["overrides"] == [
+        "distill_teachers=[server]", "learned_stranger=true", "snapshots=3", f"zoo={zoo}", "runtime.teams=1"]
+    # Trained with the section (one team each: a condition's own count comes after the protocol's), never
+    # evaluated; a learned stranger trained by another section ("other") is reused where it was, never trained here.
+    assert reproduce.named_conditions(protocol, ["strangers"], None) == [
+        "ik", "sk", "best_response_server", "best_response_loader", "learned_server", "learned_loader"]
     assert reproduce.condition_overrides("br", ["runtime.teams=1"], 5, tmp_path)[:2] == ["runtime.teams=5",
                                                                                           "runtime.teams=1"]
     [section] = [s for s in reproduce.sections_run(protocol, protocol, {}) if s.name == "strangers"]
     assert section.evaluated == ["ik", "sk"] and section.best_responses["server"] == "best_response_server"
+    for trained in ("learned_loader", "other"):
+        (tmp_path / "runs" / trained / "seed0" / "checkpoints").mkdir(parents=True)
+        (tmp_path / "runs" / trained / "seed0" / "checkpoints" / "latest.pt").touch()
     seen = {}
     monkeypatch.setattr(reproduce, "evaluate", lambda config: seen.setdefault("config", config))
     reproduce.evaluate_section(section, tmp_path, {"heldout": 1, "rollouts": 1}, "cpu", None, 1)
     assert seen["config"].best_responses == {name: str(tmp_path / "runs" / f"best_response_{name}" / "seed0")
                                              for name in ("server", "loader")}
+    assert seen["config"].learned_strangers == {name: str(tmp_path / "runs" / condition / "seed*") for name, condition
+                                                in (("loader", "learned_loader"), ("other", "other"))}
     assert set(seen["config"].conditions) == {"ik", "sk"}

@@ -1,6 +1,7 @@
 """The zoo: diverse conventions drawn deterministically, strangers held out of training, teams trained beside zoo
 cooks (zoo_ippo) and distilled from several teachers, each resumed bit for bit."""
 
+import csv
 from pathlib import Path
 
 import numpy as np
@@ -120,6 +121,8 @@ def test_the_shipped_zoo_holds_diverse_cooks_and_no_shipped_config_trains_with_a
 @pytest.mark.parametrize("overrides, words", [
     (["distill_teachers=[stranger]"], "'stranger' is a held-out stranger of the zoo"),
     (["distill_teachers=[nobody]"], "the zoo has no convention 'nobody'"),
+    (["learned_stranger=true"], "learned_stranger distils from held-out strangers: name them in distill_teachers"),
+    (["learned_stranger=true", "distill_teachers=[loader]"], "'loader' is a training convention of the zoo"),
     (["algorithm=zoo_ippo", "algorithm_config.zoo_conventions=[stranger]"], "'stranger' is a held-out stranger"),
     (["kitchen_size=9", "distill_teachers=[loader]"], "drawn for 7x7 kitchens, not 9x9"),
     (["algorithm=zoo_ippo", "algorithm_config.best_response_to=loader"], "'loader' is a training convention"),
@@ -224,8 +227,40 @@ def test_a_team_is_never_scored_beside_a_convention_it_met_whatever_zoo_file_or_
                       "cross=[]", "gifs=[]"])
     error = capsys.readouterr().err
     assert code == 2 and error.count("\n") == 1, error
-    assert "child/seed0 trained with the convention 'loader', which is the held-out stranger 'cook_9_001'" in error
+    assert "child/seed0 trained with the convention 'loader', which the stranger 'cook_9_001' of " in error
     assert not out.exists()  # nothing written
+
+
+def test_a_learned_stranger_distils_a_stranger_keeps_fcp_snapshots_and_sits_only_beside_teams(tmp_path, zoo_file,
+                                                                                              capsys):
+    # Distilled from a held-out stranger, then IPPO, its checkpoint kept at a third, two thirds and the end.
+    stranger = train(tiny_config(tmp_path / "learned", f"zoo={zoo_file}", "init_from=scripted_cook",
+                                 "distill_rounds=1", "distill_epochs=1", "distill_teachers=[stranger]",
+                                 "learned_stranger=true", "snapshots=3", "name=learned", updates=4))
+    snapshots = sorted((stranger / "checkpoints").glob("snapshot_*.pt"))
+    assert [load_checkpoint(path)["update"] for path in snapshots] == [2, 3, 4]  # 4 updates: ceil(4k/3)
+    assert load_checkpoint(stranger)["met"] == fingerprints([Convention(name="stranger", handover="avoid")])
+    team = train(tiny_config(tmp_path / "team", "name=team", updates=1))
+    out = tmp_path / "eval"
+    common = ["configs/eval/paper.yaml", "layouts=[cramped_room_7x7]", "heldout=0", "rollouts=1", "max_steps=16",
+              "partner=false", "progress=false", "cross=[]", "gifs=[]", "heatmaps=[]"]
+    assert eval_main([*common, f"conditions={{team: {team}}}", f"learned_strangers={{learned: {stranger}}}",
+                      f"out_dir={out}"]) == 0
+    with open(out / "learned_strangers_pairs.csv") as handle:
+        met = {row["stranger"] for row in csv.DictReader(handle)}
+    assert met == {"learned/seed0@1of3", "learned/seed0@2of3", "learned/seed0@3of3"}
+    assert "With the learned strangers (3: learned/seed0@1of3" in (out / "eval.md").read_text()
+    # Never a team to evaluate; nor seated beside a team that learned from the convention it learned from.
+    twin = train(tiny_config(tmp_path / "twin", f"zoo={zoo_file}", "algorithm=zoo_ippo", "levels=infinite",
+                             "algorithm_config.best_response_to=stranger", "name=twin", updates=1))
+    for conditions, words in [(f"{{learned: {stranger}}}", "learned/seed0 is a learned stranger"),
+                              (f"{{twin: {twin}}}", "twin/seed0 trained with the convention 'stranger', which the "
+                                                    "stranger 'learned/seed0@1of3' of learned_strangers")]:
+        assert eval_main([*common, f"conditions={conditions}", f"learned_strangers={{learned: {stranger}}}",
+                          f"out_dir={tmp_path / 'refused'}"]) == 2
+        error = capsys.readouterr().err
+        assert words in error and error.count("\n") == 1, error
+        assert not (tmp_path / "refused").exists()
 
 
 def test_a_cook_of_the_zoo_is_saved_and_loaded_as_a_team_with_its_convention(tmp_path, zoo_file, capsys):

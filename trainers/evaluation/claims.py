@@ -44,16 +44,17 @@ class SeedScores:
     `strangers` for the pairs with held-out strangers (`strangers_pairs.csv`). Seeds are ordered by team name, so
     two kinds of score of one condition line up seed by seed."""
 
-    def __init__(self, seeds: list[dict], stranger_pairs: list[dict] = ()):
+    def __init__(self, seeds: list[dict], stranger_pairs: list[dict] = (), learned_pairs: list[dict] = ()):
         self._scores: dict[tuple[str, str, str, str], dict[str, float]] = {}
         for row in seeds:
             key = (row["condition"], row["grids"], row["kind"], row.get("with") or "")
             self._scores.setdefault(key, {})[row["team"]] = float(row["deliveries"])
-        self._strangers: dict[tuple[str, str, str], dict[str, dict[str, list[float]]]] = {}
-        for row in stranger_pairs:
-            for key in ("deliveries", "normalised", "over_best_response"):
-                by_team = self._strangers.setdefault((row["condition"], row["grids"], key), {})
-                by_team.setdefault(row["team"], {}).setdefault(row["stranger"], []).append(float(row[key]))
+        self._strangers: dict[tuple[str, str, str, bool], dict[str, dict[str, list[float]]]] = {}
+        for learned, rows in ((False, stranger_pairs), (True, learned_pairs)):
+            for row in rows:
+                for key in ("deliveries", "normalised", "over_best_response"):
+                    by_team = self._strangers.setdefault((row["condition"], row["grids"], key, learned), {})
+                    by_team.setdefault(row["team"], {}).setdefault(row["stranger"], []).append(float(row[key]))
 
     @classmethod
     def read(cls, eval_dir: str | Path) -> SeedScores:
@@ -66,7 +67,7 @@ class SeedScores:
             with open(path) as handle:
                 return list(csv.DictReader(handle))
 
-        return cls(rows("seeds.csv"), rows("strangers_pairs.csv"))
+        return cls(rows("seeds.csv"), rows("strangers_pairs.csv"), rows("learned_strangers_pairs.csv"))
 
     @property
     def heldout(self) -> str | None:
@@ -90,11 +91,13 @@ class SeedScores:
             return None
         return np.stack(columns, axis=1)
 
-    def strangers(self, condition: str, grids: str, key: str = "deliveries") -> tuple[np.ndarray, list[str]] | None:
-        """(float [seeds, strangers], the strangers' names): each seed's `key` beside each stranger, both seats
-        averaged, over the strangers where it is defined (the normalised score leaves out a stranger that never
-        delivers with itself); None where no stranger sat beside the condition there."""
-        by_team = self._strangers.get((condition, grids, key))
+    def strangers(self, condition: str, grids: str, key: str = "deliveries", learned: bool = False
+                  ) -> tuple[np.ndarray, list[str]] | None:
+        """(float [seeds, strangers], the strangers' names): each seed's `key` beside each held-out stranger (the
+        learned strangers with `learned`), both seats averaged, over the strangers where it is defined (the
+        normalised score leaves out a stranger that never delivers with itself); None where no stranger sat beside
+        the condition there."""
+        by_team = self._strangers.get((condition, grids, key, learned))
         if not by_team:
             return None
         names = sorted({name for scores in by_team.values() for name in scores})
@@ -248,11 +251,13 @@ def beyond_teacher(scores: SeedScores, ik: str) -> list[Row]:
     return rows
 
 
-def beats_beside_strangers(scores: SeedScores, ik: str, sk: dict[str, str]) -> list[Row]:
-    """IK against SK beside the held-out strangers on each layout: tasks are layout x stranger."""
+def beats_beside_strangers(scores: SeedScores, ik: str, sk: dict[str, str], learned: bool = False) -> list[Row]:
+    """IK against SK beside the held-out strangers (the learned strangers with `learned`) on each layout: tasks are
+    layout x stranger."""
     firsts, seconds = [], []
     for layout, condition in sk.items():
-        first, second = scores.strangers(ik, layout), scores.strangers(condition, layout)
+        first, second = scores.strangers(ik, layout, learned=learned), scores.strangers(condition, layout,
+                                                                                       learned=learned)
         if first is None or second is None or first[1] != second[1]:
             return []
         firsts.append(first[0])
@@ -263,7 +268,8 @@ def beats_beside_strangers(scores: SeedScores, ik: str, sk: dict[str, str]) -> l
     per_layout = [difference(a, b) for a, b in zip(firsts, seconds)]
     each = "; ".join(f"{layout_name(layout)} {mean(a):.2f} vs {mean(b):.2f}: {signed(g)}"
                      for layout, a, b, g in zip(sk, firsts, seconds, per_layout))
-    return [("IK beats SK beside held-out strangers on the 5 layouts (Fig. 3a, with partners no team saw)",
+    kind = "learned strangers (policies)" if learned else "held-out strangers (scripted)"
+    return [(f"IK beats SK beside {kind} on the 5 layouts (Fig. 3a, with partners no team saw)",
              f"IK - SK, mean over {len(sk)} layouts x {firsts[0].shape[1]} strangers: {signed(gap)} "
              f"({seeds(firsts[0], seconds[0])}); {each}",
              f"{verdict(gap)}; per layout {counted([verdict(g) for g in per_layout], 'layouts')}")]
@@ -320,7 +326,8 @@ def stranger_claims(scores: SeedScores, families: dict, compared: dict) -> list[
     rows = []
     for family, (ik, sk, learner, _) in families.items():
         if sk:
-            rows += [(family, learner, row) for row in beats_beside_strangers(scores, ik, sk)]
+            rows += [(family, learner, row) for learned in (False, True)
+                     for row in beats_beside_strangers(scores, ik, sk, learned)]
     if not scores.heldout:
         return rows
     role = {condition: f"compared as {key.replace('_', ' ')}" for key, condition in compared.items()}

@@ -14,7 +14,7 @@ import torch
 from jax_env import EXPANDED_LAYOUTS, load_layout
 from jax_env.generator import SIZES as GENERATOR_SIZES
 from jax_env.layouts import padded_layouts
-from torch_kitchen.conventions import Convention, ConventionError, load_zoo
+from torch_kitchen.conventions import ConventionError, load_zoo
 from trainers.checkpoint import CheckpointError
 from trainers.composer import config_help, load_config, save_config
 from trainers.config import ConfigError, DeviceConfig, EvalConfig
@@ -34,7 +34,9 @@ from trainers.evaluation.tables import (
 )
 from trainers.evaluation.teams import (
     STRANGERS_CONDITION,
+    Team,
     convention_team,
+    load_learned_strangers,
     load_population,
     load_team,
     scripted_cook_team,
@@ -66,15 +68,20 @@ def load_best_responses(runs: dict[str, str], strangers: list[str], evaluated: l
     return found
 
 
-def refuse_met_strangers(teams: list, strangers: list[Convention], zoo_file: str) -> None:
+def refuse_met_strangers(teams: list[Team], strangers: list[Team], where: str) -> None:
     """A team that trained or distilled with a convention (by content: its fingerprint, whatever zoo file it came
-    from or name it had) is never scored beside it as a held-out stranger: a ConfigError in one line."""
+    from or name it had) is never scored beside a stranger that is, or learned from, that convention: a ConfigError
+    in one line. Nor is a learned stranger ever a team to evaluate."""
     for team in teams:
+        if team.config.learned_stranger:
+            raise ConfigError(f"{team.name} is a learned stranger (learned_stranger=true), an evaluation partner "
+                              "rather than a team: give it under learned_strangers")
         for stranger in strangers:
-            if stranger.fingerprint in team.met:
-                raise ConfigError(f"{team.name} trained with the convention {team.met[stranger.fingerprint]!r}, "
-                                  f"which is the held-out stranger {stranger.name!r} of {zoo_file} (fingerprint "
-                                  f"{stranger.fingerprint}): a stranger is a partner no evaluated team met")
+            shared = sorted(stranger.met.keys() & team.met.keys())
+            if shared:
+                raise ConfigError(f"{team.name} trained with the convention {team.met[shared[0]]!r}, which the "
+                                  f"stranger {stranger.name!r} of {where} is or learned from (fingerprint "
+                                  f"{shared[0]}): a stranger is a partner no evaluated team met")
 
 
 def evaluate(config: EvalConfig) -> Path:
@@ -90,9 +97,11 @@ def evaluate(config: EvalConfig) -> Path:
     teams, matchups = make_matchups(population, config.cross, partner)
     proxies = load_human_proxies(config.human_proxies, grids, device) if config.human_proxies else {}
     zoo = load_zoo(config.strangers, config.kitchen_size) if config.strangers else None
-    refuse_met_strangers(evaluated, zoo.strangers if zoo else [], config.strangers)
     strangers = [convention_team(convention, (*grids[0].shape, 26), device, condition=STRANGERS_CONDITION)
                  for convention in (zoo.strangers if zoo else [])]
+    refuse_met_strangers(evaluated, strangers, config.strangers)
+    learned = load_learned_strangers(config.learned_strangers, device)
+    refuse_met_strangers(evaluated, learned, "learned_strangers")
     best_responses = load_best_responses(config.best_responses, [s.name for s in strangers], evaluated, device)
     by_name = {grid.name: grid for grid in grids}
     for heatmap in config.heatmaps:
@@ -129,6 +138,14 @@ def evaluate(config: EvalConfig) -> Path:
         written.append(draw_stranger_heatmap([team.name for team in met.teams], [s.name for s in met.strangers],
                                              np.nanmean(met.normalised[..., -1], axis=2), group,
                                              out / "heatmap_strangers.png"))
+    if learned:
+        met = play_with_strangers(evaluated, learned, grids, config.rollouts, config.max_steps, config.max_envs,
+                                  config.seed, device, config.progress, config.workers)
+        write_csv(stranger_pair_rows(met), out / "learned_strangers_pairs.csv")
+        rows = stranger_rows(met, config.seed)
+        write_csv(rows, out / "learned_strangers.csv")
+        table += "\n" + markdown_strangers(rows, [stranger.name for stranger in learned], config.rollouts,
+                                           kind="learned strangers")
     (out / "eval.md").write_text(table)
     print(table)
     for grid_name in config.heatmaps:

@@ -284,10 +284,11 @@ def stranger_rows(outcomes: StrangerOutcomes, seed: int = 0) -> list[dict]:
     return rows
 
 
-def markdown_strangers(rows: list[dict], strangers: Sequence[str], rollouts: int) -> str:
+def markdown_strangers(rows: list[dict], strangers: Sequence[str], rollouts: int, kind: str = "held-out strangers"
+                       ) -> str:
     with_best = any(row["br_pairs"] for row in rows)
     lines = [
-        f"With the held-out strangers ({len(strangers)}: {', '.join(strangers)}), the team in either seat, "
+        f"With the {kind} ({len(strangers)}: {', '.join(strangers)}), the team in either seat, "
         f"{rollouts} rollouts per pair and grid. With every stranger: mean deliveries over the condition's teams x "
         "strangers x seats. The normalised score leaves out, per grid group, the strangers that never deliver with "
         "themselves there (named): over the others, mean deliveries with them, two of them alone, and normalised, "

@@ -3,6 +3,7 @@ the scripted cook as a team."""
 
 from __future__ import annotations
 
+import dataclasses
 import glob
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +21,7 @@ from trainers.config import ConfigError, RuntimeConfig, TrainConfig
 
 HUMAN_PROXY_RUN = "human_proxy_{grid}/seed0"  # a test grid's human proxy in the `human_proxies` folder
 STRANGERS_CONDITION = "held-out strangers"  # the condition of a zoo's strangers (`trainers.zoo`)
+LEARNED_CONDITION = "learned strangers"  # the condition of policies seated as strangers (`load_learned_strangers`)
 SCRIPTED_CONDITION = "scripted cook"
 
 
@@ -127,6 +129,23 @@ def convention_team(convention: Convention, obs_shape: tuple[int, int, int], dev
     config = TrainConfig(name=convention.name, architecture=SCRIPTED_COOK, runtime=RuntimeConfig(device=device))
     return Team(name or convention.name, condition or convention.name, config, scripted_actor_critic(convention),
                 tuple(obs_shape), "(scripted)", met=fingerprints([convention]))
+
+
+def load_learned_strangers(runs: dict[str, str | list[str]], device: str = "cpu") -> list[Team]:
+    """The learned strangers: for each name, the teams of its runs (patterns as a condition's), each run's snapshots
+    (`snapshots`: named "<name>/seed<k>@<j>of<n>") where it kept them, else its latest checkpoint."""
+    strangers = []
+    for name, teams in load_population(runs, device).items():
+        for team in teams:
+            snapshots = sorted(Path(team.checkpoint).parent.glob("snapshot_*.pt"),
+                               key=lambda path: int(path.stem.split("_")[1]))
+            if not snapshots:
+                strangers.append(dataclasses.replace(team, condition=LEARNED_CONDITION))
+            for j, path in enumerate(snapshots, start=1):
+                snapshot = load_team(path, device, name)
+                strangers.append(dataclasses.replace(snapshot, name=f"{team.name}@{j}of{len(snapshots)}",
+                                                     condition=LEARNED_CONDITION))
+    return strangers
 
 
 def load_population(conditions: dict[str, str | list[str]], device: str = "cpu") -> dict[str, list[Team]]:
