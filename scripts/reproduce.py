@@ -92,6 +92,15 @@ def condition_entry(entry: str | dict) -> tuple[str, list[str]]:
     return entry["config"], overrides
 
 
+def with_strangers(protocol: dict, zoo: str | None) -> dict:
+    """The protocol with every section that seats strangers seating those of `zoo` (None: as it is)."""
+    if not zoo:
+        return protocol
+    sections = {name: {**section, "strangers": zoo} if section.get("strangers") else section
+                for name, section in protocol.get("sections", {}).items()}
+    return {**protocol, "sections": sections} if sections else protocol
+
+
 # The evaluation instruments a strangers section may train, one run per held-out stranger: the overrides that make
 # a run of the section's `best_responses` or `learned_strangers` entry ({config:, overrides:}) one for `stranger`.
 INSTRUMENTS = {
@@ -530,6 +539,10 @@ def main(argv=None) -> int:
                         help="train, evaluate and rewrite these of the protocol's sections only (default: all)")
     parser.add_argument("--conditions", nargs="+", metavar="NAME",
                         help="train and evaluate these of the protocol's conditions only (default: all)")
+    parser.add_argument("--strangers", metavar="ZOO",
+                        help="seat the held-out strangers of this zoo file (kitchen-zoo draw) in every section that "
+                             "seats strangers, instead of the protocol's zoo; its best responses and learned strangers "
+                             "are trained for them")
     parser.add_argument("--no-human-proxies", action="store_true",
                         help="evaluate without the human proxies even where the protocol seats them (fetching the "
                              "2019 games and fitting five proxies takes longer than a tiny run)")
@@ -540,7 +553,7 @@ def main(argv=None) -> int:
     if args.jobs < 1:
         parser.error(f"--jobs must be at least 1, got {args.jobs}")
     try:
-        full = with_instruments(yaml.safe_load(Path(args.protocol).read_text()))
+        full = with_instruments(with_strangers(yaml.safe_load(Path(args.protocol).read_text()), args.strangers))
         protocol, _ = select_conditions(full, named_conditions(full, args.sections, args.conditions))
         proxies = None if args.no_human_proxies else proxy_settings(protocol.get("evaluation", {}).get("human_proxies"))
     except OSError as error:

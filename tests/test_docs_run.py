@@ -47,10 +47,16 @@ SHRINK = {
     "kitchen-demo": ["--steps", "8"],
     "kitchen-levels sample": ["--n", "4"],
     "kitchen-zoo draw": ["--candidates", "4", "--keep", "2", "--strangers", "1", "--levels", "2", "--min-cooked", "0",
-                         "--table-heldout", "1", "--table-rollouts", "1", "--workers", "1", "--out", "outputs/zoo"],
+                         "--table-heldout", "1", "--table-rollouts", "1", "--clash-heldout", "0", "--workers", "1",
+                         "--out", "outputs/zoo"],
+    "kitchen-zoo clash": ["--heldout", "0", "--max-steps", "8", "--out", "outputs/clash"],
     "scripts/reproduce.py": ["--teams", "1", "--rollouts", "1", "--heldout", "1", "--max-steps", "16", "--jobs", "1",
                              "--no-human-proxies", *TRAIN_SHRINK],
 }
+# A strangers section beside the one stranger of the page's tiny zoo (kitchen-zoo draw, shrunk, writes it first):
+# a best response and a learned stranger for it, not for the shipped zoo's 8.
+SHRINK["scripts/reproduce.py configs/protocols/reduced.yaml --sections strangers"] = [
+    *SHRINK["scripts/reproduce.py"], "--strangers", "outputs/zoo/zoo.yaml"]
 # The paper's grid (36 conditions) in three of its corners: an IK condition with an SK one of its family, and the
 # grid's last IK condition (tests/trainers/test_config.py loads every condition of every protocol).
 SHRINK["scripts/reproduce.py configs/protocols/paper.yaml"] = [
@@ -118,7 +124,8 @@ def shrink_of(words: list[str]) -> list[str]:
         return []  # a resumed run keeps its own (shrunk) config
     if words[0] in ("python", "python3"):
         words = words[1:]  # a script of scripts/, by its path
-    shrink = SHRINK.get(" ".join(words[:2]), SHRINK.get(words[0], []))
+    # the longest start of the command that SHRINK names
+    shrink = next((SHRINK[" ".join(words[:n])] for n in (4, 3, 2, 1) if " ".join(words[:n]) in SHRINK), [])
     if words[0] == "kitchen-sweep":
         shrink = [*shrink, *narrowed_grid(words)]
     return [*shrink, "hydra.launcher.n_jobs=1"] if "hydra/launcher=joblib" in words else shrink

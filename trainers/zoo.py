@@ -234,7 +234,8 @@ def clash_table(rows: list[dict], conventions: int) -> str:
     return "\n".join(lines) + "\n"
 
 
-def clash(zoo: Zoo, out: Path, heldout: int, rollouts: int, seed: int, workers: int, progress: bool) -> str:
+def clash(zoo: Zoo, out: Path, heldout: int, rollouts: int, seed: int, workers: int, progress: bool,
+          max_steps: int = 256) -> str:
     """The zoo's convention x convention cross-play on the classic layouts and `heldout` held-out levels: writes
     clash.csv (every pair and grid group) and heatmap_clash.png (the held-out levels, or the last group), returns
     the table."""
@@ -242,7 +243,7 @@ def clash(zoo: Zoo, out: Path, heldout: int, rollouts: int, seed: int, workers: 
     layouts = list(EXPANDED_LAYOUTS) if size == 7 else list(padded_layouts(size))
     conventions = [member.convention for member in zoo.members]
     deliveries, groups = cross_play(conventions, evaluation_grids(layouts, heldout, size), rollouts, seed, 4096,
-                                    workers, progress)
+                                    workers, progress, max_steps)
     names = [f"{m.name}*" if m.split == STRANGER else m.name for m in zoo.members]
     out.mkdir(parents=True, exist_ok=True)
     write_csv([{"seat0": zoo.members[i].name, "seat1": zoo.members[j].name, "grids": group,
@@ -327,6 +328,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     clashes.add_argument("zoo", nargs="?", default=ZOO_FILE)
     clashes.add_argument("--heldout", type=int, default=20, help="held-out levels beside the classic layouts")
     clashes.add_argument("--rollouts", type=int, default=1, help="episodes per pair and grid")
+    clashes.add_argument("--max-steps", type=int, default=256, help="steps of an episode")
     clashes.add_argument("--seed", type=int, default=0)
     clashes.add_argument("--workers", type=int, default=1, help="processes that play at once")
     clashes.add_argument("--out", default="results/clash", help="folder of clash.md, clash.csv, heatmap_clash.png")
@@ -351,7 +353,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 0
         if args.verb == "clash":
             out = Path(args.out)
-            table = clash(load_zoo(args.zoo), out, args.heldout, args.rollouts, args.seed, args.workers, True)
+            table = clash(load_zoo(args.zoo), out, args.heldout, args.rollouts, args.seed, args.workers, True,
+                          args.max_steps)
             (out / "clash.md").write_text(f"# Convention x convention: {args.zoo}\n\n" + table
                                           + "\n![convention x convention](heatmap_clash.png)\n")
             print(table)

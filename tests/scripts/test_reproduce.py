@@ -196,6 +196,8 @@ def test_a_strangers_section_trains_its_instruments_per_stranger_and_never_evalu
                                    "best_responses": {"config": "a.yaml", "overrides": [["hidden=8"], "lr=0.1"]},
                                    "learned_strangers": {"config": "a.yaml", "runs": ["other"]}},
                      "plain": {"title": "P", "conditions": ["other"]}}})
+    swapped = reproduce.with_strangers(protocol, "other.yaml")["sections"]  # --strangers ZOO: only where seated
+    assert swapped["strangers"]["strangers"] == "other.yaml" and "strangers" not in swapped["plain"]
     section = protocol["sections"]["strangers"]
     assert section["best_responses"] == {"server": "best_response_server", "loader": "best_response_loader"}
     assert section["learned_strangers"] == {"server": "learned_server", "loader": "learned_loader", "other": "other"}
