@@ -1,6 +1,7 @@
 """Milliseconds per call of the scripted cook (`torch_kitchen.scripted.ScriptedCook`) on a batch of kitchens, the
 5 expanded layouts and held-out levels as evaluation seats it, beside a trained team's actor (MLP, hidden 64) on
-the same observations in the same run: the scripted partner's share of an evaluation step.
+the same observations in the same run: the scripted partner's share of an evaluation step; and the cook inside XLA
+(`jax_env.cook`, jitted, on JAX's default device), against the torch cook as the ratio.
 
     python benchmarks/scripted_cook.py [--envs 1024] [--calls 10]
 """
@@ -9,13 +10,16 @@ from __future__ import annotations
 
 import argparse
 
+import jax
+import jax.numpy as jnp
 import torch
 from timing import seconds_per_call
 
 from jax_env import EXPANDED_LAYOUTS
+from jax_env.cook import cook_logits
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.models import make_actor_critic
-from torch_kitchen.scripted import ScriptedCook
+from torch_kitchen.scripted import ScriptedCook, cook_convention
 from trainers.evaluation import evaluation_grids
 from trainers.machine import machine_name
 
@@ -33,9 +37,13 @@ def main(argv=None) -> None:
     with torch.no_grad():
         scripted = seconds_per_call(lambda: cook(observation), args.calls) * 1e3
         mlp = seconds_per_call(lambda: team.actor(tensordict.clone()), args.calls) * 1e3
+    in_xla = jax.jit(cook_logits)
+    views, convention = jnp.asarray(observation.flatten(0, 1).numpy()), cook_convention()
+    xla = seconds_per_call(lambda: in_xla(views, convention).block_until_ready(), args.calls) * 1e3
     machine = machine_name()
-    print(f"{machine}, torch threads 1, {args.envs} kitchens")
+    print(f"{machine}, torch threads 1, {args.envs} kitchens, JAX on {jax.devices()[0].platform}")
     print(f"scripted cook {scripted:.1f} ms, MLP actor {mlp:.1f} ms, ratio {scripted / mlp:.1f}")
+    print(f"scripted cook in XLA {xla:.1f} ms, {xla / scripted:.2f}x the torch cook's time")
 
 
 if __name__ == "__main__":

@@ -36,6 +36,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from jax_env import INTERACT, NUM_ACTIONS, STAY, Channel
+from jax_env.cook import CookConvention
 from jax_env.state import DIR_VECTORS
 from torch_kitchen.conventions import MOVE_ORDER, Convention
 from torch_kitchen.keys import LOGITS, OBSERVATION, VALUE
@@ -367,6 +368,17 @@ class ScriptedCook(nn.Module):
         hand_over = carrying & nearer & partner_empty & reachable[:, HANDOVER]
         return torch.where(hand_over[:, None], nn.functional.one_hot(torch.full_like(carried[:, 0], HANDOVER),
                                                                      goal_weights.shape[1]).float(), goal_weights)
+
+
+def cook_convention(convention: Convention = Convention()) -> CookConvention:
+    """The arrays of `jax_env.cook` for a convention: what `ScriptedCook` derives from it, as numpy values."""
+    cook = ScriptedCook(convention)
+    return CookConvention(
+        scores=cook.scores.numpy(), off_role=cook.off_role.numpy(), own_work=cook.own_work.numpy(),
+        move_order=np.array(cook.move_order, dtype=np.int32), goal_temperature=np.float32(convention.goal_temperature),
+        move_temperature=np.float32(convention.move_temperature), noise=np.float32(convention.noise),
+        prefer_handover=np.bool_(convention.handover == "prefer"),
+    )  # fmt: skip
 
 
 def scripted_actor_critic(convention: Convention = Convention()) -> ActorCritic:

@@ -1,0 +1,243 @@
+"""The scripted cook as a pure jittable function: observations -> each seat's action logits, with its convention as
+arrays, so that one XLA program holds kitchens of many conventions at once (a row's convention is that row's arrays).
+
+It plans as `torch_kitchen.scripted.ScriptedCook` does (its docstring says how), on the same observation; where the
+torch cook reads distances off a table per floor plan kept on the host, this one runs the breadth-first waves inside
+the program, a fixed number of steps (the kitchen's cells), so it has static shapes and no host round trip.
+`CookConvention` holds what the torch cook derives from a `Convention` (`torch_kitchen.scripted.cook_convention`).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jax_env.env import INTERACT, NUM_ACTIONS, STAY
+from jax_env.observation import Channel
+
+UNREACHABLE = 1e4  # a distance longer than any path in a kitchen
+# The goal list's shape (torch_kitchen.scripted.GOALS): what each goal does on arrival, the hand-over, idling.
+ON_ARRIVAL = (INTERACT, INTERACT, INTERACT, STAY, INTERACT, INTERACT, INTERACT, INTERACT, INTERACT, INTERACT, STAY)
+HANDOVER, IDLE = 4, 10
+
+
+class CookConvention(NamedTuple):
+    """A convention as arrays, each with any leading batch shape of the observations' rows: goal scores [K] and what
+    a goal off the cook's role loses while its own work waits [K]; the goals that are its own work (bool [K]); the
+    move order (int [4], indices of NORTH, SOUTH, EAST, WEST); the goal and move temperatures, noise and whether it
+    prefers hand-overs (scalars)."""
+
+    scores: jax.Array
+    off_role: jax.Array
+    own_work: jax.Array
+    move_order: jax.Array
+    goal_temperature: jax.Array
+    move_temperature: jax.Array
+    noise: jax.Array
+    prefer_handover: jax.Array
+
+
+def _shift(grid: jax.Array, dx: int, dy: int, fill) -> jax.Array:
+    """[..., H, W]: each cell's neighbour at (x + dx, y + dy), `fill` outside the grid."""
+    height, width = grid.shape[-2:]
+    pad = [(0, 0)] * (grid.ndim - 2) + [(1, 1), (1, 1)]
+    padded = jnp.pad(grid, pad, constant_values=fill)
+    return padded[..., 1 + dy: 1 + dy + height, 1 + dx: 1 + dx + width]
+
+
+DIRECTIONS = ((0, -1), (0, 1), (1, 0), (-1, 0))  # NORTH, SOUTH, EAST, WEST as (dx, dy)
+
+
+def _neighbours(grid: jax.Array, fill) -> jax.Array:
+    """[..., H, W] -> [..., 4, H, W]: the neighbour of every cell in each move's direction."""
+    return jnp.stack([_shift(grid, dx, dy, fill) for dx, dy in DIRECTIONS], axis=-3)
+
+
+def _moved(grid: jax.Array) -> jax.Array:
+    """bool [..., H, W] -> [..., 4, H, W]: the cells one step in each direction from each True cell."""
+    return jnp.stack([_shift(grid, -dx, -dy, False) for dx, dy in DIRECTIONS], axis=-3)
+
+
+def _beside(targets: jax.Array) -> jax.Array:
+    """bool [..., H, W]: the cells with a target among their four neighbours."""
+    return _neighbours(targets, False).any(-3)
+
+
+def distance_from(sources: jax.Array, walkable: jax.Array) -> jax.Array:
+    """float [..., H, W]: steps over walkable cells from the nearest walkable source cell (`UNREACHABLE` where none
+    can be reached); a breadth-first wave of one step per iteration, until no distance changes (at most as many
+    iterations as the kitchen has cells: the longest path is shorter)."""
+    distance = jnp.where(sources & walkable, 0.0, UNREACHABLE)
+
+    def wave(state):
+        distance, _, count = state
+        closer = _neighbours(distance, UNREACHABLE).min(-3) + 1
+        updated = jnp.where(walkable, jnp.minimum(distance, closer), UNREACHABLE)
+        return updated, jnp.any(updated != distance), count + 1
+
+    limit = walkable.shape[-1] * walkable.shape[-2]
+    distance, _, _ = jax.lax.while_loop(lambda state: state[1] & (state[2] < limit), wave,
+                                        (distance, jnp.bool_(True), 0))
+    return distance
+
+
+PER_GOAL = ("scores", "off_role", "own_work", "move_order")  # the fields that are vectors (the others scalars)
+
+
+def per_row(convention: CookConvention, n: int) -> CookConvention:
+    """The convention's arrays with a leading dim of n rows: one convention for every row, or one per row."""
+    return CookConvention(*(jnp.broadcast_to(jnp.asarray(leaf), (n, jnp.shape(leaf)[-1]) if name in PER_GOAL else (n,))
+                            for name, leaf in zip(CookConvention._fields, convention)))
+
+
+def cook_logits(observation: jax.Array, convention: CookConvention, key: jax.Array | None = None) -> jax.Array:
+    """uint8 observations [N, H, W, 26] (one seat's view a row) -> logits [N, 6] of the scripted cook of each row's
+    `convention` (arrays with leading dim N, or unbatched for one convention); the likeliest action's logit is 0."""
+    del key  # the distribution is returned; the caller samples
+    n = observation.shape[0]
+    conv = per_row(convention, n)
+    obs = observation.astype(jnp.float32)
+    present = obs > 0
+
+    def channel(c):
+        return present[..., c]
+
+    me, partner = channel(Channel.SELF), channel(Channel.PARTNER)
+    loose = ~(me | partner)
+    pot = channel(Channel.POT)
+    ready_pot = pot & channel(Channel.SOUP)
+    cooking_pot = pot & channel(Channel.COOKING_OR_SOUP)
+    open_pot = pot & ~channel(Channel.COOKING_OR_SOUP) & (obs[..., Channel.ONIONS_IN_POT] < 3)
+    soup_on_counter = channel(Channel.SOUP) & ~pot & loose
+    plates = channel(Channel.PLATE_PILE) | (channel(Channel.PLATE) & loose)
+    onions = channel(Channel.ONION_PILE) | (channel(Channel.ONION) & loose)
+    counter = channel(Channel.EMPTY_COUNTER)
+    blocked = pot | counter | channel(Channel.ONION_PILE) | channel(Channel.PLATE_PILE) | channel(Channel.GOAL) | (
+        (channel(Channel.SOUP) | channel(Channel.PLATE) | channel(Channel.ONION)) & loose)
+    walkable = ~blocked
+    from_partner = distance_from(partner, walkable)  # [N, H, W]
+    partner_side = partner | (from_partner < UNREACHABLE)
+    handover = counter & _beside(partner_side)
+
+    def held(item, who=me):
+        return (channel(item) & who).any((1, 2))
+
+    partner_empty = ~(held(Channel.PLATE, partner) | held(Channel.SOUP, partner) | held(Channel.ONION, partner))
+    partner_has_plate = ((channel(Channel.PLATE) | channel(Channel.SOUP)) & partner).any((1, 2))
+    plate_wanted = cooking_pot.any((1, 2)) & ~partner_has_plate
+    onion_wanted = open_pot.any((1, 2))
+
+    def when(condition, targets):
+        return targets & condition[:, None, None]
+
+    holding_soup, holding_onion, holding_plate = held(Channel.SOUP), held(Channel.ONION), held(Channel.PLATE)
+    empty = ~(holding_soup | holding_onion | holding_plate)
+    targets = jnp.stack([
+        when(holding_soup, channel(Channel.GOAL)),
+        when(holding_onion, open_pot),
+        when(holding_plate, ready_pot),
+        when(holding_plate, cooking_pot & ~ready_pot),
+        when(~empty, handover),
+        when(empty, soup_on_counter),
+        when(empty & plate_wanted, plates),
+        when(empty & onion_wanted, onions),
+        when(empty, plates),
+        when(empty, onions),
+        jnp.zeros_like(pot),  # idling needs no tile
+    ], axis=1)  # fmt: skip
+    k = targets.shape[1]
+
+    # Steps to every goal from the cook's cell and each cell around it, over the floor, and with the partner's cell
+    # closed (a way around it, used where the partner stands beside the cook).
+    starts = jnp.concatenate([me[:, None], _moved(me)], axis=1)  # [N, 5, H, W]
+    ends = (walkable[:, None] & _beside(targets)).reshape(n, k, -1)  # [N, K, H * W]
+    free = distance_from(starts, walkable[:, None]).reshape(n, 5, -1)
+    around = distance_from(starts, (walkable & ~partner)[:, None]).reshape(n, 5, -1)
+
+    def nearest(distances):  # [N, 5, H * W] -> [N, K, 5]
+        return jnp.where(ends[:, :, None], distances[:, None], UNREACHABLE).min(-1)
+
+    steps = nearest(free)
+    beside_partner = (starts[:, 1:] & partner[:, None]).any((1, 2, 3))
+    detours = jnp.where(beside_partner[:, None, None], nearest(around), steps)
+    here, next_cells = steps[..., 0], steps[..., 1:]
+    reachable = (here < UNREACHABLE).at[:, IDLE].set(True)
+
+    busy = (reachable & conv.own_work).any(1, keepdims=True)
+    scores = jnp.where(reachable, conv.scores - busy * conv.off_role, -jnp.inf)
+    hot = conv.goal_temperature[:, None] > 0
+    tempered = jax.nn.softmax(scores / jnp.where(hot, conv.goal_temperature[:, None], 1.0), axis=1)
+    goal_weights = jnp.where(hot, tempered, jax.nn.one_hot(scores.argmax(1), k))
+    goal_weights = jnp.where(jnp.isinf(scores).all(1, keepdims=True), 0.0, goal_weights)
+    goal_weights = jnp.where(conv.prefer_handover[:, None],
+                             _prefer_handover(goal_weights, here, reachable, ends, partner_empty,
+                                              from_partner.reshape(n, -1)), goal_weights)
+
+    order = conv.move_order  # [N, 4]
+
+    def first_downhill(here, next_cells):  # [N, K]: the first move in the cook's order that gets nearer
+        downhill = next_cells == here[..., None] - 1
+        in_order = jnp.take_along_axis(downhill, jnp.broadcast_to(order[:, None], downhill.shape), axis=-1)
+        return jnp.take_along_axis(order, in_order.argmax(-1), axis=1), (here < UNREACHABLE) & downhill.any(-1)
+
+    def around_me(grid):  # [N, 4]: the four cells around each cook, in the order of the moves
+        return (_neighbours(grid.astype(jnp.float32), 0.0) * me[:, None]).sum((-2, -1))
+
+    step, _ = first_downhill(here, next_cells)
+    tiles_around = jnp.einsum("nkc,ndc->nkd", targets.reshape(n, k, -1).astype(jnp.float32),
+                              _moved(me).reshape(n, 4, -1).astype(jnp.float32))
+    tile = tiles_around.argmax(-1)
+    facing = (obs[..., Channel.SELF_FACING:Channel.SELF_FACING + 4] * me[..., None]).sum((1, 2)).argmax(1)
+    arrived = reachable & (here == 0)
+    on_arrival = jnp.broadcast_to(jnp.array(ON_ARRIVAL), (n, k))
+    action = jnp.where(arrived, jnp.where(facing[:, None] == tile, on_arrival, tile), step).at[:, IDLE].set(STAY)
+    ahead = jnp.take_along_axis(around_me(partner), step, axis=1) > 0
+    contested = ~arrived & ~ahead & (jnp.take_along_axis(around_me(partner | _beside(partner)), step, axis=1) > 0)
+    blocked_way = ~arrived & ahead
+    detour, has_detour = first_downhill(detours[..., 0], detours[..., 1:])
+    detour = jnp.where(blocked_way, detour, action)
+
+    def one_hot(actions):
+        return jax.nn.one_hot(actions, NUM_ACTIONS, dtype=jnp.bool_)
+
+    moving = (~arrived).at[:, IDLE].set(False)
+    allowed = one_hot(action)
+    yielding = (contested | (blocked_way & has_detour)) & moving
+    allowed = jnp.where(yielding[..., None], one_hot(detour) | one_hot(jnp.full_like(action, STAY)), allowed)
+    allowed = allowed | (blocked_way & ~has_detour & moving)[..., None]
+    chances = allowed.astype(jnp.float32) / allowed.sum(-1, keepdims=True)
+    chances = jnp.where((moving & reachable & (conv.move_temperature[:, None] > 0))[..., None],
+                        _boltzmann_moves(detours, chances, conv.move_temperature), chances)
+
+    probs = (goal_weights[..., None] * chances).sum(1)
+    probs = jnp.where(goal_weights.sum(1, keepdims=True) > 0, probs, 1.0 / NUM_ACTIONS)
+    noise = conv.noise[:, None]
+    probs = jnp.where(noise > 0, (1 - noise) * probs + noise / NUM_ACTIONS, probs)
+    safe = jnp.where(probs > 0, probs, 1.0)
+    return jnp.where(probs > 0, jnp.log(safe) - jnp.log(probs.max(-1, keepdims=True)), -1e9)
+
+
+def _boltzmann_moves(steps_around: jax.Array, planned: jax.Array, temperature: jax.Array) -> jax.Array:
+    """[N, K, 6]: moves drawn by the steps left after each, a wait where no move is open."""
+    here, after = steps_around[..., :1], steps_around[..., 1:]
+    open_moves = after < UNREACHABLE
+    hot = jnp.where(temperature > 0, temperature, 1.0)[:, None, None]
+    logits = jnp.where(open_moves, -(after - here) / hot, -jnp.inf)
+    moves = jax.nn.softmax(jnp.where(open_moves.any(-1, keepdims=True), logits, 0.0), -1)
+    chances = jnp.concatenate([moves, jnp.zeros_like(planned[..., 4:])], -1)
+    return jnp.where(open_moves.any(-1, keepdims=True), chances, planned)
+
+
+def _prefer_handover(goal_weights, here, reachable, ends, partner_empty, from_partner):
+    """A cook that prefers hand-overs puts its item on a counter the partner can reach where the partner's hands are
+    empty and the partner stands nearer the goal the cook carries it to."""
+    partner_steps = jnp.where(ends, from_partner[:, None], UNREACHABLE).min(-1)
+    carried = goal_weights[:, :HANDOVER].argmax(1, keepdims=True)
+    carrying = goal_weights[:, :HANDOVER].sum(1) > 0
+    nearer = (jnp.take_along_axis(partner_steps, carried, 1)[:, 0] + 1
+              < jnp.take_along_axis(here, carried, 1)[:, 0])
+    hand_over = carrying & nearer & partner_empty & reachable[:, HANDOVER]
+    return jnp.where(hand_over[:, None], jax.nn.one_hot(jnp.full_like(carried[:, 0], HANDOVER), goal_weights.shape[1]),
+                     goal_weights)

@@ -1,0 +1,78 @@
+"""The scripted cook inside XLA (`jax_env.cook`) plays as the torch cook does: the same action distributions, to float
+rounding, for every knob of a convention, on crafted kitchens and generated levels, one convention or one per row."""
+
+import random
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import torch
+
+from jax_env.cook import cook_logits, per_row
+from torch_kitchen.conventions import Convention, draw_convention
+from torch_kitchen.env import KitchenEnv
+from torch_kitchen.scripted import ScriptedCook, cook_convention
+
+COOK = jax.jit(cook_logits)  # one compilation for every test of a shape
+
+KNOBS = [
+    Convention(),
+    Convention(name="ewsn", move_order="EWSN"),
+    Convention(name="loader", role="loader"),
+    Convention(name="server", role="server", preferences={"onion_pickup": 1.0}),
+    Convention(name="onions", preferences={"onion_pickup": 0.6, "counter_place": -0.4}),
+    Convention(name="idler", preferences={"idle": 1.0}),
+    Convention(name="prefer", handover="prefer"),
+    Convention(name="avoid", handover="avoid"),
+    Convention(name="hot", goal_temperature=1.0),
+    Convention(name="moves", move_temperature=0.5),
+    Convention(name="noisy", noise=0.1),
+]
+
+
+def _observations(levels, count=16, steps=24, seed=0) -> torch.Tensor:
+    """uint8 [count * steps * 2, H, W, 26]: both seats' views along random episodes (cooks meet, carry, cook)."""
+    env = KitchenEnv(count, levels=levels, max_steps=256, seed=seed)
+    generator = torch.Generator().manual_seed(seed)
+    views, tensordict = [], env.reset()
+    for _ in range(steps):
+        views.append(tensordict["agents", "observation"].clone())
+        tensordict["agents", "action"] = torch.randint(0, 6, (count, 2), generator=generator)
+        tensordict = env.step(tensordict)["next"]
+    return torch.cat(views).flatten(0, 1)
+
+
+@pytest.fixture(scope="module")
+def views():
+    """The expanded classic layouts' views, then generated levels' (held-out ones)."""
+    return torch.cat([_observations(["cramped_room_7x7", "forced_coord_7x7", "coord_ring_7x7",
+                                     "asymm_advantages_7x7", "counter_circuit_7x7"]),
+                      _observations("heldout", seed=1)])
+
+
+def assert_same_distributions(logits, expected: torch.Tensor):
+    """As distributions, to float rounding: XLA flushes a probability below float32's normal range (e^-100) to 0,
+    which torch keeps as a subnormal, so logits that far down differ while the distributions do not."""
+    np.testing.assert_allclose(np.asarray(jax.nn.softmax(logits, -1)), expected.softmax(-1).numpy(), rtol=1e-5,
+                               atol=1e-7)
+
+
+def _same(convention, observation):
+    logits = COOK(jnp.asarray(observation.numpy()), cook_convention(convention))
+    assert_same_distributions(logits, ScriptedCook(convention)(observation))
+
+
+@pytest.mark.parametrize("convention", KNOBS, ids=lambda c: c.name)
+def test_the_cook_in_xla_gives_the_torch_cooks_distributions_for_every_knob(views, convention):
+    _same(convention, views)
+
+
+def test_one_program_holds_a_convention_per_row(views):
+    conventions = [draw_convention(random.Random(seed), f"c{seed}") for seed in range(4)]
+    observation = views[-128:]  # generated levels
+    rows = [cook_convention(conventions[i % 4]) for i in range(len(observation))]
+    stacked = jax.tree_util.tree_map(lambda *leaves: np.stack(leaves), *rows)
+    logits = COOK(jnp.asarray(observation.numpy()), per_row(stacked, len(rows)))
+    for i, convention in enumerate(conventions):
+        assert_same_distributions(logits[i::4], ScriptedCook(convention)(observation[i::4]))
