@@ -109,6 +109,8 @@ def test_the_shipped_zoo_holds_diverse_cooks_and_no_shipped_config_trains_with_a
     assert len(zoo.members) >= 24 and len(zoo.strangers) >= 8
     assert all(member.cooked >= 0.6 for member in zoo.members)
     assert zoo.similarity["kept"] < zoo.similarity["random"]
+    # Held out by content: its strangers are strangers by their fingerprint, its training conventions are not.
+    assert all(stranger_by_content(c) for c in zoo.strangers) and not any(map(stranger_by_content, zoo.training))
     names = {c.name for c in zoo.strangers}
     shipped = [p for p in (ROOT / "configs").rglob("*.yaml") if "zoo" not in p.parts and "eval" not in p.parts]
     shipped += list((ROOT / "benchmarks").rglob("*.yaml")) + list((ROOT / "examples").rglob("*.yaml"))
