@@ -23,11 +23,11 @@ results=${RESULTS:-benchmarks/results/gpu}
 raw=$(mktemp -d)
 records=$raw/records.jsonl
 if [[ ${SIZE:-full} == tiny ]]; then
-    protocol=tiny jaxmarl=tiny ik=tiny updates=2 repeats=1 envs=4 steps=8
+    protocol=tiny jaxmarl=tiny ik=tiny updates=2 repeats=1 envs=4 steps=8 cook_envs=4
     main_args="num_envs=4 rollout_steps=16 max_steps=16 hidden=16 total_steps=64 distill_kitchens=4 distill_rounds=1
         distill_epochs=1 eval_episodes=0 runtime.threads=1"
 else
-    protocol=protocol jaxmarl=jaxmarl ik=ik updates=3 repeats=3 envs=192 steps=300 main_args=""
+    protocol=protocol jaxmarl=jaxmarl ik=ik updates=3 repeats=3 envs=192 steps=300 cook_envs=4096 main_args=""
 fi
 # Where the machine has python3 alone, `python` (every row's command) is python3.
 if ! command -v python >/dev/null; then
@@ -85,6 +85,8 @@ row ego_rollout 90 python benchmarks/collection.py --setting ik --envs $envs --s
     architecture=ego_mlp hidden=128
 # How the XLA rollout takes its inputs from torch: copied (the default), without command buffers, shared.
 row xla_inputs 120 python benchmarks/xla_rollout_inputs.py --envs $envs --device "$device"
+# The scripted cook inside XLA on the device (its waves, and its floor tables kept) against the torch cook on the host.
+row scripted_cook 90 python benchmarks/scripted_cook.py --envs $cook_envs --calls 10
 # The other settings: one team at the paper's shape (b), JaxMARL's (a).
 row ik_default 150 $reference --setting $ik
 row jaxmarl_default 150 $reference --setting $jaxmarl

@@ -1,7 +1,8 @@
 """Milliseconds per call of the scripted cook (`torch_kitchen.scripted.ScriptedCook`) on a batch of kitchens, the
 5 expanded layouts and held-out levels as evaluation seats it, beside a trained team's actor (MLP, hidden 64) on
 the same observations in the same run: the scripted partner's share of an evaluation step; and the cook inside XLA
-(`jax_env.cook`, jitted, on JAX's default device), against the torch cook as the ratio.
+(`jax_env.cook`, jitted, on JAX's default device), against the torch cook as the ratio: running its waves each call,
+and reading floor tables kept through the episode (their computation timed apart).
 
     python benchmarks/scripted_cook.py [--envs 1024] [--calls 10]
 """
@@ -16,7 +17,7 @@ import torch
 from timing import seconds_per_call
 
 from jax_env import EXPANDED_LAYOUTS
-from jax_env.cook import cook_logits
+from jax_env.cook import cook_logits, floor_tables, walkable_floor
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.scripted import ScriptedCook, cook_convention
@@ -37,13 +38,18 @@ def main(argv=None) -> None:
     with torch.no_grad():
         scripted = seconds_per_call(lambda: cook(observation), args.calls) * 1e3
         mlp = seconds_per_call(lambda: team.actor(tensordict.clone()), args.calls) * 1e3
-    in_xla = jax.jit(cook_logits)
+    in_xla, tabulate = jax.jit(cook_logits), jax.jit(floor_tables)
     views, convention = jnp.asarray(observation.flatten(0, 1).numpy()), cook_convention()
     xla = seconds_per_call(lambda: in_xla(views, convention).block_until_ready(), args.calls) * 1e3
+    tables = tabulate(walkable_floor(views))
+    with_tables = seconds_per_call(lambda: in_xla(views, convention, tables).block_until_ready(), args.calls) * 1e3
+    tabulating = seconds_per_call(lambda: tabulate(walkable_floor(views)).block_until_ready(), args.calls) * 1e3
     machine = machine_name()
     print(f"{machine}, torch threads 1, {args.envs} kitchens, JAX on {jax.devices()[0].platform}")
     print(f"scripted cook {scripted:.1f} ms, MLP actor {mlp:.1f} ms, ratio {scripted / mlp:.1f}")
     print(f"scripted cook in XLA {xla:.1f} ms, {xla / scripted:.2f}x the torch cook's time")
+    print(f"scripted cook in XLA with its floor tables kept {with_tables:.1f} ms, {with_tables / scripted:.2f}x the "
+          f"torch cook's time; the tables, once an episode, {tabulating:.1f} ms")
 
 
 if __name__ == "__main__":

@@ -92,10 +92,39 @@ def per_row(convention: CookConvention, n: int) -> CookConvention:
                             for name, leaf in zip(CookConvention._fields, convention)))
 
 
-def cook_logits(observation: jax.Array, convention: CookConvention, key: jax.Array | None = None) -> jax.Array:
+def walkable_floor(observation: jax.Array) -> jax.Array:
+    """bool [N, H, W]: the cells a cook may walk (the cooks count only where they stand in the way); items lie only
+    on counters, so it never changes during an episode."""
+    present = observation > 0
+    loose = ~(present[..., Channel.SELF] | present[..., Channel.PARTNER])
+    fixed = (Channel.POT, Channel.EMPTY_COUNTER, Channel.ONION_PILE, Channel.PLATE_PILE, Channel.GOAL)
+    items = present[..., Channel.SOUP] | present[..., Channel.PLATE] | present[..., Channel.ONION]
+    return ~(jnp.any(present[..., jnp.array(fixed)], axis=-1) | (items & loose))
+
+
+def floor_tables(walkable: jax.Array) -> jax.Array:
+    """float [N, H * W, H * W]: steps from every cell (row) to every cell over each kitchen's floor (`UNREACHABLE`
+    from or to a cell off it); computed once per episode and passed to `cook_logits`, the cook reads rows of it
+    instead of running its waves from its own and its partner's cells every step."""
+    n, height, width = walkable.shape
+    cells = height * width
+    starts = jnp.eye(cells, dtype=jnp.bool_).reshape(1, cells, height, width)
+    return distance_from(starts, walkable[:, None]).reshape(n, cells, cells)
+
+
+def _rows(tables: jax.Array, cells: jax.Array) -> jax.Array:
+    """float [N, ..., H * W]: the steps from the cell of each mask cells bool [N, ..., H, W] (one cell at most) to
+    every cell, read off the tables; `UNREACHABLE` where a mask is empty."""
+    flat = cells.reshape(*cells.shape[:-2], -1)
+    index = flat.argmax(-1).reshape(cells.shape[0], -1)  # [N, M]
+    rows = jnp.take_along_axis(tables, index[..., None], axis=1)  # [N, M, H * W]
+    return jnp.where(flat.any(-1, keepdims=True), rows.reshape(flat.shape), UNREACHABLE)
+
+
+def cook_logits(observation: jax.Array, convention: CookConvention, tables: jax.Array | None = None) -> jax.Array:
     """uint8 observations [N, H, W, 26] (one seat's view a row) -> logits [N, 6] of the scripted cook of each row's
-    `convention` (arrays with leading dim N, or unbatched for one convention); the likeliest action's logit is 0."""
-    del key  # the distribution is returned; the caller samples
+    `convention` (arrays with leading dim N, or unbatched for one convention); the likeliest action's logit is 0.
+    `tables`: the rows' `floor_tables`, where the caller keeps them through the episode (else the waves run here)."""
     n = observation.shape[0]
     conv = per_row(convention, n)
     obs = observation.astype(jnp.float32)
@@ -114,10 +143,15 @@ def cook_logits(observation: jax.Array, convention: CookConvention, key: jax.Arr
     plates = channel(Channel.PLATE_PILE) | (channel(Channel.PLATE) & loose)
     onions = channel(Channel.ONION_PILE) | (channel(Channel.ONION) & loose)
     counter = channel(Channel.EMPTY_COUNTER)
-    blocked = pot | counter | channel(Channel.ONION_PILE) | channel(Channel.PLATE_PILE) | channel(Channel.GOAL) | (
-        (channel(Channel.SOUP) | channel(Channel.PLATE) | channel(Channel.ONION)) & loose)
-    walkable = ~blocked
-    from_partner = distance_from(partner, walkable)  # [N, H, W]
+    walkable = walkable_floor(observation)
+
+    def distances(cells):  # [N, ..., H, W] of one cell each -> steps from it to every cell [N, ..., H * W]
+        if tables is not None:
+            return _rows(tables, cells)
+        return distance_from(cells, walkable.reshape(n, *[1] * (cells.ndim - 3), *walkable.shape[1:])).reshape(
+            *cells.shape[:-2], -1)
+
+    from_partner = distances(partner).reshape(partner.shape)  # [N, H, W]
     partner_side = partner | (from_partner < UNREACHABLE)
     handover = counter & _beside(partner_side)
 
@@ -153,7 +187,7 @@ def cook_logits(observation: jax.Array, convention: CookConvention, key: jax.Arr
     # closed (a way around it, used where the partner stands beside the cook).
     starts = jnp.concatenate([me[:, None], _moved(me)], axis=1)  # [N, 5, H, W]
     ends = (walkable[:, None] & _beside(targets)).reshape(n, k, -1)  # [N, K, H * W]
-    free = distance_from(starts, walkable[:, None]).reshape(n, 5, -1)
+    free = distances(starts)
     around = distance_from(starts, (walkable & ~partner)[:, None]).reshape(n, 5, -1)
 
     def nearest(distances):  # [N, 5, H * W] -> [N, K, 5]

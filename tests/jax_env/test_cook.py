@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from jax_env.cook import cook_logits, per_row
+from jax_env.cook import cook_logits, floor_tables, per_row, walkable_floor
 from torch_kitchen.conventions import Convention, draw_convention
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.scripted import ScriptedCook, cook_convention
@@ -76,3 +76,12 @@ def test_one_program_holds_a_convention_per_row(views):
     logits = COOK(jnp.asarray(observation.numpy()), per_row(stacked, len(rows)))
     for i, convention in enumerate(conventions):
         assert_same_distributions(logits[i::4], ScriptedCook(convention)(observation[i::4]))
+
+
+@pytest.mark.parametrize("convention", [KNOBS[0], KNOBS[6], KNOBS[9]], ids=lambda c: c.name)
+def test_floor_tables_kept_through_an_episode_give_the_same_plans_as_the_waves(views, convention):
+    observation = jnp.asarray(views.numpy())
+    tables = jax.jit(floor_tables)(walkable_floor(observation))
+    assert tables.shape == (len(views), 49, 49) and float(tables[0].diagonal().min()) in (0.0, 1e4)
+    np.testing.assert_array_equal(np.asarray(COOK(observation, cook_convention(convention), tables)),
+                                  np.asarray(COOK(observation, cook_convention(convention))))
