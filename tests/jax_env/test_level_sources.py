@@ -36,12 +36,14 @@ def test_one_hundred_thousand_training_levels_are_all_solvable():
     assert counts["solo"] > 0 and counts["forced_coordination"] > 0, counts
 
 
-def test_no_heldout_level_in_a_million_training_draws():
+def test_no_heldout_level_in_100k_training_draws():
+    # The default generator's space is so large that chance alone rarely draws one of its 105 held-out grids: the
+    # rejection itself is tested where the held-out set catches a third of plain draws
+    # (tests/jax_env/test_generator.py::test_training_never_draws_a_heldout_grid); this guards the default settings.
     heldout = {grid.tobytes() for grid in np.asarray(heldout_grids())}
     assert len(heldout) == 105
-    for chunk in range(10):
-        grids = np.asarray(_training_levels(100_000, seed=100 + chunk).grid)
-        assert not any(grid.tobytes() in heldout for grid in grids), f"a held-out grid was drawn in chunk {chunk}"
+    grids = np.asarray(_training_levels(100_000, seed=100).grid)
+    assert not any(grid.tobytes() in heldout for grid in grids)
 
 
 def test_the_checker_rejects_hand_made_unsolvable_levels():
