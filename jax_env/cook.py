@@ -112,19 +112,26 @@ def floor_tables(walkable: jax.Array) -> jax.Array:
     return distance_from(starts, walkable[:, None]).reshape(n, cells, cells)
 
 
-def _rows(tables: jax.Array, cells: jax.Array) -> jax.Array:
+def _rows(tables: jax.Array, plan: jax.Array | None, cells: jax.Array) -> jax.Array:
     """float [N, ..., H * W]: the steps from the cell of each mask cells bool [N, ..., H, W] (one cell at most) to
-    every cell, read off the tables; `UNREACHABLE` where a mask is empty."""
+    every cell, read off the tables (a row's own, or its `plan`'s of tables shared by kitchens of one floor plan);
+    `UNREACHABLE` where a mask is empty."""
     flat = cells.reshape(*cells.shape[:-2], -1)
     index = flat.argmax(-1).reshape(cells.shape[0], -1)  # [N, M]
-    rows = jnp.take_along_axis(tables, index[..., None], axis=1)  # [N, M, H * W]
+    cells_count = tables.shape[-1]
+    row = index + (jnp.arange(cells.shape[0]) if plan is None else plan)[:, None] * cells_count
+    rows = tables.reshape(-1, cells_count)[row]  # [N, M, H * W]
     return jnp.where(flat.any(-1, keepdims=True), rows.reshape(flat.shape), UNREACHABLE)
 
 
-def cook_logits(observation: jax.Array, convention: CookConvention, tables: jax.Array | None = None) -> jax.Array:
+def cook_logits(observation: jax.Array, convention: CookConvention, tables: jax.Array | None = None,
+                plan: jax.Array | None = None, detour_rows: int | None = None) -> jax.Array:
     """uint8 observations [N, H, W, 26] (one seat's view a row) -> logits [N, 6] of the scripted cook of each row's
     `convention` (arrays with leading dim N, or unbatched for one convention); the likeliest action's logit is 0.
-    `tables`: the rows' `floor_tables`, where the caller keeps them through the episode (else the waves run here)."""
+    `tables`: the rows' `floor_tables` [N, ...], where the caller keeps them through the episode, or with `plan`
+    (int [N]) tables [P, ...] of the floor plans the rows index (else the waves run here). `detour_rows` (static): the
+    waves around a partner in the way run for that many rows at most, those that meet their partner, where no more
+    of them do (a CPU's saving: the choice is a branch the host reads, so None, every row's, on a GPU)."""
     n = observation.shape[0]
     conv = per_row(convention, n)
     obs = observation.astype(jnp.float32)
@@ -147,7 +154,7 @@ def cook_logits(observation: jax.Array, convention: CookConvention, tables: jax.
 
     def distances(cells):  # [N, ..., H, W] of one cell each -> steps from it to every cell [N, ..., H * W]
         if tables is not None:
-            return _rows(tables, cells)
+            return _rows(tables, plan, cells)
         return distance_from(cells, walkable.reshape(n, *[1] * (cells.ndim - 3), *walkable.shape[1:])).reshape(
             *cells.shape[:-2], -1)
 
@@ -188,14 +195,29 @@ def cook_logits(observation: jax.Array, convention: CookConvention, tables: jax.
     starts = jnp.concatenate([me[:, None], _moved(me)], axis=1)  # [N, 5, H, W]
     ends = (walkable[:, None] & _beside(targets)).reshape(n, k, -1)  # [N, K, H * W]
     free = distances(starts)
-    around = distance_from(starts, (walkable & ~partner)[:, None]).reshape(n, 5, -1)
 
-    def nearest(distances):  # [N, 5, H * W] -> [N, K, 5]
-        return jnp.where(ends[:, :, None], distances[:, None], UNREACHABLE).min(-1)
+    def nearest(steps_from):  # [N, 5, H * W] -> [N, K, 5]
+        return jnp.where(ends[:, :, None], steps_from[:, None], UNREACHABLE).min(-1)
 
     steps = nearest(free)
     beside_partner = (starts[:, 1:] & partner[:, None]).any((1, 2, 3))
-    detours = jnp.where(beside_partner[:, None, None], nearest(around), steps)
+    open_floor = walkable & ~partner
+
+    def every_row(_):
+        around = distance_from(starts, open_floor[:, None]).reshape(n, 5, -1)
+        return jnp.where(beside_partner[:, None, None], nearest(around), steps)
+
+    def those_rows(_):  # the rows beside their partner, gathered, their waves run, put back
+        rows = jnp.nonzero(beside_partner, size=detour_rows, fill_value=n)[0]
+        kept = jnp.minimum(rows, n - 1)
+        around = distance_from(starts[kept], open_floor[kept][:, None]).reshape(len(rows), 5, -1)
+        found = jnp.where(ends[kept][:, :, None], around[:, None], UNREACHABLE).min(-1)
+        return steps.at[rows].set(found, mode="drop")
+
+    if detour_rows is None:
+        detours = every_row(None)
+    else:
+        detours = jax.lax.cond(beside_partner.sum() <= detour_rows, those_rows, every_row, None)
     here, next_cells = steps[..., 0], steps[..., 1:]
     reachable = (here < UNREACHABLE).at[:, IDLE].set(True)
 

@@ -1,7 +1,11 @@
-"""The scripted cook inside XLA (`jax_env.cook`) plays as the torch cook does: the same action distributions, to float
-rounding, for every knob of a convention, on crafted kitchens and generated levels, one convention or one per row."""
+"""The scripted cook inside XLA (`jax_env.cook`, which `torch_kitchen.scripted.ScriptedCook` plays through) plays as
+the torch cook it replaced did: the same action distributions, to float rounding, for every knob of a convention, on
+the classic layouts and generated levels (`data/cook_reference.npz`, that cook's, on the views `views` makes), one
+convention or one per row, with its waves or floor tables."""
 
+import hashlib
 import random
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -15,6 +19,7 @@ from torch_kitchen.env import KitchenEnv
 from torch_kitchen.scripted import ScriptedCook, cook_convention
 
 COOK = jax.jit(cook_logits)  # one compilation for every test of a shape
+REFERENCE = np.load(Path(__file__).with_name("data") / "cook_reference.npz")
 
 KNOBS = [
     Convention(),
@@ -51,21 +56,23 @@ def views():
                       _observations("heldout", seed=1)])
 
 
-def assert_same_distributions(logits, expected: torch.Tensor):
+def assert_same_distributions(logits, expected: np.ndarray):
     """As distributions, to float rounding: XLA flushes a probability below float32's normal range (e^-100) to 0,
     which torch keeps as a subnormal, so logits that far down differ while the distributions do not."""
-    np.testing.assert_allclose(np.asarray(jax.nn.softmax(logits, -1)), expected.softmax(-1).numpy(), rtol=1e-5,
-                               atol=1e-7)
+    np.testing.assert_allclose(np.asarray(jax.nn.softmax(logits, -1)), expected, rtol=1e-5, atol=1e-7)
 
 
-def _same(convention, observation):
-    logits = COOK(jnp.asarray(observation.numpy()), cook_convention(convention))
-    assert_same_distributions(logits, ScriptedCook(convention)(observation))
+def test_the_views_are_those_the_reference_was_taken_on(views):
+    assert hashlib.sha256(views.numpy().tobytes()).hexdigest() == str(REFERENCE["views_sha256"])
+    assert list(REFERENCE["names"]) == [convention.name for convention in KNOBS]
 
 
-@pytest.mark.parametrize("convention", KNOBS, ids=lambda c: c.name)
-def test_the_cook_in_xla_gives_the_torch_cooks_distributions_for_every_knob(views, convention):
-    _same(convention, views)
+@pytest.mark.parametrize("index", range(len(KNOBS)), ids=[c.name for c in KNOBS])
+def test_the_cook_gives_the_torch_cooks_distributions_for_every_knob(views, index):
+    logits = COOK(jnp.asarray(views.numpy()), cook_convention(KNOBS[index]))
+    assert_same_distributions(logits, REFERENCE["probs"][index])
+    # ScriptedCook, the cook as a torch module, plays through it with the host's floor tables.
+    assert_same_distributions(ScriptedCook(KNOBS[index])(views).numpy(), REFERENCE["probs"][index])
 
 
 def test_one_program_holds_a_convention_per_row(views):
@@ -75,13 +82,21 @@ def test_one_program_holds_a_convention_per_row(views):
     stacked = jax.tree_util.tree_map(lambda *leaves: np.stack(leaves), *rows)
     logits = COOK(jnp.asarray(observation.numpy()), per_row(stacked, len(rows)))
     for i, convention in enumerate(conventions):
-        assert_same_distributions(logits[i::4], ScriptedCook(convention)(observation[i::4]))
+        alone = COOK(jnp.asarray(observation[i::4].numpy()), cook_convention(convention))
+        assert_same_distributions(logits[i::4], np.asarray(jax.nn.softmax(alone, -1)))
 
 
 @pytest.mark.parametrize("convention", [KNOBS[0], KNOBS[6], KNOBS[9]], ids=lambda c: c.name)
-def test_floor_tables_kept_through_an_episode_give_the_same_plans_as_the_waves(views, convention):
-    observation = jnp.asarray(views.numpy())
+def test_floor_tables_and_detours_for_some_rows_give_the_same_plans_as_every_wave(views, convention):
+    observation, arrays = jnp.asarray(views.numpy()), cook_convention(convention)
+    waves = np.asarray(COOK(observation, arrays))
     tables = jax.jit(floor_tables)(walkable_floor(observation))
-    assert tables.shape == (len(views), 49, 49) and float(tables[0].diagonal().min()) in (0.0, 1e4)
-    np.testing.assert_array_equal(np.asarray(COOK(observation, cook_convention(convention), tables)),
-                                  np.asarray(COOK(observation, cook_convention(convention))))
+    assert tables.shape == (len(views), 49, 49)
+    np.testing.assert_array_equal(np.asarray(COOK(observation, arrays, tables)), waves)
+    # Tables shared by the kitchens of one floor plan, each row naming its plan; detours for some rows at most.
+    plans, plan = np.unique(np.asarray(tables).reshape(len(views), -1), axis=0, return_inverse=True)
+    shared = jnp.asarray(plans.reshape(-1, 49, 49))
+    for rows in (len(views) // 4, 1):  # enough rows for those beside their partner; too few: every row's waves
+        cook = jax.jit(cook_logits, static_argnames="detour_rows")
+        np.testing.assert_array_equal(np.asarray(cook(observation, arrays, shared, jnp.asarray(plan.ravel()),
+                                                      detour_rows=rows)), waves)

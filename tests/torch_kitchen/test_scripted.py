@@ -11,7 +11,6 @@ from torch_kitchen.scripted import (
     FloorDistances,
     ScriptedCook,
     distance_from,
-    distance_rows,
     scripted_actor_critic,
 )
 from trainers.rollout import play_episodes
@@ -39,8 +38,9 @@ def test_floor_tables_hold_the_shortest_paths_between_every_two_cells_once_per_f
     floor = FloorDistances()
     tables, plan = floor(torch.cat([walkable, walled, walkable]))
     assert tables.shape == (2, 16, 16) and plan[0] == plan[2] != plan[1]  # two plans, each computed once
-    assert torch.equal(distance_rows(tables, plan, start.expand(3, -1, -1))[0].view(4, 4), expected)
-    cut_off = distance_rows(tables, plan, start.expand(3, -1, -1))[1].view(4, 4)
+    cell = 2 * 4 + 0  # the start's row of a table
+    assert torch.equal(tables[plan[0], cell].view(4, 4), expected)
+    cut_off = tables[plan[1], cell].view(4, 4)
     assert cut_off[2, 0] == 0 and (cut_off.flatten().sort().values[1:] == UNREACHABLE).all()
     every_cell = torch.eye(16, dtype=torch.bool).view(16, 4, 4)
     assert torch.equal(tables[plan[0]], distance_from(every_cell, walkable.expand(16, -1, -1)).flatten(1))
