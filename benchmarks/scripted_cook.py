@@ -1,8 +1,9 @@
-"""Milliseconds per call of the scripted cook (`torch_kitchen.scripted.ScriptedCook`) on a batch of kitchens, the
-5 expanded layouts and held-out levels as evaluation seats it, beside a trained team's actor (MLP, hidden 64) on
-the same observations in the same run: the scripted partner's share of an evaluation step; and the cook inside XLA
-(`jax_env.cook`, jitted, on JAX's default device), against the torch cook as the ratio: running its waves each call,
-and reading floor tables kept through the episode (their computation timed apart).
+"""Milliseconds per call of the scripted cook as torch seats it (`torch_kitchen.scripted.ScriptedCook`: `jax_env.cook`
+with the host's floor tables by plan) on a batch of kitchens, the 5 expanded layouts and held-out levels as evaluation
+seats it, beside a trained team's actor (MLP, hidden 64) on the same observations in the same run: the scripted
+partner's share of an evaluation step; and the cook as a program inside XLA would call it (`cook_logits`, jitted, on
+JAX's default device): running its waves each call, and reading floor tables kept through the episode (their
+computation timed apart), as ratios to the seated cook's time.
 
     python benchmarks/scripted_cook.py [--envs 1024] [--calls 10]
 """
@@ -46,10 +47,10 @@ def main(argv=None) -> None:
     tabulating = seconds_per_call(lambda: tabulate(walkable_floor(views)).block_until_ready(), args.calls) * 1e3
     machine = machine_name()
     print(f"{machine}, torch threads 1, {args.envs} kitchens, JAX on {jax.devices()[0].platform}")
-    print(f"scripted cook {scripted:.1f} ms, MLP actor {mlp:.1f} ms, ratio {scripted / mlp:.1f}")
-    print(f"scripted cook in XLA {xla:.1f} ms, {xla / scripted:.2f}x the torch cook's time")
-    print(f"scripted cook in XLA with its floor tables kept {with_tables:.1f} ms, {with_tables / scripted:.2f}x the "
-          f"torch cook's time; the tables, once an episode, {tabulating:.1f} ms")
+    print(f"scripted cook (seated from torch) {scripted:.1f} ms, MLP actor {mlp:.1f} ms, ratio {scripted / mlp:.1f}")
+    print(f"scripted cook in XLA, its waves {xla:.1f} ms, {xla / scripted:.2f}x the seated cook's time")
+    print(f"scripted cook in XLA, its floor tables kept {with_tables:.1f} ms, {with_tables / scripted:.2f}x the "
+          f"seated cook's time; the tables, once an episode, {tabulating:.1f} ms")
 
 
 if __name__ == "__main__":

@@ -49,19 +49,17 @@ LOOPS = {
 }
 
 # Distillation, evaluation and behaviour cloning, run at SHORT and LONG steps (one episode ends in the longer run
-# alone). The scripted cook plans on the host: it reads the floor plans to key its table of distances, and reads
-# whether a cook stands beside its partner (how often depends on the kitchens).
+# alone). The scripted cook, seated from torch, reads the floor plans on the host to key its table of distances, and
+# hands the views, the tables and the plans to JAX as NumPy on the CPU (DLPack on a GPU).
 SCRIPTED_COOK = {"numpy at torch_kitchen/scripted.py:FloorDistances.__call__": 1.0,
-                 "__bool__ at torch_kitchen/scripted.py:ScriptedCook.forward": 1.0}
+                 "numpy at torch_kitchen/scripted.py:ScriptedCook.forward.<locals>.to_jax": 3.0}
 ONE_EPISODE_END = 1 / (LONG - SHORT)
 DISTILL_READS = {**CPU_KERNEL, **ACTIONS_TO_JAX, **SCRIPTED_COOK,
-                 "nonzero at torch_kitchen/scripted.py:ScriptedCook.forward": 1.0,
                  "__bool__ at torch_kitchen/env.py:KitchenEnv._reset": ONE_EPISODE_END,
                  "__bool__ at torch_kitchen/rollout.py:advance": 0.5,
                  "__float__ at trainers/distill.py:learn_round": ONE_EPISODE_END}  # the round's mean deliveries
 EVALUATION = {  # partner: (host reads, tensors made without a device) per step; the seated teams read nothing
-    "scripted cook": ({**ACTIONS_TO_JAX, **SCRIPTED_COOK,
-                       "nonzero at torch_kitchen/scripted.py:ScriptedCook.forward": 0.625}, {}),
+    "scripted cook": ({**ACTIONS_TO_JAX, **SCRIPTED_COOK}, {}),
     "human proxy": (ACTIONS_TO_JAX, {}),
 }
 
