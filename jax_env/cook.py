@@ -18,7 +18,8 @@ from jax_env.env import INTERACT, NUM_ACTIONS, STAY
 from jax_env.observation import Channel
 
 UNREACHABLE = 1e4  # a distance longer than any path in a kitchen
-# The goal list's shape (torch_kitchen.scripted.GOALS): what each goal does on arrival, the hand-over, idling.
+# The goal list's shape (its events and roles: torch_kitchen.scripted.GOALS, which `cook_convention` scores): what
+# each goal does on arrival beside its tile, the hand-over's and idling's places in it.
 ON_ARRIVAL = (INTERACT, INTERACT, INTERACT, STAY, INTERACT, INTERACT, INTERACT, INTERACT, INTERACT, INTERACT, STAY)
 HANDOVER, IDLE = 4, 10
 

@@ -39,7 +39,7 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from jax_env import INTERACT, NUM_ACTIONS, STAY
+from jax_env import NUM_ACTIONS
 from jax_env.cook import CookConvention, cook_logits, walkable_floor
 from torch_kitchen.conventions import MOVE_ORDER, Convention
 from torch_kitchen.env import jax_device_for
@@ -110,27 +110,27 @@ PREFERENCE_SCALE = 11.0  # a weight of 1 lifts a goal above the other ten
 
 @dataclass(frozen=True)
 class Goal:
-    """One goal of the cook's list: the event it leads to, the role it belongs to ("loader", "server" or None
-    for both), and the action on arrival beside its tile."""
+    """One goal of the cook's list: the event it leads to and the role it belongs to ("loader", "server" or None
+    for both); what it does on arrival beside its tile is `jax_env.cook.ON_ARRIVAL`'s, in the same order."""
 
     event: str
     role: str | None
-    on_arrival: int
 
 
-# The cook's goals, in order of preference by default; which of them apply depends on what it holds (`goals`).
+# The cook's goals, in order of preference by default; which of them apply depends on what it holds
+# (`jax_env.cook.cook_logits`, which takes them in this order).
 GOALS = (
-    Goal("serve", "server", INTERACT),  # holding a soup: the serving counter
-    Goal("onion_in_pot", "loader", INTERACT),  # holding an onion: a pot that takes onions
-    Goal("soup_pickup", "server", INTERACT),  # holding a plate: a ready pot
-    Goal("soup_pickup", "server", STAY),  # holding a plate: wait beside a cooking pot until it is done
-    Goal("counter_place", None, INTERACT),  # holding anything: a counter the partner can reach (a hand-over)
-    Goal("serve", "server", INTERACT),  # empty hands: a soup on a counter
-    Goal("plate_pickup", "server", INTERACT),  # empty: a plate, where a pot cooks and the partner holds none
-    Goal("onion_pickup", "loader", INTERACT),  # empty: an onion, where a pot takes onions
-    Goal("plate_pickup", "server", INTERACT),  # empty: a plate
-    Goal("onion_pickup", "loader", INTERACT),  # empty: an onion
-    Goal("idle", None, STAY),  # stay where it is: only for a convention with a weight on idling
+    Goal("serve", "server"),  # holding a soup: the serving counter
+    Goal("onion_in_pot", "loader"),  # holding an onion: a pot that takes onions
+    Goal("soup_pickup", "server"),  # holding a plate: a ready pot
+    Goal("soup_pickup", "server"),  # holding a plate: wait beside a cooking pot until it is done
+    Goal("counter_place", None),  # holding anything: a counter the partner can reach (a hand-over)
+    Goal("serve", "server"),  # empty hands: a soup on a counter
+    Goal("plate_pickup", "server"),  # empty: a plate, where a pot cooks and the partner holds none
+    Goal("onion_pickup", "loader"),  # empty: an onion, where a pot takes onions
+    Goal("plate_pickup", "server"),  # empty: a plate
+    Goal("onion_pickup", "loader"),  # empty: an onion
+    Goal("idle", None),  # stay where it is: only for a convention with a weight on idling
 )
 PRODUCTIVE = (0, 1, 2, 3, 5, 6, 7)  # the goals that bring a soup nearer (not a plate or an onion for later)
 

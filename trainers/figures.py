@@ -168,12 +168,7 @@ def draw_stranger_heatmap(teams: list[str], strangers: list[str], normalised: np
                   color="white" if dark else "black")
     axis.set_xticks(range(len(strangers)), strangers, rotation=60, ha="right", fontsize=7)
     axis.set_yticks(range(len(teams)), teams, fontsize=7)
-    figure.colorbar(image, ax=axis, fraction=0.04, pad=0.02).set_label("over two of the stranger", fontsize=8)
-    axis.set_title(f"With the held-out strangers: {grids}", fontsize=9)
-    figure.tight_layout()
-    figure.savefig(path, dpi=120)
-    plt.close(figure)
-    return path
+    return _save_matrix(figure, axis, image, "over two of the stranger", f"With the held-out strangers: {grids}", path)
 
 
 def draw_clash_heatmap(names: list[str], deliveries: np.ndarray, grids: str, path: Path) -> Path:
@@ -190,8 +185,13 @@ def draw_clash_heatmap(names: list[str], deliveries: np.ndarray, grids: str, pat
     axis.set_yticks(range(n), names, fontsize=6)
     axis.set_xlabel("seat 1", fontsize=8)
     axis.set_ylabel("seat 0", fontsize=8)
-    figure.colorbar(image, ax=axis, fraction=0.04, pad=0.02).set_label("deliveries per episode", fontsize=8)
-    axis.set_title(f"Convention x convention: {grids}", fontsize=9)
+    return _save_matrix(figure, axis, image, "deliveries per episode", f"Convention x convention: {grids}", path)
+
+
+def _save_matrix(figure, axis, image, label: str, title: str, path: Path) -> Path:
+    """A matrix heat map's colour bar (`label`) and `title`, written to `path`."""
+    figure.colorbar(image, ax=axis, fraction=0.04, pad=0.02).set_label(label, fontsize=8)
+    axis.set_title(title, fontsize=9)
     figure.tight_layout()
     figure.savefig(path, dpi=120)
     plt.close(figure)
