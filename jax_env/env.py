@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import functools
 from typing import NamedTuple, Sequence, Union
 
 import jax
@@ -47,6 +48,26 @@ class ShapingWeights(NamedTuple):
 
 
 Levels = Union[str, Layout, Sequence[Union[str, Layout]]]
+
+
+def compiled_when_eager(*static_argnums: int):
+    """A method of `Overcooked` compiled by `jax.jit` where it is called on concrete arrays (the env and the
+    `static_argnums` static), as JaxMARL's reset and step are: op by op, a batch reset of the Infinite Kitchen's
+    generator compiles each of its hundreds of operations alone. Called while JAX traces (under `jit`, `vmap`, or
+    over traced start states), it runs as written, into the caller's program."""
+
+    def decorate(method):
+        compiled = jax.jit(method, static_argnums=(0, *static_argnums))
+
+        @functools.wraps(method)
+        def call(self, *args, **kwargs):
+            leaves = jax.tree_util.tree_leaves((self._bank, args, kwargs))
+            traced = any(isinstance(leaf, jax.core.Tracer) for leaf in leaves)
+            return (method if traced else compiled)(self, *args, **kwargs)
+
+        return call
+
+    return decorate
 
 
 class Overcooked:
@@ -112,6 +133,7 @@ class Overcooked:
 
     # ----------------------------------------------------------------------------------------------------
     # Reset
+    @compiled_when_eager()
     def initial_state(self, key: jax.Array, level: jax.Array | None = None) -> State:
         """A fresh episode: the level's start cells (or a new generated level), uniformly random facings.
 
@@ -155,16 +177,19 @@ class Overcooked:
         other._bank = start_states
         return other
 
+    @compiled_when_eager()
     def reset(self, key: jax.Array) -> tuple[jax.Array, State]:
         state = self.initial_state(key)
         return self.get_obs(state), state
 
+    @compiled_when_eager()
     def get_obs(self, state: State) -> jax.Array:
         """uint8 (2, H, W, 26), see `jax_env.observation`."""
         return get_obs(state, self.max_steps)
 
     # ----------------------------------------------------------------------------------------------------
     # Step
+    @compiled_when_eager()
     def step(self, key: jax.Array, state: State, actions: jax.Array):
         """One step with auto-reset: (obs, state, reward float32 (2,), done bool (), info).
 
@@ -180,6 +205,7 @@ class Overcooked:
 
     # ----------------------------------------------------------------------------------------------------
     # Batches
+    @compiled_when_eager(2)
     def reset_batch(self, key: jax.Array, num_envs: int, levels: jax.Array | None = None) -> tuple[jax.Array, State]:
         """`num_envs` fresh episodes: obs uint8 (B, 2, H, W, 26) and a State with leading axis B.
 
@@ -187,6 +213,7 @@ class Overcooked:
         states = self._fresh(key, num_envs, levels)
         return jax.vmap(self.get_obs)(states), states
 
+    @compiled_when_eager()
     def reset_where(self, key: jax.Array, states: State, mask: jax.Array, levels: jax.Array | None = None) -> State:
         """Batched states with the kitchens where `mask` (bool (B,)) is set replaced by fresh episodes.
 
@@ -208,6 +235,7 @@ class Overcooked:
             return jax.vmap(self.initial_state)(keys)
         return jax.vmap(self.initial_state)(keys, levels)
 
+    @compiled_when_eager()
     def step_batch(self, key: jax.Array, states: State, actions: jax.Array):
         """`step` for a batch (leaves with leading axis B, actions int32 (B, 2)), auto-resetting the finished
         kitchens: (obs (B, 2, H, W, 26), states, reward (B, 2), done (B,), info). Same dynamics as
@@ -216,6 +244,7 @@ class Overcooked:
         next_states = self.reset_where(key, next_states, done)
         return jax.vmap(self.get_obs)(next_states), next_states, reward, done, info
 
+    @compiled_when_eager()
     def step_env(self, state: State, actions: jax.Array):
         """One step without reset or observation: (state, reward (2,), done (), info)."""
         actions = jnp.asarray(actions, dtype=jnp.int32)

@@ -167,12 +167,19 @@ def cook_convention(convention: Convention = Convention()) -> CookConvention:
     )  # fmt: skip
 
 
+def stacked_conventions(conventions: list[Convention]) -> CookConvention:
+    """The arrays of several conventions, each with a leading dim of the conventions (index them by row to seat a
+    convention per row: `ScriptedCook.forward`'s `conventions`)."""
+    return CookConvention(*(np.stack(leaves) for leaves in zip(*map(cook_convention, conventions))))
+
+
 class ScriptedCook(nn.Module):
     """uint8 observations [..., 2, H, W, 26] -> logits [..., 2, 6]: each seat's action distribution under a
     `convention` (the default: its planned action with certainty, a coin flip between a step and a wait where
     the partner may take the cell, uniform where it is stuck), planned by `jax_env.cook` on the JAX device that
     shares the observations' memory, with the floor tables of `FLOOR_DISTANCES`. Any other object than a
-    `Convention` is read as a move order, e.g. `ScriptedCook("EWSN")`."""
+    `Convention` is read as a move order, e.g. `ScriptedCook("EWSN")`. Called with `conventions`, arrays with a
+    leading dim of the observations' rows (`stacked_conventions(...)` indexed by row), it plays each row's own."""
 
     def __init__(self, convention: Convention | str = Convention()):
         super().__init__()
@@ -181,7 +188,7 @@ class ScriptedCook(nn.Module):
         self.convention = convention
         self.arrays = cook_convention(convention)
 
-    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+    def forward(self, observation: torch.Tensor, conventions: CookConvention | None = None) -> torch.Tensor:
         batch_shape = observation.shape[:-3]
         views = observation.reshape(-1, *observation.shape[-3:])
         on_cpu = views.device.type == "cpu"
@@ -192,10 +199,13 @@ class ScriptedCook(nn.Module):
 
         kitchens = to_jax(views.contiguous())
         tables, plan = FLOOR_DISTANCES(torch.from_dlpack(_WALKABLE(kitchens)).to(views.device))
+        # The floor plans padded to a power of two: one compilation serves batches of any number of plans.
+        tables = nn.functional.pad(tables, (0, 0, 0, 0, 0, (1 << (len(tables) - 1).bit_length()) - len(tables)),
+                                   value=UNREACHABLE)
         # On a CPU the waves around a partner in the way run for the quarter of the rows that meet theirs at most (a
         # branch the host reads, which a GPU would wait on: there every row's).
-        logits = _COOK(kitchens, self.arrays, to_jax(tables), to_jax(plan.int()),
-                       detour_rows=max(1, len(views) // 4) if on_cpu else None)
+        logits = _COOK(kitchens, self.arrays if conventions is None else conventions, to_jax(tables),
+                       to_jax(plan.int()), detour_rows=max(1, len(views) // 4) if on_cpu else None)
         return torch.from_dlpack(logits).to(views.device).view(*batch_shape, NUM_ACTIONS)
 
 

@@ -15,13 +15,13 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torch import nn
 from torchrl.data import Bounded, Composite
 
+from jax_env.cook import CookConvention
 from torch_kitchen.conventions import Convention
 from torch_kitchen.keys import ACTION, AGENTS, OBSERVATION
 from torch_kitchen.partner import PartnerSeats
-from torch_kitchen.scripted import ScriptedCook
+from torch_kitchen.scripted import ScriptedCook, stacked_conventions
 
 ZOO_COOK = (AGENTS, "zoo_cook")
 LEARNER = -1  # the zoo_cook entry of a seat the learner plays
@@ -57,23 +57,20 @@ class ZooSeats(PartnerSeats):
 
 class ZooPartners(TensorDictModuleBase):
     """Writes, for every seat a zoo cook plays (`ZOO_COOK` >= 0), the action its convention draws; the learner's
-    seats keep theirs."""
+    seats keep theirs. One call of the cook plays every kitchen, each seat by its own convention (the learner's by
+    the first, unused), so that batches of any seating share one compiled program."""
 
     def __init__(self, conventions: list[Convention]):
         super().__init__()
-        self.cooks = nn.ModuleList(ScriptedCook(convention) for convention in conventions)
+        self.cook = ScriptedCook()
+        self.conventions = stacked_conventions(conventions)
         self.in_keys = [ACTION, OBSERVATION, ZOO_COOK]
         self.out_keys = [ACTION]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         zoo_cook, action = tensordict.get(ZOO_COOK), tensordict.get(ACTION)
-        observation = tensordict.get(OBSERVATION)
-        for index, cook in enumerate(self.cooks):
-            kitchens = (zoo_cook == index).any(-1).nonzero().squeeze(-1)
-            if len(kitchens):
-                logits = cook(observation.index_select(0, kitchens))  # [k, 2, 6]: both seats, one is kept
-                drawn = torch.distributions.Categorical(logits=logits, validate_args=False).sample()
-                seated = zoo_cook.index_select(0, kitchens) == index
-                action = action.index_copy(0, kitchens, torch.where(seated, drawn, action.index_select(0, kitchens)))
-        tensordict.set(ACTION, action)
+        seated = zoo_cook.clamp(min=0).flatten().cpu().numpy()  # a convention per seat, [B * 2]
+        logits = self.cook(tensordict.get(OBSERVATION), CookConvention(*(leaf[seated] for leaf in self.conventions)))
+        drawn = torch.distributions.Categorical(logits=logits, validate_args=False).sample()
+        tensordict.set(ACTION, torch.where(zoo_cook >= 0, drawn, action))
         return tensordict

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import dataclasses
 import math
 import typing
@@ -230,8 +231,27 @@ def compose(path: Path | None, choices: Sequence[str] = (), schema: type = Train
     if path is not None:
         path = path.resolve()
         _checked_file(path, schema)
-    composed = _hydra_compose(path, group_overrides(path, choices))
-    return OmegaConf.to_container(composed, resolve=False)
+    key = (path, tuple(choices), _yaml_files_state(path))
+    if key not in _COMPOSED:
+        while len(_COMPOSED) >= 256:
+            _COMPOSED.pop(next(iter(_COMPOSED)))
+        composed = _hydra_compose(path, group_overrides(path, choices))
+        _COMPOSED[key] = OmegaConf.to_container(composed, resolve=False)
+    return copy.deepcopy(_COMPOSED[key])
+
+
+# Compositions already made in this process (a protocol or a sweep composes the same files again and again, at 50 ms
+# each), keyed by the contents of every YAML file a composition could read, so that an edited file composes anew.
+_COMPOSED: dict[tuple, dict] = {}
+
+
+def _yaml_files_state(path: Path | None) -> int:
+    """A hash of the YAML files Hydra searches for `path`, names and contents: configs/ and its groups, the file's
+    folder and that folder's sub-folders (a file's own groups)."""
+    files = sorted(CONFIG_ROOT.rglob("*.yaml"))
+    if path is not None and not path.is_relative_to(CONFIG_ROOT):
+        files += sorted(path.parent.glob("*.yaml")) + sorted(path.parent.glob("*/*.yaml"))
+    return hash(tuple((str(file), file.read_bytes()) for file in files))
 
 
 def parse_overrides(overrides: list[str], schema: type = TrainConfig) -> dict:

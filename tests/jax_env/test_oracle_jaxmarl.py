@@ -54,8 +54,8 @@ def test_random_rollouts_match_reference_through_auto_resets(name):
     env = Overcooked(name, max_steps=max_steps)
 
     keys = jax.random.split(jax.random.PRNGKey(7), num_envs)
-    ref_obs, ref_state = jax.vmap(ref.reset)(keys)
-    obs, state = jax.vmap(env.reset)(keys)
+    ref_obs, ref_state = jax.jit(jax.vmap(ref.reset))(keys)  # compiled whole: op by op, each op compiles alone
+    obs, state = jax.jit(jax.vmap(env.reset))(keys)
     np.testing.assert_array_equal(np.asarray(obs), np.asarray(jax.vmap(_ref_obs)(ref_obs)))
 
     def one_step(carry, key):
@@ -97,7 +97,7 @@ def test_every_transition_from_random_states_matches_reference(name):
     env = Overcooked(layout, max_steps=max_steps)
 
     keys = jax.random.split(jax.random.PRNGKey(3), num_envs)
-    _, ref_state = jax.vmap(ref.reset)(keys)
+    _, ref_state = jax.jit(jax.vmap(ref.reset))(keys)
 
     def one_transition(ref_state, key):
         key_act, key_step = jax.random.split(key)

@@ -152,6 +152,21 @@ def test_overrides_apply_on_top_of_the_file_and_are_typed():
     assert config.run_path == Path("runs/ippo_mlp_ik/seed3")
 
 
+def test_a_file_edited_between_two_loads_composes_anew(tmp_path):
+    # Compositions are kept per process; an edit of the file, or of a file its defaults name, in the same tick of
+    # the file system's clock and to the same size, is still read.
+    (tmp_path / "mine.yaml").write_text("defaults: [base, _self_]\nlr: 0.1\n")
+    (tmp_path / "base.yaml").write_text("hidden: 16\n")
+    assert (load_config(tmp_path / "mine.yaml").lr, load_config(tmp_path / "mine.yaml").hidden) == (0.1, 16)
+    (tmp_path / "mine.yaml").write_text("defaults: [base, _self_]\nlr: 0.2\n")
+    (tmp_path / "base.yaml").write_text("hidden: 32\n")
+    again = load_config(tmp_path / "mine.yaml")
+    assert (again.lr, again.hidden) == (0.2, 32)
+    first, second = compose(tmp_path / "mine.yaml"), compose(tmp_path / "mine.yaml")
+    first["lr"] = 9.0  # each caller's own copy
+    assert second["lr"] == 0.2 and compose(tmp_path / "mine.yaml")["lr"] == 0.2
+
+
 def test_unknown_keys_are_refused_with_the_valid_ones(tmp_path):
     with pytest.raises(ConfigError, match=r"unknown config key 'lrr'.*did you mean 'lr'.*valid keys: name, run_dir"):
         load_config(None, ["lrr=0.1"])
