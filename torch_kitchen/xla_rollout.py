@@ -22,12 +22,19 @@ Actions are drawn from JAX's random streams, one per team, each seeded at every 
 (`RandomStream`), so a resumed run draws what it would have. Everything else is `KitchenCollector`'s: the batch's
 keys, shapes and dtypes, the kitchens stepped and reset by the env's own programs and keys (the steps a
 `KitchenEnv` takes with those actions, bit for bit; `tests/torch_kitchen/test_xla_rollout.py`), the env left where
-the batch ended (its checkpoint, its next reset). E3T's and other transforms, and an algorithm's acting modules,
+the batch ended (its checkpoint, its next reset). E3T's and other transforms, and other algorithms' acting modules,
 collect with `KitchenCollector` (`trainers.rollout.make_collector` picks).
+
+Zoo cooks (`trainers.algorithms.zoo_ippo`: a team beside scripted cooks of the zoo's conventions in a share of its
+kitchens, or beside one stranger in all of them for its best response) play inside the program as well, where one
+team trains: the env's `ZooSeats` draws each episode's seats in the program (from a key its generator hands out per
+batch, its draws kept up to date for its checkpoint), and the cooks plan with `jax_env.cook` in their seats
+(`torch_kitchen.zoo_partners.cook_actions`), as `ZooPartners` does outside.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
@@ -58,6 +65,7 @@ from torch_kitchen.xla_layers import (
     layer_norm,
     lstm_cell,
 )
+from torch_kitchen.zoo_partners import ZOO_COOK, ZooPartners, ZooSeats, cook_actions, draw_seats, seating
 
 # A network's layers as JAX runs them: ("flatten", start, end), ("linear",), ("relu",), ("egocentric", (H, W, C)),
 # ("layer_norm", eps), ("lstm",), ("graph",) (`torch_kitchen.xla_layers` computes each), or a network per agent:
@@ -237,31 +245,66 @@ def feed_forward_acting(acting: ActingPass | None) -> tuple[ActingNetwork, Actin
                                agent_parts=tuple(network)) for network in networks)
 
 
+def without_zoo(policy: TensorDictModuleBase) -> tuple[TensorDictModuleBase, ZooPartners | None]:
+    """A team's policy without the zoo cooks that act after its actor (`ZooPartners`, an algorithm's acting module),
+    and those cooks (None where none act)."""
+    modules = list(policy.module) if isinstance(policy, TensorDictSequential) else []
+    zoo = [module for module in modules if isinstance(module, ZooPartners)]
+    if not zoo:
+        return policy, None
+    return TensorDictSequential(*(module for module in modules if module is not zoo[0])), zoo[0]
+
+
 def team_networks(policy) -> list[tuple[ActingNetwork, ActingNetwork]] | None:
     """Each team's (policy, value) networks, where every team of the `TeamPolicy` acts by an acting pass
-    (`feed_forward_acting`) or by a recurrent model's policy with shared networks (`recurrent_acting`); else None.
-    Whether JAX runs their layers is `network_chain`'s to say."""
+    (`feed_forward_acting`) or by a recurrent model's policy with shared networks (`recurrent_acting`), zoo cooks
+    after it or not; else None. Whether JAX runs their layers is `network_chain`'s to say."""
     if not isinstance(policy, TeamPolicy):
         return None
-    if policy.acts_on_observation:
-        pairs = [feed_forward_acting(acting_pass_of(team)) for team in policy.policies]
+    teams = [without_zoo(team)[0] for team in policy.policies]
+    if all(acting_pass_of(team) is not None for team in teams):
+        pairs = [feed_forward_acting(acting_pass_of(team)) for team in teams]
     else:
-        pairs = [recurrent_acting(team) for team in policy.policies]
+        pairs = [recurrent_acting(team) for team in teams]
     return None if None in pairs else pairs
 
 
-def env_runs_in_xla(env: EnvBase, networks: Sequence[ActingNetwork]) -> bool:
+def zoo_seats(env: EnvBase, policy) -> tuple[ZooSeats, ZooPartners] | None:
+    """The zoo's seats (the env's last transform) and cooks (after the actor) of a one-team policy, or None where
+    no zoo cook plays; ValueError where they do not come in that pair."""
+    cooks = [without_zoo(team)[1] for team in policy.policies] if isinstance(policy, TeamPolicy) else [None]
+    transforms = _transforms(env)[1]
+    seats = transforms[-1] if transforms and type(transforms[-1]) is ZooSeats else None
+    if cooks == [None] * len(cooks) and seats is None:
+        return None
+    if len(cooks) != 1 or cooks[0] is None or seats is None:
+        raise ValueError("zoo cooks play inside XLA beside one team, with the env's ZooSeats as its last transform")
+    return seats, cooks[0]
+
+
+def _transforms(env: EnvBase) -> tuple[EnvBase, list]:
+    """An env's base and its transforms in order ([] for a bare env)."""
+    if not isinstance(env, TransformedEnv):
+        return env, []
+    return env.base_env, list(env.transform) if isinstance(env.transform, Compose) else [env.transform]
+
+
+def env_runs_in_xla(env: EnvBase, networks: Sequence[ActingNetwork], zoo: bool = False) -> bool:
     """Whether the rollout program can stand in for `env`'s steps with these networks acting: a bare `KitchenEnv`
     for feed-forward ones; for recurrent ones a `KitchenEnv` with exactly the model's transforms
     (`ActorCritic.env_transforms()`): InitTracker of "is_init", and a primer of these networks' LSTM states
-    [*B, 2, 1, h], zeros at a reset."""
+    [*B, 2, 1, h], zeros at a reset. With `zoo`, a one-team `KitchenEnv` with the zoo's `ZooSeats` after those."""
     sizes = {key: layer.hidden_size for network in networks for layer in layers_of(network.layers)
              if isinstance(layer, nn.LSTM) for key in network.state_keys}
-    if not sizes:
-        return isinstance(env, KitchenEnv)
-    if not isinstance(env, TransformedEnv) or not isinstance(env.base_env, KitchenEnv):
+    base, transforms = _transforms(env)
+    if not isinstance(base, KitchenEnv):
         return False
-    transforms = list(env.transform) if isinstance(env.transform, Compose) else [env.transform]
+    if zoo:
+        if base.teams != 1 or not transforms or type(transforms[-1]) is not ZooSeats:
+            return False
+        transforms = transforms[:-1]
+    if not sizes:
+        return not transforms
     trackers = [t for t in transforms if type(t) is InitTracker and list(t.init_keys) == [IS_INIT]]
     primers = [t for t in transforms if type(t) is TensorDictPrimer and not t.random]
     if len(transforms) != 2 or len(trackers) != 1 or len(primers) != 1:
@@ -278,9 +321,13 @@ def env_runs_in_xla(env: EnvBase, networks: Sequence[ActingNetwork]) -> bool:
 def xla_chains(env: EnvBase, policy) -> tuple[Chain, Chain] | None:
     """The (policy, value) chains the teams of `policy` act with, where `XlaCollector` can run them over `env`: a
     `TeamPolicy` whose every team acts with networks JAX runs (`team_networks`), one chain for all, over the env
-    they need (`env_runs_in_xla`); else None."""
+    they need (`env_runs_in_xla`, with the zoo's seats where zoo cooks play); else None."""
     networks = team_networks(policy)
-    if networks is None or not env_runs_in_xla(env, networks[0]):
+    try:
+        zoo = zoo_seats(env, policy) is not None
+    except ValueError:
+        return None
+    if networks is None or not env_runs_in_xla(env, networks[0], zoo):
         return None
     chains = {tuple((network_chain(network), network.state_keys) for network in pair) for pair in networks}
     if len(chains) != 1 or any(chain is None for chain, _ in next(iter(chains))):
@@ -291,20 +338,25 @@ def xla_chains(env: EnvBase, policy) -> tuple[Chain, Chain] | None:
 _PROGRAMS = ProgramCache(kept=8)
 
 
-def rollout_program(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> Callable:
+def rollout_program(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int, zoo_share: float | None = None
+                    ) -> Callable:
     """The jitted rollout of `steps` steps of every kitchen of `env` with the teams acting by `chains` (built once
     per kitchen settings, shape and chains, and shared, as the env's own programs are):
     (weights, (start states, states, deliveries, env key), act keys [teams, 2], carrier) -> ((states, deliveries,
     env key, carrier), records [B, steps, ...]), where carrier = ((observation, scalars, done), (is_init, policy
     state, value state)), the policy's next input as the env's programs and transforms give it (a state (h, c)
     [B, 2, 1, h] each, () without an LSTM), and records = (carrier, (logits, action, log-prob, value), (next policy
-    state, next value state), (next observation, next scalars, next done))."""
+    state, next value state), (next observation, next scalars, next done), zoo seating).
+
+    zoo_share: zoo cooks play in that share of the kitchens (None: none). The program then takes zoo = (conventions
+    [C, ...], draws [B], key) (() without a zoo), carries the draws, returns them last in its first output and
+    records each step's seating [B, steps, 2] (`ZOO_COOK`)."""
     key = (env.jax_env.settings, env.num_envs, env.teams, env.pinned_levels is not None, chains, steps,
-           env.jax_device.platform)
-    return _PROGRAMS.get(key, lambda: _build_rollout(env, chains, steps))
+           env.jax_device.platform, zoo_share)
+    return _PROGRAMS.get(key, lambda: _build_rollout(env, chains, steps, zoo_share))
 
 
-def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> Callable:
+def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int, zoo_share: float | None) -> Callable:
     programs = kitchen_programs(env.jax_env, env.num_envs, env.teams, env.pinned_levels is not None, packed=False)
     policy_chain, value_chain = chains
     teams, team_size = env.teams, env.team_size
@@ -322,13 +374,30 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> 
         outputs = jax.vmap(team)(*weights, keys, *by_team)
         return jax.tree.map(lambda value: value.reshape(teams * team_size, *value.shape[2:]), outputs)
 
-    def step(start_states, weights, carry, _):
-        states, deliveries, env_key, act_keys, carrier = carry
+    def with_zoo_cooks(conventions, zoo, observation, acted):
+        """The actions with the zoo cooks' in their seats, the seating they played by, and the zoo's next key."""
+        draws, key = zoo
+        key, used = jax.random.split(key)
+        logits, action, log_prob, value = acted
+        # On a CPU the cooks plan for twice their expected number of kitchens while no more have one.
+        at_most = None if on_gpu else max(1, math.ceil(2 * zoo_share * len(draws)))
+        action = cook_actions(used, observation, action, draws, conventions, at_most)
+        return (logits, action, log_prob, value), seating(draws), key
+
+    def step(start_states, weights, conventions, carry, _):
+        states, deliveries, env_key, act_keys, carrier, zoo = carry
         observed, (is_init, *network_states) = carrier
         act_keys, used = jax.vmap(jax.random.split, out_axes=1)(act_keys)
         acted, next_network_states = act(weights, used, observed[0], restarted(is_init, network_states))
+        seated = ()
+        if zoo_share is not None:
+            acted, seated, zoo_key = with_zoo_cooks(conventions, zoo, observed[0], acted)
         states, deliveries, stepped = programs.step(states, deliveries, acted[1].astype(jnp.int32))
         ended = stepped[2][:, 0]
+        if zoo_share is not None:  # a new episode draws its seats anew, as ZooSeats does at a reset
+            zoo_key, drawn = jax.random.split(zoo_key)
+            fresh = draw_seats(drawn, len(ended), conventions.scores.shape[0], zoo_share)
+            zoo = (jnp.where(ended, fresh, zoo[0]), zoo_key)
 
         def reset(_):  # as `KitchenEnv._reset` after TorchRL's partial reset, merged by TorchRL's rule
             kept, used_key = programs.split_keys(env_key)
@@ -343,17 +412,19 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int) -> 
             ended.any(), reset, lambda _: (states, deliveries, env_key, tuple(stepped)), None)
         # The transforms' next input: episodes that ended start again (InitTracker), their states zero (the primer).
         next_memory = (stepped[2], *restarted(stepped[2], next_network_states))
-        record = (carrier, acted, next_network_states, tuple(stepped))
-        return (next_states, next_deliveries, env_key, act_keys, (next_observed, next_memory)), record
+        record = (carrier, acted, next_network_states, tuple(stepped), seated)
+        return (next_states, next_deliveries, env_key, act_keys, (next_observed, next_memory), zoo), record
 
     @jax.jit
-    def rollout(weights, kitchens, act_keys, carrier):
+    def rollout(weights, kitchens, act_keys, carrier, zoo=()):
         start_states, states, deliveries, env_key = kitchens
-        carry = (states, deliveries, env_key, act_keys, carrier)
-        carry, records = jax.lax.scan(lambda c, x: step(start_states, weights, c, x), carry, None, length=steps)
-        states, deliveries, env_key, _, carrier = carry
-        return (states, deliveries, env_key, carrier), jax.tree.map(lambda record: jnp.swapaxes(record, 0, 1),
-                                                                     records)
+        conventions, *zoo = zoo or (None,)
+        carry = (states, deliveries, env_key, act_keys, carrier, tuple(zoo))
+        carry, records = jax.lax.scan(lambda c, x: step(start_states, weights, conventions, c, x), carry, None,
+                                      length=steps)
+        states, deliveries, env_key, _, carrier, zoo = carry
+        return (states, deliveries, env_key, carrier, *zoo[:1]), jax.tree.map(
+            lambda record: jnp.swapaxes(record, 0, 1), records)
 
     return rollout
 
@@ -377,7 +448,12 @@ class XlaCollector(InPlaceCollector):
                              "collect this policy and env with KitchenCollector")
         self.policy = policy
         self.kitchen_env = env.base_env if isinstance(env, TransformedEnv) else env
-        self._program = rollout_program(self.kitchen_env, chains, self.steps)
+        zoo = zoo_seats(env, policy)
+        self._seats = None if zoo is None else zoo[0]
+        self._conventions = None if zoo is None else jax.tree.map(
+            lambda leaf: jax.device_put(leaf, self.kitchen_env.jax_device), zoo[1].conventions)
+        self._program = rollout_program(self.kitchen_env, chains, self.steps,
+                                        None if zoo is None else zoo[0].share)
         networks = team_networks(policy)
         self._networks = [list(pair) for pair in networks]
         self._state_keys = [network.state_keys for network in networks[0]]
@@ -420,6 +496,15 @@ class XlaCollector(InPlaceCollector):
                 seeds.append(torch.randint(0, 2**31 - 1, (2,), dtype=torch.int64))
         return self._to_jax(torch.stack(seeds).to(torch.int32)).view(jnp.uint32)
 
+    def _zoo(self) -> tuple:
+        """The program's zoo input: (conventions, the seats' current draws, this batch's key from their generator),
+        () without zoo cooks."""
+        if self._seats is None:
+            return ()
+        seed = torch.randint(0, 2**31 - 1, (2,), dtype=torch.int64, generator=self._seats.generator)
+        return (self._conventions, self._to_jax(self._seats._seats.to(torch.int32)),
+                self._to_jax(seed.to(torch.int32)).view(jnp.uint32))
+
     def _state_entries(self, is_init: torch.Tensor, states: list, next_states: list) -> dict:
         """A recurrent batch's entries of the model's transforms: "is_init" (and ("next", "is_init"), which
         InitTracker leaves False), the state each step read, and the state it left under "next"."""
@@ -432,18 +517,23 @@ class XlaCollector(InPlaceCollector):
     def rollout(self) -> TensorDictBase:
         """The next batch: `steps` steps of every kitchen, written into the storage; the env left where they end."""
         env = self.kitchen_env
-        (states, deliveries, key, self._carrier), records = self._program(
-            self._weights(), env.kitchens(), self._act_keys(), self._carrier)
+        (states, deliveries, key, self._carrier, *draws), records = self._program(
+            self._weights(), env.kitchens(), self._act_keys(), self._carrier, self._zoo())
         env.continue_from(states, deliveries, key, self._carrier[0][0])
-        (observed, (is_init, *states)), acted, next_states, stepped = jax.tree.map(torch.from_dlpack, records)
+        if draws:  # the seats where the batch left them: the next batch's, and the checkpoint's
+            self._seats._seats = torch.from_dlpack(draws[0]).long().cpu()
+        (observed, (is_init, *states)), acted, next_states, stepped, seated = jax.tree.map(torch.from_dlpack, records)
         values = {**output_entries(*observed, with_reward=False), **dict(zip(ACTING_KEYS, acted)),
                   **{(NEXT, *as_path(key)): tensor for key, tensor in output_entries(*stepped, True).items()}}
         if self._recurrent:
             values.update(self._state_entries(is_init, states, next_states))
+        if self._seats is not None:  # a seating lasts its episode: the same after the step
+            values.update({ZOO_COOK: seated, (NEXT, *ZOO_COOK): seated})
         if self._storage is None:
             self._storage = as_tensordict({key: value.clone() for key, value in values.items()},
                                           torch.Size([env.num_envs, self.steps]), env.device)
-            self._storage[ACTION] = self._storage[ACTION].long()
+            for key in (ACTION, *((ZOO_COOK, (NEXT, *ZOO_COOK)) if self._seats is not None else ())):
+                self._storage[key] = self._storage[key].long()
             self._storage.refine_names(..., "time")
             self._keys = list(self._storage.keys(True, True))
         else:

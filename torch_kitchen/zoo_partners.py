@@ -8,16 +8,21 @@ zoo cook plays in it (with probability `share`), in which seat and with which of
 `ZooPartners(conventions)` (a policy module, after the actor) replaces the action of every seat a zoo cook plays by
 the one that cook's convention draws (`torch_kitchen.scripted.ScriptedCook`). The learner plays the other seats; a
 learning algorithm trains on those only (`trainers.algorithms.zoo_ippo`).
+
+Inside the kitchens' XLA rollout (`torch_kitchen.xla_rollout`) the same seats are drawn and the same cooks act in the
+program, by `draw_seats`, `seating` and `cook_actions`, from keys the seats' generator hands out once per batch.
 """
 
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Bounded, Composite
 
-from jax_env.cook import CookConvention
+from jax_env.cook import CookConvention, cook_logits
 from torch_kitchen.conventions import Convention
 from torch_kitchen.keys import ACTION, AGENTS, OBSERVATION
 from torch_kitchen.partner import PartnerSeats
@@ -25,6 +30,48 @@ from torch_kitchen.scripted import ScriptedCook, stacked_conventions
 
 ZOO_COOK = (AGENTS, "zoo_cook")
 LEARNER = -1  # the zoo_cook entry of a seat the learner plays
+
+
+def draw_seats(key: jax.Array, count: int, conventions: int, share: float) -> jax.Array:
+    """int32 [count]: `ZooSeats`' draws inside a JAX program, encoded as there: -1 without a zoo cook (probability
+    1 - `share`), else 2 * convention + seat."""
+    cooks, seats, drawn = jax.random.split(key, 3)
+    cook = jax.random.uniform(cooks, (count,)) < share
+    seat = jax.random.randint(seats, (count,), 0, 2)
+    convention = jax.random.randint(drawn, (count,), 0, conventions)
+    return jnp.where(cook, 2 * convention + seat, LEARNER)
+
+
+def seating(draws: jax.Array) -> jax.Array:
+    """int32 [B, 2], the `ZOO_COOK` entry of draws [B]: the convention in the seat a zoo cook plays, -1 elsewhere."""
+    seats = jnp.arange(2)
+    return jnp.where((draws[:, None] >= 0) & (draws[:, None] % 2 == seats), draws[:, None] // 2, LEARNER)
+
+
+def cook_actions(key: jax.Array, observation: jax.Array, action: jax.Array, draws: jax.Array,
+                 conventions: CookConvention, kitchens_at_most: int | None = None) -> jax.Array:
+    """int [B, 2]: `action` with every seat a zoo cook plays (draws [B]) taking the action its convention draws
+    (`conventions`: arrays [C, ...]) on its view of observation [B, 2, H, W, C]. A cook plans in its own seat, in
+    the kitchens it plays in; `kitchens_at_most` (static): planned for that many kitchens while no more have a cook,
+    else for all of them (a CPU's saving, a branch the host reads: None on a GPU, every kitchen's plan drawn)."""
+    count = len(draws)
+    seat = jnp.maximum(draws, 0) % 2
+    views = jnp.take_along_axis(observation, seat.reshape(-1, 1, 1, 1, 1), axis=1)[:, 0]
+
+    def planned(kitchens):  # the cooks' draws in these kitchens (int [K], `count` where none: dropped)
+        rows = jax.tree.map(lambda leaf: jnp.asarray(leaf)[jnp.maximum(draws[kitchens], 0) // 2], conventions)
+        logits = cook_logits(views[kitchens], rows, detour_rows=max(1, len(kitchens) // 4))
+        return jnp.zeros(count, action.dtype).at[kitchens].set(
+            jax.random.categorical(key, logits).astype(action.dtype), mode="drop")
+
+    if kitchens_at_most is None or kitchens_at_most >= count:
+        drawn = planned(jnp.arange(count))
+    else:
+        cooks = draws >= 0
+        drawn = jax.lax.cond(cooks.sum() <= kitchens_at_most,
+                             lambda: planned(jnp.nonzero(cooks, size=kitchens_at_most, fill_value=count)[0]),
+                             lambda: planned(jnp.arange(count)))
+    return jnp.where(seating(draws) >= 0, drawn[:, None], action)
 
 
 class ZooSeats(PartnerSeats):

@@ -29,8 +29,8 @@ def make_collector(env: EnvBase, policy, frames_per_batch: int, total_frames: in
     inside XLA ("xla", `XlaCollector`: actions drawn by JAX) where it runs the policy's teams, else the kitchens'
     own. XLA runs acting passes (MLP, ego_mlp, GNN; shared by the agents or one network per agent) on a bare
     `KitchenEnv`, and their recurrent variants ("mlp_lstm", "gnn_lstm") on a `KitchenEnv` with the model's
-    transforms alone (`with_model_transforms`); E3T and other transforms, and an algorithm's acting modules, take the
-    kitchens' own.
+    transforms alone (`with_model_transforms`), with zoo cooks beside one team or not (`zoo_ippo`: its seats and
+    cooks play inside the program too); E3T and other transforms, and other acting modules, take the kitchens' own.
 
     Each writes every batch into the same buffers instead of a fresh copy, which keeps large batches cheap;
     consume a batch before asking for the next one.

@@ -4,12 +4,15 @@ cooks (zoo_ippo) and distilled from several teachers, each resumed bit for bit."
 import csv
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import torch
 from scripted_cook import TWO_BOOTHS
 from tensordict import TensorDict
 from test_ppo import tiny_config
+from tiny import infinite_observations
 
 from jax_env import load_layout, save_layout
 from jax_env.generator import heldout_grids
@@ -27,8 +30,9 @@ from torch_kitchen.conventions import (
 )
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.models import make_actor_critic
-from torch_kitchen.scripted import ScriptedCook
-from torch_kitchen.zoo_partners import LEARNER, ZOO_COOK, ZooPartners, ZooSeats
+from torch_kitchen.scripted import ScriptedCook, stacked_conventions
+from torch_kitchen.teams import RandomStream, TeamPolicy
+from torch_kitchen.zoo_partners import LEARNER, ZOO_COOK, ZooPartners, ZooSeats, cook_actions, seating
 from trainers.algorithms import ZooIPPO, check_algorithm
 from trainers.checkpoint import load_checkpoint
 from trainers.distill import DATA, TEACHER_PROBS, distill
@@ -139,7 +143,8 @@ def test_a_training_config_that_names_a_stranger_or_an_unknown_cook_is_refused_i
     assert not list(tmp_path.glob("*/seed0"))
 
 
-def test_zoo_seats_draw_a_cook_per_kitchen_and_episode_and_the_cook_acts_in_its_seat():
+@pytest.mark.parametrize("kind", ["kitchen", "xla"])
+def test_zoo_seats_draw_a_cook_per_kitchen_and_episode_and_the_cook_acts_in_its_seat(kind):
     seats = ZooSeats(conventions=3, share=0.5, seed=1)
     env = KitchenEnv(64, levels="infinite", max_steps=8, seed=0).append_transform(seats)
     td = env.reset()
@@ -151,19 +156,43 @@ def test_zoo_seats_draw_a_cook_per_kitchen_and_episode_and_the_cook_acts_in_its_
     restored.load_state_dict(seats.state_dict())
     assert torch.equal(restored._draw(64), seats._draw(64))  # a resume draws on as the run would have
 
-    # Collected as training collects (the default collector, which leaves the XLA rollout to bare kitchens): the
-    # cooks' seats take their conventions' planned actions, the learner's its own.
+    # Collected as training collects, by the kitchens' collector and inside XLA (the default): the cooks' seats take
+    # their conventions' planned actions, the learner's its own; a seating lasts an episode and the next draws anew.
     actor_critic = make_actor_critic("mlp", (7, 7, 26), 16, True)
-    policy = actor_critic.acting_policy(ZooPartners(TEACHERS))
-    batch = next(iter(make_collector(env, policy, 64 * 8, kind="xla")))
+    policy = TeamPolicy([actor_critic.acting_policy(ZooPartners(TEACHERS))], [RandomStream(0)], team_size=64)
+    collector = make_collector(env, policy, 64 * 12, kind=kind)
+    assert type(collector).__name__ == {"kitchen": "KitchenCollector", "xla": "XlaCollector"}[kind]
+    batch = next(iter(collector))
     zoo_cook, acted = batch[ZOO_COOK], batch["agents", "action"]
+    assert torch.equal(zoo_cook[:, :8], zoo_cook[:, :1].expand(-1, 8, -1))  # one seating per episode
+    assert not torch.equal(zoo_cook[:, 8], zoo_cook[:, 7]) and 0.25 < (zoo_cook[:, 8] >= 0).any(-1).float().mean()
     for index, convention in enumerate(TEACHERS[:2]):  # the deterministic ones
         logits = ScriptedCook(convention)(batch["agents", "observation"])
         seated = (zoo_cook == index) & ((logits == 0).sum(-1) == 1)
-        assert seated.any() and torch.equal(acted[seated], logits.argmax(-1)[seated])
+        assert seated.sum() > 20 and torch.equal(acted[seated], logits.argmax(-1)[seated])
     learner = zoo_cook == LEARNER
     own = torch.distributions.Categorical(logits=batch["agents", "logits"]).log_prob(acted)
     torch.testing.assert_close(own[learner], batch["agents", "action_log_prob"][learner])
+    last = zoo_cook[:, -1]  # the seating the batch ends in, kept for a checkpoint as ZooSeats' draws
+    assert torch.equal(seats._seats, torch.where((last >= 0).any(-1), 2 * last.amax(-1) + last.argmax(-1), LEARNER))
+
+
+def test_cooks_planned_for_the_kitchens_they_play_in_act_as_cooks_planned_for_every_kitchen():
+    observation = jnp.asarray(infinite_observations(16, seed=3).numpy())
+    conventions = stacked_conventions(TEACHERS[:2])  # deterministic: the planned action with certainty
+    learner = jnp.full((16, 2), 7, jnp.int32)  # no action: the learner's seats keep it
+    key = jax.random.PRNGKey(0)
+    for cooks in (5, 12):  # fewer kitchens with a cook than the 8 planned for, then more (every kitchen's plan)
+        draws = jnp.where(jnp.arange(16) < cooks, jnp.arange(16) % 4, -1)  # conventions 0, 1 in seats 0, 1
+        every = cook_actions(key, observation, learner, draws, conventions)
+        some = cook_actions(key, observation, learner, draws, conventions, kitchens_at_most=8)
+        seated = np.asarray(seating(draws) >= 0)
+        assert seated.sum() == cooks and np.array_equal(np.asarray(some), np.asarray(every))
+        assert (np.asarray(every)[seated] < 6).all() and (np.asarray(every)[~seated] == 7).all()
+        expected = torch.stack([ScriptedCook(TEACHERS[c])(torch.from_numpy(np.asarray(observation))).argmax(-1)
+                                for c in range(2)])  # [convention, kitchen, seat]
+        kitchens, seats = np.nonzero(seated)
+        assert np.array_equal(np.asarray(every)[seated], expected[np.asarray(draws)[kitchens] // 2, kitchens, seats])
 
 
 def test_a_best_response_trains_beside_its_stranger_in_every_kitchen(tmp_path, zoo_file):
