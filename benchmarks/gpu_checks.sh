@@ -87,6 +87,8 @@ row ego_rollout 90 python benchmarks/collection.py --setting ik --envs $envs --s
 row xla_inputs 120 python benchmarks/xla_rollout_inputs.py --envs $envs --device "$device"
 # The scripted cook inside XLA on the device (its waves, and its floor tables kept) against the torch cook on the host.
 row scripted_cook 90 python benchmarks/scripted_cook.py --envs $cook_envs --calls 10
+# IPPO beside zoo cooks planning inside the same program, against self-play at the planner-guided shape.
+row zoo_partners 150 python benchmarks/zoo_partners.py --updates $updates --rounds 1 --device "$device" --out "$raw/zoo_partners.md"
 # The other settings: one team at the paper's shape (b), JaxMARL's (a).
 row ik_default 150 $reference --setting $ik
 row jaxmarl_default 150 $reference --setting $jaxmarl

@@ -11,13 +11,14 @@ The shape defaults to the planner-guided conditions' (the agent-centred MLP, hid
 the strangers protocol's zoo-partner condition and best responses. The goal: zoo partners at least 0.8x the steps
 per second of self-play. Phases as `benchmarks/phases.py` measures them; the first update compiles and is left out.
 
-    python benchmarks/zoo_partners.py [--updates 4] [--rounds 2] [--share 0.25] [key=value ...]
+    python benchmarks/zoo_partners.py [--updates 4] [--rounds 2] [--share 0.25] [--device cuda] [--out FILE] [k=v ...]
 """
 
 from __future__ import annotations
 
 import argparse
 import statistics
+from pathlib import Path
 
 import torch
 from phases import PHASES, phase_seconds
@@ -47,6 +48,8 @@ def main(argv=None) -> None:
     parser.add_argument("--updates", type=int, default=4)
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--share", type=float, default=0.25)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--out", default="benchmarks/results/zoo_partners.md", help="the table, as printed")
     parser.add_argument("overrides", nargs="*", help="config overrides, key=value")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -54,21 +57,25 @@ def main(argv=None) -> None:
     seconds: dict[str, dict[str, list[float]]] = {}
     for _ in range(args.rounds):
         for name, overrides in variants(args.share).items():
-            totals = phase_seconds("ik", args.updates, "cpu", [*SHAPE, *overrides, *args.overrides])
+            totals = phase_seconds("ik", args.updates, args.device, [*SHAPE, *overrides, *args.overrides])
             for phase in PHASES:
                 seconds.setdefault(name, {}).setdefault(phase, []).append(totals[phase][0] / (args.updates - 1))
-    print(f"{machine_name()}; {frames} steps per batch ({' '.join([*SHAPE, *args.overrides])}), zoo share "
-          f"{args.share}; seconds per batch, medians of {args.rounds} rounds of updates 2..{args.updates}")
-    print(f"{'variant':<14s} {'collection':>11s} {'advantages':>11s} {'update':>8s} {'steps/s':>9s} "
-          f"{'x self-play':>12s}")
+    lines = [f"{machine_name()}, {args.device}; {frames} steps per batch ({' '.join([*SHAPE, *args.overrides])}), "
+             f"zoo share {args.share}; seconds per batch, medians of {args.rounds} rounds of updates 2..{args.updates}",
+             "", "| variant | collection s | advantages s | update s | steps/s | x self-play |",
+             "|---|---:|---:|---:|---:|---:|"]
     rates = {}
     for name, phases in seconds.items():
         median = {phase: statistics.median(values) for phase, values in phases.items()}
         rates[name] = frames / sum(median.values())
-        print(f"{name:<14s} {median['collection']:11.3f} {median['advantages']:11.3f} {median['update']:8.3f} "
-              f"{rates[name]:9.0f} {rates[name] / rates['self-play']:12.2f}")
+        lines.append(f"| {name} | {median['collection']:.3f} | {median['advantages']:.3f} | {median['update']:.3f} | "
+                     f"{rates[name]:.0f} | {rates[name] / rates['self-play']:.2f} |")
     ratio = rates["zoo, xla"] / rates["self-play"]
-    print(f"zoo partners inside XLA: {ratio:.2f}x self-play (goal {GOAL}x): {'PASS' if ratio >= GOAL else 'FAIL'}")
+    verdict = "PASS" if ratio >= GOAL else "FAIL"
+    lines += ["", f"zoo partners inside XLA: {ratio:.2f}x self-play (goal {GOAL}x): {verdict}"]
+    print("\n".join(lines))
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text("\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":
