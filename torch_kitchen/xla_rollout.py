@@ -47,6 +47,7 @@ from torch import nn
 from torchrl.envs import Compose, EnvBase, InitTracker, TensorDictPrimer, TransformedEnv
 from torchrl.modules import ProbabilisticActor
 
+from jax_env.cook import floor_tables, walkable_floor
 from torch_kitchen.egocentric import EgocentricLinear
 from torch_kitchen.env import KitchenEnv, ProgramCache, kitchen_programs, output_entries
 from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, N_AGENTS, OBSERVATION, SHAPED_REWARD, VALUE
@@ -376,13 +377,16 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int, zoo
 
     def with_zoo_cooks(conventions, zoo, observation, acted):
         """The actions with the zoo cooks' in their seats, the seating they played by, and the zoo's next key."""
-        draws, key = zoo
+        draws, key, tables = zoo
         key, used = jax.random.split(key)
         logits, action, log_prob, value = acted
         # On a CPU the cooks plan for twice their expected number of kitchens while no more have one.
         at_most = None if on_gpu else max(1, math.ceil(2 * zoo_share * len(draws)))
-        action = cook_actions(used, observation, action, draws, conventions, at_most)
+        action = cook_actions(used, observation, action, draws, conventions, at_most, tables)
         return (logits, action, log_prob, value), seating(draws), key
+
+    def floors(observation):  # each kitchen's floor tables [B, H * W, H * W], read off seat 0's view
+        return floor_tables(walkable_floor(observation[:, 0]))
 
     def step(start_states, weights, conventions, carry, _):
         states, deliveries, env_key, act_keys, carrier, zoo = carry
@@ -392,6 +396,7 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int, zoo
         seated = ()
         if zoo_share is not None:
             acted, seated, zoo_key = with_zoo_cooks(conventions, zoo, observed[0], acted)
+            tables = zoo[2]
         states, deliveries, stepped = programs.step(states, deliveries, acted[1].astype(jnp.int32))
         ended = stepped[2][:, 0]
         if zoo_share is not None:  # a new episode draws its seats anew, as ZooSeats does at a reset
@@ -410,6 +415,10 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int, zoo
 
         next_states, next_deliveries, env_key, next_observed = jax.lax.cond(
             ended.any(), reset, lambda _: (states, deliveries, env_key, tuple(stepped)), None)
+        if zoo_share is not None:  # a new episode's floor: its tables (walls and counters never move in an episode)
+            tables = jax.lax.cond(ended.any(), lambda: jnp.where(ended[:, None, None], floors(next_observed[0]),
+                                                                    tables), lambda: tables)
+            zoo = (*zoo[:2], tables)
         # The transforms' next input: episodes that ended start again (InitTracker), their states zero (the primer).
         next_memory = (stepped[2], *restarted(stepped[2], next_network_states))
         record = (carrier, acted, next_network_states, tuple(stepped), seated)
@@ -419,6 +428,8 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int, zoo
     def rollout(weights, kitchens, act_keys, carrier, zoo=()):
         start_states, states, deliveries, env_key = kitchens
         conventions, *zoo = zoo or (None,)
+        if zoo:  # the floor tables of the kitchens' episodes, made again at each batch's start
+            zoo = (*zoo, floors(carrier[0][0]))
         carry = (states, deliveries, env_key, act_keys, carrier, tuple(zoo))
         carry, records = jax.lax.scan(lambda c, x: step(start_states, weights, conventions, c, x), carry, None,
                                       length=steps)

@@ -49,18 +49,21 @@ def seating(draws: jax.Array) -> jax.Array:
 
 
 def cook_actions(key: jax.Array, observation: jax.Array, action: jax.Array, draws: jax.Array,
-                 conventions: CookConvention, kitchens_at_most: int | None = None) -> jax.Array:
+                 conventions: CookConvention, kitchens_at_most: int | None = None,
+                 tables: jax.Array | None = None) -> jax.Array:
     """int [B, 2]: `action` with every seat a zoo cook plays (draws [B]) taking the action its convention draws
     (`conventions`: arrays [C, ...]) on its view of observation [B, 2, H, W, C]. A cook plans in its own seat, in
     the kitchens it plays in; `kitchens_at_most` (static): planned for that many kitchens while no more have a cook,
-    else for all of them (a CPU's saving, a branch the host reads: None on a GPU, every kitchen's plan drawn)."""
+    else for all of them (a CPU's saving, a branch the host reads: None on a GPU, every kitchen's plan drawn).
+    `tables`: the kitchens' `floor_tables` [B, ...], kept through their episodes (else the cooks run their waves)."""
     count = len(draws)
     seat = jnp.maximum(draws, 0) % 2
     views = jnp.take_along_axis(observation, seat.reshape(-1, 1, 1, 1, 1), axis=1)[:, 0]
 
     def planned(kitchens):  # the cooks' draws in these kitchens (int [K], `count` where none: dropped)
         rows = jax.tree.map(lambda leaf: jnp.asarray(leaf)[jnp.maximum(draws[kitchens], 0) // 2], conventions)
-        logits = cook_logits(views[kitchens], rows, detour_rows=max(1, len(kitchens) // 4))
+        floor = None if tables is None else tables[kitchens]
+        logits = cook_logits(views[kitchens], rows, floor, detour_rows=max(1, len(kitchens) // 4))
         return jnp.zeros(count, action.dtype).at[kitchens].set(
             jax.random.categorical(key, logits).astype(action.dtype), mode="drop")
 

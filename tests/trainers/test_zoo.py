@@ -15,6 +15,7 @@ from test_ppo import tiny_config
 from tiny import infinite_observations
 
 from jax_env import load_layout, save_layout
+from jax_env.cook import floor_tables, walkable_floor
 from jax_env.generator import heldout_grids
 from torch_kitchen.conventions import (
     STRANGER,
@@ -186,8 +187,11 @@ def test_cooks_planned_for_the_kitchens_they_play_in_act_as_cooks_planned_for_ev
         draws = jnp.where(jnp.arange(16) < cooks, jnp.arange(16) % 4, -1)  # conventions 0, 1 in seats 0, 1
         every = cook_actions(key, observation, learner, draws, conventions)
         some = cook_actions(key, observation, learner, draws, conventions, kitchens_at_most=8)
+        tables = floor_tables(walkable_floor(observation[:, 0]))  # kept through an episode, as the rollout keeps them
+        kept = cook_actions(key, observation, learner, draws, conventions, kitchens_at_most=8, tables=tables)
         seated = np.asarray(seating(draws) >= 0)
         assert seated.sum() == cooks and np.array_equal(np.asarray(some), np.asarray(every))
+        assert np.array_equal(np.asarray(kept), np.asarray(every))
         assert (np.asarray(every)[seated] < 6).all() and (np.asarray(every)[~seated] == 7).all()
         expected = torch.stack([ScriptedCook(TEACHERS[c])(torch.from_numpy(np.asarray(observation))).argmax(-1)
                                 for c in range(2)])  # [convention, kitchen, seat]
