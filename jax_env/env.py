@@ -85,7 +85,8 @@ class Overcooked:
 
     `step` resets a finished episode in the same call (done=True comes with the new episode's observation),
     so `jax.vmap(env.step)` runs thousands of kitchens with no Python in the loop. Every method is pure and
-    jittable; the levels and settings are static.
+    jittable; the levels and settings are static. Called on concrete arrays, reset and step (and their batched
+    forms) are compiled whole, as JaxMARL's are (`compiled_when_eager`); under `jit` or `vmap` they trace as written.
     """
 
     def __init__(
