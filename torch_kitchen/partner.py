@@ -110,6 +110,16 @@ class PartnerSeats(Transform):
         self._seats: torch.Tensor | None = None  # long [B]: each kitchen's draw (here: its mixed agent)
         self._restored = False
 
+    @property
+    def draws(self) -> torch.Tensor | None:
+        """long [B]: each kitchen's current draw; a rollout that draws the seats elsewhere (inside XLA) sets it, so
+        that checkpoints keep it."""
+        return self._seats
+
+    @draws.setter
+    def draws(self, draws: torch.Tensor) -> None:
+        self._seats = draws
+
     def _draw(self, count: int) -> torch.Tensor:
         return torch.randint(2, (count,), generator=self.generator)
 

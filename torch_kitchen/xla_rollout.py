@@ -388,6 +388,19 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int, zoo
     def floors(observation):  # each kitchen's floor tables [B, H * W, H * W], read off seat 0's view
         return floor_tables(walkable_floor(observation[:, 0]))
 
+    def next_zoo(conventions, zoo, ended, observation):
+        """The zoo after a step: where an episode ended, its seats drawn anew (as ZooSeats does at a reset) and its
+        new floor's tables (walls and counters never move within an episode)."""
+        draws, key, tables = zoo
+
+        def started(key):
+            key, drawn = jax.random.split(key)
+            fresh = draw_seats(drawn, len(ended), conventions.scores.shape[0], zoo_share)
+            return (jnp.where(ended, fresh, draws), key,
+                    jnp.where(ended[:, None, None], floors(observation), tables))
+
+        return jax.lax.cond(ended.any(), started, lambda key: (draws, key, tables), key)
+
     def step(start_states, weights, conventions, carry, _):
         states, deliveries, env_key, act_keys, carrier, zoo = carry
         observed, (is_init, *network_states) = carrier
@@ -396,13 +409,9 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int, zoo
         seated = ()
         if zoo_share is not None:
             acted, seated, zoo_key = with_zoo_cooks(conventions, zoo, observed[0], acted)
-            tables = zoo[2]
+            zoo = (zoo[0], zoo_key, zoo[2])
         states, deliveries, stepped = programs.step(states, deliveries, acted[1].astype(jnp.int32))
         ended = stepped[2][:, 0]
-        if zoo_share is not None:  # a new episode draws its seats anew, as ZooSeats does at a reset
-            zoo_key, drawn = jax.random.split(zoo_key)
-            fresh = draw_seats(drawn, len(ended), conventions.scores.shape[0], zoo_share)
-            zoo = (jnp.where(ended, fresh, zoo[0]), zoo_key)
 
         def reset(_):  # as `KitchenEnv._reset` after TorchRL's partial reset, merged by TorchRL's rule
             kept, used_key = programs.split_keys(env_key)
@@ -415,10 +424,8 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int, zoo
 
         next_states, next_deliveries, env_key, next_observed = jax.lax.cond(
             ended.any(), reset, lambda _: (states, deliveries, env_key, tuple(stepped)), None)
-        if zoo_share is not None:  # a new episode's floor: its tables (walls and counters never move in an episode)
-            tables = jax.lax.cond(ended.any(), lambda: jnp.where(ended[:, None, None], floors(next_observed[0]),
-                                                                    tables), lambda: tables)
-            zoo = (*zoo[:2], tables)
+        if zoo_share is not None:
+            zoo = next_zoo(conventions, zoo, ended, next_observed[0])
         # The transforms' next input: episodes that ended start again (InitTracker), their states zero (the primer).
         next_memory = (stepped[2], *restarted(stepped[2], next_network_states))
         record = (carrier, acted, next_network_states, tuple(stepped), seated)
@@ -513,7 +520,7 @@ class XlaCollector(InPlaceCollector):
         if self._seats is None:
             return ()
         seed = torch.randint(0, 2**31 - 1, (2,), dtype=torch.int64, generator=self._seats.generator)
-        return (self._conventions, self._to_jax(self._seats._seats.to(torch.int32)),
+        return (self._conventions, self._to_jax(self._seats.draws.to(torch.int32)),
                 self._to_jax(seed.to(torch.int32)).view(jnp.uint32))
 
     def _state_entries(self, is_init: torch.Tensor, states: list, next_states: list) -> dict:
@@ -532,7 +539,7 @@ class XlaCollector(InPlaceCollector):
             self._weights(), env.kitchens(), self._act_keys(), self._carrier, self._zoo())
         env.continue_from(states, deliveries, key, self._carrier[0][0])
         if draws:  # the seats where the batch left them: the next batch's, and the checkpoint's
-            self._seats._seats = torch.from_dlpack(draws[0]).long().cpu()
+            self._seats.draws = torch.from_dlpack(draws[0]).long().cpu()
         (observed, (is_init, *states)), acted, next_states, stepped, seated = jax.tree.map(torch.from_dlpack, records)
         values = {**output_entries(*observed, with_reward=False), **dict(zip(ACTING_KEYS, acted)),
                   **{(NEXT, *as_path(key)): tensor for key, tensor in output_entries(*stepped, True).items()}}

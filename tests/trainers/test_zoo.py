@@ -176,7 +176,7 @@ def test_zoo_seats_draw_a_cook_per_kitchen_and_episode_and_the_cook_acts_in_its_
     own = torch.distributions.Categorical(logits=batch["agents", "logits"]).log_prob(acted)
     torch.testing.assert_close(own[learner], batch["agents", "action_log_prob"][learner])
     last = zoo_cook[:, -1]  # the seating the batch ends in, kept for a checkpoint as ZooSeats' draws
-    assert torch.equal(seats._seats, torch.where((last >= 0).any(-1), 2 * last.amax(-1) + last.argmax(-1), LEARNER))
+    assert torch.equal(seats.draws, torch.where((last >= 0).any(-1), 2 * last.amax(-1) + last.argmax(-1), LEARNER))
 
 
 def test_cooks_planned_for_the_kitchens_they_play_in_act_as_cooks_planned_for_every_kitchen():
