@@ -575,7 +575,7 @@ def check_device(device: str, key: str = "device") -> None:
 def _check_types(config, prefix: str = "") -> None:
     """Refuses a field of the dataclass `config` whose value does not fit its type (a config built in Python skips
     `_merge`), its sections' fields too; a field is named with `prefix` (its section's, e.g. "runtime.")."""
-    hints = typing.get_type_hints(type(config))
+    hints = type_hints(type(config))
     for field in dataclasses.fields(config):
         value, expected = getattr(config, field.name), hints[field.name]
         if dataclasses.is_dataclass(expected) and isinstance(value, expected):
@@ -642,19 +642,27 @@ def type_name(expected) -> str:
     return str(expected).replace("typing.", "")
 
 
-def config_keys(schema: type) -> list[str]:
+@functools.cache
+def type_hints(schema: type) -> dict:
+    """`typing.get_type_hints(schema)`, read once per schema (a config load asks for it hundreds of times); the
+    caller must not change the mapping."""
+    return typing.get_type_hints(schema)
+
+
+@functools.cache
+def config_keys(schema: type) -> tuple[str, ...]:
     """The keys of `schema`, a section's as `section.key` (`runtime.device`)."""
-    hints = typing.get_type_hints(schema)
-    return [key for field in dataclasses.fields(schema)
-            for key in ([f"{field.name}.{inner}" for inner in config_keys(hints[field.name])]
-                        if dataclasses.is_dataclass(hints[field.name]) else [field.name])]
+    hints = type_hints(schema)
+    return tuple(key for field in dataclasses.fields(schema)
+                 for key in ([f"{field.name}.{inner}" for inner in config_keys(hints[field.name])]
+                             if dataclasses.is_dataclass(hints[field.name]) else [field.name]))
 
 
 def is_config_key(schema: type, key: str) -> bool:
     """Whether `key` names a key of `schema`: one of `config_keys`, or any `algorithm_config.<key>` (the
     algorithm checks its own)."""
     return key in config_keys(schema) or (key.startswith("algorithm_config.") and "algorithm_config" in
-                                          typing.get_type_hints(schema))
+                                          type_hints(schema))
 
 
 def unknown_key(schema: type, key: str, source: str) -> ConfigError:
@@ -706,7 +714,7 @@ def _merges_by_key(expected) -> bool:
 def _checked_layer(schema: type, values: dict, source: str, prefix: str = "", root: type | None = None) -> dict:
     """`values` from `source` with every key known to `schema` (a section's keys named `prefix`key) and every value
     of a type OmegaConf would not catch refused with one line, and what YAML reads otherwise made readable."""
-    hints, layer = typing.get_type_hints(schema), {}
+    hints, layer = type_hints(schema), {}
     for key, value in values.items():
         if key not in hints:
             raise unknown_key(root or schema, f"{prefix}{key}", source)
@@ -737,12 +745,15 @@ def merge_layer(schema: type, merged: DictConfig, values: dict, source: str, pre
     """`values` (from `source`: a file, the command line, a saved run) merged over `merged` by OmegaConf, which
     converts what it can (e.g. "1e-3" to a float); a ConfigError names the key (after `prefix`, that of the section
     `schema` is), its type and the source."""
-    hints, layer = typing.get_type_hints(schema), _checked_layer(schema, values, source, prefix)
+    hints, layer = type_hints(schema), _checked_layer(schema, values, source, prefix)
     try:
-        merged = merged.copy()
-        for key, value in layer.items():
-            if isinstance(value, dict) and not _merges_by_key(hints[key]):
-                merged[key] = {}  # a later layer replaces a mapping, as it replaces any value, instead of merging
+        # A later layer replaces a mapping, as it replaces any value, instead of merging (OmegaConf.merge copies
+        # `merged`: only a mapping cleared first needs a copy of its own).
+        replaced = [key for key, value in layer.items() if isinstance(value, dict) and not _merges_by_key(hints[key])]
+        if replaced:
+            merged = merged.copy()
+            for key in replaced:
+                merged[key] = {}
         return OmegaConf.merge(merged, layer)
     except OmegaConfBaseException as error:
         key = str(getattr(error, "full_key", "") or "") or next(iter(layer))
@@ -755,13 +766,13 @@ def _at_path(hints: dict, layer: dict, key: str) -> tuple[type, object]:
     head, _, rest = key.partition(".")
     expected, value = hints.get(head, object), layer.get(head)
     if rest and dataclasses.is_dataclass(expected) and isinstance(value, dict):
-        return _at_path(typing.get_type_hints(expected), value, rest)
+        return _at_path(type_hints(expected), value, rest)
     return expected, value
 
 
 def build_config(schema: type, values: dict):
     """The dataclass `schema` from merged plain values, its sections built as their own dataclasses."""
-    hints = typing.get_type_hints(schema)
+    hints = type_hints(schema)
     return schema(**{key: build_config(hints[key], value) if dataclasses.is_dataclass(hints[key]) else value
                      for key, value in values.items()})
 
