@@ -48,7 +48,7 @@ SHRINK = {
     "kitchen-levels sample": ["--n", "4"],
     "kitchen-zoo draw": ["--candidates", "4", "--keep", "2", "--strangers", "1", "--levels", "2", "--min-cooked", "0",
                          "--table-heldout", "1", "--table-rollouts", "1", "--clash-heldout", "0", "--workers", "1",
-                         "--out", "outputs/zoo"],
+                         "--max-steps", "16", "--out", "outputs/zoo"],
     "kitchen-zoo clash": ["--heldout", "0", "--max-steps", "2", "--out", "outputs/clash"],
     "scripts/reproduce.py": ["--teams", "1", "--rollouts", "1", "--heldout", "1", "--max-steps", "16", "--jobs", "1",
                              "--no-human-proxies", *TRAIN_SHRINK],

@@ -256,14 +256,14 @@ def clash(zoo: Zoo, out: Path, heldout: int, rollouts: int, seed: int, workers: 
 
 # -------------------------------------------------------------------------------------------------- table
 def zoo_table(zoo: Zoo, heldout: int, rollouts: int, seed: int, max_envs: int, workers: int,
-              progress: bool) -> str:
-    """Markdown: each convention's split, role and description, its self-play on each classic layout and on the
-    held-out levels, and its events per episode and seat on the zoo's levels."""
+              progress: bool, max_steps: int = 256) -> str:
+    """Markdown: each convention's split, role and description, its self-play (`max_steps`-step episodes) on each
+    classic layout and on the held-out levels, and its events per episode and seat on the zoo's levels."""
     size = zoo.kitchen_size
     layouts = list(EXPANDED_LAYOUTS) if size == 7 else list(padded_layouts(size))
     grids = evaluation_grids(layouts, heldout, size)
     conventions = [member.convention for member in zoo.members]
-    deliveries, _ = self_play(conventions, grids, rollouts, seed, max_envs, workers, progress)
+    deliveries, _ = self_play(conventions, grids, rollouts, seed, max_envs, workers, progress, max_steps)
     classic = [g for g, grid in enumerate(grids) if not is_heldout(grid.name)]
     held = [g for g, grid in enumerate(grids) if is_heldout(grid.name)]
     short = [name.removesuffix("_7x7") for name in layouts]
@@ -323,6 +323,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     draw.add_argument("--clash-heldout", type=int, default=20,
                       help="held-out levels of the convention x convention cross-play (0: the classic layouts only)")
     draw.add_argument("--workers", type=int, default=1, help="processes that play at once")
+    draw.add_argument("--max-steps", type=int, default=256,
+                      help="steps of an episode, in the draw, the table and the clash alike")
     draw.add_argument("--out", default=str(Path(ZOO_FILE).parent), help="folder of zoo.yaml and zoo.md")
     clashes = verbs.add_parser("clash", help="convention x convention cross-play of a zoo: clash.md, .csv and heat map")
     clashes.add_argument("zoo", nargs="?", default=ZOO_FILE)
@@ -364,16 +366,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ConfigError(f"need 0 <= strangers <= keep <= candidates, got {args.strangers}, {args.keep}, "
                               f"{args.candidates}")
         zoo = draw_zoo(args.seed, args.candidates, args.keep, args.strangers, args.levels, args.kitchen_size,
-                       args.min_cooked, workers=args.workers)
-        table = zoo_table(zoo, args.table_heldout, args.table_rollouts, args.seed, 4096, args.workers, True)
+                       args.min_cooked, workers=args.workers, max_steps=args.max_steps)
+        table = zoo_table(zoo, args.table_heldout, args.table_rollouts, args.seed, 4096, args.workers, True,
+                          args.max_steps)
         out = Path(args.out)
         table += ("\n## Do the conventions clash?\n\n"
-                  + clash(zoo, out, args.clash_heldout, 1, args.seed, args.workers, True)
+                  + clash(zoo, out, args.clash_heldout, 1, args.seed, args.workers, True, args.max_steps)
                   + "\n![convention x convention](heatmap_clash.png)\n")
         print(f"wrote {save_zoo(zoo, out / 'zoo.yaml')}")
         (out / "zoo.md").write_text(f"# The zoo\n\n`kitchen-zoo draw --seed {args.seed} --candidates "
                                     f"{args.candidates} --keep {args.keep} --strangers {args.strangers} --levels "
-                                    f"{args.levels} --clash-heldout {args.clash_heldout}`\n\n" + table)
+                                    f"{args.levels} --clash-heldout {args.clash_heldout}"
+                                    + (f" --max-steps {args.max_steps}" if args.max_steps != 256 else "")
+                                    + "`\n\n" + table)
         print(table)
         print(f"wrote {out / 'zoo.md'}")
     except (ConfigError, ConventionError) as error:
