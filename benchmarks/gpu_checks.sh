@@ -24,10 +24,12 @@ raw=$(mktemp -d)
 records=$raw/records.jsonl
 if [[ ${SIZE:-full} == tiny ]]; then
     protocol=tiny jaxmarl=tiny ik=tiny updates=2 repeats=1 envs=4 steps=8 cook_envs=4
+    strangers_args="--heldout 1 --rollouts 1"
     main_args="num_envs=4 rollout_steps=16 max_steps=16 hidden=16 total_steps=64 distill_kitchens=4 distill_rounds=1
         distill_epochs=1 eval_episodes=0 runtime.threads=1"
 else
     protocol=protocol jaxmarl=jaxmarl ik=ik updates=3 repeats=3 envs=192 steps=300 cook_envs=4096 main_args=""
+    strangers_args="--heldout 100 --rollouts 4"
 fi
 # Where the machine has python3 alone, `python` (every row's command) is python3.
 if ! command -v python >/dev/null; then
@@ -89,6 +91,8 @@ row xla_inputs 120 python benchmarks/xla_rollout_inputs.py --envs $envs --device
 row scripted_cook 90 python benchmarks/scripted_cook.py --envs $cook_envs --calls 10
 # IPPO beside zoo cooks planning inside the same program, against self-play at the planner-guided shape.
 row zoo_partners 150 python benchmarks/zoo_partners.py --updates $updates --rounds 1 --device "$device" --out "$raw/zoo_partners.md"
+# Evaluation beside the zoo's strangers, inside XLA and by the kitchens' collector.
+row strangers 200 python benchmarks/strangers.py $strangers_args --workers 1 --device "$device" --out "$raw/strangers.md"
 # The other settings: one team at the paper's shape (b), JaxMARL's (a).
 row ik_default 150 $reference --setting $ik
 row jaxmarl_default 150 $reference --setting $jaxmarl

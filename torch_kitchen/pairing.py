@@ -61,6 +61,7 @@ class SeatedPolicy(TensorDictModuleBase):
         self.out_keys = [LOGITS] + [("next", *key) for key in state_keys]
         # Per team: the kitchens it plays in, and per seat (where among them it plays that seat, those kitchens).
         self._rows: list[tuple[torch.Tensor, list[tuple[torch.Tensor, torch.Tensor]]]] = []
+        self.seating: torch.Tensor | None = None  # long [B, 2]: the team of every seat, as `seat` was told
 
     def env_transforms(self) -> list[Transform]:
         """[InitTracker(), the primer of every stored state] if a team is recurrent, then the partner context if
@@ -74,6 +75,7 @@ class SeatedPolicy(TensorDictModuleBase):
             raise ValueError(f"teams must be [num_envs, {N_AGENTS}] team indices, got {list(teams.shape)}")
         if teams.numel() and not 0 <= int(teams.min()) <= int(teams.max()) < len(self.actors):
             raise ValueError(f"team indices must lie in [0, {len(self.actors)}), got {teams.unique().tolist()}")
+        self.seating = teams
         self._rows = []
         for team in range(len(self.actors)):
             seated = teams == team  # [B, 2]

@@ -40,6 +40,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
@@ -47,14 +48,17 @@ from torch import nn
 from torchrl.envs import Compose, EnvBase, InitTracker, TensorDictPrimer, TransformedEnv
 from torchrl.modules import ProbabilisticActor
 
-from jax_env.cook import floor_tables, walkable_floor
+from jax_env import NUM_ACTIONS
+from jax_env.cook import cook_logits, floor_tables, walkable_floor
 from torch_kitchen.egocentric import EgocentricLinear
 from torch_kitchen.env import KitchenEnv, ProgramCache, kitchen_programs, output_entries
 from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, N_AGENTS, OBSERVATION, SHAPED_REWARD, VALUE
-from torch_kitchen.models.acting import ActingPass, ActionDistribution
+from torch_kitchen.models.acting import ActingPass, ActionDistribution, plain_network
 from torch_kitchen.models.networks import GraphEncoder
 from torch_kitchen.models.recurrence import MultiAgentLSTM
+from torch_kitchen.pairing import SeatedPolicy
 from torch_kitchen.rollout import NEXT, InPlaceCollector, as_path, as_tensordict
+from torch_kitchen.scripted import ScriptedCook, stacked_conventions
 from torch_kitchen.teams import ACTING_KEYS, TeamPolicy, acting_pass_of, layers_of
 from torch_kitchen.torchrl_internals import TEMPLATE, MultiAgentNet
 from torch_kitchen.xla_layers import (
@@ -236,14 +240,23 @@ def feed_forward_acting(acting: ActingPass | None) -> tuple[ActingNetwork, Actin
     parts mixed)."""
     if acting is None:
         return None
-    shared = acting.shared_networks()
-    if shared is not None:
-        return ActingNetwork(shared[0]), ActingNetwork(shared[1])
-    networks = (acting.policy_net, acting.value_net)
-    if not all(isinstance(part, MultiAgentNet) and not part.share_params for network in networks for part in network):
+    pair = plain_acting_network(acting.policy_net), plain_acting_network(acting.value_net)
+    if None in pair or bool(pair[0].agent_parts) != bool(pair[1].agent_parts):
         return None
-    return tuple(ActingNetwork(nn.Sequential(*(getattr(part, TEMPLATE) for part in network)),
-                               agent_parts=tuple(network)) for network in networks)
+    return pair
+
+
+def plain_acting_network(network: nn.Module) -> ActingNetwork | None:
+    """A plain chain of `MultiAgentNet` parts (`plain_network`) as an `ActingNetwork`: every part shared by the agents,
+    or every part one network per agent; else None."""
+    parts = list(network) if isinstance(network, nn.Sequential) else [network]
+    if not all(isinstance(part, MultiAgentNet) for part in parts):
+        return None
+    if all(part.share_params for part in parts):
+        return ActingNetwork(nn.Sequential(*(part.shared_net() for part in parts)))
+    if not any(part.share_params for part in parts):
+        return ActingNetwork(nn.Sequential(*(getattr(part, TEMPLATE) for part in parts)), agent_parts=tuple(parts))
+    return None
 
 
 def without_zoo(policy: TensorDictModuleBase) -> tuple[TensorDictModuleBase, ZooPartners | None]:
@@ -354,11 +367,22 @@ def rollout_program(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int, zo
     records each step's seating [B, steps, 2] (`ZOO_COOK`)."""
     key = (env.jax_env.settings, env.num_envs, env.teams, env.pinned_levels is not None, chains, steps,
            env.jax_device.platform, zoo_share)
-    return _PROGRAMS.get(key, lambda: _build_rollout(env, chains, steps, zoo_share))
+    return _PROGRAMS.get(key, lambda: _build_rollout(env, _team_act(env, chains), steps, zoo_share))
 
 
-def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int, zoo_share: float | None) -> Callable:
-    programs = kitchen_programs(env.jax_env, env.num_envs, env.teams, env.pinned_levels is not None, packed=False)
+def seated_program(env: KitchenEnv, teams: tuple[Chain | str, ...], slots: tuple[int, ...], steps: int) -> Callable:
+    """`rollout_program` for kitchens whose seats different teams play (`SeatedCollector`): each team's policy chain,
+    or `COOK` for a scripted cook, and the number of seats each plays (`slots`, static); the program's weights are
+    (each network's weights, the cooks' conventions [C, ...], the kitchens' floor tables, each team's seats)
+    (`_seated_act`). No value network runs (the values are zeros), and no zoo."""
+    key = (env.jax_env.settings, env.num_envs, env.teams, env.pinned_levels is not None, ("seated", teams, slots),
+           steps, env.jax_device.platform, None)
+    return _PROGRAMS.get(key, lambda: _build_rollout(env, _seated_act(env, teams), steps, None))
+
+
+def _team_act(env: KitchenEnv, chains: tuple[Chain, Chain]) -> Callable:
+    """The acting pass of the rollout's teams, each in its own kitchens: (weights, keys [teams, 2], observation,
+    (policy state, value state)) -> ((logits, action, log-prob, value), next states)."""
     policy_chain, value_chain = chains
     teams, team_size = env.teams, env.team_size
     on_gpu = env.jax_device.platform != "cpu"
@@ -374,6 +398,57 @@ def _build_rollout(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int, zoo
         by_team = jax.tree.map(lambda value: value.reshape(teams, team_size, *value.shape[1:]), (observation, *states))
         outputs = jax.vmap(team)(*weights, keys, *by_team)
         return jax.tree.map(lambda value: value.reshape(teams * team_size, *value.shape[2:]), outputs)
+
+    return act
+
+
+COOK = "cook"  # a seated team that is the scripted cook of a convention (`jax_env.cook`), not a network
+
+
+def _seated_act(env: KitchenEnv, teams: tuple[Chain | str, ...]) -> Callable:
+    """The acting pass of kitchens whose seats different teams play: weights = (each network team's weights, in
+    order, the cooks' conventions [C, ...] and floors (None without a cook), and each team's seats: (kitchens int32
+    [R], seats int32 [R]) per network team, then the cooks' (kitchens, seats, which convention) together; a kitchen
+    index of B pads a list). floors: (the floor tables of the kitchens' plans [P, ...], each kitchen's plan int32 [B])
+    where the kitchens are pinned to levels, else (each kitchen's tables [B, ...], None).
+
+    A network shared by the agents runs on the views of the seats its team plays, one with a network per agent on
+    both views of their kitchens (its seat's logits kept, as `SeatedPolicy` keeps them); the cooks plan in their seats
+    in one call. One draw per seat from keys[0]. -> ((logits, action, log-prob, zero values), no states)."""
+    networks = [chain for chain in teams if chain != COOK]
+    on_gpu = env.jax_device.platform != "cpu"
+
+    def act(weights, keys, observation, states):
+        network_weights, conventions, floors, slots = weights
+        count = observation.shape[0]
+        logits = jnp.zeros((count, N_AGENTS, NUM_ACTIONS), jnp.float32)
+        for chain, own, (kitchens, seats) in zip(networks, network_weights, slots):
+            safe = jnp.minimum(kitchens, count - 1)
+            if chain[0][0] == "per_agent":  # each seat its own network: both run, the team's seat kept
+                out, _ = run_chain(chain, own, observation[safe], (), on_gpu)
+                picked = jnp.take_along_axis(out, seats[:, None, None], axis=1)[:, 0]
+            else:  # one network for both seats: on the seated agent's view alone
+                picked, _ = run_chain(chain, own, observation[safe, seats], (), on_gpu)
+            logits = logits.at[kitchens, seats].set(picked, mode="drop")
+        if conventions is not None:
+            kitchens, seats, which = slots[-1]
+            safe = jnp.minimum(kitchens, count - 1)
+            rows = jax.tree.map(lambda leaf: leaf[which], conventions)
+            tables, plan = floors
+            floor = (tables[safe], None) if plan is None else (tables, plan[safe])
+            planned = cook_logits(observation[safe, seats], rows, *floor,
+                                  detour_rows=None if on_gpu else max(1, len(kitchens) // 4))
+            logits = logits.at[kitchens, seats].set(planned, mode="drop")
+        action = jax.random.categorical(keys[0], logits)
+        log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), action[..., None], -1)[..., 0]
+        return (logits, action, log_prob, jnp.zeros((count, N_AGENTS, 1), jnp.float32)), ((), ())
+
+    return act
+
+
+def _build_rollout(env: KitchenEnv, act: Callable, steps: int, zoo_share: float | None) -> Callable:
+    programs = kitchen_programs(env.jax_env, env.num_envs, env.teams, env.pinned_levels is not None, packed=False)
+    on_gpu = env.jax_device.platform != "cpu"
 
     def with_zoo_cooks(conventions, zoo, observation, acted):
         """The actions with the zoo cooks' in their seats, the seating they played by, and the zoo's next key."""
@@ -557,3 +632,96 @@ class XlaCollector(InPlaceCollector):
         else:
             torch._foreach_copy_([self._storage.get(key) for key in self._keys], [values[key] for key in self._keys])
         return self._storage
+
+
+def seated_teams(env: EnvBase, policy) -> tuple[SeatedPolicy, list[ActingNetwork | ScriptedCook]] | None:
+    """A seated actor's (`make_seated_actor`) `SeatedPolicy` and each of its teams as `SeatedCollector` plays it: a
+    feed-forward actor's policy network, where JAX runs its layers, or a scripted cook; None where a team acts
+    otherwise (recurrent, E3T's predictor) or the env is not a bare `KitchenEnv` (`seat` not yet called: None too)."""
+    if not (isinstance(env, KitchenEnv) and isinstance(policy, ProbabilisticActor)
+            and isinstance(policy.module[0], SeatedPolicy) and policy.module[0].seating is not None
+            and getattr(policy.module[1], "distribution_class", None) is ActionDistribution):
+        return None
+    seated, teams = policy.module[0], []
+    for actor in seated.actors:
+        network = actor.module[0] if isinstance(actor, ProbabilisticActor) else None
+        if isinstance(network, TensorDictModule) and isinstance(network.module, ScriptedCook):
+            teams.append(network.module)
+            continue
+        if not (isinstance(network, TensorDictSequential) and list(network.in_keys) == [OBSERVATION]
+                and LOGITS in network.out_keys):
+            return None
+        acting = plain_acting_network(plain_network(network))
+        if acting is None or network_chain(acting) is None:
+            return None
+        teams.append(acting)
+    return seated, teams
+
+
+_FLOORS = jax.jit(lambda observation: floor_tables(walkable_floor(observation[:, 0])))  # a kitchen's, seat 0's view
+
+
+def _padded(columns: Sequence[torch.Tensor], pad: Sequence[int], device) -> tuple[jax.Array, ...]:
+    """Index columns int [R] padded to a power of two with `pad` (one compilation serves any count up to it)."""
+    count = len(columns[0])
+    size = 1 << max(0, count - 1).bit_length()
+    return tuple(jax.device_put(torch.cat([column, column.new_full((size - count,), fill)]).int().numpy(), device)
+                 for column, fill in zip(columns, pad))
+
+
+class SeatedCollector(XlaCollector):
+    """`XlaCollector` for kitchens whose seats different teams play (evaluation's `make_seated_actor`, seated by
+    `SeatedPolicy.seat` for the collector's life): feed-forward teams' policy networks and scripted cooks act inside
+    one program (`seated_program`), on a bare `KitchenEnv`; the batch holds zero values (no critic plays). Actions
+    are drawn from a key of torch's current random stream at each batch. ValueError where `seated_teams` is None
+    (`trainers.rollout.make_collector` checks)."""
+
+    def __init__(self, env: EnvBase, policy: ProbabilisticActor, frames_per_batch: int, total_frames: int = -1):
+        InPlaceCollector.__init__(self, env, frames_per_batch, total_frames)
+        found = seated_teams(env, policy)
+        if found is None:
+            raise ValueError("SeatedCollector plays seated feed-forward teams (MLP, agent-centred MLP, GNN) and "
+                             "scripted cooks on a bare KitchenEnv; play the others with KitchenCollector")
+        seated, teams = found
+        self.policy, self.kitchen_env = policy, env
+        self._seats, self._recurrent, self._state_keys = None, False, [(), ()]
+        device, seating = env.jax_device, seated.seating.cpu()
+        self._network_teams = [team for team in teams if isinstance(team, ActingNetwork)]
+        slots = [_padded((seating == index).nonzero(as_tuple=True), (env.num_envs, 0), device)
+                 for index, team in enumerate(teams) if isinstance(team, ActingNetwork)]
+        cooks = [index for index, team in enumerate(teams) if not isinstance(team, ActingNetwork)]
+        self._conventions = None
+        if cooks:
+            kitchens, seats = torch.isin(seating, torch.tensor(cooks)).nonzero(as_tuple=True)
+            which = torch.searchsorted(torch.tensor(cooks), seating[kitchens, seats])
+            slots.append(_padded((kitchens, seats, which), (env.num_envs, 0, 0), device))
+            self._conventions = jax.tree.map(lambda leaf: jax.device_put(leaf, device),
+                                             stacked_conventions([teams[index].convention for index in cooks]))
+        # Kitchens pinned to levels share their level's floor tables (a table per plan reads faster than one per
+        # kitchen): those of each level's first kitchen.
+        levels = env.pinned_levels
+        self._plans = None if levels is None else (
+            np.unique(levels, return_index=True)[1], jax.device_put(levels.astype(np.int32), device))
+        self._slots = tuple(slots)
+        chains = tuple(network_chain(team) for team in self._network_teams) + ((COOK,) if cooks else ())
+        self._program = seated_program(env, chains, tuple(len(slot[0]) for slot in slots), self.steps)
+        with torch.no_grad():
+            first = env.reset()
+        self._carrier = self._carrier_of(first)
+
+    def _weights(self) -> tuple:
+        """(each network team's weights, the cooks' conventions, their floors, every team's seats)."""
+        with torch.no_grad():
+            networks = tuple([self._to_jax(weight) for weight in network_weights(team)]
+                             for team in self._network_teams)
+        floors = None
+        if self._conventions is not None:
+            observation = self._carrier[0][0]
+            floors = (_FLOORS(observation), None) if self._plans is None else \
+                (_FLOORS(observation[self._plans[0]]), self._plans[1])
+        return networks, self._conventions, floors, self._slots
+
+    def _act_keys(self) -> jax.Array:
+        """uint32 [1, 2]: this batch's key for the draws, from torch's current random stream."""
+        seed = torch.randint(0, 2**31 - 1, (1, 2), dtype=torch.int64)
+        return self._to_jax(seed.to(torch.int32)).view(jnp.uint32)

@@ -44,6 +44,7 @@ LOGGERS = ("tensorboard", "csv", "wandb", "mlflow", "trackio")  # TorchRL's `get
 PLANNER_START = "scripted_cook"  # init_from: start from the scripted cook, distilled into the run's folder
 TEACHER_MIXES = ("seed", "round")  # distill_teacher_mix: one teacher per seed, or one drawn per DAgger round
 COLLECTORS = ("kitchen", "torchrl", "xla")  # runtime.collector: torch_kitchen.rollout's, TorchRL's, whole in XLA
+EVAL_COLLECTORS = ("kitchen", "xla")  # EvalConfig.collector: torch at every step, or whole episodes in XLA
 GENERATED_LEVELS = ("infinite", "heldout")  # `levels` values that name generated levels rather than layouts
 # torch takes 64-bit seeds, but JAX (32-bit by default) keeps only a seed's low 32 bits: 2**32 + 5 would replay 5.
 MAX_SEED = 2**32 - 1
@@ -496,6 +497,10 @@ class EvalConfig:
     )
     workers: int = option(1, "processes that play the batches at once, each on a core of its own (the same numbers "
                           "with any)")
+    collector: str = option(
+        "xla", 'how the pairs play: "xla" (a batch whose teams are all feed-forward networks or scripted cooks plays '
+        'inside one XLA program, actions drawn by JAX; the others as "kitchen") or "kitchen" (torch acts at every '
+        "step)")
     seed: int = option(0, "the same seed gives the same numbers")
     progress: bool = option(True, "a progress bar")
     runtime: DeviceConfig = option(DeviceConfig(), "where it runs: the same numbers on any threads", group="runtime")
@@ -514,6 +519,8 @@ class EvalConfig:
         _check_seed(self.seed)
         _at_least(self, ["rollouts", "max_steps", "max_envs", "workers"], 1)
         _at_least(self.runtime, ["threads"], 1, "runtime.")
+        if self.collector not in EVAL_COLLECTORS:
+            raise ConfigError(f"collector={self.collector!r}: choose one of {', '.join(EVAL_COLLECTORS)}")
         if not 0 <= self.heldout <= NUM_HELDOUT_GENERATED:
             raise ConfigError(
                 f"heldout must be between 0 and {NUM_HELDOUT_GENERATED} (the held-out levels), got {self.heldout}"

@@ -19,7 +19,7 @@ from jax_env import Channel
 from torch_kitchen.events import kitchen_events
 from torch_kitchen.keys import LOGITS, SHAPED_REWARD
 from torch_kitchen.rollout import KitchenCollector
-from torch_kitchen.xla_rollout import XlaCollector, xla_chains
+from torch_kitchen.xla_rollout import SeatedCollector, XlaCollector, seated_teams, xla_chains
 
 
 def make_collector(env: EnvBase, policy, frames_per_batch: int, total_frames: int = -1,
@@ -30,13 +30,17 @@ def make_collector(env: EnvBase, policy, frames_per_batch: int, total_frames: in
     own. XLA runs acting passes (MLP, ego_mlp, GNN; shared by the agents or one network per agent) on a bare
     `KitchenEnv`, and their recurrent variants ("mlp_lstm", "gnn_lstm") on a `KitchenEnv` with the model's
     transforms alone (`with_model_transforms`), with zoo cooks beside one team or not (`zoo_ippo`: its seats and
-    cooks play inside the program too); E3T and other transforms, and other acting modules, take the kitchens' own.
+    cooks play inside the program too), and evaluation's seated teams (`make_seated_actor`: feed-forward teams and
+    scripted cooks, `SeatedCollector`) on a bare `KitchenEnv`; E3T and other transforms, and other acting modules,
+    take the kitchens' own.
 
     Each writes every batch into the same buffers instead of a fresh copy, which keeps large batches cheap;
     consume a batch before asking for the next one.
     """
     if kind == "xla" and xla_chains(env, policy) is not None:
         return XlaCollector(env, policy, frames_per_batch, total_frames)
+    if kind == "xla" and seated_teams(env, policy) is not None:
+        return SeatedCollector(env, policy, frames_per_batch, total_frames)
     if kind in ("kitchen", "xla"):
         return KitchenCollector(env, policy, frames_per_batch, total_frames)
     return Collector(
@@ -68,15 +72,18 @@ class EpisodeOutcomes:
     events: torch.Tensor
 
 
-def play_episodes(env: EnvBase, policy, max_steps: int, max_frames: int = 1 << 17) -> EpisodeOutcomes:
-    """One episode of every kitchen of `env` (all starting at the collector's reset), read on the fly.
+def play_episodes(env: EnvBase, policy, max_steps: int, max_frames: int = 1 << 17, kind: str = "kitchen"
+                  ) -> EpisodeOutcomes:
+    """One episode of every kitchen of `env` (all starting at the collector's reset), read on the fly, by the
+    collector `kind` names (`make_collector`).
 
     The collector hands the episodes over in pieces of at most `max_frames` steps, so memory stays bounded
     however many kitchens play; only the outcomes are kept.
     """
     num_envs = env.batch_size[0]
     steps = max(d for d in range(1, max_steps + 1) if max_steps % d == 0 and d * num_envs <= max(max_frames, num_envs))
-    collector = make_collector(env, policy, frames_per_batch=num_envs * steps, total_frames=num_envs * max_steps)
+    collector = make_collector(env, policy, frames_per_batch=num_envs * steps, total_frames=num_envs * max_steps,
+                               kind=kind)
     deliveries, visits, events = None, 0, 0
     try:
         for batch in collector:

@@ -1,4 +1,5 @@
-"""The stranger benchmark, tiny: it plays both passes and writes its table with the goal's verdict."""
+"""The stranger benchmark, tiny: it plays both passes with both collectors and writes its table with the goal's
+verdict."""
 
 import strangers
 
@@ -12,6 +13,8 @@ def test_the_stranger_benchmark_times_both_passes_and_writes_its_table(tmp_path)
     out = tmp_path / "strangers.md"
     strangers.main(["--zoo", str(zoo), "--heldout", "1", "--rollouts", "1", "--workers", "1", "--out", str(out)])
     table = out.read_text()
-    assert "| beside the strangers (and each alone) | 6 | 6 |" in table  # 2 strangers: 6 pairs x 1 level
-    assert "| beside the scripted cook (and it alone): reference | 3 | 3 |" in table
-    assert "Goal: the stranger pass under 300 s: PASS" in table
+    for collector in ("kitchen", "xla"):
+        assert f"| {collector} | beside the strangers (and each alone) | 6 | 6 |" in table  # 2 strangers: 6 pairs
+        assert f"| {collector} | beside the scripted cook (and it alone): reference | 3 | 3 |" in table
+    assert "The stranger pass inside XLA: " in table
+    assert "Goal: the stranger pass under 300 s with the default collector (xla): PASS" in table

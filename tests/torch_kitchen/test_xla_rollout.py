@@ -1,21 +1,27 @@
 """The rollout inside one XLA program (`torch_kitchen.xla_rollout`): the kitchens stepped as a `KitchenEnv` steps
 them with the actions it drew, the teams' networks (their graph layers and LSTMs too) as torch computes them, the
-draws from each team's stream."""
+draws from each team's stream; evaluation's seated teams and scripted cooks as they act outside it."""
 
 import pytest
 import torch
+from scripted_cook import TWO_BOOTHS
 from tensordict.nn import TensorDictModuleBase
 from test_rollout import assert_same_batches, env_and_policy
 from torch.utils._pytree import tree_flatten
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.modules import set_recurrent_mode
 
-from torch_kitchen.env import team_rows
+from jax_env import parse_layout
+from torch_kitchen.conventions import Convention
+from torch_kitchen.env import KitchenEnv, team_rows, with_transforms
 from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, OBSERVATION, VALUE
+from torch_kitchen.models import make_actor_critic
+from torch_kitchen.pairing import make_seated_actor
 from torch_kitchen.rollout import NEXT, KitchenCollector
+from torch_kitchen.scripted import ScriptedCook, scripted_actor_critic
 from torch_kitchen.teams import acting_pass_of
-from torch_kitchen.xla_rollout import XlaCollector
-from trainers.rollout import make_collector
+from torch_kitchen.xla_rollout import SeatedCollector, XlaCollector
+from trainers.rollout import make_collector, play_episodes
 
 
 class Replay(TensorDictModuleBase):
@@ -183,3 +189,71 @@ def test_the_program_reads_copies_in_xla_memory_not_the_teams_tensors(tmp_path):
     assert handed.unsafe_buffer_pointer() != tensor.data_ptr()
     tensor += 1
     assert handed.tolist() == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
+
+
+def seated_teams_and_kitchens():
+    """Teams of every kind `SeatedCollector` plays (an MLP shared and one per agent, an agent-centred MLP, the GNN,
+    the scripted cook of two conventions), their weights scaled so that each network acts as its likeliest action
+    says, seated in 12 kitchens: 6 `TWO_BOOTHS` (each cook alone in a booth: it plans the same steps every time), 6
+    of a corridor where the cooks walk and meet."""
+    torch.manual_seed(0)
+    actors = []
+    for architecture, share in (("mlp", True), ("mlp", False), ("ego_mlp", True), ("gnn", True)):
+        actor = make_actor_critic(architecture, (3, 5, 26), 16, share).actor
+        with torch.no_grad():
+            for parameter in actor.parameters():
+                parameter.mul_(40.0)
+        actors.append(actor)
+    actors += [scripted_actor_critic().actor, scripted_actor_critic(Convention(move_order="EWSN")).actor]
+    seating = torch.tensor([[0, 4], [5, 1], [2, 3], [4, 5], [3, 0], [5, 5]] * 2)
+    actor = make_seated_actor(actors)
+    actor.module[0].seat(seating)
+    corridor = parse_layout("WPOXW\nB0 1W\nWWBWW", name="corridor")
+    return actor, seating, [TWO_BOOTHS] * 6 + [corridor] * 6
+
+
+@pytest.mark.parametrize("pinned", [True, False], ids=["pinned", "drawn"])  # the cooks' tables per level, per kitchen
+def test_seated_teams_act_inside_xla_as_their_networks_and_cooks_do(pinned):
+    actor, seating, grids = seated_teams_and_kitchens()
+    env = KitchenEnv(12, levels=grids, max_steps=16, seed=1, pin_levels=pinned)
+    collector = make_collector(env, actor, 12 * 8, 12 * 16, kind="xla")
+    assert isinstance(collector, SeatedCollector)
+    for batch in collector:  # two batches of 8 steps
+        observation, logits = batch[OBSERVATION], batch[LOGITS]
+        for team, member in enumerate(actor.module[0].actors):
+            seats = seating[:, None].expand(-1, 8, -1) == team  # [12, 8, 2]
+            network = member.module[0]
+            if isinstance(network.module, ScriptedCook):
+                own = network.module(observation)  # the torch cook, planned from its own floor tables
+                torch.testing.assert_close(logits[seats], own[seats], rtol=0, atol=0)
+            else:
+                own = network(batch.select(OBSERVATION).clone()).get(LOGITS)
+                torch.testing.assert_close(logits[seats], own[seats], rtol=1e-4, atol=1e-3)
+        drawn = logits.gather(-1, batch[ACTION].unsqueeze(-1))
+        assert torch.isfinite(drawn).all() and (drawn > logits.max(-1, keepdim=True).values - 30).all()
+        torch.testing.assert_close(batch[LOG_PROB], torch.log_softmax(logits, -1).gather(
+            -1, batch[ACTION].unsqueeze(-1)).squeeze(-1))
+        assert (batch[VALUE] == 0).all()  # no critic plays
+
+
+def test_seated_teams_play_the_same_episodes_inside_xla_where_their_actions_are_certain():
+    """Networks that act as their likeliest action says, and cooks alone in booths, play the same episodes with either
+    collector; a recurrent team (or E3T's) is played by the kitchen collector."""
+    actor, seating, grids = seated_teams_and_kitchens()
+    outcomes = {}
+    for kind in ("kitchen", "xla"):
+        torch.manual_seed(5)
+        env = KitchenEnv(12, levels=grids, max_steps=64, seed=1, pin_levels=True)
+        outcomes[kind] = play_episodes(env, actor, 64, max_frames=12 * 32, kind=kind)
+    cooks_meet = torch.zeros(12, dtype=torch.bool)
+    cooks_meet[6:] = (seating[6:] >= 4).any(-1)  # in the corridor a cook steps or waits by a coin where they meet
+    for name in ("deliveries", "visits", "events"):
+        kitchen, xla = (getattr(outcomes[kind], name)[~cooks_meet] for kind in ("kitchen", "xla"))
+        torch.testing.assert_close(xla, kitchen, rtol=0, atol=0)
+    assert outcomes["xla"].deliveries[:6].sum() > 0  # the booths' cooks deliver
+
+    recurrent = make_seated_actor([make_actor_critic("mlp_lstm", (3, 5, 26), 8, True).actor])
+    recurrent.module[0].seat(torch.zeros(2, 2, dtype=torch.long))
+    env = KitchenEnv(2, levels=grids[:2], max_steps=4, seed=1, pin_levels=True)
+    env = with_transforms(env, recurrent.module[0].env_transforms())
+    assert isinstance(make_collector(env, recurrent, 8, 8, kind="xla"), KitchenCollector)

@@ -116,10 +116,10 @@ def evaluate(config: EvalConfig) -> Path:
           + (f"; {(2 * len(evaluated) + 1) * len(strangers)} pairs with {len(strangers)} strangers" if zoo else ""))
 
     outcomes = play(teams, matchups, grids, config.rollouts, config.max_steps, config.max_envs, config.seed,
-                    device, config.progress, config.workers)
+                    device, config.progress, config.workers, config.collector)
     if proxies:
         outcomes = with_human_proxies(outcomes, proxies, config.rollouts, config.max_steps, config.max_envs,
-                                      config.seed, device)
+                                      config.seed, device, config.collector)
     write_csv(pair_rows(outcomes), out / "pairs.csv")
     summary = summary_rows(outcomes)
     write_csv(summary, out / "summary.csv")
@@ -129,7 +129,7 @@ def evaluate(config: EvalConfig) -> Path:
     if strangers:
         met = play_with_strangers(evaluated, strangers, grids, config.rollouts, config.max_steps,
                                   config.max_envs, config.seed, device, config.progress, config.workers,
-                                  best_responses)
+                                  best_responses, config.collector)
         write_csv(stranger_pair_rows(met), out / "strangers_pairs.csv")
         rows = stranger_rows(met, config.seed)
         write_csv(rows, out / "strangers.csv")
@@ -140,7 +140,7 @@ def evaluate(config: EvalConfig) -> Path:
                                              out / "heatmap_strangers.png"))
     if learned:
         met = play_with_strangers(evaluated, learned, grids, config.rollouts, config.max_steps, config.max_envs,
-                                  config.seed, device, config.progress, config.workers)
+                                  config.seed, device, config.progress, config.workers, collector=config.collector)
         write_csv(stranger_pair_rows(met), out / "learned_strangers_pairs.csv")
         rows = stranger_rows(met, config.seed)
         write_csv(rows, out / "learned_strangers.csv")

@@ -107,6 +107,7 @@ class Batches:
     per_batch: int
     seed: int
     device: str
+    collector: str = "kitchen"  # `trainers.rollout.make_collector`'s kind: "xla" plays inside XLA where it can
 
     @property
     def units(self) -> int:
@@ -140,7 +141,7 @@ class BatchPlayer:
         unit = (torch.arange(b.per_batch, device=b.device) + batch * b.per_batch).clamp(max=b.units - 1)
         self.seated.seat(self.seat_of_matchup[unit.repeat_interleave(num_grids) // b.rollouts])
         with torch.no_grad():
-            outcome = play_episodes(self.env, self.actor, b.max_steps)
+            outcome = play_episodes(self.env, self.actor, b.max_steps, kind=b.collector)
         fresh = min(b.per_batch, b.units - batch * b.per_batch)
         deliveries = outcome.deliveries.reshape(b.per_batch, num_grids)[:fresh]
         visits = outcome.visits.reshape(b.per_batch, num_grids, *outcome.visits.shape[1:])[:fresh]
@@ -172,9 +173,11 @@ def play(
     device: str = "cpu",
     progress: bool = False,
     workers: int = 1,
+    collector: str = "kitchen",
 ) -> Outcomes:
     """Every matchup plays `rollouts` episodes on every grid, in batches of at most `max_envs` kitchens, played by
-    `workers` processes at once (the same numbers with any)."""
+    `workers` processes at once (the same numbers with any), by the `collector` (`make_collector`'s kind: "xla"
+    plays a batch inside one XLA program where its teams allow, its actions drawn by JAX)."""
     shapes = {(*grid.shape, 26) for grid in grids}
     if len(shapes) != 1:
         raise ValueError(f"the test grids must share one size, got {sorted(shapes)}")
@@ -188,7 +191,7 @@ def play(
     num_grids, units = len(grids), len(matchups) * rollouts
     # As few batches as `max_envs` allows, of equal size: processes that share them finish together.
     per_batch = math.ceil(units / math.ceil(units / max(1, max_envs // num_grids)))
-    batches = Batches(teams, matchups, grids, rollouts, max_steps, per_batch, seed, device)
+    batches = Batches(teams, matchups, grids, rollouts, max_steps, per_batch, seed, device, collector)
     height, width = obs_shape[:2]
     deliveries = np.zeros((units, num_grids), np.float32)
     visits = np.zeros((len(matchups), num_grids, 2, height, width), np.float32)

@@ -31,7 +31,7 @@ def load_human_proxies(folder: str | Path, grids: Sequence[Layout], device: str 
 
 
 def with_human_proxies(outcomes: Outcomes, proxies: dict[str, Team], rollouts: int, max_steps: int, max_envs: int,
-                       seed: int, device: str) -> Outcomes:
+                       seed: int, device: str, collector: str = "kitchen") -> Outcomes:
     """`outcomes` and, on each grid with a proxy, every team of theirs with the proxy in either seat (kind HUMAN)
     and the proxy with itself (SP): played on that grid only, absent (NaN) on the others."""
     teams, matchups = list(outcomes.teams), list(outcomes.matchups)
@@ -44,7 +44,7 @@ def with_human_proxies(outcomes: Outcomes, proxies: dict[str, Team], rollouts: i
     for grid_name, proxy in proxies.items():
         g = grid_names.index(grid_name)
         played = play([*outcomes.teams, proxy], with_proxy, [outcomes.grids[g]], rollouts, max_steps, max_envs,
-                      seed, device)
+                      seed, device, collector=collector)
         on_grid = np.full((len(with_proxy), len(grid_names), rollouts), np.nan, np.float32)
         on_grid[:, g] = played.deliveries[:, 0]
         seen = np.zeros((len(with_proxy), *outcomes.visits.shape[1:]), np.float32)
@@ -95,7 +95,8 @@ class StrangerOutcomes:
 
 def play_with_strangers(teams: list[Team], strangers: list[Team], grids: list[Layout], rollouts: int,
                         max_steps: int, max_envs: int, seed: int, device: str, progress: bool = False,
-                        workers: int = 1, best_responses: dict[int, Team] | None = None) -> StrangerOutcomes:
+                        workers: int = 1, best_responses: dict[int, Team] | None = None,
+                        collector: str = "kitchen") -> StrangerOutcomes:
     """Each team beside each stranger in both seats, each stranger with itself, and with its best response where
     `best_responses` has one (stranger index -> team), `rollouts` episodes per grid."""
     best_responses = best_responses or {}
@@ -106,7 +107,8 @@ def play_with_strangers(teams: list[Team], strangers: list[Team], grids: list[La
     matchups += [Matchup(s, s, SP) for s in range(first, last)]
     for b, s in enumerate(best_responses, start=last):
         matchups += [Matchup(b, first + s, STRANGER), Matchup(first + s, b, STRANGER)]
-    outcomes = play(everyone, matchups, grids, rollouts, max_steps, max_envs, seed, device, progress, workers)
+    outcomes = play(everyone, matchups, grids, rollouts, max_steps, max_envs, seed, device, progress, workers,
+                    collector)
     groups = grid_groups(outcomes)
     per_grid = outcomes.deliveries.mean(-1)  # [M, G]
     by_group = np.stack([per_grid[:, [g for g, grid in enumerate(grids) if grid.name in names]].mean(1)
