@@ -52,7 +52,7 @@ from torch_kitchen.conventions import load_zoo
 from trainers.behaviour_cloning import ProxySettings
 from trainers.checkpoint import LATEST, load_checkpoint
 from trainers.composer import load_config
-from trainers.config import PLANNER_START, ConfigError, DeviceConfig, EvalConfig, TrainConfig
+from trainers.config import EVAL_COLLECTORS, PLANNER_START, ConfigError, DeviceConfig, EvalConfig, TrainConfig
 from trainers.evaluation import HUMAN_PROXY_RUN, SCRIPTED_CONDITION, cross_condition, evaluate
 from trainers.evaluation.claims import (
     PAPER_STEPS,
@@ -340,6 +340,7 @@ def evaluate_section(section: Section, out: Path, evaluation: dict, device: str,
                            for name, condition in (section.learned_strangers or {}).items()
                            if any((out / "runs" / condition).glob("seed*/checkpoints/latest.pt"))},
         rollouts=evaluation["rollouts"], max_steps=evaluation.get("max_steps", 256), workers=workers,
+        collector=evaluation.get("collector", EvalConfig().collector),
         heatmaps=evaluation.get("heatmaps", []), runtime=DeviceConfig(device=device),
         out_dir=str(out / "eval" / section.name), progress=False,
     ).check()  # fmt: skip
@@ -535,6 +536,9 @@ def main(argv=None) -> int:
     parser.add_argument("--heldout", type=int, help="held-out levels in the evaluation (default: the protocol's)")
     parser.add_argument("--max-steps", type=int,
                         help="steps of an evaluation episode (default: the protocol's, else 256)")
+    parser.add_argument("--collector", choices=EVAL_COLLECTORS,
+                        help="how the evaluation plays, kitchen-eval's `collector` (default: the protocol's, else "
+                             f"{EvalConfig().collector})")
     parser.add_argument("--sections", nargs="+", metavar="NAME",
                         help="train, evaluate and rewrite these of the protocol's sections only (default: all)")
     parser.add_argument("--conditions", nargs="+", metavar="NAME",
@@ -578,7 +582,7 @@ def main(argv=None) -> int:
         print(f"reproduce: error: {error}", file=sys.stderr)
         return 2
     evaluation = {**protocol.get("evaluation", {}),
-                  **{key: getattr(args, key) for key in ("rollouts", "heldout", "max_steps")
+                  **{key: getattr(args, key) for key in ("rollouts", "heldout", "max_steps", "collector")
                      if getattr(args, key) is not None}}
     device = load_config(next(iter(entries.values()))[0], overrides).runtime.device  # shared by every condition
     machine = f"{machine_name()}, device {device}"

@@ -34,11 +34,14 @@ SHELLS = ("bash", "sh", "shell", "console")
 AFTER = re.compile(r"^<!--\s*docs-run:\s*after\s+(.+?)\s*-->$", re.MULTILINE)  # a line of its own
 REFUSED = "refused"  # a comment that begins so marks a command meant to fail
 # Appended to a command of that name (a later `key=value` or option wins): one update of 4 kitchens x 16 steps,
-# 16-step episodes, narrow networks, one distillation round, 1-2 test levels, no progress bars.
+# 16-step episodes, narrow networks, one distillation round, 1-2 test levels, no progress bars; evaluations by the
+# kitchens' collector, since a tiny one compiles longer inside XLA than it plays (that path has tests of its own:
+# tests/torch_kitchen/test_xla_rollout.py, the stranger benchmark's).
 TRAIN_SHRINK = ["num_envs=4", "rollout_steps=16", "max_steps=16", "hidden=16", "minibatches=2", "epochs=2",
                 "total_steps=64", "runtime.threads=1", "progress=false", "eval_episodes=0", "distill_kitchens=4",
                 "distill_rounds=1", "distill_epochs=1"]
-EVAL_SHRINK = ["rollouts=1", "heldout=1", "max_steps=16", "progress=false", "runtime.threads=1", "workers=1"]
+EVAL_SHRINK = ["rollouts=1", "heldout=1", "max_steps=16", "progress=false", "runtime.threads=1", "workers=1",
+               "collector=kitchen"]
 SHRINK = {
     "kitchen-train": TRAIN_SHRINK,
     "kitchen-distill": TRAIN_SHRINK,
@@ -51,7 +54,7 @@ SHRINK = {
                          "--max-steps", "16", "--out", "outputs/zoo"],
     "kitchen-zoo clash": ["--heldout", "0", "--max-steps", "2", "--out", "outputs/clash"],
     "scripts/reproduce.py": ["--teams", "1", "--rollouts", "1", "--heldout", "1", "--max-steps", "16", "--jobs", "1",
-                             "--no-human-proxies", *TRAIN_SHRINK],
+                             "--no-human-proxies", "--collector", "kitchen", *TRAIN_SHRINK],
 }
 # A strangers section beside the one stranger of the page's tiny zoo (kitchen-zoo draw, shrunk, writes it first):
 # a best response and a learned stranger for it, not for the shipped zoo's 8.

@@ -35,13 +35,16 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
         "families": {"MLP": {"ik": "ik", "sk": ["sk_cramped"]},
                      "MLP guided": {"ik": "ik", "sk": ["guided_sk"], "learner": "guided", "paper": "MLP"}},
         "cross": [["sk_cramped", "guided_sk"]],
-        "evaluation": {"heldout": 1, "rollouts": 1, "max_steps": 16, "human_proxies": {"epochs": 2, "candidates": 1}},
+        "evaluation": {"heldout": 1, "rollouts": 1, "max_steps": 16, "human_proxies": {"epochs": 2, "candidates": 1},
+                       "collector": "kitchen"},  # a tiny evaluation compiles longer inside XLA than it plays
     }  # fmt: skip
     path = tmp_path / "protocol.yaml"
     path.write_text(yaml.safe_dump(protocol))
     out, results = tmp_path / "out", tmp_path / "RESULTS.md"
     argv = [str(path), "--out", str(out), "--results", str(results)]
     assert reproduce.main([*argv, "--jobs", "2"]) == 0  # two conditions at a time, each in a process of its own
+    (evaluated,) = out.glob("eval/*/eval_config.yaml")
+    assert yaml.safe_load(evaluated.read_text())["collector"] == "kitchen"  # the protocol's evaluation settings
 
     for condition in ("ik", "sk_cramped", "guided_sk"):
         for seed in (0, 1):
