@@ -352,6 +352,12 @@ def xla_chains(env: EnvBase, policy) -> tuple[Chain, Chain] | None:
 _PROGRAMS = ProgramCache(kept=8)
 
 
+def kitchen_floors(observation: jax.Array) -> jax.Array:
+    """Each kitchen's floor tables [B, H * W, H * W] (`jax_env.cook.floor_tables`), read off seat 0's view of
+    observations [B, 2, H, W, C]: walls and counters never move within an episode, nor on a level."""
+    return floor_tables(walkable_floor(observation[:, 0]))
+
+
 def rollout_program(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int, zoo_share: float | None = None
                     ) -> Callable:
     """The jitted rollout of `steps` steps of every kitchen of `env` with the teams acting by `chains` (built once
@@ -409,8 +415,8 @@ def _seated_act(env: KitchenEnv, teams: tuple[Chain | str, ...]) -> Callable:
     """The acting pass of kitchens whose seats different teams play: weights = (each network team's weights, in
     order, the cooks' conventions [C, ...] and floors (None without a cook), and each team's seats: (kitchens int32
     [R], seats int32 [R]) per network team, then the cooks' (kitchens, seats, which convention) together; a kitchen
-    index of B pads a list). floors: (the floor tables of the kitchens' plans [P, ...], each kitchen's plan int32 [B])
-    where the kitchens are pinned to levels, else (each kitchen's tables [B, ...], None).
+    index of B pads a list). floors: (the floor tables of the kitchens' levels [P, ...], each kitchen's level int32
+    [B]).
 
     A network shared by the agents runs on the views of the seats its team plays, one with a network per agent on
     both views of their kitchens (its seat's logits kept, as `SeatedPolicy` keeps them); the cooks plan in their seats
@@ -435,8 +441,7 @@ def _seated_act(env: KitchenEnv, teams: tuple[Chain | str, ...]) -> Callable:
             safe = jnp.minimum(kitchens, count - 1)
             rows = jax.tree.map(lambda leaf: leaf[which], conventions)
             tables, plan = floors
-            floor = (tables[safe], None) if plan is None else (tables, plan[safe])
-            planned = cook_logits(observation[safe, seats], rows, *floor,
+            planned = cook_logits(observation[safe, seats], rows, tables, plan[safe],
                                   detour_rows=None if on_gpu else max(1, len(kitchens) // 4))
             logits = logits.at[kitchens, seats].set(planned, mode="drop")
         action = jax.random.categorical(keys[0], logits)
@@ -460,9 +465,6 @@ def _build_rollout(env: KitchenEnv, act: Callable, steps: int, zoo_share: float 
         action = cook_actions(used, observation, action, draws, conventions, at_most, tables)
         return (logits, action, log_prob, value), seating(draws), key
 
-    def floors(observation):  # each kitchen's floor tables [B, H * W, H * W], read off seat 0's view
-        return floor_tables(walkable_floor(observation[:, 0]))
-
     def next_zoo(conventions, zoo, ended, observation):
         """The zoo after a step: where an episode ended, its seats drawn anew (as ZooSeats does at a reset) and its
         new floor's tables (walls and counters never move within an episode)."""
@@ -472,7 +474,7 @@ def _build_rollout(env: KitchenEnv, act: Callable, steps: int, zoo_share: float 
             key, drawn = jax.random.split(key)
             fresh = draw_seats(drawn, len(ended), conventions.scores.shape[0], zoo_share)
             return (jnp.where(ended, fresh, draws), key,
-                    jnp.where(ended[:, None, None], floors(observation), tables))
+                    jnp.where(ended[:, None, None], kitchen_floors(observation), tables))
 
         return jax.lax.cond(ended.any(), started, lambda key: (draws, key, tables), key)
 
@@ -511,7 +513,7 @@ def _build_rollout(env: KitchenEnv, act: Callable, steps: int, zoo_share: float 
         start_states, states, deliveries, env_key = kitchens
         conventions, *zoo = zoo or (None,)
         if zoo:  # the floor tables of the kitchens' episodes, made again at each batch's start
-            zoo = (*zoo, floors(carrier[0][0]))
+            zoo = (*zoo, kitchen_floors(carrier[0][0]))
         carry = (states, deliveries, env_key, act_keys, carrier, tuple(zoo))
         carry, records = jax.lax.scan(lambda c, x: step(start_states, weights, conventions, c, x), carry, None,
                                       length=steps)
@@ -637,8 +639,9 @@ class XlaCollector(InPlaceCollector):
 def seated_teams(env: EnvBase, policy) -> tuple[SeatedPolicy, list[ActingNetwork | ScriptedCook]] | None:
     """A seated actor's (`make_seated_actor`) `SeatedPolicy` and each of its teams as `SeatedCollector` plays it: a
     feed-forward actor's policy network, where JAX runs its layers, or a scripted cook; None where a team acts
-    otherwise (recurrent, E3T's predictor) or the env is not a bare `KitchenEnv` (`seat` not yet called: None too)."""
-    if not (isinstance(env, KitchenEnv) and isinstance(policy, ProbabilisticActor)
+    otherwise (recurrent, E3T's predictor) or the env is not a bare `KitchenEnv` whose kitchens are pinned to levels, as
+    evaluation's are (a cook's floor tables then hold for the whole play; `seat` not yet called: None too)."""
+    if not (isinstance(env, KitchenEnv) and env.pinned_levels is not None and isinstance(policy, ProbabilisticActor)
             and isinstance(policy.module[0], SeatedPolicy) and policy.module[0].seating is not None
             and getattr(policy.module[1], "distribution_class", None) is ActionDistribution):
         return None
@@ -658,7 +661,7 @@ def seated_teams(env: EnvBase, policy) -> tuple[SeatedPolicy, list[ActingNetwork
     return seated, teams
 
 
-_FLOORS = jax.jit(lambda observation: floor_tables(walkable_floor(observation[:, 0])))  # a kitchen's, seat 0's view
+_KITCHEN_FLOORS = jax.jit(kitchen_floors)
 
 
 def _padded(columns: Sequence[torch.Tensor], pad: Sequence[int], device) -> tuple[jax.Array, ...]:
@@ -672,9 +675,10 @@ def _padded(columns: Sequence[torch.Tensor], pad: Sequence[int], device) -> tupl
 class SeatedCollector(XlaCollector):
     """`XlaCollector` for kitchens whose seats different teams play (evaluation's `make_seated_actor`, seated by
     `SeatedPolicy.seat` for the collector's life): feed-forward teams' policy networks and scripted cooks act inside
-    one program (`seated_program`), on a bare `KitchenEnv`; the batch holds zero values (no critic plays). Actions
-    are drawn from a key of torch's current random stream at each batch. ValueError where `seated_teams` is None
-    (`trainers.rollout.make_collector` checks)."""
+    one program (`seated_program`), on a bare `KitchenEnv` pinned to levels; the batch holds zero values (no critic
+    plays). The teams' weights and the levels' floor tables are taken once, at the start: an evaluation's teams do not
+    learn while they play. Actions are drawn from a key of torch's current random stream at each batch. ValueError
+    where `seated_teams` is None (`trainers.rollout.make_collector` checks)."""
 
     def __init__(self, env: EnvBase, policy: ProbabilisticActor, frames_per_batch: int, total_frames: int = -1):
         InPlaceCollector.__init__(self, env, frames_per_batch, total_frames)
@@ -686,40 +690,34 @@ class SeatedCollector(XlaCollector):
         self.policy, self.kitchen_env = policy, env
         self._seats, self._recurrent, self._state_keys = None, False, [(), ()]
         device, seating = env.jax_device, seated.seating.cpu()
-        self._network_teams = [team for team in teams if isinstance(team, ActingNetwork)]
+        network_teams = [team for team in teams if isinstance(team, ActingNetwork)]
         slots = [_padded((seating == index).nonzero(as_tuple=True), (env.num_envs, 0), device)
                  for index, team in enumerate(teams) if isinstance(team, ActingNetwork)]
         cooks = [index for index, team in enumerate(teams) if not isinstance(team, ActingNetwork)]
-        self._conventions = None
+        conventions = floors = None
+        with torch.no_grad():
+            first = env.reset()
+        self._carrier = self._carrier_of(first)
         if cooks:
             kitchens, seats = torch.isin(seating, torch.tensor(cooks)).nonzero(as_tuple=True)
             which = torch.searchsorted(torch.tensor(cooks), seating[kitchens, seats])
             slots.append(_padded((kitchens, seats, which), (env.num_envs, 0, 0), device))
-            self._conventions = jax.tree.map(lambda leaf: jax.device_put(leaf, device),
-                                             stacked_conventions([teams[index].convention for index in cooks]))
-        # Kitchens pinned to levels share their level's floor tables (a table per plan reads faster than one per
-        # kitchen): those of each level's first kitchen.
-        levels = env.pinned_levels
-        self._plans = None if levels is None else (
-            np.unique(levels, return_index=True)[1], jax.device_put(levels.astype(np.int32), device))
-        self._slots = tuple(slots)
-        chains = tuple(network_chain(team) for team in self._network_teams) + ((COOK,) if cooks else ())
-        self._program = seated_program(env, chains, tuple(len(slot[0]) for slot in slots), self.steps)
+            conventions = jax.tree.map(lambda leaf: jax.device_put(leaf, device),
+                                       stacked_conventions([teams[index].convention for index in cooks]))
+            # The kitchens of a level share its floor tables (a table per level reads faster than one per kitchen):
+            # those of its first kitchen.
+            levels = env.pinned_levels
+            floors = (_KITCHEN_FLOORS(self._carrier[0][0][np.unique(levels, return_index=True)[1]]),
+                      jax.device_put(levels.astype(np.int32), device))
         with torch.no_grad():
-            first = env.reset()
-        self._carrier = self._carrier_of(first)
+            networks = tuple([self._to_jax(weight) for weight in network_weights(team)] for team in network_teams)
+        # The program's weights: each network team's, the cooks' conventions and floors, every team's seats.
+        self._inputs = (networks, conventions, floors, tuple(slots))
+        chains = tuple(network_chain(team) for team in network_teams) + ((COOK,) if cooks else ())
+        self._program = seated_program(env, chains, tuple(len(slot[0]) for slot in slots), self.steps)
 
     def _weights(self) -> tuple:
-        """(each network team's weights, the cooks' conventions, their floors, every team's seats)."""
-        with torch.no_grad():
-            networks = tuple([self._to_jax(weight) for weight in network_weights(team)]
-                             for team in self._network_teams)
-        floors = None
-        if self._conventions is not None:
-            observation = self._carrier[0][0]
-            floors = (_FLOORS(observation), None) if self._plans is None else \
-                (_FLOORS(observation[self._plans[0]]), self._plans[1])
-        return networks, self._conventions, floors, self._slots
+        return self._inputs
 
     def _act_keys(self) -> jax.Array:
         """uint32 [1, 2]: this batch's key for the draws, from torch's current random stream."""
