@@ -1,6 +1,6 @@
 """Where a collection step's time goes: microseconds per env step of each layer the trainer's collector runs.
 
-Builds a team as `trainers.ppo` does on a setting of `benchmarks/jax_ppo.py` and times, one after the other,
+Builds a team as `trainers.ppo.loop` does on a setting of `benchmarks/jax_ppo.py` and times, one after the other,
 each over the same kitchens:
 
     JAX step           the env's jitted step alone (random actions, its outputs waited for)
@@ -37,8 +37,8 @@ from timing import seconds_per_call
 from torch_kitchen.teams import TeamPolicy
 from trainers.composer import load_config
 from trainers.machine import machine_name
-from trainers.rollout import make_collector
-from trainers.training_team import build_team, make_env, with_model_transforms
+from trainers.ppo.collection import make_collector
+from trainers.ppo.team import build_team, make_env, with_model_transforms
 
 
 def main(argv=None) -> None:

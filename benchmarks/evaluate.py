@@ -20,11 +20,11 @@ from env_step import jaxmarl_env, make_rollout, per_second
 from jax_env import EXPANDED_LAYOUTS, get_layout
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.models import make_actor_critic
-from torch_kitchen.pairing import make_seated_actor
+from torch_kitchen.partners.pairing import make_seated_actor
 from trainers.config import TrainConfig
 from trainers.evaluation import Team, evaluation_grids, make_matchups
 from trainers.machine import THREADS_HELP, machine_name
-from trainers.rollout import play_episodes
+from trainers.ppo.collection import play_episodes
 
 SEEDS, STEPS = 6, 256
 PROTOCOL_EPISODES = SEEDS * SEEDS * 105 * 100  # 36 pairs x 105 grids x 100 rollouts, per condition

@@ -44,7 +44,7 @@ export PYTHONPATH=${PYTHONPATH:-$PWD}
 # copies of the set-up's, last on the path (`make gpu-offline`).
 [[ -d .whl/site ]] && export PYTHONPATH=$PYTHONPATH:$PWD/.whl/site
 # A missing package stops the call here, before any device time goes on rows that cannot start.
-if ! python -W ignore -c "import torchrl, flax, optax, trainers.ppo, torch_kitchen.env"; then
+if ! python -W ignore -c "import torchrl, flax, optax, trainers.ppo.loop, torch_kitchen.env"; then
     echo "gpu_checks: the imports above fail (make gpu-offline, then carry .whl)"; exit 1
 fi
 { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>/dev/null

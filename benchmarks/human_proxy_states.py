@@ -22,9 +22,9 @@ import torch
 from jax_env.human_games import LAYOUTS, load_dataset
 from jax_env.observation import Channel
 from torch_kitchen.keys import OBSERVATION
-from trainers.behaviour_cloning import human_batch, play_together
 from trainers.evaluation import load_team
-from trainers.humans import DATA
+from trainers.humans.behaviour_cloning import human_batch, play_together
+from trainers.humans.command import DATA
 
 COLUMNS = ("soups per game", "holding an onion", "holding a plate", "holding a soup", "pots cooking or ready",
            "soups waiting in pots", "onions on counters", "plates on counters")

@@ -1,11 +1,11 @@
 """A pure-JAX PPO trainer in the PureJaxRL style: the yardstick our TorchRL trainer's speed is measured against.
 
 Not part of the library and not meant to train teams: it exists so that `benchmarks/train.py reference` can run
-our trainer (`trainers.ppo.train`) and this one in the same process, on the same kitchens, network and batch,
+our trainer (`trainers.ppo.loop.train`) and this one in the same process, on the same kitchens, network and batch,
 and report how far our pipeline (TorchRL collector, DLPack crossings, Python loop) is from a whole run compiled
 into one XLA program. Everything, rollout and PPO epochs included, is one `jax.lax.scan` over updates.
 
-It reproduces our IPPO's semantics, read off `trainers/ppo.py`, `trainers/config.py` and TorchRL's
+It reproduces our IPPO's semantics, read off `trainers/ppo/loop.py`, `trainers/config.py` and TorchRL's
 `ClipPPOLoss` (with the options `make_loss` gives it), so that the ratio measures the pipeline, not the algorithm:
 
 - both agents' transitions are trained; one network for both agents (`share_params`) or one per agent (stacked
@@ -14,7 +14,7 @@ It reproduces our IPPO's semantics, read off `trainers/ppo.py`, `trainers/config
   uint8 observation H*W*26 as float -> 3 x (Linear(h) + ReLU) -> Linear(6 logits | 1 value), orthogonal init
   with gains sqrt(2) (hidden), 0.01 (policy), 1.0 (value), zero biases. JaxMARL's own IPPO for Overcooked has
   2 x 64 tanh layers; we match our network, not theirs;
-- training reward = sparse + w * shaped, w from `trainers.advantages.shaping_weight_at` at the env steps after the
+- training reward = sparse + w * shaped, w from `trainers.ppo.advantages.shaping_weight_at` at the env steps after the
   update's batch; GAE(gamma, lambda) with the time limit as a terminal state (no bootstrap across it);
 - `epochs` passes x `minibatches` minibatches of whole kitchens (a fresh permutation per epoch); the advantage
   standardised per minibatch over kitchens, steps and agents (mean, unbiased std clamped at 1e-6);
@@ -22,7 +22,7 @@ It reproduces our IPPO's semantics, read off `trainers/ppo.py`, `trainers/config
   value_coef * max((target - v)^2, (target - v_clipped)^2) with v_clipped = v_old + clip(v - v_old, -eps, eps)
   (squared error without a 1/2), entropy loss -entropy_coef * entropy, each a mean over every element;
 - the gradient clipped to max_grad_norm as `torch.nn.utils.clip_grad_norm_` does (scale by max / (norm + 1e-6)
-  when above), then Adam(lr, eps=adam_eps), lr per update from `trainers.ppo.learning_rate_at`.
+  when above), then Adam(lr, eps=adam_eps), lr per update from `trainers.ppo.loop.learning_rate_at`.
 
 `tests/benchmarks/test_jax_ppo.py` checks the GAE against `compute_advantages`, and the losses, gradients and
 clipped Adam steps against ClipPPOLoss on the same weights. Known differences, none in the work done per step:
@@ -51,10 +51,10 @@ import torch
 
 from jax_env import DELIVERY_REWARD, NUM_ACTIONS, Overcooked
 from torch_kitchen.env import jax_device_for
-from trainers.advantages import shaping_weight_at
 from trainers.composer import load_config
 from trainers.config import TrainConfig
-from trainers.ppo import learning_rate_at
+from trainers.ppo.advantages import shaping_weight_at
+from trainers.ppo.loop import learning_rate_at
 
 # The two settings of `benchmarks/train.py reference`, as config overrides (the rest are TrainConfig defaults).
 SETTINGS = {
@@ -182,7 +182,7 @@ def generalized_advantages(reward: jax.Array, value: jax.Array, done: jax.Array,
     the observation after the last step) -> (advantage, value target) [T, B, 2].
 
     A done step is terminal: neither its next value nor later advantages flow back across it, as in
-    `trainers.advantages.compute_advantages` (TorchRL's GAE with done = terminated = the time limit).
+    `trainers.ppo.advantages.compute_advantages` (TorchRL's GAE with done = terminated = the time limit).
     """
     next_value = jnp.concatenate([value[1:], last_value[None]], axis=0)
     not_done = 1.0 - done[..., None].astype(jnp.float32)  # [T, B, 1]: the same flag for both agents

@@ -23,13 +23,13 @@ from op_audit import OpAudit
 from torch_kitchen.env import team_rows
 from torch_kitchen.onednn_linear import device_path
 from torch_kitchen.teams import TeamPolicy
-from trainers.advantages import compute_advantages, shaping_weight_at
 from trainers.composer import load_config
 from trainers.machine import machine_name
-from trainers.ppo import start_update
-from trainers.rollout import make_collector, select_kitchens
-from trainers.runtime import Learner
-from trainers.training_team import build_team, make_env, team_configs, with_model_transforms
+from trainers.ppo.advantages import compute_advantages, shaping_weight_at
+from trainers.ppo.collection import make_collector, select_kitchens
+from trainers.ppo.loop import start_update
+from trainers.ppo.runtime import Learner
+from trainers.ppo.team import build_team, make_env, team_configs, with_model_transforms
 
 
 def audit_training(setting: str, teams: int, device: str, steps: int = 8, stack: bool = False
@@ -84,11 +84,11 @@ def audit_training(setting: str, teams: int, device: str, steps: int = 8, stack:
 
 
 def audit_advantages(num_envs: int, steps: int) -> tuple[OpAudit, OpAudit]:
-    """Audits of TorchRL's functional GAE (a Python loop over time) and of ours (`trainers.advantages`) on one
+    """Audits of TorchRL's functional GAE (a Python loop over time) and of ours (`trainers.ppo.advantages`) on one
     team's batch of `num_envs` kitchens x `steps` steps, episodes ending at the batch end."""
     from torchrl.objectives.value.functional import generalized_advantage_estimate
 
-    from trainers.advantages import generalized_advantages
+    from trainers.ppo.advantages import generalized_advantages
 
     value, next_value, reward = (torch.randn(num_envs, 2, steps, 1) for _ in range(3))
     done = torch.zeros(num_envs, 2, steps, 1, dtype=torch.bool)
@@ -122,7 +122,7 @@ def main(argv=None) -> None:
     steps = SETTINGS[args.setting]["rollout_steps"]
     torchrl_gae, ours = audit_advantages(SETTINGS[args.setting]["num_envs"], steps)
     print(f"GAE over a team's {steps}-step batch: TorchRL's loop {torchrl_gae.launches} launches, "
-          f"trainers.advantages {ours.launches}")
+          f"trainers.ppo.advantages {ours.launches}")
 
 
 if __name__ == "__main__":

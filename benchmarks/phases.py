@@ -2,7 +2,7 @@
 host against the device's busy time (how long the kernels the phase launched kept the device busy, overlaps counted
 once), under `torch.profiler`.
 
-Runs `trainers.ppo.train_teams` on a setting of `benchmarks/jax_ppo.py` and labels its three phases from outside
+Runs `trainers.ppo.loop.train_teams` on a setting of `benchmarks/jax_ppo.py` and labels its three phases from outside
 (the collector's batches, `start_update`, which holds GAE, and `update_teams`), so the trainer runs as it always
 does. Where busy time is far below wall time, the host (Python, launches, syncs) is what the phase waits on. The
 first update compiles and is left out. On a CPU the device columns are empty.
@@ -24,8 +24,8 @@ from jax_ppo import SETTINGS, setting_overrides  # with the test extra
 from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile, record_function
 
-import trainers.ppo
-import trainers.training_team
+import trainers.ppo.loop
+import trainers.ppo.team
 from trainers.composer import load_config
 from trainers.machine import machine_name
 
@@ -64,11 +64,12 @@ class LabelledCollector:
 
 def phase_seconds(setting: str, updates: int, device: str, overrides: list[str]) -> dict[str, list[float]]:
     """Per phase: [wall seconds, device busy seconds], summed over updates 2..`updates` (all teams)."""
-    make_collector = trainers.ppo.make_collector
+    make_collector = trainers.ppo.loop.make_collector
     patched = {  # (where, name): the labelled stand-in
-        (trainers.ppo, "make_collector"): lambda *args, **kwargs: LabelledCollector(make_collector(*args, **kwargs)),
-        (trainers.ppo, "start_update"): labelled(trainers.ppo.start_update, "advantages"),
-        (trainers.ppo, "update_teams"): labelled(trainers.ppo.update_teams, "update"),
+        (trainers.ppo.loop, "make_collector"):
+            lambda *args, **kwargs: LabelledCollector(make_collector(*args, **kwargs)),
+        (trainers.ppo.loop, "start_update"): labelled(trainers.ppo.loop.start_update, "advantages"),
+        (trainers.ppo.loop, "update_teams"): labelled(trainers.ppo.loop.update_teams, "update"),
     }
     originals = {target: getattr(*target) for target in patched}
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.startswith("cuda") else [])
@@ -83,7 +84,7 @@ def phase_seconds(setting: str, updates: int, device: str, overrides: list[str])
             for (where, name), function in patched.items():
                 setattr(where, name, function)
             with profile(activities=activities) as profiler:
-                trainers.ppo.train_teams(trainers.training_team.team_configs(config))
+                trainers.ppo.loop.train_teams(trainers.ppo.team.team_configs(config))
         finally:
             for (where, name), function in originals.items():
                 setattr(where, name, function)

@@ -27,10 +27,10 @@ import numpy as np
 
 from trainers.composer import load_config
 from trainers.config import DeviceConfig, EvalConfig
-from trainers.distill import distill
 from trainers.evaluation import evaluate
 from trainers.machine import machine_name
-from trainers.ppo import train
+from trainers.ppo.distill import distill
+from trainers.ppo.loop import train
 
 ROOT = Path(__file__).resolve().parents[1]
 LEARNERS = ("scratch", "planner")

@@ -1,7 +1,7 @@
 """How many real-time games of `kitchen-play` one CPU core holds: the server's work per tick, then games at once.
 
 Per partner (an MLP and a GNN team of the paper's width, hidden 256; untrained weights time the same): the
-latency of one tick of one game (`trainers.play.game.Game.step`: the partner's forward pass, the kitchen's step,
+latency of one tick of one game (`web_apps.play.game.Game.step`: the partner's forward pass, the kitchen's step,
 the record line), its median and 95th percentile, and the games one core could tick every `--tick-ms` from that;
 then that many games (and more) at once, each a WebSocket client of a real `kitchen-play` server in this process
 (one event loop, torch on one thread), reporting the mean and the 95th percentile of the interval between a game's ticks
@@ -35,8 +35,8 @@ from torch_kitchen.models import make_actor_critic
 from trainers.checkpoint import model_identity, save_checkpoint
 from trainers.config import TrainConfig
 from trainers.machine import machine_name
-from trainers.play.game import SCRIPTED, Game, Partner, load_partner, step_games
-from trainers.play.server import create_app
+from web_apps.play.game import SCRIPTED, Game, Partner, load_partner, step_games
+from web_apps.play.server import create_app
 
 KITCHEN = "cramped_room_7x7"
 

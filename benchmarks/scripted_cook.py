@@ -1,8 +1,8 @@
-"""Milliseconds per call of the scripted cook as torch seats it (`torch_kitchen.scripted.ScriptedCook`: `jax_env.cook`
-with the host's floor tables by plan) on a batch of kitchens, the 5 expanded layouts and held-out levels as evaluation
-seats it, beside a trained team's actor (MLP, hidden 64) on the same observations in the same run: the scripted
-partner's share of an evaluation step; and the cook as a program inside XLA would call it (`cook_logits`, jitted, on
-JAX's default device): running its waves each call, and reading floor tables kept through the episode (their
+"""Milliseconds per call of the scripted cook as torch seats it (`torch_kitchen.partners.scripted_cook.ScriptedCook`:
+`jax_env.cook` with the host's floor tables by plan) on a batch of kitchens, the 5 expanded layouts and held-out levels
+as evaluation seats it, beside a trained team's actor (MLP, hidden 64) on the same observations in the same run: the
+scripted partner's share of an evaluation step; and the cook as a program inside XLA would call it (`cook_logits`,
+jitted, on JAX's default device): running its waves each call, and reading floor tables kept through the episode (their
 computation timed apart), as ratios to the seated cook's time.
 
     python benchmarks/scripted_cook.py [--envs 1024] [--calls 10]
@@ -21,7 +21,7 @@ from jax_env import EXPANDED_LAYOUTS
 from jax_env.cook import cook_logits, floor_tables, walkable_floor
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.models import make_actor_critic
-from torch_kitchen.scripted import ScriptedCook, cook_convention
+from torch_kitchen.partners.scripted_cook import ScriptedCook, cook_convention
 from trainers.evaluation import evaluation_grids
 from trainers.machine import machine_name
 

@@ -3,7 +3,7 @@ episodes per second against the scripted cook's partner pass in the same run (th
 eight conventions).
 
 The team beside each stranger in both seats and each stranger with itself (24 pairs with 8 strangers) play `--heldout`
-held-out levels x `--rollouts` episodes through `trainers.evaluation.partners.play_with_strangers`, in `--workers`
+held-out levels x `--rollouts` episodes through `trainers.evaluation.strangers.play_with_strangers`, in `--workers`
 processes; then the team beside the scripted cook in both seats and the cook with itself (3 pairs) on the same
 grids through `play`. Both passes once per collector of `--collectors`, in the same run: "kitchen" (torch acts at
 every step, the cooks planned from the host) and "xla" (the team's network and the cooks inside the kitchens' XLA
@@ -23,12 +23,12 @@ from pathlib import Path
 
 import torch
 
-from torch_kitchen.conventions import ZOO_FILE, load_zoo
 from torch_kitchen.models import make_actor_critic
+from torch_kitchen.partners.conventions import ZOO_FILE, load_zoo
 from trainers.config import EVAL_COLLECTORS, EvalConfig, TrainConfig
 from trainers.evaluation import Matchup, Team, evaluation_grids, load_team, play, scripted_cook_team
 from trainers.evaluation.pairs import PARTNER, SP
-from trainers.evaluation.partners import play_with_strangers
+from trainers.evaluation.strangers import play_with_strangers
 from trainers.evaluation.teams import convention_team
 from trainers.machine import machine_name
 

@@ -1,6 +1,6 @@
 """A study's load: N participants at once through one `kitchen-study run` server, each a whole visit in real time.
 
-Each participant is a simulated one (`trainers.study.client.Participant`: the pages' own protocol, HTTP for the
+Each participant is a simulated one (`web_apps.study.client.Participant`: the pages' own protocol, HTTP for the
 stages and a WebSocket for the games; a thread each, in this process) that enters by the study's link, consents,
 reads the instructions, plays the practice game and its assigned games, sending a random key on every state it
 gets, and answers the questions after each game. The study: an MLP team of the paper's width (hidden 256, as
@@ -29,9 +29,9 @@ import yaml
 from play_load import GAPS_HEADER, gaps_row, resident_mb, save_team, schedule_lag, state_gaps
 
 from trainers.machine import machine_name
-from trainers.study.client import Participant, ServerTransport, free_port, start_server, wait_until_serving
-from trainers.study.config import load_study
-from trainers.study.database import CUT, DATABASE, FINISHED, StudyDatabase
+from web_apps.study.client import Participant, ServerTransport, free_port, start_server, wait_until_serving
+from web_apps.study.config import load_study
+from web_apps.study.database import CUT, DATABASE, FINISHED, StudyDatabase
 
 TOKEN = "study-load"
 KITCHENS = ["cramped_room_7x7", "coord_ring_7x7"]

@@ -4,7 +4,7 @@ On a small shared CPU, torch's worker threads wait for each other at every opera
 a core, a thread that was descheduled holds up all the others, and small networks can lose an order of
 magnitude. Several teams trained in one process (`teams=K`) can instead learn at once, one team per thread
 (`parallel_teams`), with no waiting between threads, and a team alone can compute its minibatches' shards at
-once on those threads (`minibatch_shards`). This measures `trainers.ppo.train_teams` (updates after the first)
+once on those threads (`minibatch_shards`). This measures `trainers.ppo.loop.train_teams` (updates after the first)
 for each thread count, number of teams learning at once and shards per minibatch, first alone, then beside a
 busy-loop process (the OS decides where it runs), and prints the steps/s and the loaded / quiet ratio.
 
@@ -22,8 +22,8 @@ import tempfile
 
 from trainers.composer import load_config
 from trainers.machine import machine_name
-from trainers.ppo import train_teams
-from trainers.training_team import team_configs
+from trainers.ppo.loop import train_teams
+from trainers.ppo.team import team_configs
 
 # A pure-Python busy loop: one core's worth of load, no threads of its own.
 BUSY_LOOP = "while True:\n    sum(range(10000))\n"

@@ -1,6 +1,6 @@
 """Training throughput (collection + PPO update) per architecture, and a learning check.
 
-Throughput: env steps per second of `trainers.ppo.train` for each architecture and batch size, timed on the
+Throughput: env steps per second of `trainers.ppo.loop.train` for each architecture and batch size, timed on the
 updates after the first (which compiles the env). E3T: the same for E3T and for IPPO with the same encoder, one
 after the other in the same run, and their ratio. Learning check: Single Kitchen on `cramped_room_7x7` with the
 MLP and the shaped reward, run until the mean deliveries of the last episodes reach the target (or the budget
@@ -32,8 +32,8 @@ import torch
 
 from trainers.composer import load_config
 from trainers.machine import THREADS_HELP, machine_name
-from trainers.ppo import train, train_teams
-from trainers.training_team import team_configs
+from trainers.ppo.loop import train, train_teams
+from trainers.ppo.team import team_configs
 
 
 def throughput(architecture: str, num_envs: int, rollout_steps: int, updates: int, device: str, threads: int,

@@ -30,8 +30,8 @@ def time_batches(way: str, envs: int, device: str, overrides: list[str], batches
     import torch_kitchen.xla_rollout as xla_rollout
     from torch_kitchen.teams import TeamPolicy
     from trainers.composer import load_config
-    from trainers.rollout import make_collector
-    from trainers.training_team import build_team, make_env, with_model_transforms
+    from trainers.ppo.collection import make_collector
+    from trainers.ppo.team import build_team, make_env, with_model_transforms
 
     if way == "shared":
         xla_rollout.XlaCollector._to_jax = lambda self, tensor: xla_rollout.jax.device_put(

@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 from phases import PHASES, phase_seconds
 
-from torch_kitchen.conventions import ZOO_FILE, load_zoo
+from torch_kitchen.partners.conventions import ZOO_FILE, load_zoo
 from trainers.composer import load_config
 from trainers.machine import machine_name
 

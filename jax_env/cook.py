@@ -1,10 +1,11 @@
 """The scripted cook as a pure jittable function: observations -> each seat's action logits, with its convention as
 arrays, so that one XLA program holds kitchens of many conventions at once (a row's convention is that row's arrays).
 
-It plans as `torch_kitchen.scripted.ScriptedCook` does (its docstring says how), on the same observation; where the
-torch cook reads distances off a table per floor plan kept on the host, this one runs the breadth-first waves inside
-the program, a fixed number of steps (the kitchen's cells), so it has static shapes and no host round trip.
-`CookConvention` holds what the torch cook derives from a `Convention` (`torch_kitchen.scripted.cook_convention`).
+It plans as `torch_kitchen.partners.scripted_cook.ScriptedCook` does (its docstring says how), on the same
+observation; where the torch cook reads distances off a table per floor plan kept on the host, this one runs the
+breadth-first waves inside the program, a fixed number of steps (the kitchen's cells), so it has static shapes and no
+host round trip. `CookConvention` holds what the torch cook derives from a `Convention`
+(`torch_kitchen.partners.scripted_cook.cook_convention`).
 """
 
 from __future__ import annotations
@@ -18,8 +19,8 @@ from jax_env.env import INTERACT, NUM_ACTIONS, STAY
 from jax_env.observation import Channel
 
 UNREACHABLE = 1e4  # a distance longer than any path in a kitchen
-# The goal list's shape (its events and roles: torch_kitchen.scripted.GOALS, which `cook_convention` scores): what
-# each goal does on arrival beside its tile, the hand-over's and idling's places in it.
+# The goal list's shape (its events and roles: torch_kitchen.partners.scripted_cook.GOALS, which `cook_convention`
+# scores): what each goal does on arrival beside its tile, the hand-over's and idling's places in it.
 ON_ARRIVAL = (INTERACT, INTERACT, INTERACT, STAY, INTERACT, INTERACT, INTERACT, INTERACT, INTERACT, INTERACT, STAY)
 HANDOVER, IDLE = 4, 10
 

@@ -48,8 +48,7 @@ import torch
 import yaml
 
 from jax_env import EXPANDED_LAYOUTS, PADDED_LAYOUTS
-from torch_kitchen.conventions import load_zoo
-from trainers.behaviour_cloning import ProxySettings
+from torch_kitchen.partners.conventions import load_zoo
 from trainers.checkpoint import LATEST, load_checkpoint
 from trainers.composer import load_config
 from trainers.config import EVAL_COLLECTORS, PLANNER_START, ConfigError, DeviceConfig, EvalConfig, TrainConfig
@@ -62,12 +61,13 @@ from trainers.evaluation.claims import (
     shared_teacher,
     stranger_claims,
 )
-from trainers.humans import fetch
-from trainers.humans import train as train_proxies
+from trainers.humans.behaviour_cloning import ProxySettings
+from trainers.humans.command import fetch
+from trainers.humans.command import train as train_proxies
 from trainers.machine import machine_name
-from trainers.resume import RunStopped
+from trainers.ppo.resume import RunStopped
+from trainers.ppo.team import team_configs
 from trainers.train_command import train_config_file
-from trainers.training_team import team_configs
 
 ROOT = Path(__file__).resolve().parents[1]
 MAIN_JOB = ROOT / "configs" / "main.yaml"  # the README's planner-guided team, whose budget a section is set beside
@@ -421,7 +421,7 @@ def section_markdown(section: Section, facts: RunFacts, config: TrainConfig, eva
         f"- **Evaluation:** the 5 expanded layouts and {facts.evaluation['heldout']} held-out levels, "
         f"{facts.evaluation['rollouts']} rollouts of {facts.evaluation.get('max_steps', 256)} steps per pair and grid; "
         "the scripted cook "
-        f"(`torch_kitchen/scripted.py`) beside every team; \"{SCRIPTED_CONDITION}\" is its own self-play."
+        f"(`torch_kitchen/partners/scripted_cook.py`) beside every team; \"{SCRIPTED_CONDITION}\" is its own self-play."
         + (f" The classic layouts that fit a 7x7 kitchen, drawn inside one ({', '.join(PADDED_LAYOUTS)}), with "
            "each one's human proxy beside every team (behaviour-cloned from the 2019 human games' test split, so no "
            f"team is tuned to it; how the proxies play: `{facts.proxies.parent / 'proxies.md'}`); "

@@ -70,7 +70,7 @@ NOT_HERE = [
     (r"^make test\b", "the suite itself"),
     (r"^pip install", "installs from the package index"),
     (r"^tensorboard\b", "a server (TensorBoard's)"),
-    (r"^kitchen-play (?!replay)", "a server (tests/trainers/play drive it)"),
+    (r"^kitchen-play (?!replay)", "a server (tests/web_apps/play drive it)"),
     (r"<\w+>", "names a file of the reader's"),
     (r"submitit_slurm|hydra/launcher=ray", "a cluster's launcher"),
     (r"runtime\.device=cuda|DEVICE=cuda|#.* on a GPU", GPU),

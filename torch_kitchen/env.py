@@ -18,7 +18,7 @@ Keys (B = num_envs, H x W the kitchen, 7x7 for the Infinite Kitchen):
 
 Teams: with a list of K seeds the kitchens form K teams of B/K (team k holds rows k*B/K .. (k+1)*B/K - 1), each
 with its own key, so team k sees exactly the levels and resets of an env of B/K kitchens seeded with seed k. The
-trainer steps several independently trained teams in one batch this way (`trainers.ppo.train_teams`).
+trainer steps several independently trained teams in one batch this way (`trainers.ppo.loop.train_teams`).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """What each cook did at each step, read off its observations before and after: the events of ZSC-Eval's
-evaluation partners, counted per seat. A convention (`torch_kitchen.conventions`) prefers or avoids them; the zoo
-keeps conventions whose counts differ.
+evaluation partners, counted per seat. A convention (`torch_kitchen.partners.conventions`) prefers or avoids them; the
+zoo keeps conventions whose counts differ.
 
     onion_pickup   its hands were empty and hold an onion     onion_in_pot   it put an onion in a pot
     plate_pickup   its hands were empty and hold a plate      soup_pickup    it took a soup (from a pot or a counter)

@@ -23,7 +23,8 @@ ADVANTAGE = (AGENTS, "advantage")
 VALUE_TARGET = (AGENTS, "value_target")
 TRAIN_REWARD = (AGENTS, "train_reward")  # sparse + shaping weight x shaped: the reward optimised
 
-# E3T's partner modelling (`torch_kitchen.partner`, `torch_kitchen.models.partner_predictor.PartnerPredictor`)
+# E3T's partner modelling (`torch_kitchen.models.e3t_partner`,
+# `torch_kitchen.models.partner_predictor.PartnerPredictor`)
 CONTEXT_OBSERVATION = (AGENTS, "context_observation")
 CONTEXT_ACTION = (AGENTS, "context_action")
 MIXED = (AGENTS, "mixed")

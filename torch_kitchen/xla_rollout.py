@@ -23,13 +23,13 @@ Actions are drawn from JAX's random streams, one per team, each seeded at every 
 keys, shapes and dtypes, the kitchens stepped and reset by the env's own programs and keys (the steps a
 `KitchenEnv` takes with those actions, bit for bit; `tests/torch_kitchen/test_xla_rollout.py`), the env left where
 the batch ended (its checkpoint, its next reset). E3T's and other transforms, and other algorithms' acting modules,
-collect with `KitchenCollector` (`trainers.rollout.make_collector` picks).
+collect with `KitchenCollector` (`trainers.ppo.collection.make_collector` picks).
 
 Zoo cooks (`trainers.algorithms.zoo_ippo`: a team beside scripted cooks of the zoo's conventions in a share of its
 kitchens, or beside one stranger in all of them for its best response) play inside the program as well, where one
 team trains: the env's `ZooSeats` draws each episode's seats in the program (from a key its generator hands out per
 batch, its draws kept up to date for its checkpoint), and the cooks plan with `jax_env.cook` in their seats
-(`torch_kitchen.zoo_partners.cook_actions`), as `ZooPartners` does outside.
+(`torch_kitchen.partners.zoo_seats.cook_actions`), as `ZooPartners` does outside.
 """
 
 from __future__ import annotations
@@ -56,9 +56,10 @@ from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, N_AGENTS, OBSERVATION, 
 from torch_kitchen.models.acting import ActingPass, ActionDistribution, plain_network
 from torch_kitchen.models.networks import GraphEncoder
 from torch_kitchen.models.recurrence import MultiAgentLSTM
-from torch_kitchen.pairing import SeatedPolicy
+from torch_kitchen.partners.pairing import SeatedPolicy
+from torch_kitchen.partners.scripted_cook import ScriptedCook, stacked_conventions
+from torch_kitchen.partners.zoo_seats import ZOO_COOK, ZooPartners, ZooSeats, cook_actions, draw_seats, seating
 from torch_kitchen.rollout import NEXT, InPlaceCollector, as_path, as_tensordict
-from torch_kitchen.scripted import ScriptedCook, stacked_conventions
 from torch_kitchen.teams import ACTING_KEYS, TeamPolicy, acting_pass_of, layers_of
 from torch_kitchen.torchrl_internals import TEMPLATE, MultiAgentNet
 from torch_kitchen.xla_layers import (
@@ -70,7 +71,6 @@ from torch_kitchen.xla_layers import (
     layer_norm,
     lstm_cell,
 )
-from torch_kitchen.zoo_partners import ZOO_COOK, ZooPartners, ZooSeats, cook_actions, draw_seats, seating
 
 # A network's layers as JAX runs them: ("flatten", start, end), ("linear",), ("relu",), ("egocentric", (H, W, C)),
 # ("layer_norm", eps), ("lstm",), ("graph",) (`torch_kitchen.xla_layers` computes each), or a network per agent:
@@ -530,7 +530,7 @@ class XlaCollector(InPlaceCollector):
 
     env: a bare `KitchenEnv` for feed-forward teams; for recurrent ones the `KitchenEnv` with the model's transforms
     (`with_transforms(kitchen, actor_critic.env_transforms())`), whose base env the program steps. ValueError where
-    `xla_chains(env, policy)` is None (`trainers.rollout.make_collector` checks, and collects those with
+    `xla_chains(env, policy)` is None (`trainers.ppo.collection.make_collector` checks, and collects those with
     `KitchenCollector`)."""
 
     def __init__(self, env: EnvBase, policy: TeamPolicy, frames_per_batch: int, total_frames: int = -1):
@@ -678,7 +678,7 @@ class SeatedCollector(XlaCollector):
     one program (`seated_program`), on a bare `KitchenEnv` pinned to levels; the batch holds zero values (no critic
     plays). The teams' weights and the levels' floor tables are taken once, at the start: an evaluation's teams do not
     learn while they play. Actions are drawn from a key of torch's current random stream at each batch. ValueError
-    where `seated_teams` is None (`trainers.rollout.make_collector` checks)."""
+    where `seated_teams` is None (`trainers.ppo.collection.make_collector` checks)."""
 
     def __init__(self, env: EnvBase, policy: ProbabilisticActor, frames_per_batch: int, total_frames: int = -1):
         InPlaceCollector.__init__(self, env, frames_per_batch, total_frames)

@@ -33,7 +33,7 @@ from omegaconf.errors import OmegaConfBaseException
 from jax_env import EXPANDED_LAYOUTS, classify_layout, load_layout
 from jax_env.generator import NUM_HELDOUT_GENERATED, GeneratorConfig
 from jax_env.generator import SIZES as GENERATOR_SIZES
-from torch_kitchen.conventions import STRANGER, TRAIN, ZOO_FILE, Convention, ConventionError, load_zoo
+from torch_kitchen.partners.conventions import STRANGER, TRAIN, ZOO_FILE, Convention, ConventionError, load_zoo
 
 
 class ConfigError(ValueError):

@@ -46,8 +46,8 @@ from trainers.algorithms import algorithm_settings, check_algorithm
 from trainers.composer import CONFIG_ROOT, GROUPS, config_help, group_choices, group_overrides, load_config
 from trainers.config import ConfigError, TrainConfig, is_config_key, unknown_key
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
+from trainers.ppo.team import team_configs
 from trainers.train_command import report_runs, train_or_resume
-from trainers.training_team import team_configs
 
 
 def run_point(cfg) -> list[str]:

@@ -1,4 +1,4 @@
-"""`kitchen-train`: the command line of the PPO trainer (`trainers.ppo`).
+"""`kitchen-train`: the command line of the PPO trainer (`trainers.ppo.loop`).
 
     kitchen-train configs/ippo/mlp_ik.yaml seed=3 total_steps=1e6
     kitchen-train --resume runs/ippo_mlp_ik/seed3 total_steps=2e6
@@ -23,9 +23,9 @@ from trainers.checkpoint import LATEST, CheckpointError
 from trainers.composer import load_config, train_config_parser
 from trainers.config import ConfigError, TrainConfig
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
-from trainers.ppo import train_teams
-from trainers.resume import RunStopped, TrainingDiverged
-from trainers.training_team import team_configs
+from trainers.ppo.loop import train_teams
+from trainers.ppo.resume import RunStopped, TrainingDiverged
+from trainers.ppo.team import team_configs
 
 
 def train_or_resume(configs: Sequence[TrainConfig]) -> list[Path]:

@@ -6,22 +6,22 @@
     kitchen-zoo save cook_0_136 --run-dir runs/zoo       # a cook as a run kitchen-eval and kitchen-play read
     kitchen-zoo clash configs/zoo/zoo.yaml --heldout 20  # convention x convention cross-play: do they clash?
 
-`draw` draws `candidates` conventions from `seed` (`torch_kitchen.conventions.draw_convention`), plays each with
-itself on `levels` generated *training* levels of the zoo's seed (never a held-out one), and drops those that do
-not cook: two of a convention must deliver in at least `min_cooked` of the levels (ZSC-Eval drops its partners of
-low return). Each cook's event counts per episode (`torch_kitchen.events`) make its profile; of the cooks, `keep`
-are chosen whose profiles lie apart, greedily by the determinant of their similarity (an RBF kernel over the
-profiles standardised per event, as ZSC-Eval keeps its partners by the determinant of their event-count similarity),
-`strangers` of them held-out *strangers* and the rest conventions to train with. Which conventions may be strangers
-is decided by content: one in four of all conventions, by their fingerprint (`stranger_by_content`), can only ever
-be a stranger, so a second draw, with any seed or `--strangers`, never trains with a stranger of the first. No shipped
-config trains with a stranger (`tests/trainers/test_zoo.py`), a training config that names one is refused, and
-`kitchen-eval` refuses to seat a team beside a convention it met. `clash` (and `draw`, on `--clash-heldout` levels)
-plays every convention beside every other, both seats, and says whether they clash: whether a convention delivers less
-beside the others than beside itself, with an interval over the conventions. The zoo file (`zoo.yaml`) holds the
-conventions, their split and their measurements, and the generator and kitchen size the levels came from; its table
-(`zoo.md`) shows each convention's self-play on the 5 expanded layouts and the held-out levels, its events and its
-role, and the clash table, written by the same command.
+`draw` draws `candidates` conventions from `seed` (`torch_kitchen.partners.conventions.draw_convention`), plays each
+with itself on `levels` generated *training* levels of the zoo's seed (never a held-out one), and drops those that do
+not cook: two of a convention must deliver in at least `min_cooked` of the levels (ZSC-Eval drops its partners of low
+return). Each cook's event counts per episode (`torch_kitchen.events`) make its profile; of the cooks, `keep` are chosen
+whose profiles lie apart, greedily by the determinant of their similarity (an RBF kernel over the profiles standardised
+per event, as ZSC-Eval keeps its partners by the determinant of their event-count similarity), `strangers` of them
+held-out *strangers* and the rest conventions to train with. Which conventions may be strangers is decided by content:
+one in four of all conventions, by their fingerprint (`stranger_by_content`), can only ever be a stranger, so a second
+draw, with any seed or `--strangers`, never trains with a stranger of the first. No shipped config trains with a
+stranger (`tests/trainers/test_zoo.py`), a training config that names one is refused, and `kitchen-eval` refuses to seat
+a team beside a convention it met. `clash` (and `draw`, on `--clash-heldout` levels) plays every convention beside every
+other, both seats, and says whether they clash: whether a convention delivers less beside the others than beside itself,
+with an interval over the conventions. The zoo file (`zoo.yaml`) holds the conventions, their split and their
+measurements, and the generator and kitchen size the levels came from; its table (`zoo.md`) shows each convention's
+self-play on the 5 expanded layouts and the held-out levels, its events and its role, and the clash table, written by
+the same command.
 """
 
 from __future__ import annotations
@@ -39,7 +39,8 @@ import numpy as np
 from jax_env import EXPANDED_LAYOUTS, GeneratorConfig, layout_from_state
 from jax_env.generator import SIZES as GENERATOR_SIZES
 from jax_env.layouts import padded_layouts
-from torch_kitchen.conventions import (
+from torch_kitchen.events import EVENTS
+from torch_kitchen.partners.conventions import (
     STRANGER,
     TRAIN,
     ZOO_FILE,
@@ -53,16 +54,15 @@ from torch_kitchen.conventions import (
     load_zoo,
     save_zoo,
 )
-from torch_kitchen.events import EVENTS
-from torch_kitchen.scripted import SCRIPTED_COOK
+from torch_kitchen.partners.scripted_cook import SCRIPTED_COOK
 from trainers.checkpoint import LATEST, model_identity, save_checkpoint
 from trainers.composer import save_config
 from trainers.config import ConfigError, TrainConfig
+from trainers.evaluation.figures import draw_clash_heatmap
 from trainers.evaluation.intervals import interval, mean, verdict
 from trainers.evaluation.pairs import SP, XP, Matchup, evaluation_grids, is_heldout, play
 from trainers.evaluation.tables import grid_groups, write_csv
 from trainers.evaluation.teams import convention_team
-from trainers.figures import draw_clash_heatmap
 from trainers.levels import sample_batch
 
 

@@ -20,8 +20,8 @@ TINY_SHAPE = ["num_envs=4", "rollout_steps=8", "hidden=8", "minibatches=2", "epo
 
 
 def test_the_phases_of_every_timed_update_are_labelled_and_leave_the_trainer_as_it_was():
-    targets = [(phases.trainers.ppo, "make_collector"), (phases.trainers.ppo, "start_update"),
-               (phases.trainers.ppo, "update_teams")]
+    targets = [(phases.trainers.ppo.loop, "make_collector"), (phases.trainers.ppo.loop, "start_update"),
+               (phases.trainers.ppo.loop, "update_teams")]
     originals = {target: getattr(*target) for target in targets}
     totals = phases.phase_seconds("jaxmarl", updates=3, device="cpu", overrides=TINY_SHAPE)
     assert set(totals) == set(phases.PHASES)

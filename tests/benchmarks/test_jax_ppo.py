@@ -1,5 +1,5 @@
 """The pure-JAX reference PPO (`benchmarks/jax_ppo.py`) runs, is seeded, and computes what our trainer computes:
-the same GAE as `trainers.advantages.compute_advantages`, and the same losses, gradients and Adam steps as our
+the same GAE as `trainers.ppo.advantages.compute_advantages`, and the same losses, gradients and Adam steps as our
 ClipPPOLoss loop on the same weights and minibatch."""
 
 import importlib.util
@@ -16,10 +16,10 @@ from tiny import TINY
 
 from torch_kitchen.keys import ADVANTAGE, LOG_PROB, VALUE, VALUE_TARGET
 from torch_kitchen.models import make_actor_critic
-from trainers.advantages import compute_advantages, shaping_weight_at
 from trainers.composer import load_config
-from trainers.ppo_step import total_loss
-from trainers.training_team import make_algorithm, make_loss
+from trainers.ppo.advantages import compute_advantages, shaping_weight_at
+from trainers.ppo.step import total_loss
+from trainers.ppo.team import make_algorithm, make_loss
 
 # benchmarks/ is a folder of scripts, not a package: load the module from its file.
 _spec = importlib.util.spec_from_file_location(

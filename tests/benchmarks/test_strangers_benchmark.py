@@ -3,7 +3,7 @@ verdict."""
 
 import strangers
 
-from torch_kitchen.conventions import STRANGER, Convention, Zoo, ZooMember, generator_settings, save_zoo
+from torch_kitchen.partners.conventions import STRANGER, Convention, Zoo, ZooMember, generator_settings, save_zoo
 
 
 def test_the_stranger_benchmark_times_both_passes_and_writes_its_table(tmp_path):

@@ -1,7 +1,7 @@
-"""The scripted cook inside XLA (`jax_env.cook`, which `torch_kitchen.scripted.ScriptedCook` plays through) plays as
-the torch cook it replaced did: the same action distributions, to float rounding, for every knob of a convention, on
-the classic layouts and generated levels (`data/cook_reference.npz`, that cook's, on the views `views` makes), one
-convention or one per row, with its waves or floor tables."""
+"""The scripted cook inside XLA (`jax_env.cook`, which `torch_kitchen.partners.scripted_cook.ScriptedCook` plays
+through) plays as the torch cook it replaced did: the same action distributions, to float rounding, for every knob of
+a convention, on the classic layouts and generated levels (`data/cook_reference.npz`, that cook's, on the views
+`views` makes), one convention or one per row, with its waves or floor tables."""
 
 import hashlib
 import random
@@ -14,9 +14,9 @@ import pytest
 import torch
 
 from jax_env.cook import cook_logits, floor_tables, per_row, walkable_floor
-from torch_kitchen.conventions import Convention, draw_convention
 from torch_kitchen.env import KitchenEnv
-from torch_kitchen.scripted import ScriptedCook, cook_convention
+from torch_kitchen.partners.conventions import Convention, draw_convention
+from torch_kitchen.partners.scripted_cook import ScriptedCook, cook_convention
 
 COOK = jax.jit(cook_logits)  # one compilation for every test of a shape
 REFERENCE = np.load(Path(__file__).with_name("data") / "cook_reference.npz")

@@ -7,7 +7,7 @@ import yaml
 from scripted_cook import save_scripted_team
 from tiny import script_module
 
-from torch_kitchen.conventions import STRANGER, Convention, Zoo, ZooMember, generator_settings, save_zoo
+from torch_kitchen.partners.conventions import STRANGER, Convention, Zoo, ZooMember, generator_settings, save_zoo
 from trainers.composer import load_config
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -5,10 +5,10 @@ import torch
 
 from jax_env import STAY, Channel
 from jax_env.layouts import parse_layout
-from torch_kitchen.conventions import Convention, ConventionError, draw_convention
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.events import EVENTS, kitchen_events
-from torch_kitchen.scripted import ScriptedCook
+from torch_kitchen.partners.conventions import Convention, ConventionError, draw_convention
+from torch_kitchen.partners.scripted_cook import ScriptedCook
 
 # Two pots at the top, onions on the left, plates on the right of cook 0's row; cook 1 below it.
 TWO_POTS = """

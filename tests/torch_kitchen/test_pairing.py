@@ -10,7 +10,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from jax_env import get_layout
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.models import make_actor_critic
-from torch_kitchen.pairing import make_seated_actor
+from torch_kitchen.partners.pairing import make_seated_actor
 
 GRIDS = ["cramped_room_7x7", "coord_ring_7x7", "forced_coord_7x7"]
 

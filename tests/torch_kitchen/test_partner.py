@@ -11,8 +11,8 @@ from jax_env import NUM_ACTIONS, STAY
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.models.acting import sampling_actor
+from torch_kitchen.models.e3t_partner import NO_ACTION, PartnerContext, PartnerMixture, PartnerSeats
 from torch_kitchen.models.partner_predictor import split_partner_predictor
-from torch_kitchen.partner import NO_ACTION, PartnerContext, PartnerMixture, PartnerSeats
 from trainers.algorithms.e3t import partner_prediction_loss
 
 EPSILON = 0.3

@@ -8,12 +8,12 @@ from torchrl.envs.utils import ExplorationType
 
 from torch_kitchen.rollout import KitchenCollector
 from trainers.composer import load_config
-from trainers.runtime import team_policy
-from trainers.training_team import algorithm_transforms, build_team, make_env, team_configs, with_model_transforms
+from trainers.ppo.runtime import team_policy
+from trainers.ppo.team import algorithm_transforms, build_team, make_env, team_configs, with_model_transforms
 
 
 def env_and_policy(tmp_path, overrides):
-    """The env and acting policy `trainers.ppo.train_teams` builds for a tiny config's teams."""
+    """The env and acting policy `trainers.ppo.loop.train_teams` builds for a tiny config's teams."""
     config = load_config(None, [*TINY, f"run_dir={tmp_path}", "total_steps=1e4", *overrides])
     configs = team_configs(config)
     kitchen = make_env(config, num_envs=len(configs) * config.num_envs, seed=[team.seed for team in configs])

@@ -5,7 +5,7 @@ from tiny import infinite_observations
 from jax_env import EXPANDED_LAYOUTS
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.models import make_actor_critic
-from torch_kitchen.scripted import (
+from torch_kitchen.partners.scripted_cook import (
     SCRIPTED_COOK,
     UNREACHABLE,
     FloorDistances,
@@ -13,7 +13,7 @@ from torch_kitchen.scripted import (
     distance_from,
     scripted_actor_critic,
 )
-from trainers.rollout import play_episodes
+from trainers.ppo.collection import play_episodes
 
 
 def test_floor_tables_hold_the_shortest_paths_between_every_two_cells_once_per_floor_plan():

@@ -12,16 +12,16 @@ from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.modules import set_recurrent_mode
 
 from jax_env import parse_layout
-from torch_kitchen.conventions import Convention
 from torch_kitchen.env import KitchenEnv, team_rows, with_transforms
 from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, OBSERVATION, VALUE
 from torch_kitchen.models import make_actor_critic
-from torch_kitchen.pairing import make_seated_actor
+from torch_kitchen.partners.conventions import Convention
+from torch_kitchen.partners.pairing import make_seated_actor
+from torch_kitchen.partners.scripted_cook import ScriptedCook, scripted_actor_critic
 from torch_kitchen.rollout import NEXT, KitchenCollector
-from torch_kitchen.scripted import ScriptedCook, scripted_actor_critic
 from torch_kitchen.teams import acting_pass_of
 from torch_kitchen.xla_rollout import SeatedCollector, XlaCollector
-from trainers.rollout import make_collector, play_episodes
+from trainers.ppo.collection import make_collector, play_episodes
 
 
 class Replay(TensorDictModuleBase):

@@ -2,7 +2,7 @@ import pytest
 import torch
 from torchrl.objectives.value.functional import generalized_advantage_estimate
 
-from trainers.advantages import generalized_advantages, reverse_linear_scan
+from trainers.ppo.advantages import generalized_advantages, reverse_linear_scan
 
 
 def _sequential_scan(inputs: torch.Tensor, coefficients: torch.Tensor) -> torch.Tensor:

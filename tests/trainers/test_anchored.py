@@ -14,7 +14,7 @@ from trainers.algorithms.anchored import action_log_probs, policy_kl
 from trainers.checkpoint import load_checkpoint
 from trainers.config import ConfigError
 from trainers.evaluation import load_team
-from trainers.ppo import train
+from trainers.ppo.loop import train
 from trainers.train_command import main as train_main
 
 FAST = ["lr=0.01", "anneal_lr=false"]  # large steps, so that two updates move the policy visibly

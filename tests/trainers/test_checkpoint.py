@@ -207,7 +207,7 @@ def test_rng_states_cover_cuda(monkeypatch):
 
 
 def test_a_trained_e3t_run_checkpoints_only_tensors_and_plain_values(tmp_path):
-    from trainers.ppo import train
+    from trainers.ppo.loop import train
 
     e3t = [*TINY, f"run_dir={tmp_path}", "algorithm=e3t", "architecture=e3t_mlp",
            "algorithm_config.partner_policy=copy"]

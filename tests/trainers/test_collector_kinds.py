@@ -6,9 +6,9 @@ from test_ppo import tiny_config
 from test_teams import assert_same_run
 
 from trainers.checkpoint import load_checkpoint
-from trainers.ppo import train, train_teams
+from trainers.ppo.loop import train, train_teams
+from trainers.ppo.team import team_configs
 from trainers.train_command import main
-from trainers.training_team import team_configs
 
 
 @pytest.mark.bitwise

@@ -9,7 +9,7 @@ from tiny import script_module
 from trainers.algorithms import check_algorithm
 from trainers.composer import compose, load_config, sectioned
 from trainers.config import PLANNER_START, ConfigError, EvalConfig, RuntimeConfig, TrainConfig
-from trainers.runtime import minibatch_shards
+from trainers.ppo.runtime import minibatch_shards
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 # configs/eval: kitchen-eval's configs; configs/protocols: scripts/reproduce.py's (conditions, not one trainer config)

@@ -1,4 +1,4 @@
-"""The host's part of every loop, counted on the CPU (`trainers.device_audit`): each training loop (every collector,
+"""The host's part of every loop, counted on the CPU (`device_audit`): each training loop (every collector,
 the architecture families, networks per agent, E3T, the main job's), distillation, evaluation beside the scripted
 cook and a human proxy, and behaviour cloning runs twice, the second run longer (8 steps per update or episode, or 2
 minibatches), and the host reads and device-less tensors whose count grew are the loop's per-step (or
@@ -6,14 +6,14 @@ per-minibatch) ones. They are stated here, so a new one is a failing test naming
 
 import pytest
 import torch
+from device_audit import DeviceAudit, per_step
 from tiny import TINY
 
 from torch_kitchen.keys import OBSERVATION
 from trainers.composer import load_config
-from trainers.device_audit import DeviceAudit, per_step
-from trainers.distill import distill
-from trainers.ppo import train_teams
-from trainers.training_team import team_configs
+from trainers.ppo.distill import distill
+from trainers.ppo.loop import train_teams
+from trainers.ppo.team import team_configs
 
 SHORT, LONG, UPDATES = 8, 16, 2
 EXTRA_STEPS = (LONG - SHORT) * UPDATES
@@ -32,7 +32,7 @@ LOOPS = {
                 {**CPU_KERNEL, **ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at torch_kitchen/rollout.py:advance": 0.25},
                 CPU_KERNEL_MADE),
     "torchrl": ("configs/ippo/mlp_ik.yaml", ["runtime.collector=torchrl"],
-                {**CPU_KERNEL, **ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at trainers/ppo.py:train_teams": 0.25},
+                {**CPU_KERNEL, **ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at trainers/ppo/loop.py:train_teams": 0.25},
                 CPU_KERNEL_MADE),
     "gnn (xla)": ("configs/ippo/gnn_ik.yaml", [], {}, {}),
     "an SK LSTM, a network per agent (xla)": ("configs/ippo/mlp_lstm_sk_cramped_room.yaml", [], {}, {}),
@@ -42,22 +42,23 @@ LOOPS = {
     # generator) at episode starts.
     "e3t": ("configs/e3t/mlp_ik.yaml", [],
             {"nonzero at torch_kitchen/sparse_linear.py:flat_nonzero": 2.0, **ACTIONS_TO_JAX,
-             **EPISODE_ENDS, "__bool__ at torch_kitchen/partner.py:PartnerSeats._reset": 1 / 16,
+             **EPISODE_ENDS, "__bool__ at torch_kitchen/models/e3t_partner.py:PartnerSeats._reset": 1 / 16,
              "__bool__ at torch_kitchen/rollout.py:transformed_rollout_into": 0.25},
             {"zeros at torch_kitchen/sparse_linear.py:_row_offsets": 2.0,
-             "randint at torch_kitchen/partner.py:PartnerSeats._draw": 1 / 16}),
+             "randint at torch_kitchen/models/e3t_partner.py:PartnerSeats._draw": 1 / 16}),
 }
 
 # Distillation, evaluation and behaviour cloning, run at SHORT and LONG steps (one episode ends in the longer run
 # alone). The scripted cook, seated from torch, reads the floor plans on the host to key its table of distances, and
 # hands the views, the tables and the plans to JAX as NumPy on the CPU (DLPack on a GPU).
-SCRIPTED_COOK = {"numpy at torch_kitchen/scripted.py:FloorDistances.__call__": 1.0,
-                 "numpy at torch_kitchen/scripted.py:ScriptedCook.forward.<locals>.to_jax": 3.0}
+SCRIPTED_COOK = {"numpy at torch_kitchen/partners/scripted_cook.py:FloorDistances.__call__": 1.0,
+                 "numpy at torch_kitchen/partners/scripted_cook.py:ScriptedCook.forward.<locals>.to_jax": 3.0}
 ONE_EPISODE_END = 1 / (LONG - SHORT)
 DISTILL_READS = {**CPU_KERNEL, **ACTIONS_TO_JAX, **SCRIPTED_COOK,
                  "__bool__ at torch_kitchen/env.py:KitchenEnv._reset": ONE_EPISODE_END,
                  "__bool__ at torch_kitchen/rollout.py:advance": 0.5,
-                 "__float__ at trainers/distill.py:learn_round": ONE_EPISODE_END}  # the round's mean deliveries
+                 # the round's mean deliveries
+                 "__float__ at trainers/ppo/distill.py:learn_round": ONE_EPISODE_END}
 EVALUATION = {  # partner: (host reads, tensors made without a device) per step; the seated teams read nothing
     "scripted cook": ({**ACTIONS_TO_JAX, **SCRIPTED_COOK}, {}),
     "human proxy": (ACTIONS_TO_JAX, {}),
@@ -134,7 +135,7 @@ def test_evaluations_host_reads_and_device_less_tensors_per_step_are_the_stated_
 def audited_cloning(samples: int) -> DeviceAudit:
     from tensordict import TensorDict
 
-    from trainers.behaviour_cloning import HUMAN_ACTION, ProxySettings, fit_proxy
+    from trainers.humans.behaviour_cloning import HUMAN_ACTION, ProxySettings, fit_proxy
 
     generator = torch.Generator().manual_seed(0)  # made-up games: the fit's reads do not depend on what it sees
     observations = (torch.rand(samples, 2, 7, 7, 26, generator=generator) < 0.05).to(torch.uint8)

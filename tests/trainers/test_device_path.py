@@ -16,10 +16,10 @@ from torchrl.modules import set_recurrent_mode
 from torch_kitchen import sparse_linear
 from torch_kitchen.keys import OBSERVATION
 from torch_kitchen.onednn_linear import device_path
-from trainers.ppo import train
-from trainers.rollout import make_collector
-from trainers.runtime import Learner, team_policy
-from trainers.training_team import build_team, make_env
+from trainers.ppo.collection import make_collector
+from trainers.ppo.loop import train
+from trainers.ppo.runtime import Learner, team_policy
+from trainers.ppo.team import build_team, make_env
 
 
 def test_the_loss_forward_and_the_acting_pass_compile_without_a_graph_break(tmp_path):

@@ -8,10 +8,10 @@ from tiny import TINY
 
 from torch_kitchen.keys import VALUE_TARGET
 from torch_kitchen.models import make_actor_critic
-from torch_kitchen.scripted import ScriptedCook
+from torch_kitchen.partners.scripted_cook import ScriptedCook
 from trainers.checkpoint import load_checkpoint
-from trainers.distill import DATA, TEACHER_PROBS, distill, fit, main
-from trainers.ppo import train
+from trainers.ppo.distill import DATA, TEACHER_PROBS, distill, fit, main
+from trainers.ppo.loop import train
 from trainers.train_command import main as train_main
 
 ROUNDS = ["distill_rounds=3", "distill_epochs=1"]

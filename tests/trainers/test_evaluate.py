@@ -29,7 +29,7 @@ from trainers.evaluation import (
     make_matchups,
     play,
 )
-from trainers.ppo import train
+from trainers.ppo.loop import train
 
 # Agent 1's booth is complete; agent 0's has no plate pile, so agent 0 can never deliver here.
 ONE_BOOTH = parse_layout("WPWPW\nW0O1B\nWXWXW", name="one_booth")

@@ -29,11 +29,11 @@ from jax_env.human_games import (  # noqa: E402
 from jax_env.layouts import CLASSIC_LAYOUTS, POT, padded_layouts, padded_offset  # noqa: E402
 from jax_env.state import DIR_VECTORS, DISH, ONION, PLATE, POT_EMPTY, POT_FULL  # noqa: E402
 from torch_kitchen.models import make_actor_critic  # noqa: E402
-from torch_kitchen.scripted import ScriptedCook  # noqa: E402
+from torch_kitchen.partners.scripted_cook import ScriptedCook  # noqa: E402
 from trainers.checkpoint import load_checkpoint  # noqa: E402
 from trainers.evaluation import load_team  # noqa: E402
-from trainers.humans import main  # noqa: E402
-from trainers.play.game import Game, Partner, replay  # noqa: E402
+from trainers.humans.command import main  # noqa: E402
+from web_apps.play.game import Game, Partner, replay  # noqa: E402
 
 SYMBOL = {kind: symbol for symbol, kind in TERRAIN.items() if symbol not in "12"}
 NAMES = {ONION: "onion", PLATE: "dish", DISH: "soup"}
@@ -241,8 +241,8 @@ def test_human_proxies_are_fitted_measured_and_saved_as_teams_that_play(trials, 
 
 
 def test_a_studys_own_kitchen_play_games_become_the_same_dataset_with_only_the_person_labelled(tmp_path, capsys):
-    from trainers.behaviour_cloning import NOT_HUMAN, human_batch
-    from trainers.play.game import SCRIPTED, load_partner
+    from trainers.humans.behaviour_cloning import NOT_HUMAN, human_batch
+    from web_apps.play.game import SCRIPTED, load_partner
 
     keys = [1, 3, 5, 0, 2, 4, 5, 1]
     for seat in (0, 1):
@@ -269,7 +269,7 @@ def test_a_studys_own_kitchen_play_games_become_the_same_dataset_with_only_the_p
 
 
 def test_the_proxy_kept_is_the_candidate_that_delivers_closest_to_the_humans(monkeypatch):
-    import trainers.behaviour_cloning as cloning
+    import trainers.humans.behaviour_cloning as cloning
 
     soups = {3: 30.0, 4: 11.0, 5: 0.0, 6: 9.0}  # by seed; the humans delivered 10
     monkeypatch.setattr(cloning, "fit_proxy", lambda batch, settings: (f"proxy {settings.seed}", []))
@@ -285,8 +285,8 @@ def test_the_proxy_kept_is_the_candidate_that_delivers_closest_to_the_humans(mon
 
 def test_a_proxy_that_delivers_far_less_than_the_humans_is_fine_tuned_until_it_delivers_about_as_much(monkeypatch,
                                                                                                        tmp_path):
-    import trainers.behaviour_cloning as cloning
     import trainers.evaluation.teams as teams
+    import trainers.humans.behaviour_cloning as cloning
 
     # Soups by KL weight (the humans delivered 10): too few, too many, then about as many between the two.
     tuned_soups = {0.1: 4.0, 0.025: 14.0, 0.05: 9.5, 0.035: 11.0}
@@ -320,7 +320,7 @@ def test_a_proxy_that_delivers_far_less_than_the_humans_is_fine_tuned_until_it_d
 
 
 def test_a_fine_tune_is_anchored_ippo_from_the_cloned_proxy_saved_beside_the_team(tmp_path):
-    import trainers.behaviour_cloning as cloning
+    import trainers.humans.behaviour_cloning as cloning
 
     settings = cloning.ProxySettings(hidden=8, fine_tune_steps=1, fine_tunes=2)  # one update of each fine-tune
     proxy = make_actor_critic("ego_mlp", (*load_layout("cramped_room").shape, 26), 8)

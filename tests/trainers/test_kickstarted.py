@@ -4,12 +4,12 @@
 import pytest
 from test_ppo import read_metrics, tiny_config
 
-from torch_kitchen.conventions import Convention, fingerprints
+from torch_kitchen.partners.conventions import Convention, fingerprints
 from trainers.algorithms import check_algorithm
 from trainers.algorithms.kickstarted import KickstartedSettings, teacher_weight
 from trainers.checkpoint import load_checkpoint
 from trainers.config import ConfigError
-from trainers.ppo import train
+from trainers.ppo.loop import train
 from trainers.train_command import main as train_main
 
 FAST = ["lr=0.01", "anneal_lr=false"]  # large steps, so that two updates move the policy visibly

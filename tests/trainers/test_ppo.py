@@ -18,17 +18,16 @@ from tiny import TINY
 from torchrl.envs.utils import set_exploration_type
 from torchrl.modules import set_recurrent_mode
 
-import trainers.ppo
-import trainers.ppo_step
-import trainers.rollout
-import trainers.training_team
+import trainers.ppo.collection
+import trainers.ppo.loop
+import trainers.ppo.step
+import trainers.ppo.team
 from jax_env import CLASSIC_LAYOUTS, EXPANDED_LAYOUTS
 from jax_env.generator import GeneratorConfig
 from torch_kitchen.cpu_kernels import BatchObservations
 from torch_kitchen.keys import OBSERVATION
 from torch_kitchen.models import make_actor_critic
-from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
-from trainers.advantages import compute_advantages
+from torch_kitchen.models.e3t_partner import MIXED, PartnerMixture, PartnerSeats
 from trainers.algorithms import ALGORITHMS, E3T, IPPO, register_algorithm
 from trainers.algorithms.base import standardize_advantage
 from trainers.algorithms.e3t import EGO
@@ -37,13 +36,14 @@ from trainers.composer import load_config
 from trainers.config import ConfigError, TrainConfig
 from trainers.evaluation import load_team, report_trained_team
 from trainers.evaluation import main as eval_main
-from trainers.figures import read_scalar
-from trainers.ppo import train
-from trainers.ppo_step import team_gradients
-from trainers.rollout import make_collector
-from trainers.runtime import Learner, sharded_gradients
+from trainers.evaluation.figures import read_scalar
+from trainers.ppo.advantages import compute_advantages
+from trainers.ppo.collection import make_collector
+from trainers.ppo.loop import train
+from trainers.ppo.runtime import Learner, sharded_gradients
+from trainers.ppo.step import team_gradients
+from trainers.ppo.team import build_team, make_algorithm, make_env, make_loss, with_model_transforms
 from trainers.train_command import main
-from trainers.training_team import build_team, make_algorithm, make_env, make_loss, with_model_transforms
 
 MAIN_CONFIG = str(Path(__file__).resolve().parents[2] / "configs" / "main.yaml")
 TIMING = {"steps_per_second", "collect_seconds", "update_seconds"}
@@ -321,7 +321,7 @@ def test_sigterm_stops_the_entry_point_with_143_after_a_checkpoint_and_no_evalua
 
 def signal_at_update(monkeypatch, update, signum):
     """Makes the trainer receive `signum` while it computes the advantages of `update`."""
-    real, calls = trainers.ppo.compute_advantages, []
+    real, calls = trainers.ppo.loop.compute_advantages, []
 
     def compute_advantages(*args, **kwargs):
         calls.append(None)
@@ -329,7 +329,7 @@ def signal_at_update(monkeypatch, update, signum):
             signal.raise_signal(signum)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(trainers.ppo, "compute_advantages", compute_advantages)
+    monkeypatch.setattr(trainers.ppo.loop, "compute_advantages", compute_advantages)
 
 
 def test_ctrl_c_exits_130_after_checkpointing_the_update_and_evaluates_only_when_asked(tmp_path, monkeypatch, capsys):
@@ -368,7 +368,7 @@ def test_a_run_killed_before_its_first_checkpoint_starts_clean_when_run_again(tm
 
 
 def test_a_nan_loss_stops_the_run_with_a_clear_error_and_the_last_good_weights(tmp_path, monkeypatch, capsys):
-    real, calls = trainers.ppo.compute_advantages, []
+    real, calls = trainers.ppo.loop.compute_advantages, []
 
     def nan_advantages_at_update_2(batch, *args, **kwargs):
         real(batch, *args, **kwargs)
@@ -377,14 +377,14 @@ def test_a_nan_loss_stops_the_run_with_a_clear_error_and_the_last_good_weights(t
             batch.set(("agents", "advantage"), torch.full_like(batch.get(("agents", "advantage")), float("nan")))
 
     saved = []  # every checkpoint's weights and optimizer state, as written
-    real_save = trainers.training_team.save_checkpoint
+    real_save = trainers.ppo.team.save_checkpoint
 
     def keeping_a_copy(path, state):
         saved.append(copy.deepcopy({key: state[key] for key in ("actor", "critic", "optimizer")}))
         real_save(path, state)
 
-    monkeypatch.setattr(trainers.ppo, "compute_advantages", nan_advantages_at_update_2)
-    monkeypatch.setattr(trainers.training_team, "save_checkpoint", keeping_a_copy)
+    monkeypatch.setattr(trainers.ppo.loop, "compute_advantages", nan_advantages_at_update_2)
+    monkeypatch.setattr(trainers.ppo.team, "save_checkpoint", keeping_a_copy)
     argv = [MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "total_steps=256", "checkpoint_every=1"]
     assert main(argv) == 1
     err = capsys.readouterr().err
@@ -485,7 +485,7 @@ def test_minibatches_are_the_rows_of_their_kitchens():
         "done": torch.rand(6, 4, 1) < 0.5,
     }, batch_size=[6, 4])
     kitchens = torch.tensor([4, 0, 5])
-    minibatch = trainers.rollout.select_kitchens(batch, kitchens)
+    minibatch = trainers.ppo.collection.select_kitchens(batch, kitchens)
     assert minibatch.batch_size == (3, 4)
     assert (minibatch == batch[kitchens]).all()
 
@@ -503,7 +503,7 @@ def test_a_learners_minibatches_carry_only_what_the_losses_read_and_step_as_the_
     initial = [parameter.detach().clone() for parameter in team.parameters]
     with set_recurrent_mode(True):
         lean = Learner(config, [team]).step(minibatch)
-        whole_minibatch = trainers.rollout.select_kitchens(batch, kitchens)
+        whole_minibatch = trainers.ppo.collection.select_kitchens(batch, kitchens)
         # Its first layers take their entries from the batch's, as the learner's minibatches do (the weight's
         # gradient then sums kitchen by kitchen in both).
         BatchObservations(batch.get(OBSERVATION)).hand_to(whole_minibatch.get(OBSERVATION), kitchens)
@@ -540,7 +540,7 @@ def test_a_ppo_step_moves_the_weights_bit_for_bit_as_backward_clipping_and_fused
     theirs = minibatch.clone()
     team.algorithm.process_minibatch(theirs)  # as the step does
     with set_recurrent_mode(True):
-        trainers.ppo_step.total_loss(reference(theirs)).backward()
+        trainers.ppo.step.total_loss(reference(theirs)).backward()
         losses = Learner(config, [team]).step(minibatch.clone())
     norm = torch.nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
     optimizer.step()

@@ -3,11 +3,11 @@
 from types import SimpleNamespace
 
 import torch
+from device_audit import DeviceAudit
 from tensordict import TensorDict
 
 from trainers.config import TrainConfig
-from trainers.device_audit import DeviceAudit
-from trainers.ppo import Progress
+from trainers.ppo.loop import Progress
 
 
 def batch_with_episodes(deliveries: list[list[float]], done: list[list[bool]]) -> TensorDict:

@@ -8,12 +8,11 @@ import pytest
 from scripted_cook import TWO_BOOTHS, save_scripted_team
 
 from jax_env import save_layout
-from torch_kitchen.conventions import STRANGER, TRAIN, Convention, Zoo, ZooMember, generator_settings, save_zoo
+from torch_kitchen.partners.conventions import STRANGER, TRAIN, Convention, Zoo, ZooMember, generator_settings, save_zoo
 from trainers.config import EvalConfig
 from trainers.evaluation import evaluate, main
 from trainers.evaluation.intervals import interquartile_mean, interval, iqm
-from trainers.evaluation.partners import StrangerOutcomes
-from trainers.evaluation.tables import markdown_strangers, seeds_interval, stranger_rows
+from trainers.evaluation.strangers import StrangerOutcomes, markdown_strangers, seeds_interval, stranger_rows
 from trainers.evaluation.teams import convention_team
 
 STRANGERS = [Convention(name="left_first", move_order="WENS"), Convention(name="server", role="server")]

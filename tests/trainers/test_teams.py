@@ -14,10 +14,10 @@ from torch_kitchen.onednn_linear import OneDNNProduct
 from torch_kitchen.teams import RandomStream
 from trainers.checkpoint import load_checkpoint
 from trainers.config import ConfigError
-from trainers.ppo import train, train_teams
-from trainers.runtime import ShardPool, TeamPool, learning_pool
+from trainers.ppo.loop import train, train_teams
+from trainers.ppo.runtime import ShardPool, TeamPool, learning_pool
+from trainers.ppo.team import team_configs
 from trainers.train_command import main
-from trainers.training_team import team_configs
 
 
 def assert_same_run(team_run, single_run):
@@ -122,7 +122,7 @@ def test_a_random_stream_is_its_own_and_leaves_the_global_one_alone():
 
 
 def test_teams_learn_at_once_on_as_many_threads_as_the_cores_allow(tmp_path, monkeypatch):
-    monkeypatch.setattr("trainers.runtime.usable_cores", lambda: 4)
+    monkeypatch.setattr("trainers.ppo.runtime.usable_cores", lambda: 4)
 
     def workers(*overrides, teams=6):
         pool = learning_pool(tiny_config(tmp_path, *overrides), teams)
@@ -136,7 +136,7 @@ def test_teams_learn_at_once_on_as_many_threads_as_the_cores_allow(tmp_path, mon
 
 
 def test_a_team_alone_runs_its_shards_on_a_shard_pool(tmp_path, monkeypatch):
-    monkeypatch.setattr("trainers.runtime.usable_cores", lambda: 4)
+    monkeypatch.setattr("trainers.ppo.runtime.usable_cores", lambda: 4)
     pool = learning_pool(tiny_config(tmp_path, "runtime.minibatch_shards=2"), 1)
     assert isinstance(pool, ShardPool) and pool._max_workers == 2
     assert learning_pool(tiny_config(tmp_path), 1) is None  # one shard: nothing to run at once
@@ -193,7 +193,7 @@ def test_stacked_teams_act_as_the_teams_one_after_another_at_one_teams_launches(
 
     from torch_kitchen.onednn_linear import device_path
     from torch_kitchen.teams import TeamPolicy
-    from trainers.training_team import build_team, make_env
+    from trainers.ppo.team import build_team, make_env
 
     config = tiny_config(tmp_path, f"architecture={architecture}", "levels=infinite", "runtime.teams=3")
     configs = team_configs(config)
@@ -238,13 +238,13 @@ def test_teams_trained_the_gpus_way_learn_what_they_learn_one_after_another(tmp_
     stream, and learn as one vmapped loss with each team's own clipping and Adam step. The kitchens end where they
     do one team after another (the same actions at every step), every team logs its own losses, and the weights
     agree to float rounding, which Adam's first steps amplify where a gradient is near zero (up to 2e-4 here)."""
-    import trainers.runtime
+    import trainers.ppo.runtime
 
     overrides = ["levels=infinite", "runtime.teams=2", "shaping_weight=1"]
     apart = tiny_config(tmp_path / "apart", *overrides)
     train_teams(team_configs(apart))
-    monkeypatch.setattr(trainers.runtime, "acts_stacked", lambda config, policies: True)
-    monkeypatch.setattr(trainers.runtime, "learns_stacked", lambda config, teams: True)
+    monkeypatch.setattr(trainers.ppo.runtime, "acts_stacked", lambda config, policies: True)
+    monkeypatch.setattr(trainers.ppo.runtime, "learns_stacked", lambda config, teams: True)
     stacked = tiny_config(tmp_path / "stacked", *overrides)
     train_teams(team_configs(stacked))
     for seed in (0, 1):
@@ -268,7 +268,7 @@ def test_a_stacked_loss_gives_each_team_its_own_losses_and_gradients(tmp_path, a
     from torchrl.modules import set_recurrent_mode
 
     from torch_kitchen.teams import StackedLoss
-    from trainers.ppo_step import total_loss
+    from trainers.ppo.step import total_loss
 
     teams, minibatches = zip(*[team_and_minibatch(tiny_config(tmp_path / str(seed), f"seed={seed}",
                                                               f"architecture={architecture}"), tmp_path / str(seed))
@@ -300,8 +300,8 @@ def test_a_stacked_loss_gives_each_team_its_own_losses_and_gradients(tmp_path, a
     (["runtime.minibatch_shards=2"], False),
 ])
 def test_teams_learn_as_one_where_the_gpu_model_and_algorithm_allow(tmp_path, overrides, stacks):
-    from trainers.runtime import learns_stacked
-    from trainers.training_team import build_team, make_env
+    from trainers.ppo.runtime import learns_stacked
+    from trainers.ppo.team import build_team, make_env
 
     configs = team_configs(tiny_config(tmp_path, "runtime.teams=2", *overrides))
     kitchen = make_env(configs[0], num_envs=2 * configs[0].num_envs, seed=[c.seed for c in configs])
@@ -315,7 +315,7 @@ def test_teams_learn_as_one_where_the_gpu_model_and_algorithm_allow(tmp_path, ov
 
 def _stacked_team_policy(tmp_path, architecture, compile_mode=None):
     from torch_kitchen.teams import TeamPolicy
-    from trainers.training_team import build_team, make_env
+    from trainers.ppo.team import build_team, make_env
 
     config = tiny_config(tmp_path, f"architecture={architecture}", "levels=infinite", "runtime.teams=2")
     configs = team_configs(config)
@@ -345,7 +345,7 @@ def test_a_collector_keeps_every_step_of_stacked_networks_whose_outputs_share_on
     step's outputs by reference until it stacks the batch: the stacked networks copy them out in that mode, so each
     stored step holds its own logits (without the copy, every step would hold the last one's). The kitchens'
     collector copies every step into the batch as it comes, so it keeps each step either way."""
-    from trainers.rollout import make_collector
+    from trainers.ppo.collection import make_collector
 
     def replaying_into_one_buffer(networks):
         buffer = {}
@@ -378,7 +378,7 @@ def test_one_team_compiled_for_cuda_graphs_marks_each_step_and_keeps_its_outputs
     a replay overwrites the last one's output buffers, so each call marks a step and returns copies (stood in for
     here by a compiled function that writes every output into one buffer)."""
     from torch_kitchen.teams import TeamPolicy
-    from trainers.training_team import build_team, make_env
+    from trainers.ppo.team import build_team, make_env
 
     def replaying_into_one_buffer(function, mode):
         buffers = {}
@@ -405,7 +405,7 @@ def test_one_team_compiled_for_cuda_graphs_marks_each_step_and_keeps_its_outputs
 
 
 def test_clipping_per_team_on_stacked_gradients_is_clip_grad_norm_of_each_team():
-    from trainers.ppo_step import clip_per_team
+    from trainers.ppo.step import clip_per_team
 
     torch.manual_seed(0)
     stacked = [torch.randn(3, 4, 5), torch.randn(3, 5) * 0.01, torch.randn(3, 2)]

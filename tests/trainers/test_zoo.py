@@ -17,7 +17,9 @@ from tiny import infinite_observations
 from jax_env import load_layout, save_layout
 from jax_env.cook import floor_tables, walkable_floor
 from jax_env.generator import heldout_grids
-from torch_kitchen.conventions import (
+from torch_kitchen.env import KitchenEnv
+from torch_kitchen.models import make_actor_critic
+from torch_kitchen.partners.conventions import (
     STRANGER,
     TRAIN,
     ZOO_FILE,
@@ -29,20 +31,18 @@ from torch_kitchen.conventions import (
     load_zoo,
     save_zoo,
 )
-from torch_kitchen.env import KitchenEnv
-from torch_kitchen.models import make_actor_critic
-from torch_kitchen.scripted import ScriptedCook, stacked_conventions
+from torch_kitchen.partners.scripted_cook import ScriptedCook, stacked_conventions
+from torch_kitchen.partners.zoo_seats import LEARNER, ZOO_COOK, ZooPartners, ZooSeats, seating
+from torch_kitchen.partners.zoo_seats import cook_actions as zoo_cook_actions
 from torch_kitchen.teams import RandomStream, TeamPolicy
-from torch_kitchen.zoo_partners import LEARNER, ZOO_COOK, ZooPartners, ZooSeats, seating
-from torch_kitchen.zoo_partners import cook_actions as zoo_cook_actions
 from trainers.algorithms import ZooIPPO, check_algorithm
 from trainers.checkpoint import load_checkpoint
-from trainers.distill import DATA, TEACHER_PROBS, distill
-from trainers.distill import main as distill_main
 from trainers.evaluation import load_team
 from trainers.evaluation import main as eval_main
-from trainers.ppo import train
-from trainers.rollout import make_collector
+from trainers.ppo.collection import make_collector
+from trainers.ppo.distill import DATA, TEACHER_PROBS, distill
+from trainers.ppo.distill import main as distill_main
+from trainers.ppo.loop import train
 from trainers.train_command import main as train_main
 from trainers.zoo import (
     clash_rows,

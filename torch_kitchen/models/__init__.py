@@ -34,7 +34,7 @@ Keys (*B = the tensordict's batch dims: [B] while collecting, [B, T] in training
          ("next", "agents", "<net>_h" | "<net>_c")                  recurrent, step mode only: the state after
                                                                     this step (where a Collector carries it)
     E3T  in  ("agents", "context_observation" | "context_action")  the partner context
-                                                                    (`torch_kitchen.partner.PartnerContext`)
+                                                                    (`torch_kitchen.models.e3t_partner.PartnerContext`)
          out ("agents", "partner_logits" | "partner_prediction") float32 [*B, 2, 6]
 
 Collection: feed-forward models also carry an `ActingPass` (`ActorCritic.acting`), actor and critic in one pass
@@ -70,6 +70,7 @@ from torch_kitchen.keys import (
     VALUE,
 )
 from torch_kitchen.models.acting import ActingPass, plain_network, sampling_actor
+from torch_kitchen.models.e3t_partner import PartnerContext
 from torch_kitchen.models.networks import (
     make_network,
 )
@@ -78,7 +79,6 @@ from torch_kitchen.models.partner_predictor import (
     partner_context_length,
 )
 from torch_kitchen.models.recurrence import agent_state_primer, recurrent_states
-from torch_kitchen.partner import PartnerContext
 
 ARCHITECTURES = ("mlp", "mlp_lstm", "gnn", "gnn_lstm", "ego_mlp")
 E3T_ARCHITECTURES = ("e3t_mlp", "e3t_gnn")  # with a partner predictor: trained with algorithm "e3t"

@@ -22,12 +22,12 @@ from torch_kitchen.keys import (
     PARTNER_PREDICTION,
 )
 from torch_kitchen.models.acting import sampling_actor
+from torch_kitchen.models.e3t_partner import CONTEXT_ACTION, CONTEXT_OBSERVATION, NO_ACTION
 from torch_kitchen.models.networks import (
     ObservationEncoder,
     _hidden_linear,
     _orthogonal_,
 )
-from torch_kitchen.partner import CONTEXT_ACTION, CONTEXT_OBSERVATION, NO_ACTION
 from torch_kitchen.torchrl_internals import MultiAgentNet
 
 E3T_CONTEXT = 5  # (observation, partner action) pairs the partner predictor reads

@@ -1,4 +1,4 @@
-"""What an algorithm is to the PPO core of `trainers.ppo`: an object with named hooks, each a no-op by default.
+"""What an algorithm is to the PPO core of `trainers.ppo.loop`: an object with named hooks, each a no-op by default.
 
 The core collects batches, computes GAE, runs the minibatch epochs of TorchRL's `ClipPPOLoss`, logs and
 checkpoints; it knows no algorithm by name. An algorithm changes the loop only through these hooks, called in
@@ -43,9 +43,9 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import Transform
 from torchrl.objectives import ClipPPOLoss
 
-from torch_kitchen.conventions import Convention
 from torch_kitchen.keys import ADVANTAGE
 from torch_kitchen.models import ActorCritic
+from torch_kitchen.partners.conventions import Convention
 from trainers.config import ConfigError, TrainConfig, settings_from
 
 

@@ -22,8 +22,8 @@ from torchrl.objectives import ClipPPOLoss
 
 from torch_kitchen.keys import ACTION
 from torch_kitchen.models import ActorCritic
+from torch_kitchen.models.e3t_partner import MIXED, PartnerMixture, PartnerSeats
 from torch_kitchen.models.partner_predictor import split_partner_predictor
-from torch_kitchen.partner import MIXED, PartnerMixture, PartnerSeats
 from trainers.algorithms.base import Algorithm, standardize_advantage
 from trainers.config import ConfigError, TrainConfig, option
 

@@ -16,9 +16,9 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDictBase
 
-from torch_kitchen.conventions import Convention
 from torch_kitchen.keys import OBSERVATION
-from torch_kitchen.scripted import ScriptedCook
+from torch_kitchen.partners.conventions import Convention
+from torch_kitchen.partners.scripted_cook import ScriptedCook
 from trainers.algorithms.anchored import action_log_probs
 from trainers.algorithms.ippo import IPPO
 from trainers.config import ConfigError, option

@@ -18,10 +18,10 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import Transform
 from torchrl.objectives import ClipPPOLoss
 
-from torch_kitchen.conventions import Convention, ConventionError, load_zoo
 from torch_kitchen.keys import AGENTS
 from torch_kitchen.models import ActorCritic
-from torch_kitchen.zoo_partners import LEARNER, ZOO_COOK, ZooPartners, ZooSeats
+from torch_kitchen.partners.conventions import Convention, ConventionError, load_zoo
+from torch_kitchen.partners.zoo_seats import LEARNER, ZOO_COOK, ZooPartners, ZooSeats
 from trainers.algorithms.base import Algorithm, standardize_advantage
 from trainers.config import ConfigError, TrainConfig, option
 

@@ -3,15 +3,15 @@
     kitchen-eval configs/eval/paper.yaml                     # the paper's protocol
     kitchen-eval configs/eval/paper.yaml rollouts=5 heldout=10 out_dir=results/quick
 
-A *population* is a set of conditions (e.g. "ippo_mlp_ik"), each a list of trained teams (its seeds). Every
-ordered pair (agent 0 of team i, agent 1 of team j) within a condition plays: self-play (SP) when i == j,
-cross-play (XP) otherwise; so does every pair across the conditions named in `cross`. Each pair plays
-`rollouts` episodes on every test grid: the 5 expanded classic layouts and the held-out generated levels. With
-`partner` on, every team also plays with the scripted cook (`torch_kitchen.scripted`), a partner outside every
-training population, in both seats; the cook's own self-play is the reference row.
+A *population* is a set of conditions (e.g. "ippo_mlp_ik"), each a list of trained teams (its seeds). Every ordered pair
+(agent 0 of team i, agent 1 of team j) within a condition plays: self-play (SP) when i == j, cross-play (XP) otherwise;
+so does every pair across the conditions named in `cross`. Each pair plays `rollouts` episodes on every test grid: the 5
+expanded classic layouts and the held-out generated levels. With `partner` on, every team also plays with the scripted
+cook (`torch_kitchen.partners.scripted_cook`), a partner outside every training population, in both seats; the cook's
+own self-play is the reference row.
 
 All pairs x grids x rollouts run as batches of up to `max_envs` kitchens through the rollout routine that
-training uses (`trainers.rollout`): kitchen b of a batch is pinned to grid b % G, and a `SeatedPolicy` gives
+training uses (`trainers.ppo.collection`): kitchen b of a batch is pinned to grid b % G, and a `SeatedPolicy` gives
 each kitchen's two seats to the teams of its pair. Actions are sampled, recurrent teams carry their state. Batch b
 plays with seed + b, so `workers` processes share the batches and give the numbers of one.
 
@@ -43,7 +43,7 @@ from trainers.evaluation.pairs import (
     make_matchups,
     play,
 )
-from trainers.evaluation.partners import load_human_proxies, with_human_proxies
+from trainers.evaluation.strangers import load_human_proxies, with_human_proxies
 from trainers.evaluation.tables import (
     at_home,
     grid_groups,

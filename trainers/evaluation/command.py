@@ -14,20 +14,25 @@ import torch
 from jax_env import EXPANDED_LAYOUTS, load_layout
 from jax_env.generator import SIZES as GENERATOR_SIZES
 from jax_env.layouts import padded_layouts
-from torch_kitchen.conventions import ConventionError, load_zoo
+from torch_kitchen.partners.conventions import ConventionError, load_zoo
 from trainers.checkpoint import CheckpointError
 from trainers.composer import config_help, load_config, save_config
 from trainers.config import ConfigError, DeviceConfig, EvalConfig
+from trainers.evaluation.figures import draw_figures, draw_heatmap, draw_learning_curve, draw_stranger_heatmap
 from trainers.evaluation.gifs import parse_gif_request, record_gif
 from trainers.evaluation.pairs import evaluation_grids, make_matchups, play
-from trainers.evaluation.partners import load_human_proxies, play_with_strangers, with_human_proxies
-from trainers.evaluation.tables import (
+from trainers.evaluation.strangers import (
+    load_human_proxies,
     markdown_strangers,
+    play_with_strangers,
+    stranger_pair_rows,
+    stranger_rows,
+    with_human_proxies,
+)
+from trainers.evaluation.tables import (
     markdown_summary,
     pair_rows,
     seed_rows,
-    stranger_pair_rows,
-    stranger_rows,
     summary_rows,
     visit_shares,
     write_csv,
@@ -41,7 +46,6 @@ from trainers.evaluation.teams import (
     load_team,
     scripted_cook_team,
 )
-from trainers.figures import draw_figures, draw_heatmap, draw_learning_curve, draw_stranger_heatmap
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 
 

@@ -11,7 +11,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from jax_env import Layout
 from jax_env.render import write_gif
 from torch_kitchen.env import KitchenEnv, with_transforms
-from torch_kitchen.pairing import make_seated_actor
+from torch_kitchen.partners.pairing import make_seated_actor
 from trainers.config import ConfigError
 from trainers.evaluation.teams import Team
 

@@ -17,10 +17,10 @@ from tqdm import tqdm
 from jax_env import GeneratorConfig, Layout, heldout_levels, layout_from_state, load_layout
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.events import EVENTS
-from torch_kitchen.pairing import make_seated_actor
+from torch_kitchen.partners.pairing import make_seated_actor
 from trainers.checkpoint import CheckpointError
 from trainers.evaluation.teams import Team
-from trainers.rollout import play_episodes
+from trainers.ppo.collection import play_episodes
 
 SP, XP, CROSS, PARTNER, HUMAN, STRANGER = "SP", "XP", "cross", "partner", "human proxy", "stranger"
 
@@ -107,7 +107,7 @@ class Batches:
     per_batch: int
     seed: int
     device: str
-    collector: str = "kitchen"  # `trainers.rollout.make_collector`'s kind: "xla" plays inside XLA where it can
+    collector: str = "kitchen"  # `trainers.ppo.collection.make_collector`'s kind: "xla" plays inside XLA where it can
 
     @property
     def units(self) -> int:

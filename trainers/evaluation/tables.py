@@ -7,17 +7,12 @@ import csv
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import stats
 
-from trainers.evaluation.intervals import interval, iqm
 from trainers.evaluation.pairs import CROSS, HUMAN, PARTNER, SP, XP, Outcomes, cross_condition, is_heldout
 from trainers.evaluation.teams import Team
-
-if TYPE_CHECKING:
-    from trainers.evaluation.partners import StrangerOutcomes
 
 
 def mean_and_stderr(values: np.ndarray) -> tuple[float, float]:
@@ -214,100 +209,3 @@ def bootstrap_interval(values, statistic, confidence: float = 0.95, resamples: i
     interval = stats.bootstrap((values,), statistic, confidence_level=confidence, n_resamples=resamples,
                                method="percentile", rng=np.random.default_rng(seed)).confidence_interval
     return middle, float(interval.low), float(interval.high)
-
-
-def seeds_interval(scores: np.ndarray, seed: int = 0) -> tuple[float, float, float]:
-    """(IQM, low, high) of scores [teams, strangers, seats] over the strangers where every team has a score in
-    every seat (seats averaged: a task is a stranger), with rliable's stratified bootstrap over the teams (seeds)
-    within each stranger; NaN where no stranger has scores."""
-    per_stranger = scores.mean(axis=2)
-    per_stranger = per_stranger[:, ~np.isnan(per_stranger).any(axis=0)]
-    if per_stranger.size == 0:
-        return math.nan, math.nan, math.nan
-    return tuple(interval(per_stranger, iqm, seed=seed))
-
-
-def stranger_pair_rows(outcomes: StrangerOutcomes) -> list[dict]:
-    """One row per team, stranger, seat and grid group: deliveries together, two of the stranger's, the ratio."""
-    normalised, over_best = outcomes.normalised, outcomes.over_best
-    rows = []
-    for t, team in enumerate(outcomes.teams):
-        for s, stranger in enumerate(outcomes.strangers):
-            for seat in (0, 1):
-                for g, (group, names) in enumerate(outcomes.groups):
-                    if not all(at_home(team, name) for name in names):
-                        continue
-                    rows.append({
-                        "team": team.name, "condition": team.condition, "stranger": stranger.name,
-                        "team_seat": seat, "grids": group,
-                        "deliveries": round(float(outcomes.with_team[t, s, seat, g]), 4),
-                        "stranger_alone": round(float(outcomes.alone[s, g]), 4),
-                        "normalised": round(float(normalised[t, s, seat, g]), 4),
-                        "over_best_response": round(float(over_best[t, s, seat, g]), 4),
-                    })  # fmt: skip
-    return rows
-
-
-def stranger_rows(outcomes: StrangerOutcomes, seed: int = 0) -> list[dict]:
-    """Per condition and grid group (where its teams are at home): mean deliveries with every stranger; then, over
-    the strangers that deliver with themselves on that group (the others are left out of the normalised score, and
-    named), mean deliveries with them, two of them alone, and the normalised score as a ratio of those two means,
-    with the IQM over teams x those strangers of each team's ratio (`seeds_interval`; `pairs` counts teams x
-    strangers x seats); and the IQM over the strangers' best responses where they have one (BR-Prox)."""
-    over_best = outcomes.over_best
-    rows = []
-    for condition in dict.fromkeys(team.condition for team in outcomes.teams):
-        members = [t for t, team in enumerate(outcomes.teams) if team.condition == condition]
-        for g, (group, names) in enumerate(outcomes.groups):
-            if not all(at_home(outcomes.teams[members[0]], name) for name in names):
-                continue
-            scored = np.flatnonzero(outcomes.alone[:, g] > 0)
-            left_out = [stranger.name for s, stranger in enumerate(outcomes.strangers) if s not in scored]
-            together = outcomes.with_team[members][:, scored][..., g]  # [teams, strangers, seats]
-            alone = outcomes.alone[scored, g]
-            ratios = together / alone[None, :, None]
-            middle, low, high = seeds_interval(ratios, seed)
-            proximity = over_best[members][..., g]
-            br_middle, br_low, br_high = seeds_interval(proximity, seed)
-            scored_deliveries = float(together.mean()) if scored.size else math.nan
-            scored_alone = float(alone.mean()) if scored.size else math.nan
-            rows.append({
-                "condition": condition, "grids": group, "pairs": int(ratios.size),
-                "deliveries": float(outcomes.with_team[members, :, :, g].mean()),
-                "strangers_alone": float(outcomes.alone[:, g].mean()),
-                "scored_deliveries": scored_deliveries, "scored_alone": scored_alone,
-                "normalised": scored_deliveries / scored_alone if scored.size else math.nan,
-                "left_out": " ".join(left_out),
-                "iqm": middle, "iqm_low": low, "iqm_high": high, "br_pairs": int((~np.isnan(proximity)).sum()),
-                "br_iqm": br_middle, "br_iqm_low": br_low, "br_iqm_high": br_high,
-            })  # fmt: skip
-    return rows
-
-
-def markdown_strangers(rows: list[dict], strangers: Sequence[str], rollouts: int, kind: str = "held-out strangers"
-                       ) -> str:
-    with_best = any(row["br_pairs"] for row in rows)
-    lines = [
-        f"With the {kind} ({len(strangers)}: {', '.join(strangers)}), the team in either seat, "
-        f"{rollouts} rollouts per pair and grid. With every stranger: mean deliveries over the condition's teams x "
-        "strangers x seats. The normalised score leaves out, per grid group, the strangers that never deliver with "
-        "themselves there (named): over the others, mean deliveries with them, two of them alone, and normalised, "
-        "the first over the second (a ratio of means: 1.0 is as good a partner to them as their own kind); IQM: the "
-        "interquartile mean over teams x those strangers of each team's ratio beside each (seats averaged; pairs: "
-        "teams x strangers x seats), [95% interval: rliable's stratified bootstrap over the teams, the seeds, within "
-        "each stranger]."
-        + (" Over the best response: deliveries with a stranger over its best response's with it (ZSC-Eval's "
-           "BR-Prox), IQM over the pairs of the strangers that have one." if with_best else ""),
-        "",
-        "| condition | grids | with every stranger | with those that cook | those alone | normalised | "
-        "IQM normalised | pairs | left out |" + (" over the best response (IQM) |" if with_best else ""),
-        "|---|---|---:|---:|---:|---:|---:|---:|---|" + ("---:|" if with_best else ""),
-    ]
-    for row in rows:
-        best = (f" {row['br_iqm']:.2f} [{row['br_iqm_low']:.2f}, {row['br_iqm_high']:.2f}] ({row['br_pairs']}) |"
-                if with_best else "")
-        lines.append(f"| {row['condition']} | {row['grids']} | {row['deliveries']:.2f} | "
-                     f"{row['scored_deliveries']:.2f} | {row['scored_alone']:.2f} | {row['normalised']:.2f} | "
-                     f"{row['iqm']:.2f} [{row['iqm_low']:.2f}, {row['iqm_high']:.2f}] | {row['pairs']} | "
-                     f"{row['left_out'] or '-'} |" + best)
-    return "\n".join(lines) + "\n"

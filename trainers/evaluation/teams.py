@@ -11,10 +11,10 @@ from pathlib import Path
 import torch
 
 from jax_env import layout_name
-from torch_kitchen.conventions import Convention, fingerprints
 from torch_kitchen.cpu_kernels import accelerate_cpu
 from torch_kitchen.models import ActorCritic, make_actor_critic
-from torch_kitchen.scripted import SCRIPTED_COOK, scripted_actor_critic
+from torch_kitchen.partners.conventions import Convention, fingerprints
+from torch_kitchen.partners.scripted_cook import SCRIPTED_COOK, scripted_actor_critic
 from trainers.checkpoint import CheckpointError, load_checkpoint
 from trainers.composer import load_config
 from trainers.config import ConfigError, RuntimeConfig, TrainConfig

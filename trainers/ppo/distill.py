@@ -1,0 +1,317 @@
+"""A planner-guided start: the scripted cook distilled into a team's torch networks by DAgger.
+
+    kitchen-distill configs/ippo/ego_mlp_ik.yaml name=distill_ego_mlp_ik
+    kitchen-train configs/ippo/ego_mlp_ik.yaml init_from=runs/distill_ego_mlp_ik/seed{seed}
+    kitchen-train configs/ippo/ego_mlp_ik.yaml init_from=scripted_cook    # both: distils into RUN/distilled first
+
+Round r rolls out the learner in `distill_kitchens` kitchens for `rollout_steps` steps, both seats, where each
+seat takes the scripted cook's action instead of its own with probability `distill_teacher_decay ** r` (round 0:
+the cook alone, behaviour cloning). Every visited state is labelled with the cook's action distribution and kept: the
+data of every round, none dropped. Then the actor is fitted to all the labels by cross-entropy
+(`distill_epochs` passes, each minibatch under a random mirror image or quarter turn of its kitchens with
+`distill_symmetries`), and the critic to the value targets of the round's own batch (GAE, as PPO's), so
+that self-play starts with values for the policy it starts from.
+
+Logged (TensorBoard, CSV), checkpointed after every round and resumed (`--resume RUN_DIR`) as training is. A
+checkpoint holds the networks in the trainer's format: `kitchen-eval` and `kitchen-play` read it as a trained
+team, and `init_from` starts IPPO from it. Any architecture distils (recurrent ones over whole sequences).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+from torchrl.modules import set_recurrent_mode
+from tqdm import tqdm
+
+from jax_env import NUM_ACTIONS
+from torch_kitchen.keys import ACTION, LOGITS, OBSERVATION, VALUE, VALUE_TARGET
+from torch_kitchen.models import ActorCritic, make_actor_critic
+from torch_kitchen.partners.conventions import fingerprints
+from torch_kitchen.partners.scripted_cook import ScriptedCook
+from torch_kitchen.symmetry import symmetries_of, transform_action_probs, transform_observation
+from trainers.algorithms import algorithm_settings, check_algorithm
+from trainers.checkpoint import (
+    LATEST,
+    CheckpointError,
+    capture_rng_states,
+    check_identity,
+    load_checkpoint,
+    model_identity,
+    restore_rng_states,
+    save_checkpoint,
+)
+from trainers.composer import load_config, save_config, train_config_parser
+from trainers.config import RESUMABLE, ConfigError, TrainConfig
+from trainers.loggers import make_loggers
+from trainers.plugins import PluginError, add_plugin_option, import_plugins
+from trainers.ppo.advantages import compute_advantages, shaping_weight_at
+from trainers.ppo.collection import finished_episode_deliveries, make_collector, select_kitchens
+from trainers.ppo.placement import make_optimizer, place_networks, set_learning_rate
+from trainers.ppo.resume import check_same_learning, start_fresh
+from trainers.ppo.team import TeamKitchens, make_env, with_model_transforms
+
+TEACHER_PROBS = ("agents", "teacher_probs")  # the scripted cook's action distribution in the visited state
+DATA = "dagger"  # the run's folder of every round's labelled batch
+
+
+class GuidedPolicy(TensorDictModuleBase):
+    """The learner's acting policy (actor and critic), where each seat takes the teacher's sampled action instead of
+    its own with probability `teacher_share`; writes the teacher's action distribution (`TEACHER_PROBS`)."""
+
+    def __init__(self, learner: TensorDictModuleBase, teacher: nn.Module):
+        super().__init__()
+        self.learner, self.teacher = learner, teacher
+        self.in_keys = list(learner.in_keys)
+        self.out_keys = [*learner.out_keys, TEACHER_PROBS]
+        self.teacher_share = 1.0
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        tensordict = self.learner(tensordict)
+        probs = torch.softmax(self.teacher(tensordict.get(OBSERVATION)), dim=-1)
+        teacher_action = torch.multinomial(probs.reshape(-1, NUM_ACTIONS), 1).reshape(probs.shape[:-1])
+        takes = torch.rand(teacher_action.shape, device=probs.device) < self.teacher_share
+        tensordict.set(ACTION, torch.where(takes, teacher_action, tensordict.get(ACTION)))
+        tensordict.set(TEACHER_PROBS, probs)
+        return tensordict
+
+
+def teacher_share(config: TrainConfig, round_: int) -> float:
+    """The probability that a seat acts as the teacher in round `round_` (0-based): 1 in the first."""
+    return config.distill_teacher_decay ** round_
+
+
+def learning_rate(config: TrainConfig, round_: int) -> float:
+    """The fitting rate of round `round_`: `distill_lr`, annealed linearly over the rounds."""
+    return config.distill_lr * (1.0 - round_ / config.distill_rounds)
+
+
+def cross_entropy(logits: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
+    """The mean over seats and steps of -sum(p * log q): logits [..., 6] of q, p the teacher's [..., 6]."""
+    return -(probs * torch.log_softmax(logits, dim=-1)).sum(-1).mean()
+
+
+def under_random_symmetry(data: TensorDictBase) -> TensorDictBase:
+    """`data`'s observations and the teacher's labels under one random symmetry of the kitchen
+    (`torch_kitchen.symmetry`): the same lesson in a mirrored kitchen."""
+    observation = data.get(OBSERVATION)
+    symmetry = int(torch.randint(symmetries_of(*observation.shape[-3:-1]), ()))
+    mirrored = data.clone(False)
+    mirrored.set(OBSERVATION, transform_observation(observation, symmetry))
+    mirrored.set(TEACHER_PROBS, transform_action_probs(data.get(TEACHER_PROBS), symmetry))
+    return mirrored
+
+
+def minibatches(data: TensorDictBase, size: int, device: str | torch.device) -> list[TensorDictBase]:
+    """`data` [K, T] (on `device`, the run's) in a random order of its kitchens, in minibatches of `size` kitchens
+    (whole sequences)."""
+    order = torch.randperm(data.shape[0], device=device)
+    return [select_kitchens(data, kitchens) for kitchens in order.split(size)]
+
+
+def fit(actor_critic: ActorCritic, optimizer: torch.optim.Optimizer, data: TensorDictBase,
+        batch: TensorDictBase, config: TrainConfig) -> dict[str, float]:
+    """`distill_epochs` passes of the actor's cross-entropy to the teacher over all the `data` [K, T], each with
+    one pass of the critic's squared error to the value targets of this round's `batch` [distill_kitchens, T]
+    (in its first steps); returns their means and the actor's agreement with the teacher's most likely action."""
+    size, device = config.distill_minibatch, config.runtime.device
+    parameters = [parameter for group in optimizer.param_groups for parameter in group["params"]]
+    imitations, value_errors = [], []  # on the device, read once at the end
+    with set_recurrent_mode(True):
+        for _ in range(config.distill_epochs):
+            # One pass over the round's batch per pass over all the data: the critic learns the current policy's
+            # values, and the later rounds' fitting does not revisit one batch for every earlier round's data.
+            pairs = itertools.zip_longest(minibatches(data, size, device), minibatches(batch, size, device))
+            for own, current in pairs:
+                if config.distill_symmetries:
+                    own = under_random_symmetry(own)
+                logits = actor_critic.actor(own.clone(False)).get(LOGITS)
+                probs = own.get(TEACHER_PROBS)
+                imitation = cross_entropy(logits, probs)
+                loss = imitation
+                if current is not None:
+                    value = actor_critic.critic(current.clone(False)).get(VALUE)
+                    value_error = (value - current.get(VALUE_TARGET)).pow(2).mean()
+                    loss = loss + config.value_coef * value_error
+                    value_errors.append(value_error.detach())
+                optimizer.zero_grad()
+                loss.backward()
+                nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
+                optimizer.step()
+                agreement = (logits.argmax(-1) == probs.argmax(-1)).float().mean()
+                imitations.append(torch.stack([imitation.detach(), agreement]))
+    imitation, agreement = torch.stack(imitations).mean(0).tolist()
+    value_error = torch.stack(value_errors).mean().item()
+    return {"distill/cross_entropy": imitation, "distill/value_error": value_error, "distill/agreement": agreement}
+
+
+def kept(batch: TensorDictBase, actor_critic: ActorCritic) -> TensorDictBase:
+    """What a round keeps of its batch: what the actor reads and the teacher's labels (a copy: the collector
+    reuses its buffers)."""
+    keys = {*actor_critic.actor.in_keys, TEACHER_PROBS}
+    return batch.select(*keys, strict=False).clone()
+
+
+def round_path(run: Path, round_: int) -> Path:
+    return run / DATA / f"round{round_}"
+
+
+def load_rounds(run: Path, rounds: int) -> list[TensorDictBase]:
+    """The labelled data of rounds 0 .. rounds - 1 (memory-mapped)."""
+    missing = [r for r in range(rounds) if not round_path(run, r).exists()]
+    if missing:
+        raise CheckpointError(f"{run} lacks the data of round(s) {missing} in {run / DATA}: distil it again")
+    return [TensorDict.load_memmap(round_path(run, r)) for r in range(rounds)]
+
+
+def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
+            on_round: Callable[[int, dict], bool | None] | None = None) -> Path:
+    """Distils the scripted cook into `config.architecture` over `config.distill_rounds` rounds (see the module
+    docstring); returns the run directory. `resume`: continue the run from its last round. `on_round(round,
+    metrics)`: called after every round's checkpoint; returning True stops the run there. Raises ConfigError or
+    CheckpointError before any work."""
+    config = check_algorithm(config.check())
+    config.check_run_location()
+    if config.runtime.teams != 1:
+        raise ConfigError("kitchen-distill distils one team; run it once per seed")
+    for warning in config.check_levels():
+        print(f"kitchen-distill: warning: {warning}", file=sys.stderr)
+    torch.set_num_threads(config.runtime.threads)
+    torch.manual_seed(config.seed)
+    run = Path(run or config.run_path)
+    checkpoint = run / "checkpoints" / LATEST
+    if not resume and checkpoint.exists():
+        raise ConfigError(f"{run} already holds a run; resume it with `kitchen-distill --resume {run}`, or choose "
+                          "another name=, seed= or run_dir=")
+
+    kitchen = make_env(config, num_envs=config.distill_kitchens)
+    obs_shape = kitchen.obs_shape
+    actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
+    place_networks(config, actor_critic, own_kernels=True)
+    parameters = [*actor_critic.actor.parameters(), *actor_critic.critic.parameters()]
+    optimizer = make_optimizer(config, parameters)  # the trainer's Adam; its rate set at every round
+    identity = model_identity(config.architecture, obs_shape, config.hidden, config.share_params)
+    parts = {"actor": actor_critic.actor, "critic": actor_critic.critic, "optimizer": optimizer,
+             "env": TeamKitchens(kitchen, 0)}
+    teacher = ScriptedCook(config.distill_teacher(0)).to(config.runtime.device)
+    policy = GuidedPolicy(actor_critic.acting_policy(), teacher)
+
+    done_rounds, env_steps, rng = 0, 0, None
+    if resume:
+        state = load_checkpoint(checkpoint, map_location=config.runtime.device)
+        check_identity(state, identity)
+        check_same_learning(run, config, state["config"], (*RESUMABLE, "distill_rounds"))  # more rounds go on
+        for name, part in parts.items():
+            part.load_state_dict(state[name])
+        done_rounds, env_steps, rng = state["update"], state["env_steps"], state["rng"]
+    else:
+        start_fresh(run)
+    data = load_rounds(run, done_rounds)
+    run.mkdir(parents=True, exist_ok=True)
+    save_config(config, run / "config.yaml")
+    loggers = make_loggers(config, run, purge_step=env_steps + 1 if resume else None)
+    if done_rounds >= config.distill_rounds:
+        print(f"{run}: already distilled for {done_rounds} rounds; raise distill_rounds to go on")
+        return run
+
+    collector = make_collector(with_model_transforms(kitchen, actor_critic), policy,
+                               config.distill_kitchens * config.rollout_steps, kind=config.runtime.collector)
+    if rng is not None:  # after the collector, whose construction runs the policy once
+        restore_rng_states(rng)
+    bar = tqdm(total=config.distill_rounds, initial=done_rounds, unit="round", disable=not config.progress,
+               dynamic_ncols=True)
+    try:
+        batches = iter(collector)
+        for round_ in range(done_rounds, config.distill_rounds):
+            policy.teacher = ScriptedCook(config.distill_teacher(round_)).to(config.runtime.device)
+            policy.teacher_share = teacher_share(config, round_)
+            batch = next(batches)
+            env_steps += batch.numel()
+            metrics = learn_round(config, round_, batch, env_steps, data, actor_critic, optimizer, run)
+            metrics["distill/teacher_share"] = policy.teacher_share
+            for logger in loggers:
+                logger.log_metrics(metrics, step=env_steps)
+            save_checkpoint(checkpoint, {
+                "config": config.to_dict(), "model": identity,
+                **{name: part.state_dict() for name, part in parts.items()},
+                "algorithm": {}, "update": round_ + 1, "env_steps": env_steps, "rng": capture_rng_states(),
+                "met": fingerprints(config.distill_teacher(r) for r in range(round_ + 1)),
+            })  # fmt: skip
+            bar.update(1)
+            bar.set_postfix(agreement=f"{metrics['distill/agreement']:.2f}",
+                            deliveries=f"{metrics.get('charts/episode_deliveries', float('nan')):.2f}")
+            if on_round is not None and on_round(round_ + 1, metrics):
+                break
+    finally:
+        collector.shutdown()
+        bar.close()
+        for logger in loggers:
+            logger.close()
+    return run
+
+
+def learn_round(config: TrainConfig, round_: int, batch: TensorDictBase, env_steps: int, data: list,
+                actor_critic: ActorCritic, optimizer: torch.optim.Optimizer, run: Path) -> dict[str, float]:
+    """Round `round_` of distillation on its `batch` (the guided policy's, `env_steps` in all so far): the batch's
+    value targets, its kept steps added to `data` (memory-mapped into the run's folder), and the networks fitted
+    to every round's data (`fit`) at the round's learning rate. Returns the round's metrics."""
+    deliveries = finished_episode_deliveries(batch)
+    compute_advantages(batch, actor_critic.critic, config, shaping_weight_at(config, env_steps))
+    data.append(kept(batch, actor_critic).memmap_(round_path(run, round_)))
+    set_learning_rate(config, optimizer, learning_rate(config, round_))
+    # Every round's data, from the memory-mapped files to the networks' device.
+    every_round = torch.cat(data).to(config.runtime.device)
+    metrics = fit(actor_critic, optimizer, every_round,
+                  batch.select(*actor_critic.critic.in_keys, VALUE_TARGET, strict=False), config)
+    metrics["distill/kitchen_steps"] = sum(part.numel() for part in data)
+    metrics["charts/learning_rate"] = learning_rate(config, round_)
+    if len(deliveries):
+        metrics["charts/episode_deliveries"] = float(deliveries.float().mean())
+    return metrics
+
+
+def distill_start(config: TrainConfig, run: Path) -> Path:
+    """The planner-guided start of a training run (`init_from: scripted_cook`): distils the scripted cook with
+    the run's config into `run`, or finishes a distillation stopped there."""
+    resume = (run / "checkpoints" / LATEST).exists()
+    return distill(dataclasses.replace(config, init_from=""), resume=resume, run=run)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = train_config_parser("kitchen-distill", "Distil the scripted cook into a team's networks by DAgger over "
+                                 "its kitchens (a planner-guided start for kitchen-train's init_from).",
+                                 algorithm_settings())
+    parser.add_argument("--resume", metavar="RUN_DIR", help="continue the run in RUN_DIR from its latest round")
+    add_plugin_option(parser)
+    args = parser.parse_intermixed_args(argv)  # overrides may follow --import MODULE
+    try:
+        import_plugins(args.plugins)
+        if args.resume:
+            overrides = [item for item in [args.config, *args.overrides] if item]
+            saved = Path(args.resume) / "config.yaml"
+            if not saved.is_file():
+                raise ConfigError(f"{args.resume} is not a run directory (no config.yaml in it)")
+            distill(load_config(saved, overrides), resume=True, run=Path(args.resume))
+        else:
+            if args.config is None:
+                raise ConfigError("give a config file (e.g. configs/ippo/ego_mlp_ik.yaml) or --resume RUN_DIR")
+            distill(load_config(args.config, args.overrides))
+    except (ConfigError, CheckpointError, ValueError, PluginError) as error:
+        print(f"kitchen-distill: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("kitchen-distill: stopped; continue from the last round with --resume", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,219 @@
+"""A seed's team as it trains (`TrainingTeam`): its kitchens, networks, algorithm, TorchRL loss and optimizer,
+built in the team's own random stream, its checkpoint, and the restore point an update that diverged goes back to. The
+PPO loop (`trainers.ppo.loop`) drives the runs; their step is `trainers.ppo.step`'s; `trainers.ppo.runtime`
+places them on the machine and decides how several of them share it."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+from tensordict.nn import TensorDictSequential
+from torchrl.envs import Transform
+from torchrl.objectives import ClipPPOLoss
+from torchrl.record.loggers import Logger
+
+from torch_kitchen.env import KitchenEnv, with_transforms
+from torch_kitchen.keys import ACTION, ADVANTAGE, LOG_PROB, VALUE, VALUE_TARGET
+from torch_kitchen.models import ActorCritic, make_actor_critic
+from torch_kitchen.partners.conventions import fingerprints
+from torch_kitchen.teams import RandomStream, TeamTransform
+from torch_kitchen.torchrl_internals import entropy_without_host_check, hold_value_clip_on_host
+from trainers.algorithms import ALGORITHMS, Algorithm, check_algorithm
+from trainers.checkpoint import LATEST, capture_rng_states, model_identity, save_checkpoint
+from trainers.config import ConfigError, TrainConfig
+from trainers.ppo.placement import make_optimizer, place_networks
+
+
+def make_env(config: TrainConfig, num_envs: int | None = None, levels=None,
+             seed: int | Sequence[int] | None = None) -> KitchenEnv:
+    """The `KitchenEnv` of a config (evaluation passes its own batch, levels and seed; several teams their seeds)."""
+    return KitchenEnv(
+        num_envs=num_envs or config.num_envs,
+        levels=config.levels if levels is None else levels,
+        max_steps=config.max_steps,
+        generator=config.generator,
+        device=config.runtime.device,
+        seed=config.seed if seed is None else seed,
+    )
+
+
+def with_model_transforms(env: KitchenEnv, actor_critic: ActorCritic, *extra: Transform):
+    """`env` plus the transforms the model needs (episode-start flags and recurrent state for LSTMs, the partner
+    context for E3T models), then `extra` ones (an algorithm's)."""
+    return with_transforms(env, [*actor_critic.env_transforms(), *extra])
+
+
+def make_algorithm(config: TrainConfig, actor_critic: ActorCritic) -> Algorithm:
+    """The registered algorithm `config.algorithm`, checked against the model."""
+    algorithm = ALGORITHMS[config.algorithm](config, actor_critic)
+    algorithm.check()
+    return algorithm
+
+
+def make_loss(config: TrainConfig, actor_critic: ActorCritic, algorithm: Algorithm) -> ClipPPOLoss:
+    """TorchRL's clipped PPO loss on the ("agents", ...) keys with the protocol's coefficients, as the algorithm
+    configures it. The algorithm's `process_minibatch` standardises the advantages (by default pooled over the
+    whole minibatch) before the minibatch is split into shards, so the loss leaves them as they are."""
+    loss = ClipPPOLoss(
+        algorithm.loss_actor(),
+        actor_critic.critic,
+        clip_epsilon=config.clip_epsilon,
+        entropy_coeff=config.entropy_coef,
+        critic_coeff=config.value_coef,
+        loss_critic_type="l2",
+        normalize_advantage=False,
+        clip_value=True,
+        functional=False,  # PPO keeps no target networks: the modules run as they are
+        log_explained_variance=False,  # the trainer logs it over the whole batch (`finish_update`), not a minibatch
+    )
+    loss.set_keys(action=ACTION, sample_log_prob=LOG_PROB, value=VALUE, advantage=ADVANTAGE, value_target=VALUE_TARGET)
+    hold_value_clip_on_host(loss)
+    entropy_without_host_check(loss)
+    algorithm.configure_loss(loss)
+    return loss
+
+
+class TeamKitchens:
+    """A team's rows of the shared `KitchenEnv`, checkpointed as `env.state_dict()` of a run of its own."""
+
+    def __init__(self, env: KitchenEnv, team: int):
+        self.env, self.team = env, team
+
+    def state_dict(self) -> dict:
+        return {"_extra_state": self.env.team_state(self.team)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.env.load_team_state(self.team, state["_extra_state"])
+
+
+@dataclasses.dataclass
+class TrainingTeam:
+    """One seed's run as it trains: its config and run directory, the team's networks, algorithm, loss and
+    optimizer, random stream, counters and loggers. A process trains one, or several in one batch of kitchens
+    (`train_teams`); a finished run's team is loaded for play as a `trainers.evaluation.Team`."""
+
+    config: TrainConfig
+    run: Path
+    stream: RandomStream
+    actor_critic: ActorCritic
+    algorithm: Algorithm
+    policy: TensorDictSequential  # acts while collecting: the actor, the algorithm's modules, the critic
+    loss_module: ClipPPOLoss
+    optimizer: torch.optim.Optimizer
+    parameters: list[torch.nn.Parameter]
+    identity: dict
+    parts: dict  # what its checkpoint holds, by name: anything with state_dict() / load_state_dict()
+    update: int = 0
+    env_steps: int = 0
+    loggers: list[Logger] = dataclasses.field(default_factory=list)
+    # {fingerprint: name} of the scripted conventions it met: its algorithm's, and its init_from run's
+    met: dict[str, str] = dataclasses.field(default_factory=dict)
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.run / "checkpoints" / LATEST
+
+    def checkpoint(self) -> None:
+        with self.stream.active():
+            rng = capture_rng_states()
+        save_checkpoint(self.checkpoint_path, {
+            "config": self.config.identity(),
+            "model": self.identity,
+            **{name: part.state_dict() for name, part in self.parts.items()},
+            "algorithm": self.algorithm.state_dict(),
+            "update": self.update,
+            "env_steps": self.env_steps,
+            "rng": rng,
+            "met": dict(sorted(self.met.items())),
+        })  # fmt: skip
+
+    def snapshot(self, k: int) -> Path:
+        """A copy of the checkpoint just written, kept as checkpoints/snapshot_<k>.pt (`snapshots`)."""
+        return Path(shutil.copyfile(self.checkpoint_path, self.checkpoint_path.with_name(f"snapshot_{k}.pt")))
+
+
+def team_configs(config: TrainConfig) -> list[TrainConfig]:
+    """The configs of the `runtime.teams` teams of a config: seeds seed .. seed + teams - 1, each a run of its own."""
+    alone = dataclasses.replace(config.runtime, teams=1)
+    return [dataclasses.replace(config, seed=config.seed + team, runtime=alone) for team in range(config.runtime.teams)]
+
+
+def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
+               actor_critic: ActorCritic | None = None) -> TrainingTeam:
+    """Team `index` of the batch: networks (from `config.architecture` unless given), algorithm, loss and
+    optimizer, all built in the team's own random stream, seeded with its seed."""
+    stream = RandomStream(config.seed, config.runtime.device)
+    obs_shape = kitchen.obs_shape
+    with stream.active():
+        own_networks = actor_critic is None
+        if own_networks:
+            actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
+        place_networks(config, actor_critic, own_kernels=own_networks)
+        algorithm = make_algorithm(config, actor_critic)
+        # The critic runs while acting: its values feed GAE.
+        policy = actor_critic.acting_policy(*algorithm.acting_modules())
+        loss_module = make_loss(config, actor_critic, algorithm)
+        parameters = [*loss_module.parameters(), *algorithm.parameters()]
+        optimizer = make_optimizer(config, parameters)
+    team = TrainingTeam(
+        config=config, run=run, stream=stream, actor_critic=actor_critic, algorithm=algorithm, policy=policy,
+        loss_module=loss_module, optimizer=optimizer, parameters=parameters,
+        identity={**model_identity(config.architecture, obs_shape, config.hidden, config.share_params),
+                  **({} if own_networks else {"given": True})},  # networks passed from Python: not rebuilt by name
+        parts={"actor": actor_critic.actor, "critic": actor_critic.critic, "optimizer": optimizer,
+               "env": TeamKitchens(kitchen, index)},
+        met=fingerprints(algorithm.met_conventions()),
+    )  # fmt: skip
+    return team
+
+
+def algorithm_transforms(teams: list[TrainingTeam]) -> list[Transform]:
+    """The env transforms of the teams' algorithms: each team's own, on its rows, where there are several."""
+    if len(teams) == 1:
+        return teams[0].algorithm.env_transforms()
+    per_team = [team.algorithm.env_transforms() for team in teams]
+    return [TeamTransform(transforms, teams[0].config.num_envs) for transforms in zip(*per_team)]
+
+
+class RestorePoint:
+    """A team's weights and optimizer state as they were, copied on their device: an update whose loss diverged
+    is undone from it, so that the update's minibatches need not stop to ask whether each loss was finite."""
+
+    def __init__(self, team: TrainingTeam):
+        self.team = team
+        self.weights = [parameter.detach().clone() for parameter in team.parameters]
+        self.optimizer = copy.deepcopy(team.optimizer.state_dict())
+
+    def restore(self) -> None:
+        with torch.no_grad():
+            torch._foreach_copy_([parameter.data for parameter in self.team.parameters], self.weights)
+        self.team.optimizer.load_state_dict(self.optimizer)
+
+
+def check_teams(configs: Sequence[TrainConfig]) -> list[TrainConfig]:
+    """Teams trained in one batch share every setting but the seed; each is checked as a run of its own. Returns
+    their configs with the algorithm's settings spelled out (`check_algorithm`)."""
+    configs = [check_algorithm(config.check()) for config in configs]
+    for config in configs:
+        config.check_run_location()
+        if config.runtime.teams != 1:
+            raise ConfigError(f"runtime.teams={config.runtime.teams}: a team's own config has runtime.teams=1 "
+                              "(see `team_configs`)")
+    for config in configs[1:]:
+        differ = [field.name for field in dataclasses.fields(TrainConfig)
+                  if field.name != "seed" and getattr(config, field.name) != getattr(configs[0], field.name)]
+        if differ:
+            raise ConfigError(
+                f"teams trained together share every setting but the seed; seed {config.seed} differs from seed "
+                f"{configs[0].seed} in {', '.join(differ)}"
+            )
+    seeds = [config.seed for config in configs]
+    if len(set(seeds)) < len(seeds):
+        raise ConfigError(f"teams trained together need different seeds, got {seeds}")
+    return configs
+

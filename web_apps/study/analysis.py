@@ -1,0 +1,280 @@
+"""`kitchen-study analyse STUDY_DIR`: the study's games and answers, checked against their records, as a report.
+
+Only finished assigned games count (practice games and cut attempts never do), and each only if its record is
+there, has the checksum the database stored, replays exactly through the JAX env (kitchen-play's replay) and
+replays to the score the database stored; any other is listed with its reason and left out, with its questions.
+Written into STUDY_DIR/analysis/:
+
+    report.md      participants, games counted and left out, deliveries per condition and kitchen with 95%
+                   bootstrap intervals, paired differences between conditions within participants (bootstrap
+                   interval, Wilcoxon signed-rank test), the Likert answers and the forced choice per condition
+    games.csv      every counted game: participant, position, condition, kitchen, seed, record, sha256, deliveries
+    answers.csv    every counted answer: participant, position, condition, item, value
+    deliveries.png deliveries per game by condition and kitchen, with the intervals
+"""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from trainers.evaluation.tables import bootstrap_interval
+from web_apps.play.game import file_sha256, replay
+from web_apps.study.assignment import QUESTIONS
+from web_apps.study.config import FORCED_CHOICE, StudyConfig, StudyError, config_from_dict
+from web_apps.study.database import DATABASE, FINISHED, StudyDatabase
+
+CONFIDENCE = 0.95
+RESAMPLES = 2000
+
+
+@dataclass
+class CountedGame:
+    participant: int
+    position: int
+    condition: str
+    kitchen: str
+    seed: int
+    record: str
+    sha256: str
+    deliveries: int
+
+
+def interval(values, statistic=np.mean, seed: int = 0) -> tuple[float, float]:
+    """The 95% percentile bootstrap interval of `statistic` over `values` (`bootstrap_interval`; NaN for fewer than
+    two, the value itself where all are equal)."""
+    if len(values) < 2:
+        return float("nan"), float("nan")
+    _, low, high = bootstrap_interval(values, statistic, CONFIDENCE, RESAMPLES, seed)
+    return low, high
+
+
+def wilcoxon_p(differences) -> float:
+    """The two-sided p-value of Wilcoxon's signed-rank test that the differences centre on 0 (NaN where it cannot
+    be computed: fewer than two, or all zero)."""
+    differences = np.asarray(differences, dtype=float)
+    if len(differences) < 2 or np.all(differences == 0):
+        return float("nan")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return float(stats.wilcoxon(differences).pvalue)
+
+
+def checked_games(database: StudyDatabase, folder: Path) -> tuple[list[CountedGame], list[tuple[dict, str]]]:
+    """(games counted, [(game row, why left out)]) of the finished assigned games (see the module docstring)."""
+    counted, left_out = [], []
+    for row in database.rows("SELECT * FROM games WHERE status = ? AND practice = 0 ORDER BY participant, position",
+                             FINISHED):
+        row = dict(row)
+        path = folder / row["record"]
+        if not path.is_file():
+            left_out.append((row, "the record is missing"))
+            continue
+        if file_sha256(path) != row["sha256"]:
+            left_out.append((row, "the record's checksum differs from the database's (changed after the game)"))
+            continue
+        try:
+            replayed = replay(path)
+        except ValueError as error:
+            left_out.append((row, f"does not replay: {str(error).removeprefix(f'{path}: ')}"))
+            continue
+        if replayed["score"] != row["score"] or replayed["steps"] != row["steps"]:
+            left_out.append((row, f"replays to {replayed['score']} deliveries in {replayed['steps']} steps, the "
+                                  f"database says {row['score']} in {row['steps']}"))
+            continue
+        counted.append(CountedGame(row["participant"], row["position"], row["condition"], row["kitchen"],
+                                   row["seed"], row["record"], row["sha256"], row["score"]))
+    return counted, left_out
+
+
+def number(value: float, digits: int = 2) -> str:
+    return "n/a" if value != value else f"{value:.{digits}f}"
+
+
+def span(low: float, high: float) -> str:
+    return "n/a (n < 2)" if low != low else f"[{low:.2f}, {high:.2f}]"
+
+
+def analyse(folder: str | Path) -> Path:
+    """Writes the report of the study in `folder` (see the module docstring); returns the report's path."""
+    folder = Path(folder)
+    try:
+        database = StudyDatabase(folder / DATABASE, create=False)
+        config = config_from_dict(database.config())
+    except FileNotFoundError:
+        raise StudyError(f"{folder} holds no study (no {DATABASE} with a config): give the study's folder, "
+                         "e.g. studies/<name>") from None
+    try:
+        return write_report(config, database, folder)
+    finally:
+        database.close()
+
+
+def write_report(config: StudyConfig, database: StudyDatabase, folder: Path) -> Path:
+    out = folder / "analysis"
+    out.mkdir(exist_ok=True)
+    conditions = list(config.conditions)
+    counted, left_out = checked_games(database, folder)
+    progress = database.progress()
+    kept = {(game.participant, game.position) for game in counted}
+    condition_of = {(game.participant, game.position): game.condition for game in counted}
+
+    # The questions of each counted game: stage rows tell which game a questions stage followed.
+    answers = []
+    for row in database.rows("SELECT a.participant, a.stage, a.item, a.value, s.kind FROM answers a JOIN stages s "
+                             "ON a.participant = s.participant AND a.stage = s.stage ORDER BY a.participant, a.stage"):
+        if row["kind"] != QUESTIONS:
+            continue
+        position = position_of_questions(config, row["stage"])
+        if (row["participant"], position) in kept:
+            answers.append((row["participant"], position, condition_of[row["participant"], position], row["item"],
+                            row["value"]))
+
+    with open(out / "games.csv", "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["participant", "position", "condition", "kitchen", "seed", "record", "sha256", "deliveries"])
+        writer.writerows([g.participant, g.position, g.condition, g.kitchen, g.seed, g.record, g.sha256, g.deliveries]
+                         for g in counted)
+    with open(out / "answers.csv", "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["participant", "position", "condition", "item", "value"])
+        writer.writerows(answers)
+
+    lines = [f"# Study {config.name}: report", "",
+             f"From `{folder / DATABASE}` and the records under `{folder / 'records'}`. Every game counted is listed "
+             "in `games.csv` (its record and SHA-256), every answer counted in `answers.csv`.", "",
+             "## Counts", "",
+             "| | count |", "|---|---:|",
+             f"| participants started | {progress['started']} |",
+             f"| participants finished | {progress['finished']} |",
+             f"| assigned games finished (database) | {progress['games_finished']} |",
+             f"| games counted (replayed exactly) | {len(counted)} |",
+             f"| games left out | {len(left_out)} |",
+             f"| attempts cut and played again (never counted) | {progress['games_cut']} |",
+             f"| answers counted | {len(answers)} |", ""]
+
+    lines += ["## Deliveries per game", "",
+              f"Mean deliveries per game with its {CONFIDENCE:.0%} percentile bootstrap interval ({RESAMPLES} "
+              "resamples, `scipy.stats.bootstrap`); n: games.", "",
+              "| condition | kitchen | n | mean | 95% interval |", "|---|---|---:|---:|---|"]
+    cells = {}
+    for condition in conditions:
+        for kitchen in [*config.kitchens, "all"]:
+            values = [g.deliveries for g in counted if g.condition == condition and kitchen in ("all", g.kitchen)]
+            cells[condition, kitchen] = values
+            if values:
+                low, high = interval(values)
+                lines.append(f"| {condition} | {kitchen} | {len(values)} | {np.mean(values):.2f} | "
+                             f"{span(low, high)} |")
+    lines.append("")
+
+    lines += ["## Within participants", "",
+              "Per participant, the mean deliveries with the first condition minus those with the second, over the "
+              "participants who played both; its mean with a 95% bootstrap interval, and the two-sided p-value of "
+              "the Wilcoxon signed-rank test (`scipy.stats.wilcoxon`) that the differences centre on 0.", "",
+              "| first | second | participants | mean difference | 95% interval | Wilcoxon p |",
+              "|---|---|---:|---:|---|---:|"]
+    per_participant = {}
+    for game in counted:
+        per_participant.setdefault((game.participant, game.condition), []).append(game.deliveries)
+    participants = sorted({game.participant for game in counted})
+    for first, second in itertools.combinations(conditions, 2):
+        differences = [np.mean(per_participant[p, first]) - np.mean(per_participant[p, second])
+                       for p in participants if (p, first) in per_participant and (p, second) in per_participant]
+        if differences:
+            low, high = interval(differences)
+            lines.append(f"| {first} | {second} | {len(differences)} | {np.mean(differences):.2f} | "
+                         f"{span(low, high)} | {number(wilcoxon_p(differences), 3)} |")
+    lines.append("")
+
+    scale = config.likert.scale
+    lines += ["## Questions", "",
+              f"Likert items on 1 ({scale[0]}) to {len(scale)} ({scale[-1]}): mean, median and the count of each "
+              "answer, per condition; n: answers.", "",
+              "| condition | item | n | mean | median | " + " | ".join(map(str, range(1, len(scale) + 1))) + " |",
+              "|---|---|---:|---:|---:|" + "---:|" * len(scale)]
+    for condition in conditions:
+        for item in config.likert.items:
+            values = [a[4] for a in answers if a[2] == condition and a[3] == item]
+            if values:
+                counts = " | ".join(str(values.count(v)) for v in range(1, len(scale) + 1))
+                lines.append(f"| {condition} | {item} | {len(values)} | {np.mean(values):.2f} | "
+                             f"{np.median(values):g} | {counts} |")
+    lines.append("")
+
+    choices = forced_choices(answers, condition_of)
+    if config.forced_choice and len(conditions) > 1:
+        lines += ["## Forced choice", "", f"\"{config.forced_choice}\", asked after every game but the first, "
+                  "between the last two partners: per condition, how often it was one of the two and how often "
+                  "chosen.", "", "| condition | offered | chosen | share |", "|---|---:|---:|---:|"]
+        for condition in conditions:
+            offered = sum(condition in pair for pair, _ in choices)
+            chosen = sum(choice == condition for _, choice in choices)
+            share = chosen / offered if offered else float("nan")
+            lines.append(f"| {condition} | {offered} | {chosen} | {number(share)} |")
+        lines.append("")
+
+    lines += ["## Games left out", ""]
+    if left_out:
+        lines += ["| participant | position | condition | record | reason |", "|---:|---:|---|---|---|"]
+        lines += [f"| {row['participant']} | {row['position']} | {row['condition']} | `{row['record']}` | {why} |"
+                  for row, why in left_out]
+    else:
+        lines.append("None: every finished game replayed exactly to the score the database holds.")
+    lines += ["", "![deliveries per game](deliveries.png)", ""]
+    plot(cells, conditions, config.kitchens, out / "deliveries.png")
+    report = out / "report.md"
+    report.write_text("\n".join(lines), encoding="utf-8")
+    return report
+
+
+def position_of_questions(config: StudyConfig, stage: int) -> int:
+    """The position of the game a questions stage follows: consent, instructions and the practice games come
+    first, then a game and its questions per position."""
+    return (stage - 2 - config.practice_games) // 2
+
+
+def forced_choices(answers, condition_of) -> list[tuple[tuple[str, str], str]]:
+    """((the two conditions offered), the one chosen) of each forced choice counted (both games counted)."""
+    found = []
+    for participant, position, _, item, value in answers:
+        if item != FORCED_CHOICE:
+            continue
+        pair = (condition_of.get((participant, position - 1)), condition_of.get((participant, position)))
+        if None not in pair and (participant, value) in condition_of:
+            found.append((pair, condition_of[participant, value]))
+    return found
+
+
+def plot(cells: dict, conditions: list[str], kitchens: list[str], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = [*kitchens, "all"]
+    width = 0.8 / len(conditions)
+    figure, axes = plt.subplots(figsize=(max(5, 1.4 * len(groups) * len(conditions) / 2 + 2), 3.6))
+    for c, condition in enumerate(conditions):
+        means, lows, highs = [], [], []
+        for group in groups:
+            values = cells.get((condition, group), [])
+            mean = float(np.mean(values)) if values else float("nan")
+            low, high = interval(values) if values else (float("nan"), float("nan"))
+            means.append(mean)
+            lows.append(mean - low if low == low else 0)
+            highs.append(high - mean if high == high else 0)
+        axes.bar(np.arange(len(groups)) + c * width - 0.4 + width / 2, means, width, yerr=[lows, highs], capsize=3,
+                 label=condition)
+    axes.set_xticks(np.arange(len(groups)), groups, rotation=20, ha="right")
+    axes.set_ylabel("deliveries per game")
+    axes.legend()
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)

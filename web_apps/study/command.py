@@ -1,0 +1,102 @@
+"""`kitchen-study`: a human study from its config to its report.
+
+    kitchen-study check configs/study/example.yaml     # the config checked, the first participants' orders shown
+    kitchen-study run configs/study/example.yaml       # serves the study; prints the participants' and operator's links
+    kitchen-study analyse studies/example              # the report: STUDY_DIR/analysis/report.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from web_apps.play.server import port_in_use, served_hosts
+from web_apps.study.assignment import assign, latin_square
+from web_apps.study.config import StudyError, load_study, study_partners
+
+PROG = "kitchen-study"
+
+
+def error(message: str, status: int = 2) -> int:
+    print(f"{PROG}: error: {message}", file=sys.stderr)
+    return status
+
+
+def check(args) -> int:
+    config = load_study(args.config)
+    rows = len(latin_square(len(config.conditions)))
+    print(f"{args.config}: {len(config.conditions)} conditions ({', '.join(config.conditions)}), "
+          f"{len(config.kitchens)} kitchens, {config.practice_games} practice + {config.games} games per participant; "
+          f"balanced over every {rows} participants; the study's folder: {config.folder}/")
+    for number in range(rows):
+        games = [f"{slot.condition} on {slot.kitchen}" for slot in assign(config, number) if not slot.practice]
+        print(f"  participant {number}: {', '.join(games)}")
+    return 0
+
+
+def run(args) -> int:
+    from web_apps.study.server import create_study_app, open_study
+
+    config = load_study(args.config, check=False)
+    try:
+        partners = study_partners(config)  # the check, and the partners the server's games share
+    except StudyError as failure:
+        raise StudyError(f"{args.config}: {failure}") from None
+    if (busy := port_in_use(args.host, args.port)) is not None:
+        return error(busy)
+    try:
+        import uvicorn  # noqa: F401
+    except ImportError:
+        return error("kitchen-study needs the play extra: pip install .[play]")
+    database, token, operator = open_study(config, args.token)
+    app = create_study_app(config, database, token, operator, served_hosts(args.host, args.port, args.allow_host),
+                           partners)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    base = f"http://{args.host}:{args.port}"
+    print(f"{PROG}: study {config.name} in {config.folder}/\n"
+          f"  participants: {base}/?token={token}&{config.participant_param}=<their id>\n"
+          f"  operator:     {base}/operator?token={token}&key={operator}", flush=True)
+    import uvicorn
+
+    # On SIGTERM or SIGINT every game's socket is closed, which ends its game as cut (played again on return).
+    uvicorn.run(app, host=args.host, port=args.port, log_level="warning", timeout_graceful_shutdown=5)
+    database.close()
+    return 0
+
+
+def analyse(args) -> int:
+    from web_apps.study.analysis import analyse as write
+
+    report = write(args.study_dir)
+    print(f"{PROG}: the report is {report} (with games.csv, answers.csv and deliveries.png beside it)")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    commands = parser.add_subparsers(dest="command", required=True)
+    checking = commands.add_parser("check", help="check a study config and show the first participants' orders")
+    checking.add_argument("config")
+    checking.set_defaults(handle=check)
+    serving = commands.add_parser("run", help="serve a study (resumes it where it stopped)")
+    serving.add_argument("config")
+    serving.add_argument("--host", default="127.0.0.1")
+    serving.add_argument("--port", type=int, default=8000)
+    serving.add_argument("--token", help="the participants' key in the link (default: the study's own, made once)")
+    serving.add_argument("--allow-host", action="append", default=[], metavar="HOST[:PORT]",
+                         help="another Host header to answer to (the study behind a proxy or a public name)")
+    serving.set_defaults(handle=run)
+    analysing = commands.add_parser("analyse", help="write a study's report from its database and records")
+    analysing.add_argument("study_dir")
+    analysing.set_defaults(handle=analyse)
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    try:
+        return args.handle(args)
+    except StudyError as failure:
+        return error(str(failure))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
