@@ -35,7 +35,7 @@ import torch
 from timing import seconds_per_call
 
 from torch_kitchen.teams import TeamPolicy
-from trainers.composer import load_config
+from trainers.config.compose import load_config
 from trainers.machine import machine_name
 from trainers.ppo.collection import make_collector
 from trainers.ppo.team import build_team, make_env, with_model_transforms

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from trainers.composer import load_config
+from trainers.config.compose import load_config
 from trainers.evaluation.figures import read_scalar
 from trainers.machine import machine_name
 from trainers.train_command import train_or_resume

@@ -25,8 +25,8 @@ records=$raw/records.jsonl
 if [[ ${SIZE:-full} == tiny ]]; then
     protocol=tiny jaxmarl=tiny ik=tiny updates=2 repeats=1 envs=4 steps=8 cook_envs=4
     strangers_args="--heldout 1 --rollouts 1"
-    main_args="num_envs=4 rollout_steps=16 max_steps=16 hidden=16 total_steps=64 distill_kitchens=4 distill_rounds=1
-        distill_epochs=1 eval_episodes=0 runtime.threads=1"
+    main_args="num_envs=4 rollout_steps=16 max_steps=16 hidden=16 total_steps=64 distill.kitchens=4 distill.rounds=1
+        distill.epochs=1 eval_episodes=0 runtime.threads=1"
 else
     protocol=protocol jaxmarl=jaxmarl ik=ik updates=3 repeats=3 envs=192 steps=300 cook_envs=4096 main_args=""
     strangers_args="--heldout 100 --rollouts 4"

@@ -5,7 +5,7 @@ our trainer (`trainers.ppo.loop.train`) and this one in the same process, on the
 and report how far our pipeline (TorchRL collector, DLPack crossings, Python loop) is from a whole run compiled
 into one XLA program. Everything, rollout and PPO epochs included, is one `jax.lax.scan` over updates.
 
-It reproduces our IPPO's semantics, read off `trainers/ppo/loop.py`, `trainers/config.py` and TorchRL's
+It reproduces our IPPO's semantics, read off `trainers/ppo/loop.py`, `trainers/config/` and TorchRL's
 `ClipPPOLoss` (with the options `make_loss` gives it), so that the ratio measures the pipeline, not the algorithm:
 
 - both agents' transitions are trained; one network for both agents (`share_params`) or one per agent (stacked
@@ -51,8 +51,8 @@ import torch
 
 from jax_env import DELIVERY_REWARD, NUM_ACTIONS, Overcooked
 from torch_kitchen.env import jax_device_for
-from trainers.composer import load_config
 from trainers.config import TrainConfig
+from trainers.config.compose import load_config
 from trainers.ppo.advantages import shaping_weight_at
 from trainers.ppo.loop import learning_rate_at
 

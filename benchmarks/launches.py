@@ -23,7 +23,7 @@ from op_audit import OpAudit
 from torch_kitchen.env import team_rows
 from torch_kitchen.onednn_linear import device_path
 from torch_kitchen.teams import TeamPolicy
-from trainers.composer import load_config
+from trainers.config.compose import load_config
 from trainers.machine import machine_name
 from trainers.ppo.advantages import compute_advantages, shaping_weight_at
 from trainers.ppo.collection import make_collector, select_kitchens

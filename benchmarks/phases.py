@@ -26,7 +26,7 @@ from torch.profiler import ProfilerActivity, profile, record_function
 
 import trainers.ppo.loop
 import trainers.ppo.team
-from trainers.composer import load_config
+from trainers.config.compose import load_config
 from trainers.machine import machine_name
 
 PHASES = ("collection", "advantages", "update")

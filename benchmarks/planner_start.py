@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from trainers.composer import load_config
 from trainers.config import DeviceConfig, EvalConfig
+from trainers.config.compose import load_config
 from trainers.evaluation import evaluate
 from trainers.machine import machine_name
 from trainers.ppo.distill import distill

@@ -20,7 +20,7 @@ import subprocess
 import sys
 import tempfile
 
-from trainers.composer import load_config
+from trainers.config.compose import load_config
 from trainers.machine import machine_name
 from trainers.ppo.loop import train_teams
 from trainers.ppo.team import team_configs

@@ -30,7 +30,7 @@ from collections.abc import Sequence
 
 import torch
 
-from trainers.composer import load_config
+from trainers.config.compose import load_config
 from trainers.machine import THREADS_HELP, machine_name
 from trainers.ppo.loop import train, train_teams
 from trainers.ppo.team import team_configs

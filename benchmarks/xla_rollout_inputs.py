@@ -29,7 +29,7 @@ def time_batches(way: str, envs: int, device: str, overrides: list[str], batches
 
     import torch_kitchen.xla_rollout as xla_rollout
     from torch_kitchen.teams import TeamPolicy
-    from trainers.composer import load_config
+    from trainers.config.compose import load_config
     from trainers.ppo.collection import make_collector
     from trainers.ppo.team import build_team, make_env, with_model_transforms
 

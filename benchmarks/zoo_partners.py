@@ -24,7 +24,7 @@ import torch
 from phases import PHASES, phase_seconds
 
 from torch_kitchen.partners.conventions import ZOO_FILE, load_zoo
-from trainers.composer import load_config
+from trainers.config.compose import load_config
 from trainers.machine import machine_name
 
 SHAPE = ["architecture=ego_mlp", "hidden=128", "share_params=true", "shaping_weight=0", "num_envs=32",

@@ -50,8 +50,8 @@ import yaml
 from jax_env import EXPANDED_LAYOUTS, PADDED_LAYOUTS
 from torch_kitchen.partners.conventions import load_zoo
 from trainers.checkpoint import LATEST, load_checkpoint
-from trainers.composer import load_config
 from trainers.config import EVAL_COLLECTORS, PLANNER_START, ConfigError, DeviceConfig, EvalConfig, TrainConfig
+from trainers.config.compose import load_config
 from trainers.evaluation import HUMAN_PROXY_RUN, SCRIPTED_CONDITION, cross_condition, evaluate
 from trainers.evaluation.claims import (
     PAPER_STEPS,
@@ -107,7 +107,7 @@ INSTRUMENTS = {
     "best_responses": ("best_response_{}", lambda stranger: [
         "algorithm=zoo_ippo", f"algorithm_config.best_response_to={stranger}"]),  # IPPO beside it in every kitchen
     "learned_strangers": ("learned_{}", lambda stranger: [
-        f"distill_teachers=[{stranger}]", "learned_stranger=true", "snapshots=3"]),  # distilled from it, then IPPO
+        f"distill.teachers=[{stranger}]", "learned_stranger=true", "snapshots=3"]),  # distilled from it, then IPPO
 }
 
 
@@ -374,11 +374,11 @@ def budget(config: TrainConfig, teams: int) -> str:
     if config.init_from == PLANNER_START:
         main_job = load_config(MAIN_JOB, [])
         same, multiple = "the same budget", f"{main_job.total_steps / config.total_steps:.2g}x this"
-        distilled = (f", after the scripted cook is distilled into it ({config.distill_rounds} DAgger rounds of "
-                     f"{config.distill_kitchens} kitchens x {config.rollout_steps} steps, {config.distill_epochs} "
+        distilled = (f", after the scripted cook is distilled into it ({config.distill.rounds} DAgger rounds of "
+                     f"{config.distill.kitchens} kitchens x {config.rollout_steps} steps, {config.distill.epochs} "
                      f"passes over the rounds' data after each; the main job, `{MAIN_JOB.relative_to(ROOT)}`, trains "
-                     f"{main_job.total_steps:,} steps after {main_job.distill_rounds} rounds of "
-                     f"{main_job.distill_epochs} passes, "
+                     f"{main_job.total_steps:,} steps after {main_job.distill.rounds} rounds of "
+                     f"{main_job.distill.epochs} passes, "
                      f"{same if main_job.total_steps == config.total_steps else multiple})")
     return (f"- **Budget:** {config.total_steps:,} env steps per team ({config.num_updates} updates of "
             f"{config.num_envs} kitchens x {config.rollout_steps} steps){distilled}, {teams} teams (seeds "

@@ -2,7 +2,7 @@
 every `make` target and variable is the Makefile's, every path of the repository they name is there, every link
 resolves (its #anchor a heading of the page), and every `key=value` given to `kitchen-train`, `kitchen-distill`,
 `kitchen-sweep`, `kitchen-eval` or `scripts/reproduce.py` names a config key (`trainers.config`), a config group's
-choice (`trainers.composer.GROUPS`) or a setting of the algorithm it trains (`trainers.algorithms`).
+choice (`trainers.config.compose.GROUPS`) or a setting of the algorithm it trains (`trainers.algorithms`).
 
 Commands are read from code: fenced blocks (a line, with its `\\` continuations, is a command line) and inline
 code spans. A failure names the page, the line and what is unknown. Nothing trains; the pages are only read.
@@ -17,8 +17,8 @@ from pathlib import Path
 
 from torch_kitchen.models import ARCHITECTURES, E3T_ARCHITECTURES
 from trainers.algorithms import ALGORITHMS
-from trainers.composer import GROUPS, compose, group_choices
 from trainers.config import EvalConfig, TrainConfig, is_config_key
+from trainers.config.compose import GROUPS, compose, group_choices
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]

@@ -38,8 +38,8 @@ REFUSED = "refused"  # a comment that begins so marks a command meant to fail
 # kitchens' collector, since a tiny one compiles longer inside XLA than it plays (that path has tests of its own:
 # tests/torch_kitchen/test_xla_rollout.py, the stranger benchmark's).
 TRAIN_SHRINK = ["num_envs=4", "rollout_steps=16", "max_steps=16", "hidden=16", "minibatches=2", "epochs=2",
-                "total_steps=64", "runtime.threads=1", "progress=false", "eval_episodes=0", "distill_kitchens=4",
-                "distill_rounds=1", "distill_epochs=1"]
+                "total_steps=64", "runtime.threads=1", "progress=false", "eval_episodes=0", "distill.kitchens=4",
+                "distill.rounds=1", "distill.epochs=1"]
 EVAL_SHRINK = ["rollouts=1", "heldout=1", "max_steps=16", "progress=false", "runtime.threads=1", "workers=1",
                "collector=kitchen"]
 SHRINK = {

@@ -15,7 +15,7 @@ TINY = [
     "progress=false",
     "eval_episodes=0",
     "levels=cramped_room_7x7",
-    "distill_kitchens=4",
+    "distill.kitchens=4",
     "init_from=",  # from scratch, whatever the config starts from
 ]
 

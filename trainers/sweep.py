@@ -43,8 +43,8 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from trainers.algorithms import algorithm_settings, check_algorithm
-from trainers.composer import CONFIG_ROOT, GROUPS, config_help, group_choices, group_overrides, load_config
 from trainers.config import ConfigError, TrainConfig, is_config_key, unknown_key
+from trainers.config.compose import CONFIG_ROOT, GROUPS, config_help, group_choices, group_overrides, load_config
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.ppo.team import team_configs
 from trainers.train_command import report_runs, train_or_resume
@@ -136,7 +136,7 @@ def command_line(arguments: list[str]):
 
 def sweep(config_path: str, overrides: Sequence[str]) -> None:
     """Runs the grid of `overrides` over the config file `config_path` through Hydra's multirun, which composes every
-    point from the file as `kitchen-train` does (`trainers.composer.compose`)."""
+    point from the file as `kitchen-train` does (`trainers.config.compose.compose`)."""
     import hydra
 
     ours, hydras = split_overrides(overrides)

@@ -20,8 +20,8 @@ from pathlib import Path
 
 from trainers.algorithms import algorithm_settings
 from trainers.checkpoint import LATEST, CheckpointError
-from trainers.composer import load_config, train_config_parser
 from trainers.config import ConfigError, TrainConfig
+from trainers.config.compose import load_config, train_config_parser
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.ppo.loop import train_teams
 from trainers.ppo.resume import RunStopped, TrainingDiverged

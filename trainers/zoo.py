@@ -56,8 +56,8 @@ from torch_kitchen.partners.conventions import (
 )
 from torch_kitchen.partners.scripted_cook import SCRIPTED_COOK
 from trainers.checkpoint import LATEST, model_identity, save_checkpoint
-from trainers.composer import save_config
 from trainers.config import ConfigError, TrainConfig
+from trainers.config.compose import save_config
 from trainers.evaluation.figures import draw_clash_heatmap
 from trainers.evaluation.intervals import interval, mean, verdict
 from trainers.evaluation.pairs import SP, XP, Matchup, evaluation_grids, is_heldout, play

@@ -16,7 +16,7 @@ from tiny import TINY
 
 from torch_kitchen.keys import ADVANTAGE, LOG_PROB, VALUE, VALUE_TARGET
 from torch_kitchen.models import make_actor_critic
-from trainers.composer import load_config
+from trainers.config.compose import load_config
 from trainers.ppo.advantages import compute_advantages, shaping_weight_at
 from trainers.ppo.step import total_loss
 from trainers.ppo.team import make_algorithm, make_loss

@@ -17,7 +17,7 @@ def test_both_learners_train_the_same_seeds_and_every_snapshot_is_evaluated(tmp_
     out = tmp_path / "table.md"
     main(["--budget", "128", "--every", "1", "--seeds", "0", "1", "--heldout", "1", "--rollouts", "1",
           "--runs", str(tmp_path / "runs"), "--out", str(out), "--figure", str(tmp_path / "curves.png"), *TINY,
-          "distill_rounds=2", "distill_epochs=1"])
+          "distill.rounds=2", "distill.epochs=1"])
     rows = [line.split("|")[1:-1] for line in out.read_text().splitlines() if line.startswith("| ")]
     learners_steps = [(cells[0].strip(), cells[1].strip()) for cells in rows[1:]]
     assert learners_steps == [("scratch", "64"), ("scratch", "128"), ("planner", "0"), ("planner", "64"),

@@ -8,7 +8,7 @@ from scripted_cook import save_scripted_team
 from tiny import script_module
 
 from torch_kitchen.partners.conventions import STRANGER, Convention, Zoo, ZooMember, generator_settings, save_zoo
-from trainers.composer import load_config
+from trainers.config.compose import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 reproduce = script_module("reproduce")
@@ -208,7 +208,7 @@ def test_a_strangers_section_trains_its_instruments_per_stranger_and_never_evalu
         "hidden=8", "lr=0.1", "algorithm=zoo_ippo", "algorithm_config.best_response_to=loader", f"zoo={zoo}",
         "runtime.teams=1"]}
     assert protocol["conditions"]["learned_server"]["overrides"] == [
-        "distill_teachers=[server]", "learned_stranger=true", "snapshots=3", f"zoo={zoo}", "runtime.teams=1"]
+        "distill.teachers=[server]", "learned_stranger=true", "snapshots=3", f"zoo={zoo}", "runtime.teams=1"]
     # Trained with the section (one team each: a condition's own count comes after the protocol's), never
     # evaluated; a learned stranger trained by another section ("other") is reused where it was, never trained here.
     assert reproduce.named_conditions(protocol, ["strangers"], None) == [

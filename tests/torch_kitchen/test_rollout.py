@@ -7,7 +7,7 @@ from torchrl.collectors import Collector
 from torchrl.envs.utils import ExplorationType
 
 from torch_kitchen.rollout import KitchenCollector
-from trainers.composer import load_config
+from trainers.config.compose import load_config
 from trainers.ppo.runtime import team_policy
 from trainers.ppo.team import algorithm_transforms, build_team, make_env, team_configs, with_model_transforms
 

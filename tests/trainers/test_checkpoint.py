@@ -21,7 +21,7 @@ from trainers.checkpoint import (
     restore_rng_states,
     save_checkpoint,
 )
-from trainers.composer import load_config, save_config
+from trainers.config.compose import load_config, save_config
 
 IDENTITY = model_identity("mlp", (7, 7, 26), 16, True)
 REFUSED = "holds objects other than tensors and plain values .*: not an Infinite Kitchen checkpoint \\(refused"

@@ -7,8 +7,8 @@ import yaml
 from tiny import script_module
 
 from trainers.algorithms import check_algorithm
-from trainers.composer import compose, load_config, sectioned
 from trainers.config import PLANNER_START, ConfigError, EvalConfig, RuntimeConfig, TrainConfig
+from trainers.config.compose import compose, load_config, sectioned
 from trainers.ppo.runtime import minibatch_shards
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
@@ -92,7 +92,7 @@ def test_every_protocol_names_configs_that_load_with_its_overrides():
             train, own = reproduce.condition_entry(entry)
             config = load_config(CONFIG_DIR.parent / train, [*overrides, f"runtime.teams={protocol['teams']}", *own])
             assert config.name == name or own, (path, name)  # a shipped config under its own name, or one varied
-            assert config.init_from != PLANNER_START or config.distill_rounds > 0, (path, name)
+            assert config.init_from != PLANNER_START or config.distill.rounds > 0, (path, name)
             budgets[name] = config.total_steps
         for section in reproduce.protocol_sections(protocol).values():  # one budget per section, which states it
             assert len({budgets[name] for name in section["conditions"]}) == 1, (path, section["title"])
@@ -232,6 +232,20 @@ def test_a_run_saved_before_runtime_and_algorithm_config_had_sections_loads_into
     ippo = load_config(base=recorded["configs/ippo/mlp_ik.yaml"])  # E3T's keys, which IPPO ignored, are dropped
     assert ippo.algorithm_config == {} and check_algorithm(ippo).algorithm_config == {}
     assert ippo == load_config(CONFIG_DIR / "ippo" / "mlp_ik.yaml")
+
+
+def test_a_run_saved_before_distillation_had_a_section_loads_into_it_and_resumes_key_by_key(tmp_path):
+    recorded = json.loads((Path(__file__).parent / "data" / "config_values.json").read_text())
+    flat = {**recorded["configs/main.yaml"], "distill_epochs": 16, "distill_teacher_mix": "round"}
+    assert flat["distill_rounds"] == 6  # the recorded main job: distillation's keys at the top, as runs saved them
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(flat))
+    for config in (load_config(tmp_path / "config.yaml"), load_config(base=flat)):
+        assert (config.distill.rounds, config.distill.epochs, config.distill.teacher_mix) == (6, 16, "round")
+        assert not any(key.startswith("distill_") for key in config.to_dict())
+    # A checkpoint's config from before the section is compared key by key with today's: only what differs.
+    today = load_config(CONFIG_DIR / "main.yaml", ["distill.epochs=8", "lr=0.1"])
+    changed = today.changes_to_learning({**flat, "runtime": None})
+    assert changed == {"distill.epochs": (16, 8), "distill.teacher_mix": ("round", "seed"), "lr": (flat["lr"], 0.1)}
 
 
 def test_a_group_the_file_does_not_choose_is_added_and_the_runtime_group_fills_its_section(tmp_path):

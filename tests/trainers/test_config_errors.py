@@ -12,15 +12,15 @@ from tiny import TINY
 from jax_env import get_layout, save_layout
 from trainers.algorithms import algorithm_settings, check_algorithm
 from trainers.algorithms.e3t import E3TSettings
-from trainers.composer import config_help, load_config, save_config
 from trainers.config import ConfigError, DeviceConfig, EvalConfig, RuntimeConfig, TrainConfig, check_device
+from trainers.config.compose import config_help, load_config, save_config
 
 # A 5x5 kitchen whose only pot is walled in: no team can ever cook. The same kitchen with the pot in reach.
 WALLED_POT = "WWWWW\nOA  W\nB  AW\nWWXWW\nWPWWW\n"
 OPEN_POT = "WWPWW\nOA  W\nB  AW\nWWXWW\nWWWWW\n"
 RUNTIME_DEVICES = r"use runtime.device=cpu, runtime.device=cuda or runtime.device=cuda:<index>"
 COUNTS = ("max_steps num_envs rollout_steps total_steps hidden epochs minibatches checkpoint_every runtime.threads "
-          "runtime.teams distill_rounds distill_kitchens distill_epochs distill_minibatch").split()
+          "runtime.teams distill.rounds distill.kitchens distill.epochs distill.minibatch").split()
 NON_NEGATIVE = ("eval_episodes shaping_anneal_steps entropy_coef value_coef shaping_weight "
                 "runtime.minibatch_shards runtime.parallel_teams").split()
 
@@ -48,6 +48,8 @@ NON_NEGATIVE = ("eval_episodes shaping_anneal_steps entropy_coef value_coef shap
         ("runtime.device=meta", rf"^runtime.device=meta is not supported: {RUNTIME_DEVICES}$"),
         ("runtime.device=cpu:1", rf"^runtime.device=cpu:1 is not supported: {RUNTIME_DEVICES}$"),
         ("threads=2", r"^unknown config key 'threads' in the command line \(did you mean 'runtime.threads'\?\)"),
+        ("distill_rounds=2",
+         r"^unknown config key 'distill_rounds' in the command line \(did you mean 'distill.rounds'\?\)"),
         ("partner_epsilon=0.5", r"^unknown config key 'partner_epsilon' in the command line"),
         ("runtime.thread=2", r"^unknown config key 'runtime.thread' .*\(did you mean 'runtime.threads'\?\)"),
         ("runtime.threads=x", r"^runtime.threads in the command line must be int, got 'x'$"),
@@ -60,7 +62,7 @@ NON_NEGATIVE = ("eval_episodes shaping_anneal_steps entropy_coef value_coef shap
         ("name=''", r"^name='' must be a relative path inside run_dir"),
         ("levels=[infinite, cramped_room_7x7]", r"^levels=infinite stands alone: it cannot be one entry of a list"),
         ("levels=[]", r"^levels is empty"),
-        ("distill_move_order=NSE", r"^distill_move_order must be a permutation of NSEW, got 'NSE'$"),
+        ("distill.move_order=NSE", r"^distill.move_order must be a permutation of NSEW, got 'NSE'$"),
         ("runtime.minibatch_shards=3", r"^runtime.minibatch_shards \(3\) must divide the 8 kitchens of a minibatch"),
     ],
 )
@@ -181,11 +183,11 @@ def test_bad_eval_overrides_are_refused(override, message):
 
 
 def test_compiling_on_a_cpu_is_refused_where_no_cpp_compiler_is_on_the_path(monkeypatch):
-    import trainers.config
+    import trainers.config.schema
 
     for key in ("compile_update", "compile_policy"):
         load_config(None, [f"runtime.{key}=true"])  # this machine has one
-    monkeypatch.setattr(trainers.config.shutil, "which", lambda name: None)
+    monkeypatch.setattr(trainers.config.schema.shutil, "which", lambda name: None)
     for key in ("compile_update", "compile_policy"):
         with pytest.raises(ConfigError, match=rf"^runtime\.{key}=true compiles CPU kernels with a C\+\+ compiler, "
                                               rf"and none of .+ is on the PATH: .* or set runtime\.{key}=false$"):

@@ -10,7 +10,7 @@ from device_audit import DeviceAudit, per_step
 from tiny import TINY
 
 from torch_kitchen.keys import OBSERVATION
-from trainers.composer import load_config
+from trainers.config.compose import load_config
 from trainers.ppo.distill import distill
 from trainers.ppo.loop import train_teams
 from trainers.ppo.team import team_configs
@@ -82,8 +82,8 @@ def test_each_loops_host_reads_and_device_less_tensors_per_step_are_the_stated_o
 
 
 def audited_distillation(tmp_path, steps: int) -> DeviceAudit:
-    config = load_config("configs/main.yaml", [*TINY, f"rollout_steps={steps}", "distill_rounds=1",
-                                               "distill_epochs=1", f"run_dir={tmp_path / str(steps)}",
+    config = load_config("configs/main.yaml", [*TINY, f"rollout_steps={steps}", "distill.rounds=1",
+                                               "distill.epochs=1", f"run_dir={tmp_path / str(steps)}",
                                                "loggers=[csv]"])
     with DeviceAudit() as audit:
         distill(config)

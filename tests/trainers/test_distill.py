@@ -14,7 +14,7 @@ from trainers.ppo.distill import DATA, TEACHER_PROBS, distill, fit, main
 from trainers.ppo.loop import train
 from trainers.train_command import main as train_main
 
-ROUNDS = ["distill_rounds=3", "distill_epochs=1"]
+ROUNDS = ["distill.rounds=3", "distill.epochs=1"]
 
 
 def test_dagger_labels_every_visited_state_with_the_cooks_distribution_and_keeps_every_round(tmp_path):
@@ -34,7 +34,7 @@ def test_dagger_labels_every_visited_state_with_the_cooks_distribution_and_keeps
     assert (state["update"], state["env_steps"]) == (3, 192)
 
     # Each pass fits the actor on every round's kitchens and the critic on the last round's batch, once.
-    config = tiny_config(tmp_path, "distill_epochs=2", "distill_minibatch=1")
+    config = tiny_config(tmp_path, "distill.epochs=2", "distill.minibatch=1")
     actor_critic = make_actor_critic(config.architecture, (7, 7, 26), config.hidden, config.share_params)
     calls = {"actor": 0, "critic": 0}
     for name in calls:
@@ -51,9 +51,9 @@ def test_a_distillation_resumed_after_a_round_ends_as_one_run_straight_through(t
     straight = distill(tiny_config(tmp_path / "straight", *ROUNDS))
     stopped = distill(tiny_config(tmp_path / "stopped", *ROUNDS), on_round=lambda round_, metrics: round_ == 2)
     assert load_checkpoint(stopped)["update"] == 2
-    assert main(["--resume", str(stopped), "distill_lr=0.1"]) == 2  # another lesson: refused, nothing changed
+    assert main(["--resume", str(stopped), "distill.lr=0.1"]) == 2  # another lesson: refused, nothing changed
     error = capsys.readouterr().err
-    assert error.count("\n") == 1 and "was trained with distill_lr=0.003, not distill_lr=0.1" in error
+    assert error.count("\n") == 1 and "was trained with distill.lr=0.003, not distill.lr=0.1" in error
     assert load_checkpoint(stopped)["update"] == 2
     assert main(["--resume", str(stopped)]) == 0
     for part in ("actor", "critic", "optimizer", "env"):
@@ -97,7 +97,7 @@ def test_any_architecture_distils_and_its_team_plays_as_a_trained_one(tmp_path, 
     """Recurrent models fit whole sequences; the checkpoint is a trained team's (`kitchen-eval`, `kitchen-play`)."""
     from trainers.evaluation import load_team
 
-    run = distill(tiny_config(tmp_path, f"architecture={architecture}", "distill_rounds=2", "distill_epochs=1"))
+    run = distill(tiny_config(tmp_path, f"architecture={architecture}", "distill.rounds=2", "distill.epochs=1"))
     team = load_team(run)
     assert team.config.architecture == architecture
     assert len(read_metrics(run)["distill/cross_entropy"]) == 2

@@ -32,8 +32,8 @@ from trainers.algorithms import ALGORITHMS, E3T, IPPO, register_algorithm
 from trainers.algorithms.base import standardize_advantage
 from trainers.algorithms.e3t import EGO
 from trainers.checkpoint import CheckpointError, load_checkpoint
-from trainers.composer import load_config
 from trainers.config import ConfigError, TrainConfig
+from trainers.config.compose import load_config
 from trainers.evaluation import load_team, report_trained_team
 from trainers.evaluation import main as eval_main
 from trainers.evaluation.figures import read_scalar
@@ -67,7 +67,7 @@ def test_the_entry_point_trains_checkpoints_logs_and_evaluates(tmp_path, capsys)
     generated kitchens, the final table on a held-out level and the classics."""
     overrides = [o for o in TINY if not o.startswith(("eval_episodes", "levels", "init_from"))]
     argv = [MAIN_CONFIG, *overrides, f"run_dir={tmp_path}", "total_steps=128", "eval_episodes=2", "eval_heldout=1",
-            "distill_rounds=2", "distill_epochs=1"]
+            "distill.rounds=2", "distill.epochs=1"]
     assert main(argv) == 0
     run = tmp_path / "main" / "seed0"
     config = load_config(run / "config.yaml")
@@ -176,9 +176,9 @@ def test_bad_runs_and_checkpoints_get_a_clear_message(tmp_path, capsys):
 
     # A resume that would change what the run learns is refused, its record kept; one that runs longer is not.
     saved = (run / "config.yaml").read_text()
-    assert main(["--resume", str(run), "lr=0.1", "distill_epochs=16"]) == 2
+    assert main(["--resume", str(run), "lr=0.1", "distill.epochs=16"]) == 2
     err = capsys.readouterr().err
-    assert f"{run} was trained with lr={config.lr!r}, distill_epochs=8, not lr=0.1, distill_epochs=16" in err
+    assert f"{run} was trained with lr={config.lr!r}, distill.epochs=8, not lr=0.1, distill.epochs=16" in err
     assert err.count("\n") == 1 and (run / "config.yaml").read_text() == saved
 
     assert main([MAIN_CONFIG, "lrr=0.1"]) == 2

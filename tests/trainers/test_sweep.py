@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from trainers.composer import compose, group_choices, load_config
+from trainers.config.compose import compose, group_choices, load_config
 from trainers.sweep import as_hydra_overrides, main
 
 ROOT = Path(__file__).resolve().parents[2]

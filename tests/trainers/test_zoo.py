@@ -127,12 +127,12 @@ def test_the_shipped_zoo_holds_diverse_cooks_and_no_shipped_config_trains_with_a
 
 
 @pytest.mark.parametrize("overrides, words", [
-    (["distill_teachers=[stranger]"], "'stranger' is a held-out stranger of the zoo"),
-    (["distill_teachers=[nobody]"], "the zoo has no convention 'nobody'"),
-    (["learned_stranger=true"], "learned_stranger distils from held-out strangers: name them in distill_teachers"),
-    (["learned_stranger=true", "distill_teachers=[loader]"], "'loader' is a training convention of the zoo"),
+    (["distill.teachers=[stranger]"], "'stranger' is a held-out stranger of the zoo"),
+    (["distill.teachers=[nobody]"], "the zoo has no convention 'nobody'"),
+    (["learned_stranger=true"], "learned_stranger distils from held-out strangers: name them in distill.teachers"),
+    (["learned_stranger=true", "distill.teachers=[loader]"], "'loader' is a training convention of the zoo"),
     (["algorithm=zoo_ippo", "algorithm_config.zoo_conventions=[stranger]"], "'stranger' is a held-out stranger"),
-    (["kitchen_size=9", "distill_teachers=[loader]"], "drawn for 7x7 kitchens, not 9x9"),
+    (["kitchen_size=9", "distill.teachers=[loader]"], "drawn for 7x7 kitchens, not 9x9"),
     (["algorithm=zoo_ippo", "algorithm_config.best_response_to=loader"], "'loader' is a training convention"),
     (["algorithm=zoo_ippo", "algorithm_config.best_response_to=stranger", "algorithm_config.zoo_conventions=[loader]"],
      "best_response_to trains beside one stranger alone"),
@@ -223,8 +223,8 @@ def test_zoo_ippo_learns_beside_zoo_cooks_and_resumes_bit_for_bit(tmp_path, zoo_
 
 def test_distillation_from_several_teachers_labels_each_round_with_its_teacher_and_resumes_bit_for_bit(
         tmp_path, zoo_file):
-    common = ("distill_rounds=3", "distill_epochs=1", f"zoo={zoo_file}", "distill_teacher_mix=round",
-              "distill_teachers=[west_first,loader,onions]", "levels=infinite")
+    common = ("distill.rounds=3", "distill.epochs=1", f"zoo={zoo_file}", "distill.teacher_mix=round",
+              "distill.teachers=[west_first,loader,onions]", "levels=infinite")
     straight_config = tiny_config(tmp_path / "straight", *common)
     straight = distill(straight_config)
     teachers = [straight_config.distill_teacher(r).name for r in range(3)]
@@ -239,7 +239,7 @@ def test_distillation_from_several_teachers_labels_each_round_with_its_teacher_a
     for part in ("actor", "critic", "optimizer", "env"):
         torch.testing.assert_close(load_checkpoint(stopped)[part], load_checkpoint(straight)[part], rtol=0, atol=0)
     assert load_checkpoint(straight)["met"] == fingerprints(straight_config.distill_teacher(r) for r in range(3))
-    per_seed = [tiny_config(tmp_path, f"zoo={zoo_file}", "distill_teachers=[west_first,loader]", f"seed={seed}")
+    per_seed = [tiny_config(tmp_path, f"zoo={zoo_file}", "distill.teachers=[west_first,loader]", f"seed={seed}")
                 for seed in range(3)]
     assert [config.distill_teacher(2).name for config in per_seed] == ["west_first", "loader", "west_first"]
 
@@ -270,7 +270,7 @@ def test_a_learned_stranger_distils_a_stranger_keeps_fcp_snapshots_and_sits_only
                                                                                               capsys):
     # Distilled from a held-out stranger, then IPPO, its checkpoint kept at a third, two thirds and the end.
     stranger = train(tiny_config(tmp_path / "learned", f"zoo={zoo_file}", "init_from=scripted_cook",
-                                 "distill_rounds=1", "distill_epochs=1", "distill_teachers=[stranger]",
+                                 "distill.rounds=1", "distill.epochs=1", "distill.teachers=[stranger]",
                                  "learned_stranger=true", "snapshots=3", "name=learned", updates=4))
     snapshots = sorted((stranger / "checkpoints").glob("snapshot_*.pt"))
     assert [load_checkpoint(path)["update"] for path in snapshots] == [2, 3, 4]  # 4 updates: ceil(4k/3)

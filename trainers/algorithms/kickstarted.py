@@ -6,7 +6,7 @@ policy's at every transition of the minibatch, the cook's read off the batch's o
 self-play visits is labelled, so the team keeps learning the cook's way of playing on kitchens where imitation
 generalised least, while the reward mends what imitation gets wrong. The weight falls linearly to 0 over
 `teacher_anneal_steps` env steps of this run (0: constant), after which the run is plain IPPO. The cook is the one
-distillation learns from first (`distill_move_order`, or the seed's of `distill_teachers`).
+distillation learns from first (`distill.move_order`, or the seed's of `distill.teachers`).
 """
 
 from __future__ import annotations

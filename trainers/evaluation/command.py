@@ -16,8 +16,8 @@ from jax_env.generator import SIZES as GENERATOR_SIZES
 from jax_env.layouts import padded_layouts
 from torch_kitchen.partners.conventions import ConventionError, load_zoo
 from trainers.checkpoint import CheckpointError
-from trainers.composer import config_help, load_config, save_config
 from trainers.config import ConfigError, DeviceConfig, EvalConfig
+from trainers.config.compose import config_help, load_config, save_config
 from trainers.evaluation.figures import draw_figures, draw_heatmap, draw_learning_curve, draw_stranger_heatmap
 from trainers.evaluation.gifs import parse_gif_request, record_gif
 from trainers.evaluation.pairs import evaluation_grids, make_matchups, play

@@ -16,8 +16,8 @@ from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.partners.conventions import Convention, fingerprints
 from torch_kitchen.partners.scripted_cook import SCRIPTED_COOK, scripted_actor_critic
 from trainers.checkpoint import CheckpointError, load_checkpoint
-from trainers.composer import load_config
 from trainers.config import ConfigError, RuntimeConfig, TrainConfig
+from trainers.config.compose import load_config
 
 HUMAN_PROXY_RUN = "human_proxy_{grid}/seed0"  # a test grid's human proxy in the `human_proxies` folder
 STRANGERS_CONDITION = "held-out strangers"  # the condition of a zoo's strangers (`trainers.zoo`)

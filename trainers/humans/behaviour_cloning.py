@@ -215,7 +215,7 @@ def fine_tune(start: Path, layout: str, settings: ProxySettings, coef: float, ga
     `layout`, in games of `game_steps` steps, for `settings.fine_tune_steps` steps at Adam's rate
     `settings.fine_tune_lr`, kept near the start by the KL weight `coef`. Returns the run
     (`run_dir/anchor<coef>/seed<seed>`)."""
-    from trainers.composer import load_config
+    from trainers.config.compose import load_config
     from trainers.ppo.loop import train
 
     config = load_config(None, [

@@ -4,12 +4,12 @@
     kitchen-train configs/ippo/ego_mlp_ik.yaml init_from=runs/distill_ego_mlp_ik/seed{seed}
     kitchen-train configs/ippo/ego_mlp_ik.yaml init_from=scripted_cook    # both: distils into RUN/distilled first
 
-Round r rolls out the learner in `distill_kitchens` kitchens for `rollout_steps` steps, both seats, where each
-seat takes the scripted cook's action instead of its own with probability `distill_teacher_decay ** r` (round 0:
+Round r rolls out the learner in `distill.kitchens` kitchens for `rollout_steps` steps, both seats, where each
+seat takes the scripted cook's action instead of its own with probability `distill.teacher_decay ** r` (round 0:
 the cook alone, behaviour cloning). Every visited state is labelled with the cook's action distribution and kept: the
 data of every round, none dropped. Then the actor is fitted to all the labels by cross-entropy
-(`distill_epochs` passes, each minibatch under a random mirror image or quarter turn of its kitchens with
-`distill_symmetries`), and the critic to the value targets of the round's own batch (GAE, as PPO's), so
+(`distill.epochs` passes, each minibatch under a random mirror image or quarter turn of its kitchens with
+`distill.symmetries`), and the critic to the value targets of the round's own batch (GAE, as PPO's), so
 that self-play starts with values for the policy it starts from.
 
 Logged (TensorBoard, CSV), checkpointed after every round and resumed (`--resume RUN_DIR`) as training is. A
@@ -49,8 +49,8 @@ from trainers.checkpoint import (
     restore_rng_states,
     save_checkpoint,
 )
-from trainers.composer import load_config, save_config, train_config_parser
 from trainers.config import RESUMABLE, ConfigError, TrainConfig
+from trainers.config.compose import load_config, save_config, train_config_parser
 from trainers.loggers import make_loggers
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.ppo.advantages import compute_advantages, shaping_weight_at
@@ -86,12 +86,12 @@ class GuidedPolicy(TensorDictModuleBase):
 
 def teacher_share(config: TrainConfig, round_: int) -> float:
     """The probability that a seat acts as the teacher in round `round_` (0-based): 1 in the first."""
-    return config.distill_teacher_decay ** round_
+    return config.distill.teacher_decay ** round_
 
 
 def learning_rate(config: TrainConfig, round_: int) -> float:
-    """The fitting rate of round `round_`: `distill_lr`, annealed linearly over the rounds."""
-    return config.distill_lr * (1.0 - round_ / config.distill_rounds)
+    """The fitting rate of round `round_`: `distill.lr`, annealed linearly over the rounds."""
+    return config.distill.lr * (1.0 - round_ / config.distill.rounds)
 
 
 def cross_entropy(logits: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
@@ -119,19 +119,19 @@ def minibatches(data: TensorDictBase, size: int, device: str | torch.device) -> 
 
 def fit(actor_critic: ActorCritic, optimizer: torch.optim.Optimizer, data: TensorDictBase,
         batch: TensorDictBase, config: TrainConfig) -> dict[str, float]:
-    """`distill_epochs` passes of the actor's cross-entropy to the teacher over all the `data` [K, T], each with
-    one pass of the critic's squared error to the value targets of this round's `batch` [distill_kitchens, T]
+    """`distill.epochs` passes of the actor's cross-entropy to the teacher over all the `data` [K, T], each with
+    one pass of the critic's squared error to the value targets of this round's `batch` [distill.kitchens, T]
     (in its first steps); returns their means and the actor's agreement with the teacher's most likely action."""
-    size, device = config.distill_minibatch, config.runtime.device
+    size, device = config.distill.minibatch, config.runtime.device
     parameters = [parameter for group in optimizer.param_groups for parameter in group["params"]]
     imitations, value_errors = [], []  # on the device, read once at the end
     with set_recurrent_mode(True):
-        for _ in range(config.distill_epochs):
+        for _ in range(config.distill.epochs):
             # One pass over the round's batch per pass over all the data: the critic learns the current policy's
             # values, and the later rounds' fitting does not revisit one batch for every earlier round's data.
             pairs = itertools.zip_longest(minibatches(data, size, device), minibatches(batch, size, device))
             for own, current in pairs:
-                if config.distill_symmetries:
+                if config.distill.symmetries:
                     own = under_random_symmetry(own)
                 logits = actor_critic.actor(own.clone(False)).get(LOGITS)
                 probs = own.get(TEACHER_PROBS)
@@ -174,7 +174,7 @@ def load_rounds(run: Path, rounds: int) -> list[TensorDictBase]:
 
 def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
             on_round: Callable[[int, dict], bool | None] | None = None) -> Path:
-    """Distils the scripted cook into `config.architecture` over `config.distill_rounds` rounds (see the module
+    """Distils the scripted cook into `config.architecture` over `config.distill.rounds` rounds (see the module
     docstring); returns the run directory. `resume`: continue the run from its last round. `on_round(round,
     metrics)`: called after every round's checkpoint; returning True stops the run there. Raises ConfigError or
     CheckpointError before any work."""
@@ -192,7 +192,7 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
         raise ConfigError(f"{run} already holds a run; resume it with `kitchen-distill --resume {run}`, or choose "
                           "another name=, seed= or run_dir=")
 
-    kitchen = make_env(config, num_envs=config.distill_kitchens)
+    kitchen = make_env(config, num_envs=config.distill.kitchens)
     obs_shape = kitchen.obs_shape
     actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
     place_networks(config, actor_critic, own_kernels=True)
@@ -208,7 +208,7 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
     if resume:
         state = load_checkpoint(checkpoint, map_location=config.runtime.device)
         check_identity(state, identity)
-        check_same_learning(run, config, state["config"], (*RESUMABLE, "distill_rounds"))  # more rounds go on
+        check_same_learning(run, config, state["config"], (*RESUMABLE, "distill.rounds"))  # more rounds go on
         for name, part in parts.items():
             part.load_state_dict(state[name])
         done_rounds, env_steps, rng = state["update"], state["env_steps"], state["rng"]
@@ -218,19 +218,19 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
     run.mkdir(parents=True, exist_ok=True)
     save_config(config, run / "config.yaml")
     loggers = make_loggers(config, run, purge_step=env_steps + 1 if resume else None)
-    if done_rounds >= config.distill_rounds:
-        print(f"{run}: already distilled for {done_rounds} rounds; raise distill_rounds to go on")
+    if done_rounds >= config.distill.rounds:
+        print(f"{run}: already distilled for {done_rounds} rounds; raise distill.rounds to go on")
         return run
 
     collector = make_collector(with_model_transforms(kitchen, actor_critic), policy,
-                               config.distill_kitchens * config.rollout_steps, kind=config.runtime.collector)
+                               config.distill.kitchens * config.rollout_steps, kind=config.runtime.collector)
     if rng is not None:  # after the collector, whose construction runs the policy once
         restore_rng_states(rng)
-    bar = tqdm(total=config.distill_rounds, initial=done_rounds, unit="round", disable=not config.progress,
+    bar = tqdm(total=config.distill.rounds, initial=done_rounds, unit="round", disable=not config.progress,
                dynamic_ncols=True)
     try:
         batches = iter(collector)
-        for round_ in range(done_rounds, config.distill_rounds):
+        for round_ in range(done_rounds, config.distill.rounds):
             policy.teacher = ScriptedCook(config.distill_teacher(round_)).to(config.runtime.device)
             policy.teacher_share = teacher_share(config, round_)
             batch = next(batches)

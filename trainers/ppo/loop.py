@@ -32,8 +32,8 @@ from torch_kitchen.env import team_rows
 from torch_kitchen.keys import REWARD, SHAPED_REWARD, VALUE, VALUE_TARGET
 from torch_kitchen.models import ActorCritic
 from trainers.checkpoint import LATEST, check_identity, load_checkpoint, restore_rng_states
-from trainers.composer import save_config
 from trainers.config import PLANNER_START, ConfigError, TrainConfig
+from trainers.config.compose import save_config
 from trainers.loggers import hyperparameters, make_loggers
 from trainers.ppo.advantages import compute_advantages, shaping_weight_at
 from trainers.ppo.collection import make_collector

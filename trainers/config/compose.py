@@ -6,9 +6,9 @@ config groups of configs/: `algorithm`, `architecture`, `regime`, `runtime`, cho
 file's own values; a group chosen on the command line (`regime=sk_coord_ring`) takes the file's choice's place, and
 `kitchen-sweep` sweeps the same groups over the same files. The layers (the schema's defaults, a saved run's values,
 the composed file, the command line's keys) are merged and converted by OmegaConf (`trainers.config.merge_layer`);
-Hydra's own composition errors become one line naming the file. Configs and saved runs from before the `runtime`
-and `algorithm_config` sections are read into them (`sectioned`). `config_help` lists every key and group for
-`--help`.
+Hydra's own composition errors become one line naming the file. Configs and saved runs from before the `runtime`,
+`distill` and `algorithm_config` sections are read into them (`sectioned`). `config_help` lists every key and group
+for `--help`.
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ from trainers.config import (
     TrainConfig,
     build_config,
     config_keys,
+    distill_sectioned,
     is_config_key,
     merge_layer,
     structured_schema,
@@ -94,18 +95,22 @@ def _yaml_scalar(value) -> str:
     return yaml.safe_dump(value, default_flow_style=True, width=math.inf).removesuffix("\n...\n").strip()
 
 
-# Keys that had no section before `runtime` and `algorithm_config` did, as saved runs and older files hold them.
+# Keys that had no section before `runtime` and `algorithm_config` did, as saved runs and older files hold them
+# (distillation's: `trainers.config.sections.FLAT_DISTILL_KEYS`).
 RUN_OPTIONS = {schema: tuple(field.name for field in dataclasses.fields(section))
                for schema, section in ((TrainConfig, RuntimeConfig), (EvalConfig, DeviceConfig))}
 E3T_SETTINGS = ("partner_epsilon", "partner_policy", "partner_copy_rate", "predictor_coef")
 
 
 def sectioned(values: dict, schema: type = TrainConfig) -> dict:
-    """A config's values written before the run options and the algorithm's settings had sections, put in them: the
-    run options under `runtime` (an evaluation's device and threads too), E3T's under `algorithm_config` where the
-    values train E3T (others ignored them, and a config saved by any run held them all)."""
+    """A config's values written before the run options, distillation and the algorithm's settings had sections, put
+    in them: the run options under `runtime` (an evaluation's device and threads too), distillation's keys under
+    `distill`, E3T's under `algorithm_config` where the values train E3T (others ignored them, and a config saved by
+    any run held them all)."""
     run_options = RUN_OPTIONS.get(schema, ())
     settings_keys = E3T_SETTINGS if schema is TrainConfig else ()
+    if schema is TrainConfig:
+        values = distill_sectioned(values)
     if not any(key in values for key in (*run_options, *settings_keys)):
         return values
     values = dict(values)
@@ -118,7 +123,7 @@ def sectioned(values: dict, schema: type = TrainConfig) -> dict:
     return values
 
 
-CONFIG_ROOT = Path(__file__).resolve().parent.parent / "configs"  # the shipped configs, and the config groups
+CONFIG_ROOT = Path(__file__).resolve().parents[2] / "configs"  # the shipped configs, and the config groups
 # Config groups (configs/<group>/<choice>.yaml), composed by Hydra: a file's `defaults:` list chooses them
 # (`- /regime: ik`), and the command line replaces or adds a choice (`regime=sk_coord_ring`).
 GROUPS = {
