@@ -138,6 +138,31 @@ def cook_logits(observation: jax.Array, convention: CookConvention, tables: jax.
     conv = per_row(convention, n)
     obs = observation.astype(jnp.float32)
     present = obs > 0
+    me, partner = present[..., Channel.SELF], present[..., Channel.PARTNER]
+    walkable = walkable_floor(observation)
+
+    def distances(cells):  # [N, ..., H, W] of one cell each -> steps from it to every cell [N, ..., H * W]
+        if tables is not None:
+            return _rows(tables, plan, cells)
+        return distance_from(cells, walkable.reshape(n, *[1] * (cells.ndim - 3), *walkable.shape[1:])).reshape(
+            *cells.shape[:-2], -1)
+
+    from_partner = distances(partner).reshape(partner.shape)  # [N, H, W]
+    targets, partner_empty = _goal_tiles(present, obs, from_partner)
+    steps, detours, ends = _goal_steps(me, partner, walkable, targets, distances, detour_rows)
+    goal_weights, reachable = _goal_weights(conv, steps, ends, partner_empty, from_partner.reshape(n, -1))
+    chances = _move_chances(conv, obs, me, partner, targets, steps, detours, reachable)
+    probs = (goal_weights[..., None] * chances).sum(1)
+    probs = jnp.where(goal_weights.sum(1, keepdims=True) > 0, probs, 1.0 / NUM_ACTIONS)
+    noise = conv.noise[:, None]
+    probs = jnp.where(noise > 0, (1 - noise) * probs + noise / NUM_ACTIONS, probs)
+    safe = jnp.where(probs > 0, probs, 1.0)
+    return jnp.where(probs > 0, jnp.log(safe) - jnp.log(probs.max(-1, keepdims=True)), -1e9)
+
+
+def _goal_tiles(present: jax.Array, obs: jax.Array, from_partner: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The tiles each goal of the goal list heads for, given what the cook holds and what the kitchen wants
+    ([N, K, H, W]; none where the goal does not apply), and whether the partner's hands are empty [N]."""
 
     def channel(c):
         return present[..., c]
@@ -151,18 +176,8 @@ def cook_logits(observation: jax.Array, convention: CookConvention, tables: jax.
     soup_on_counter = channel(Channel.SOUP) & ~pot & loose
     plates = channel(Channel.PLATE_PILE) | (channel(Channel.PLATE) & loose)
     onions = channel(Channel.ONION_PILE) | (channel(Channel.ONION) & loose)
-    counter = channel(Channel.EMPTY_COUNTER)
-    walkable = walkable_floor(observation)
-
-    def distances(cells):  # [N, ..., H, W] of one cell each -> steps from it to every cell [N, ..., H * W]
-        if tables is not None:
-            return _rows(tables, plan, cells)
-        return distance_from(cells, walkable.reshape(n, *[1] * (cells.ndim - 3), *walkable.shape[1:])).reshape(
-            *cells.shape[:-2], -1)
-
-    from_partner = distances(partner).reshape(partner.shape)  # [N, H, W]
     partner_side = partner | (from_partner < UNREACHABLE)
-    handover = counter & _beside(partner_side)
+    handover = channel(Channel.EMPTY_COUNTER) & _beside(partner_side)
 
     def held(item, who=me):
         return (channel(item) & who).any((1, 2))
@@ -177,7 +192,7 @@ def cook_logits(observation: jax.Array, convention: CookConvention, tables: jax.
 
     holding_soup, holding_onion, holding_plate = held(Channel.SOUP), held(Channel.ONION), held(Channel.PLATE)
     empty = ~(holding_soup | holding_onion | holding_plate)
-    targets = jnp.stack([
+    return jnp.stack([
         when(holding_soup, channel(Channel.GOAL)),
         when(holding_onion, open_pot),
         when(holding_plate, ready_pot),
@@ -189,19 +204,22 @@ def cook_logits(observation: jax.Array, convention: CookConvention, tables: jax.
         when(empty, plates),
         when(empty, onions),
         jnp.zeros_like(pot),  # idling needs no tile
-    ], axis=1)  # fmt: skip
-    k = targets.shape[1]
+    ], axis=1), partner_empty  # fmt: skip
 
-    # Steps to every goal from the cook's cell and each cell around it, over the floor, and with the partner's cell
-    # closed (a way around it, used where the partner stands beside the cook).
+
+def _goal_steps(me: jax.Array, partner: jax.Array, walkable: jax.Array, targets: jax.Array, distances,
+                detour_rows: int | None) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Steps to every goal [N, K, 5] from the cook's cell and each cell around it, over the floor (`steps`), and
+    with the partner's cell closed (`detours`: a way around it, used where the partner stands beside the cook);
+    and the cells beside each goal's tiles [N, K, H * W]."""
+    n, k = targets.shape[:2]
     starts = jnp.concatenate([me[:, None], _moved(me)], axis=1)  # [N, 5, H, W]
     ends = (walkable[:, None] & _beside(targets)).reshape(n, k, -1)  # [N, K, H * W]
-    free = distances(starts)
 
     def nearest(steps_from):  # [N, 5, H * W] -> [N, K, 5]
         return jnp.where(ends[:, :, None], steps_from[:, None], UNREACHABLE).min(-1)
 
-    steps = nearest(free)
+    steps = nearest(distances(starts))
     beside_partner = (starts[:, 1:] & partner[:, None]).any((1, 2, 3))
     open_floor = walkable & ~partner
 
@@ -220,9 +238,16 @@ def cook_logits(observation: jax.Array, convention: CookConvention, tables: jax.
         detours = every_row(None)
     else:
         detours = jax.lax.cond(beside_partner.sum() <= detour_rows, those_rows, every_row, None)
-    here, next_cells = steps[..., 0], steps[..., 1:]
-    reachable = (here < UNREACHABLE).at[:, IDLE].set(True)
+    return steps, detours, ends
 
+
+def _goal_weights(conv: CookConvention, steps: jax.Array, ends: jax.Array, partner_empty: jax.Array,
+                  from_partner: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """How much the cook heads for each goal [N, K] by its convention (scores, role, temperature, hand-overs), over
+    the goals it can reach; and which it can reach [N, K]."""
+    n, k = steps.shape[:2]
+    here = steps[..., 0]
+    reachable = (here < UNREACHABLE).at[:, IDLE].set(True)
     busy = (reachable & conv.own_work).any(1, keepdims=True)
     scores = jnp.where(reachable, conv.scores - busy * conv.off_role, -jnp.inf)
     hot = conv.goal_temperature[:, None] > 0
@@ -230,20 +255,30 @@ def cook_logits(observation: jax.Array, convention: CookConvention, tables: jax.
     goal_weights = jnp.where(hot, tempered, jax.nn.one_hot(scores.argmax(1), k))
     goal_weights = jnp.where(jnp.isinf(scores).all(1, keepdims=True), 0.0, goal_weights)
     goal_weights = jnp.where(conv.prefer_handover[:, None],
-                             _prefer_handover(goal_weights, here, reachable, ends, partner_empty,
-                                              from_partner.reshape(n, -1)), goal_weights)
+                             _prefer_handover(goal_weights, here, reachable, ends, partner_empty, from_partner),
+                             goal_weights)
+    return goal_weights, reachable
 
-    order = conv.move_order  # [N, 4]
 
-    def first_downhill(here, next_cells):  # [N, K]: the first move in the cook's order that gets nearer
-        downhill = next_cells == here[..., None] - 1
-        in_order = jnp.take_along_axis(downhill, jnp.broadcast_to(order[:, None], downhill.shape), axis=-1)
-        return jnp.take_along_axis(order, in_order.argmax(-1), axis=1), (here < UNREACHABLE) & downhill.any(-1)
+def _first_downhill(order: jax.Array, here: jax.Array, next_cells: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """[N, K]: the first move in the cook's `order` that gets nearer, and whether there is one."""
+    downhill = next_cells == here[..., None] - 1
+    in_order = jnp.take_along_axis(downhill, jnp.broadcast_to(order[:, None], downhill.shape), axis=-1)
+    return jnp.take_along_axis(order, in_order.argmax(-1), axis=1), (here < UNREACHABLE) & downhill.any(-1)
+
+
+def _move_chances(conv: CookConvention, obs: jax.Array, me: jax.Array, partner: jax.Array, targets: jax.Array,
+                  steps: jax.Array, detours: jax.Array, reachable: jax.Array) -> jax.Array:
+    """Per goal, the chances of each action [N, K, 6]: the first move downhill in the cook's order, or on arrival
+    turning to the tile and acting; yielding to a partner in the way or contesting its cell, around it where a
+    detour exists; spread by the convention's move temperature."""
+    n, k = steps.shape[:2]
+    here, next_cells = steps[..., 0], steps[..., 1:]
 
     def around_me(grid):  # [N, 4]: the four cells around each cook, in the order of the moves
         return (_neighbours(grid.astype(jnp.float32), 0.0) * me[:, None]).sum((-2, -1))
 
-    step, _ = first_downhill(here, next_cells)
+    step, _ = _first_downhill(conv.move_order, here, next_cells)
     tiles_around = jnp.einsum("nkc,ndc->nkd", targets.reshape(n, k, -1).astype(jnp.float32),
                               _moved(me).reshape(n, 4, -1).astype(jnp.float32))
     tile = tiles_around.argmax(-1)
@@ -254,7 +289,7 @@ def cook_logits(observation: jax.Array, convention: CookConvention, tables: jax.
     ahead = jnp.take_along_axis(around_me(partner), step, axis=1) > 0
     contested = ~arrived & ~ahead & (jnp.take_along_axis(around_me(partner | _beside(partner)), step, axis=1) > 0)
     blocked_way = ~arrived & ahead
-    detour, has_detour = first_downhill(detours[..., 0], detours[..., 1:])
+    detour, has_detour = _first_downhill(conv.move_order, detours[..., 0], detours[..., 1:])
     detour = jnp.where(blocked_way, detour, action)
 
     def one_hot(actions):
@@ -266,15 +301,8 @@ def cook_logits(observation: jax.Array, convention: CookConvention, tables: jax.
     allowed = jnp.where(yielding[..., None], one_hot(detour) | one_hot(jnp.full_like(action, STAY)), allowed)
     allowed = allowed | (blocked_way & ~has_detour & moving)[..., None]
     chances = allowed.astype(jnp.float32) / allowed.sum(-1, keepdims=True)
-    chances = jnp.where((moving & reachable & (conv.move_temperature[:, None] > 0))[..., None],
-                        _boltzmann_moves(detours, chances, conv.move_temperature), chances)
-
-    probs = (goal_weights[..., None] * chances).sum(1)
-    probs = jnp.where(goal_weights.sum(1, keepdims=True) > 0, probs, 1.0 / NUM_ACTIONS)
-    noise = conv.noise[:, None]
-    probs = jnp.where(noise > 0, (1 - noise) * probs + noise / NUM_ACTIONS, probs)
-    safe = jnp.where(probs > 0, probs, 1.0)
-    return jnp.where(probs > 0, jnp.log(safe) - jnp.log(probs.max(-1, keepdims=True)), -1e9)
+    return jnp.where((moving & reachable & (conv.move_temperature[:, None] > 0))[..., None],
+                     _boltzmann_moves(detours, chances, conv.move_temperature), chances)
 
 
 def _boltzmann_moves(steps_around: jax.Array, planned: jax.Array, temperature: jax.Array) -> jax.Array:

@@ -84,6 +84,30 @@ def parse_layout(text: str, name: str = "custom", agent_order: Sequence[int] = (
     agents `0` and `1`. Leading and trailing blank
     lines are ignored; trailing spaces inside the grid are floor, so rows must all have the same length.
     """
+    lines = _grid_lines(text, name)
+    grid, agents, items, numbered = _read_symbols(lines, name)
+    if numbered[0] or numbered[1]:
+        if agents or len(numbered[0]) != 1 or len(numbered[1]) != 1:
+            raise ValueError(
+                f"layout {name!r}: name the agents either with two 'A' or with one '0' and one '1', "
+                f"found {len(agents)} 'A', {len(numbered[0])} '0', {len(numbered[1])} '1'"
+            )
+        agents, agent_order = numbered[0] + numbered[1], (0, 1)
+    if len(agents) != 2:
+        where = ", ".join(f"(row {y}, column {x})" for x, y in agents) or "none"
+        raise ValueError(f"layout {name!r}: needs exactly 2 agents 'A', found {len(agents)}: {where}")
+    for kind, what in _REQUIRED.items():
+        if not np.any(grid == kind):
+            raise ValueError(f"layout {name!r}: has no {what}; every kitchen needs at least one")
+    _check_border(grid, agents, name)
+    if sorted(agent_order) != [0, 1]:
+        raise ValueError(f"layout {name!r}: agent_order must be a permutation of (0, 1), got {agent_order!r}")
+    ordered = (agents[agent_order[0]], agents[agent_order[1]])
+    return Layout(name=name, grid=grid, agent_start=ordered, start_items=tuple(items))
+
+
+def _grid_lines(text: str, name: str) -> list[str]:
+    """The grid's rows, blank lines around it dropped; refused if empty or ragged."""
     lines = text.split("\n")
     while lines and not lines[0].strip():
         lines.pop(0)
@@ -91,7 +115,6 @@ def parse_layout(text: str, name: str = "custom", agent_order: Sequence[int] = (
         lines.pop()
     if not lines:
         raise ValueError(f"layout {name!r}: the grid is empty")
-
     width = len(lines[0])
     for y, line in enumerate(lines):
         if len(line) != width:
@@ -99,8 +122,12 @@ def parse_layout(text: str, name: str = "custom", agent_order: Sequence[int] = (
                 f"layout {name!r}: row {y} has {len(line)} cells but row 0 has {width}; "
                 "every row must have the same length (pad with 'W' or spaces)"
             )
+    return lines
 
-    grid = np.zeros((len(lines), width), dtype=np.uint8)
+
+def _read_symbols(lines: list[str], name: str) -> tuple[np.ndarray, list, list, dict[int, list]]:
+    """(grid of kinds, cells of `A`, items on counters, cells of `0` and `1`), refusing unknown symbols."""
+    grid = np.zeros((len(lines), len(lines[0])), dtype=np.uint8)
     agents: list[tuple[int, int]] = []
     items: list[tuple[tuple[int, int], int]] = []
     numbered: dict[int, list[tuple[int, int]]] = {0: [], 1: []}
@@ -118,21 +145,12 @@ def parse_layout(text: str, name: str = "custom", agent_order: Sequence[int] = (
                 numbered[int(symbol)].append((x, y))
             elif symbol in ITEM_SYMBOLS:
                 items.append(((x, y), ITEM_SYMBOLS[symbol]))
+    return grid, agents, items, numbered
 
-    if numbered[0] or numbered[1]:
-        if agents or len(numbered[0]) != 1 or len(numbered[1]) != 1:
-            raise ValueError(
-                f"layout {name!r}: name the agents either with two 'A' or with one '0' and one '1', "
-                f"found {len(agents)} 'A', {len(numbered[0])} '0', {len(numbered[1])} '1'"
-            )
-        agents, agent_order = numbered[0] + numbered[1], (0, 1)
-    if len(agents) != 2:
-        where = ", ".join(f"(row {y}, column {x})" for x, y in agents) or "none"
-        raise ValueError(f"layout {name!r}: needs exactly 2 agents 'A', found {len(agents)}: {where}")
-    for kind, what in _REQUIRED.items():
-        if not np.any(grid == kind):
-            raise ValueError(f"layout {name!r}: has no {what}; every kitchen needs at least one")
-    height = grid.shape[0]
+
+def _check_border(grid: np.ndarray, agents: list[tuple[int, int]], name: str) -> None:
+    """Refuses floor (or an agent) on the outer border: a kitchen is closed."""
+    height, width = grid.shape
     for y in range(height):
         for x in range(width):
             on_border = y in (0, height - 1) or x in (0, width - 1)
@@ -142,10 +160,6 @@ def parse_layout(text: str, name: str = "custom", agent_order: Sequence[int] = (
                     f"layout {name!r}: {what} on the outer border at row {y}, column {x}; "
                     "the border must be counters, piles, pots or goals"
                 )
-    if sorted(agent_order) != [0, 1]:
-        raise ValueError(f"layout {name!r}: agent_order must be a permutation of (0, 1), got {agent_order!r}")
-    ordered = (agents[agent_order[0]], agents[agent_order[1]])
-    return Layout(name=name, grid=grid, agent_start=ordered, start_items=tuple(items))
 
 
 # The classic kitchens at their native sizes, with JaxMARL's agent order.

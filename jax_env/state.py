@@ -88,17 +88,7 @@ def make_state(
         return x, y
 
     positions = [check_cell(p, f"agent {i}") for i, p in enumerate(agent_pos)]
-    if len(positions) != 2 or positions[0] == positions[1]:
-        raise ValueError(f"need two agents on two distinct cells, got {positions}")
-    for i, (x, y) in enumerate(positions):
-        if grid[y, x] != FLOOR:
-            raise ValueError(f"agent {i} at (x={x}, y={y}) is not on a floor cell")
-    for i, d in enumerate(agent_dir):
-        if d not in range(4):
-            raise ValueError(f"agent {i} direction {d} is not one of 0 (N), 1 (S), 2 (E), 3 (W)")
-    for i, item in enumerate(agent_inv):
-        if item not in range(4):
-            raise ValueError(f"agent {i} inventory {item} is not one of 0 (empty), 1 (onion), 2 (plate), 3 (dish)")
+    _check_agents(grid, positions, agent_dir, agent_inv)
     for cell, status in (pot_status or {}).items():
         x, y = check_cell(cell, "pot status")
         if grid[y, x] != POT:
@@ -122,6 +112,22 @@ def make_state(
         agent_inv=jnp.asarray(agent_inv, dtype=jnp.int32),
         step=jnp.asarray(step, dtype=jnp.int32),
     )
+
+
+def _check_agents(grid: np.ndarray, positions: list[tuple[int, int]], agent_dir: Sequence[int],
+                  agent_inv: Sequence[int]) -> None:
+    """Refuses agents that share a cell or stand off the floor, and directions or inventories out of range."""
+    if len(positions) != 2 or positions[0] == positions[1]:
+        raise ValueError(f"need two agents on two distinct cells, got {positions}")
+    for i, (x, y) in enumerate(positions):
+        if grid[y, x] != FLOOR:
+            raise ValueError(f"agent {i} at (x={x}, y={y}) is not on a floor cell")
+    for i, d in enumerate(agent_dir):
+        if d not in range(4):
+            raise ValueError(f"agent {i} direction {d} is not one of 0 (N), 1 (S), 2 (E), 3 (W)")
+    for i, item in enumerate(agent_inv):
+        if item not in range(4):
+            raise ValueError(f"agent {i} inventory {item} is not one of 0 (empty), 1 (onion), 2 (plate), 3 (dish)")
 
 
 def layout_from_state(state: State, name: str = "level") -> Layout:

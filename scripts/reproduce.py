@@ -388,26 +388,9 @@ def budget(config: TrainConfig, teams: int) -> str:
             "runs' folder) before the claim.")
 
 
-def section_markdown(section: Section, facts: RunFacts, config: TrainConfig, eval_dir: Path,
-                     eval_seconds: float, pictures: list[str]) -> str:
-    """The section's text, between its markers: how it was made, its claims, cross pairs, tables and figures."""
-    summary = read_summary(eval_dir / "summary.csv")
-    scores = SeedScores.read(eval_dir)
-    planner = config.init_from == PLANNER_START
-    own = {name: facts.own_overrides[name] for name in section.conditions if facts.own_overrides[name]}
-    lines = [
-        SECTION_START.format(section.name),
-        f"## {section.title}",
-        "",
-        f"Written by `{facts.command}` on {facts.date} (protocol `{facts.protocol}`). Every number in this section "
-        "was measured by that run's evaluation, of teams it trained or, where the time line says so, reused.",
-        "",
-        budget(config, facts.teams),
-        *([f"- **Conditions:** {len(section.conditions)} of the section's "
-           f"{len(section.conditions) + len(section.left_out)}; not run here: {', '.join(section.left_out)}."]
-          if section.left_out else []),
-        f"- **Shared overrides:** `{' '.join(facts.overrides)}`.",
-        *(f"- **{name}** adds `{' '.join(overrides)}`." for name, overrides in own.items()),
+def made_lines(section: Section, facts: RunFacts, eval_seconds: float) -> list[str]:
+    """The section's machine and times (each condition's training, the evaluation), and what the evaluation seats."""
+    return [
         f"- **Machine:** {facts.machine}. **Time:** training {facts.training_seconds / 60:.0f} min of wall time for "
         f"the command's {len(facts.condition_seconds) - len(facts.reused)} conditions trained, {facts.jobs} at a "
         "time, each in its own process (distillation, collection and updates): "
@@ -429,6 +412,30 @@ def section_markdown(section: Section, facts: RunFacts, config: TrainConfig, eva
         + (f" Beside every team, both seats, the held-out strangers of `{section.strangers}` (`kitchen-zoo`: scripted "
            "cooks of conventions no shipped config trains with), scored against two of each stranger."
            if section.strangers else ""),
+    ]
+
+
+def section_markdown(section: Section, facts: RunFacts, config: TrainConfig, eval_dir: Path,
+                     eval_seconds: float, pictures: list[str]) -> str:
+    """The section's text, between its markers: how it was made, its claims, cross pairs, tables and figures."""
+    summary = read_summary(eval_dir / "summary.csv")
+    scores = SeedScores.read(eval_dir)
+    planner = config.init_from == PLANNER_START
+    own = {name: facts.own_overrides[name] for name in section.conditions if facts.own_overrides[name]}
+    lines = [
+        SECTION_START.format(section.name),
+        f"## {section.title}",
+        "",
+        f"Written by `{facts.command}` on {facts.date} (protocol `{facts.protocol}`). Every number in this section "
+        "was measured by that run's evaluation, of teams it trained or, where the time line says so, reused.",
+        "",
+        budget(config, facts.teams),
+        *([f"- **Conditions:** {len(section.conditions)} of the section's "
+           f"{len(section.conditions) + len(section.left_out)}; not run here: {', '.join(section.left_out)}."]
+          if section.left_out else []),
+        f"- **Shared overrides:** `{' '.join(facts.overrides)}`.",
+        *(f"- **{name}** adds `{' '.join(overrides)}`." for name, overrides in own.items()),
+        *made_lines(section, facts, eval_seconds),
         "",
         "### Claims",
         "",
@@ -525,7 +532,7 @@ def write_results(path: Path, written: dict[str, str], order: list[str]) -> None
     path.write_text("\n".join(lines))
 
 
-def main(argv=None) -> int:
+def reproduce_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("protocol", help="a protocol file (configs/protocols/reduced.yaml or paper.yaml)")
     parser.add_argument("overrides", nargs="*", help="key=value overrides for every condition")
@@ -553,6 +560,27 @@ def main(argv=None) -> int:
     parser.add_argument("--jobs", type=int, default=1,
                         help="conditions trained at a time, each in its own process (2 uses both cores of a 2-core "
                              "CPU; the results are the same)")
+    return parser
+
+
+def run_facts(args, argv, entries: dict, device: str, overrides: list[str], teams: int, started: float,
+              seconds: dict, reused: list[str], evaluation: dict, proxies, out: Path) -> RunFacts:
+    """What the report says of the run: its command, protocol, date, machine, budget and times."""
+    machine = f"{machine_name()}, device {device}"
+    if device.startswith("cuda") and torch.cuda.is_available():
+        machine += f" ({torch.cuda.get_device_name()})"
+    return RunFacts(
+        command=" ".join(["python scripts/reproduce.py", *(argv if argv is not None else sys.argv[1:])]),
+        protocol=args.protocol, date=datetime.date.today().isoformat(), machine=machine, teams=teams,
+        overrides=overrides, own_overrides={name: own for name, (_, own) in entries.items()}, jobs=args.jobs,
+        eval_workers=min(args.jobs, os.cpu_count() or 1) if device == "cpu" else 1,
+        training_seconds=time.perf_counter() - started, condition_seconds=seconds, reused=reused, evaluation=evaluation,
+        proxies=human_proxies(out / "humans", proxies) if proxies else None,
+    )  # fmt: skip
+
+
+def main(argv=None) -> int:
+    parser = reproduce_parser()
     args = parser.parse_intermixed_args(argv)  # overrides may follow the options
     if args.jobs < 1:
         parser.error(f"--jobs must be at least 1, got {args.jobs}")
@@ -585,17 +613,8 @@ def main(argv=None) -> int:
                   **{key: getattr(args, key) for key in ("rollouts", "heldout", "max_steps", "collector")
                      if getattr(args, key) is not None}}
     device = load_config(next(iter(entries.values()))[0], overrides).runtime.device  # shared by every condition
-    machine = f"{machine_name()}, device {device}"
-    if device.startswith("cuda") and torch.cuda.is_available():
-        machine += f" ({torch.cuda.get_device_name()})"
-    facts = RunFacts(
-        command=" ".join(["python scripts/reproduce.py", *(argv if argv is not None else sys.argv[1:])]),
-        protocol=args.protocol, date=datetime.date.today().isoformat(), machine=machine, teams=teams,
-        overrides=overrides, own_overrides={name: own for name, (_, own) in entries.items()}, jobs=args.jobs,
-        eval_workers=min(args.jobs, os.cpu_count() or 1) if device == "cpu" else 1,
-        training_seconds=time.perf_counter() - started, condition_seconds=seconds, reused=reused, evaluation=evaluation,
-        proxies=human_proxies(out / "humans", proxies) if proxies else None,
-    )  # fmt: skip
+    facts = run_facts(args, argv, entries, device, overrides, teams, started, seconds, reused, evaluation, proxies,
+                      out)
     written = {}
     for section in sections_run(full, protocol, entries):
         if args.sections and section.name not in args.sections:

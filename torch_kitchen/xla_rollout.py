@@ -451,32 +451,34 @@ def _seated_act(env: KitchenEnv, teams: tuple[Chain | str, ...]) -> Callable:
     return act
 
 
+def _with_zoo_cooks(conventions, zoo, observation, acted, zoo_share: float, on_gpu: bool):
+    """The actions with the zoo cooks' in their seats, the seating they played by, and the zoo's next key."""
+    draws, key, tables = zoo
+    key, used = jax.random.split(key)
+    logits, action, log_prob, value = acted
+    # On a CPU the cooks plan for twice their expected number of kitchens while no more have one.
+    at_most = None if on_gpu else max(1, math.ceil(2 * zoo_share * len(draws)))
+    action = cook_actions(used, observation, action, draws, conventions, at_most, tables)
+    return (logits, action, log_prob, value), seating(draws), key
+
+
+def _next_zoo(conventions, zoo, ended, observation, zoo_share: float):
+    """The zoo after a step: where an episode ended, its seats drawn anew (as ZooSeats does at a reset) and its
+    new floor's tables (walls and counters never move within an episode)."""
+    draws, key, tables = zoo
+
+    def started(key):
+        key, drawn = jax.random.split(key)
+        fresh = draw_seats(drawn, len(ended), conventions.scores.shape[0], zoo_share)
+        return (jnp.where(ended, fresh, draws), key,
+                jnp.where(ended[:, None, None], kitchen_floors(observation), tables))
+
+    return jax.lax.cond(ended.any(), started, lambda key: (draws, key, tables), key)
+
+
 def _build_rollout(env: KitchenEnv, act: Callable, steps: int, zoo_share: float | None) -> Callable:
     programs = kitchen_programs(env.jax_env, env.num_envs, env.teams, env.pinned_levels is not None, packed=False)
     on_gpu = env.jax_device.platform != "cpu"
-
-    def with_zoo_cooks(conventions, zoo, observation, acted):
-        """The actions with the zoo cooks' in their seats, the seating they played by, and the zoo's next key."""
-        draws, key, tables = zoo
-        key, used = jax.random.split(key)
-        logits, action, log_prob, value = acted
-        # On a CPU the cooks plan for twice their expected number of kitchens while no more have one.
-        at_most = None if on_gpu else max(1, math.ceil(2 * zoo_share * len(draws)))
-        action = cook_actions(used, observation, action, draws, conventions, at_most, tables)
-        return (logits, action, log_prob, value), seating(draws), key
-
-    def next_zoo(conventions, zoo, ended, observation):
-        """The zoo after a step: where an episode ended, its seats drawn anew (as ZooSeats does at a reset) and its
-        new floor's tables (walls and counters never move within an episode)."""
-        draws, key, tables = zoo
-
-        def started(key):
-            key, drawn = jax.random.split(key)
-            fresh = draw_seats(drawn, len(ended), conventions.scores.shape[0], zoo_share)
-            return (jnp.where(ended, fresh, draws), key,
-                    jnp.where(ended[:, None, None], kitchen_floors(observation), tables))
-
-        return jax.lax.cond(ended.any(), started, lambda key: (draws, key, tables), key)
 
     def step(start_states, weights, conventions, carry, _):
         states, deliveries, env_key, act_keys, carrier, zoo = carry
@@ -485,7 +487,7 @@ def _build_rollout(env: KitchenEnv, act: Callable, steps: int, zoo_share: float 
         acted, next_network_states = act(weights, used, observed[0], restarted(is_init, network_states))
         seated = ()
         if zoo_share is not None:
-            acted, seated, zoo_key = with_zoo_cooks(conventions, zoo, observed[0], acted)
+            acted, seated, zoo_key = _with_zoo_cooks(conventions, zoo, observed[0], acted, zoo_share, on_gpu)
             zoo = (zoo[0], zoo_key, zoo[2])
         states, deliveries, stepped = programs.step(states, deliveries, acted[1].astype(jnp.int32))
         ended = stepped[2][:, 0]
@@ -502,7 +504,7 @@ def _build_rollout(env: KitchenEnv, act: Callable, steps: int, zoo_share: float 
         next_states, next_deliveries, env_key, next_observed = jax.lax.cond(
             ended.any(), reset, lambda _: (states, deliveries, env_key, tuple(stepped)), None)
         if zoo_share is not None:
-            zoo = next_zoo(conventions, zoo, ended, next_observed[0])
+            zoo = _next_zoo(conventions, zoo, ended, next_observed[0], zoo_share)
         # The transforms' next input: episodes that ended start again (InitTracker), their states zero (the primer).
         next_memory = (stepped[2], *restarted(stepped[2], next_network_states))
         record = (carrier, acted, next_network_states, tuple(stepped), seated)

@@ -306,26 +306,27 @@ def save_cook(convention: Convention, run_dir: str | Path, kitchen_size: int = 7
 
 
 # ------------------------------------------------------------------------------------------- command line
-def main(argv: Sequence[str] | None = None) -> int:
+def zoo_parser() -> argparse.ArgumentParser:
+    """kitchen-zoo's command line: draw, clash, show, save."""
     parser = argparse.ArgumentParser(prog="kitchen-zoo", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     verbs = parser.add_subparsers(dest="verb", required=True)
-    draw = verbs.add_parser("draw", help="draw conventions, keep a diverse set that cooks, split off strangers")
-    draw.add_argument("--seed", type=int, default=0)
-    draw.add_argument("--candidates", type=int, default=96, help="conventions drawn")
-    draw.add_argument("--keep", type=int, default=32, help="conventions kept, the strangers among them")
-    draw.add_argument("--strangers", type=int, default=8, help="held-out strangers among the kept")
-    draw.add_argument("--levels", type=int, default=64, help="generated training levels each plays on")
-    draw.add_argument("--min-cooked", type=float, default=0.6, help="share of levels two of it must deliver on")
-    draw.add_argument("--kitchen-size", type=int, default=7, choices=GENERATOR_SIZES)
-    draw.add_argument("--table-heldout", type=int, default=100, help="held-out levels in the table")
-    draw.add_argument("--table-rollouts", type=int, default=2, help="episodes per grid in the table")
-    draw.add_argument("--clash-heldout", type=int, default=20,
+    drawing = verbs.add_parser("draw", help="draw conventions, keep a diverse set that cooks, split off strangers")
+    drawing.add_argument("--seed", type=int, default=0)
+    drawing.add_argument("--candidates", type=int, default=96, help="conventions drawn")
+    drawing.add_argument("--keep", type=int, default=32, help="conventions kept, the strangers among them")
+    drawing.add_argument("--strangers", type=int, default=8, help="held-out strangers among the kept")
+    drawing.add_argument("--levels", type=int, default=64, help="generated training levels each plays on")
+    drawing.add_argument("--min-cooked", type=float, default=0.6, help="share of levels two of it must deliver on")
+    drawing.add_argument("--kitchen-size", type=int, default=7, choices=GENERATOR_SIZES)
+    drawing.add_argument("--table-heldout", type=int, default=100, help="held-out levels in the table")
+    drawing.add_argument("--table-rollouts", type=int, default=2, help="episodes per grid in the table")
+    drawing.add_argument("--clash-heldout", type=int, default=20,
                       help="held-out levels of the convention x convention cross-play (0: the classic layouts only)")
-    draw.add_argument("--workers", type=int, default=1, help="processes that play at once")
-    draw.add_argument("--max-steps", type=int, default=256,
+    drawing.add_argument("--workers", type=int, default=1, help="processes that play at once")
+    drawing.add_argument("--max-steps", type=int, default=256,
                       help="steps of an episode, in the draw, the table and the clash alike")
-    draw.add_argument("--out", default=str(Path(ZOO_FILE).parent), help="folder of zoo.yaml and zoo.md")
+    drawing.add_argument("--out", default=str(Path(ZOO_FILE).parent), help="folder of zoo.yaml and zoo.md")
     clashes = verbs.add_parser("clash", help="convention x convention cross-play of a zoo: clash.md, .csv and heat map")
     clashes.add_argument("zoo", nargs="?", default=ZOO_FILE)
     clashes.add_argument("--heldout", type=int, default=20, help="held-out levels beside the classic layouts")
@@ -334,53 +335,66 @@ def main(argv: Sequence[str] | None = None) -> int:
     clashes.add_argument("--seed", type=int, default=0)
     clashes.add_argument("--workers", type=int, default=1, help="processes that play at once")
     clashes.add_argument("--out", default="results/clash", help="folder of clash.md, clash.csv, heatmap_clash.png")
-    show = verbs.add_parser("show", help="print a zoo file's conventions")
-    show.add_argument("zoo", nargs="?", default=ZOO_FILE)
-    save = verbs.add_parser("save", help="save cooks of a zoo as runs that kitchen-eval and kitchen-play read")
-    save.add_argument("names", nargs="+", help="conventions of the zoo")
-    save.add_argument("--zoo", default=ZOO_FILE)
-    save.add_argument("--run-dir", default="runs/zoo", help="the runs go to RUN_DIR/<name>/seed0")
-    args = parser.parse_args(argv)
+    showing = verbs.add_parser("show", help="print a zoo file's conventions")
+    showing.add_argument("zoo", nargs="?", default=ZOO_FILE)
+    saving = verbs.add_parser("save", help="save cooks of a zoo as runs that kitchen-eval and kitchen-play read")
+    saving.add_argument("names", nargs="+", help="conventions of the zoo")
+    saving.add_argument("--zoo", default=ZOO_FILE)
+    saving.add_argument("--run-dir", default="runs/zoo", help="the runs go to RUN_DIR/<name>/seed0")
+    return parser
+
+
+def show(args: argparse.Namespace) -> None:
+    zoo = load_zoo(args.zoo)
+    for member in zoo.members:
+        print(f"{member.name:14s} {member.split:8s} self-play {member.self_play:5.2f}  {member.convention.describe()}")
+
+
+def save(args: argparse.Namespace) -> None:
+    zoo = load_zoo(args.zoo)
+    for name in args.names:
+        print(f"wrote {save_cook(zoo.convention(name), args.run_dir, zoo.kitchen_size)}")
+
+
+def clash_command(args: argparse.Namespace) -> None:
+    out = Path(args.out)
+    table = clash(load_zoo(args.zoo), out, args.heldout, args.rollouts, args.seed, args.workers, True, args.max_steps)
+    (out / "clash.md").write_text(f"# Convention x convention: {args.zoo}\n\n" + table
+                                  + "\n![convention x convention](heatmap_clash.png)\n")
+    print(table)
+    print(f"wrote {out / 'clash.md'}, {out / 'clash.csv'}, {out / 'heatmap_clash.png'}")
+
+
+def draw(args: argparse.Namespace) -> None:
+    """Draws the zoo, writes zoo.yaml and its table with the clash (zoo.md, headed by the command that made it)."""
+    if not 0 <= args.strangers <= args.keep <= args.candidates:
+        raise ConfigError(f"need 0 <= strangers <= keep <= candidates, got {args.strangers}, {args.keep}, "
+                          f"{args.candidates}")
+    zoo = draw_zoo(args.seed, args.candidates, args.keep, args.strangers, args.levels, args.kitchen_size,
+                   args.min_cooked, workers=args.workers, max_steps=args.max_steps)
+    table = zoo_table(zoo, args.table_heldout, args.table_rollouts, args.seed, 4096, args.workers, True,
+                      args.max_steps)
+    out = Path(args.out)
+    table += ("\n## Do the conventions clash?\n\n"
+              + clash(zoo, out, args.clash_heldout, 1, args.seed, args.workers, True, args.max_steps)
+              + "\n![convention x convention](heatmap_clash.png)\n")
+    print(f"wrote {save_zoo(zoo, out / 'zoo.yaml')}")
+    (out / "zoo.md").write_text(f"# The zoo\n\n`kitchen-zoo draw --seed {args.seed} --candidates "
+                                f"{args.candidates} --keep {args.keep} --strangers {args.strangers} --levels "
+                                f"{args.levels} --clash-heldout {args.clash_heldout}"
+                                + (f" --max-steps {args.max_steps}" if args.max_steps != 256 else "")
+                                + "`\n\n" + table)
+    print(table)
+    print(f"wrote {out / 'zoo.md'}")
+
+
+VERBS = {"draw": draw, "clash": clash_command, "show": show, "save": save}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = zoo_parser().parse_args(argv)
     try:
-        if args.verb == "show":
-            zoo = load_zoo(args.zoo)
-            for member in zoo.members:
-                print(f"{member.name:14s} {member.split:8s} self-play {member.self_play:5.2f}  "
-                      f"{member.convention.describe()}")
-            return 0
-        if args.verb == "save":
-            zoo = load_zoo(args.zoo)
-            for name in args.names:
-                print(f"wrote {save_cook(zoo.convention(name), args.run_dir, zoo.kitchen_size)}")
-            return 0
-        if args.verb == "clash":
-            out = Path(args.out)
-            table = clash(load_zoo(args.zoo), out, args.heldout, args.rollouts, args.seed, args.workers, True,
-                          args.max_steps)
-            (out / "clash.md").write_text(f"# Convention x convention: {args.zoo}\n\n" + table
-                                          + "\n![convention x convention](heatmap_clash.png)\n")
-            print(table)
-            print(f"wrote {out / 'clash.md'}, {out / 'clash.csv'}, {out / 'heatmap_clash.png'}")
-            return 0
-        if not 0 <= args.strangers <= args.keep <= args.candidates:
-            raise ConfigError(f"need 0 <= strangers <= keep <= candidates, got {args.strangers}, {args.keep}, "
-                              f"{args.candidates}")
-        zoo = draw_zoo(args.seed, args.candidates, args.keep, args.strangers, args.levels, args.kitchen_size,
-                       args.min_cooked, workers=args.workers, max_steps=args.max_steps)
-        table = zoo_table(zoo, args.table_heldout, args.table_rollouts, args.seed, 4096, args.workers, True,
-                          args.max_steps)
-        out = Path(args.out)
-        table += ("\n## Do the conventions clash?\n\n"
-                  + clash(zoo, out, args.clash_heldout, 1, args.seed, args.workers, True, args.max_steps)
-                  + "\n![convention x convention](heatmap_clash.png)\n")
-        print(f"wrote {save_zoo(zoo, out / 'zoo.yaml')}")
-        (out / "zoo.md").write_text(f"# The zoo\n\n`kitchen-zoo draw --seed {args.seed} --candidates "
-                                    f"{args.candidates} --keep {args.keep} --strangers {args.strangers} --levels "
-                                    f"{args.levels} --clash-heldout {args.clash_heldout}"
-                                    + (f" --max-steps {args.max_steps}" if args.max_steps != 256 else "")
-                                    + "`\n\n" + table)
-        print(table)
-        print(f"wrote {out / 'zoo.md'}")
+        VERBS[args.verb](args)
     except (ConfigError, ConventionError) as error:
         print(f"kitchen-zoo: error: {error}", file=sys.stderr)
         return 2

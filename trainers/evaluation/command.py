@@ -20,8 +20,9 @@ from trainers.config import ConfigError, DeviceConfig, EvalConfig
 from trainers.config.compose import config_help, load_config, save_config
 from trainers.evaluation.figures import draw_figures, draw_heatmap, draw_learning_curve, draw_stranger_heatmap
 from trainers.evaluation.gifs import parse_gif_request, record_gif
-from trainers.evaluation.pairs import evaluation_grids, make_matchups, play
+from trainers.evaluation.pairs import Outcomes, evaluation_grids, make_matchups, play
 from trainers.evaluation.strangers import (
+    StrangerOutcomes,
     load_human_proxies,
     markdown_strangers,
     play_with_strangers,
@@ -131,27 +132,40 @@ def evaluate(config: EvalConfig) -> Path:
     table = markdown_summary(summary, config.rollouts)
     written = draw_figures(outcomes, summary, out)
     if strangers:
-        met = play_with_strangers(evaluated, strangers, grids, config.rollouts, config.max_steps,
-                                  config.max_envs, config.seed, device, config.progress, config.workers,
-                                  best_responses, config.collector)
-        write_csv(stranger_pair_rows(met), out / "strangers_pairs.csv")
-        rows = stranger_rows(met, config.seed)
-        write_csv(rows, out / "strangers.csv")
-        table += "\n" + markdown_strangers(rows, [stranger.name for stranger in strangers], config.rollouts)
+        text, met = report_strangers(evaluated, strangers, grids, config, out, "strangers", best_responses)
+        table += "\n" + text
         group, _ = met.groups[-1]  # the held-out levels, where there are any
         written.append(draw_stranger_heatmap([team.name for team in met.teams], [s.name for s in met.strangers],
                                              np.nanmean(met.normalised[..., -1], axis=2), group,
                                              out / "heatmap_strangers.png"))
     if learned:
-        met = play_with_strangers(evaluated, learned, grids, config.rollouts, config.max_steps, config.max_envs,
-                                  config.seed, device, config.progress, config.workers, collector=config.collector)
-        write_csv(stranger_pair_rows(met), out / "learned_strangers_pairs.csv")
-        rows = stranger_rows(met, config.seed)
-        write_csv(rows, out / "learned_strangers.csv")
-        table += "\n" + markdown_strangers(rows, [stranger.name for stranger in learned], config.rollouts,
-                                           kind="learned strangers")
+        table += "\n" + report_strangers(evaluated, learned, grids, config, out, "learned_strangers")[0]
     (out / "eval.md").write_text(table)
     print(table)
+    written += draw_heatmaps_and_gifs(outcomes, config, by_name, gifs, out)
+    for path in written:
+        print(f"wrote {path}")
+    return out
+
+
+def report_strangers(evaluated: list[Team], strangers: list[Team], grids: list, config: EvalConfig, out: Path,
+                     name: str, best_responses: dict | None = None) -> tuple[str, StrangerOutcomes]:
+    """Every evaluated team beside each stranger, both seats (scored over its best response where it has one):
+    `name`_pairs.csv and `name`.csv written; returns the table and the outcomes."""
+    met = play_with_strangers(evaluated, strangers, grids, config.rollouts, config.max_steps, config.max_envs,
+                              config.seed, config.runtime.device, config.progress, config.workers, best_responses,
+                              config.collector)
+    write_csv(stranger_pair_rows(met), out / f"{name}_pairs.csv")
+    rows = stranger_rows(met, config.seed)
+    write_csv(rows, out / f"{name}.csv")
+    kind = "held-out strangers" if name == "strangers" else "learned strangers"
+    return markdown_strangers(rows, [stranger.name for stranger in strangers], config.rollouts, kind=kind), met
+
+
+def draw_heatmaps_and_gifs(outcomes: Outcomes, config: EvalConfig, by_name: dict, gifs: list, out: Path
+                           ) -> list[Path]:
+    """The visit heat maps of `config.heatmaps` and the GIFs asked for; returns the files written."""
+    written = []
     for grid_name in config.heatmaps:
         panels = visit_shares(outcomes, grid_name)
         if panels:
@@ -159,9 +173,7 @@ def evaluate(config: EvalConfig) -> Path:
     for first, second, grid in gifs:
         name = f"{first.name}+{second.name}@{grid.name}".replace("/", "-")
         written.append(record_gif(first, second, grid, out / f"{name}.gif", config.max_steps, config.seed))
-    for path in written:
-        print(f"wrote {path}")
-    return out
+    return written
 
 
 def report_trained_team(run: str | Path, episodes: int | None = None, num_heldout: int | None = None) -> Path:

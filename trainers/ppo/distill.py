@@ -178,42 +178,21 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
     docstring); returns the run directory. `resume`: continue the run from its last round. `on_round(round,
     metrics)`: called after every round's checkpoint; returning True stops the run there. Raises ConfigError or
     CheckpointError before any work."""
-    config = check_algorithm(config.check())
-    config.check_run_location()
-    if config.runtime.teams != 1:
-        raise ConfigError("kitchen-distill distils one team; run it once per seed")
-    for warning in config.check_levels():
-        print(f"kitchen-distill: warning: {warning}", file=sys.stderr)
-    torch.set_num_threads(config.runtime.threads)
-    torch.manual_seed(config.seed)
+    config = checked(config)
     run = Path(run or config.run_path)
     checkpoint = run / "checkpoints" / LATEST
     if not resume and checkpoint.exists():
         raise ConfigError(f"{run} already holds a run; resume it with `kitchen-distill --resume {run}`, or choose "
                           "another name=, seed= or run_dir=")
+    torch.set_num_threads(config.runtime.threads)
+    torch.manual_seed(config.seed)
 
     kitchen = make_env(config, num_envs=config.distill.kitchens)
-    obs_shape = kitchen.obs_shape
-    actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
-    place_networks(config, actor_critic, own_kernels=True)
-    parameters = [*actor_critic.actor.parameters(), *actor_critic.critic.parameters()]
-    optimizer = make_optimizer(config, parameters)  # the trainer's Adam; its rate set at every round
-    identity = model_identity(config.architecture, obs_shape, config.hidden, config.share_params)
-    parts = {"actor": actor_critic.actor, "critic": actor_critic.critic, "optimizer": optimizer,
-             "env": TeamKitchens(kitchen, 0)}
+    actor_critic, optimizer, parts, identity = learner_parts(config, kitchen)
     teacher = ScriptedCook(config.distill_teacher(0)).to(config.runtime.device)
     policy = GuidedPolicy(actor_critic.acting_policy(), teacher)
 
-    done_rounds, env_steps, rng = 0, 0, None
-    if resume:
-        state = load_checkpoint(checkpoint, map_location=config.runtime.device)
-        check_identity(state, identity)
-        check_same_learning(run, config, state["config"], (*RESUMABLE, "distill.rounds"))  # more rounds go on
-        for name, part in parts.items():
-            part.load_state_dict(state[name])
-        done_rounds, env_steps, rng = state["update"], state["env_steps"], state["rng"]
-    else:
-        start_fresh(run)
+    done_rounds, env_steps, rng = rounds_done(config, run, parts, identity, resume)
     data = load_rounds(run, done_rounds)
     run.mkdir(parents=True, exist_ok=True)
     save_config(config, run / "config.yaml")
@@ -239,12 +218,7 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
             metrics["distill/teacher_share"] = policy.teacher_share
             for logger in loggers:
                 logger.log_metrics(metrics, step=env_steps)
-            save_checkpoint(checkpoint, {
-                "config": config.to_dict(), "model": identity,
-                **{name: part.state_dict() for name, part in parts.items()},
-                "algorithm": {}, "update": round_ + 1, "env_steps": env_steps, "rng": capture_rng_states(),
-                "met": fingerprints(config.distill_teacher(r) for r in range(round_ + 1)),
-            })  # fmt: skip
+            save_round(config, checkpoint, parts, identity, round_ + 1, env_steps)
             bar.update(1)
             bar.set_postfix(agreement=f"{metrics['distill/agreement']:.2f}",
                             deliveries=f"{metrics.get('charts/episode_deliveries', float('nan')):.2f}")
@@ -256,6 +230,55 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
         for logger in loggers:
             logger.close()
     return run
+
+
+def learner_parts(config: TrainConfig, kitchen) -> tuple[ActorCritic, torch.optim.Optimizer, dict, dict]:
+    """The learner's networks on the run's device, the trainer's Adam (its rate set at every round), what a
+    checkpoint holds of them and of the kitchens, and the model's identity."""
+    actor_critic = make_actor_critic(config.architecture, kitchen.obs_shape, config.hidden, config.share_params)
+    place_networks(config, actor_critic, own_kernels=True)
+    optimizer = make_optimizer(config, [*actor_critic.actor.parameters(), *actor_critic.critic.parameters()])
+    identity = model_identity(config.architecture, kitchen.obs_shape, config.hidden, config.share_params)
+    parts = {"actor": actor_critic.actor, "critic": actor_critic.critic, "optimizer": optimizer,
+             "env": TeamKitchens(kitchen, 0)}
+    return actor_critic, optimizer, parts, identity
+
+
+def checked(config: TrainConfig) -> TrainConfig:
+    """The config checked as a distillation's, before any work: one team, its levels loadable and solvable."""
+    config = check_algorithm(config.check())
+    config.check_run_location()
+    if config.runtime.teams != 1:
+        raise ConfigError("kitchen-distill distils one team; run it once per seed")
+    for warning in config.check_levels():
+        print(f"kitchen-distill: warning: {warning}", file=sys.stderr)
+    return config
+
+
+def rounds_done(config: TrainConfig, run: Path, parts: dict, identity: dict, resume: bool
+                ) -> tuple[int, int, dict | None]:
+    """(rounds done, env steps, random states): nothing for a fresh run (its folder's old logs removed); for a
+    resumed one, its latest checkpoint loaded into `parts`, refused where its model or what it learns differs (more
+    rounds may follow)."""
+    if not resume:
+        start_fresh(run)
+        return 0, 0, None
+    state = load_checkpoint(run / "checkpoints" / LATEST, map_location=config.runtime.device)
+    check_identity(state, identity)
+    check_same_learning(run, config, state["config"], (*RESUMABLE, "distill.rounds"))
+    for name, part in parts.items():
+        part.load_state_dict(state[name])
+    return state["update"], state["env_steps"], state["rng"]
+
+
+def save_round(config: TrainConfig, checkpoint: Path, parts: dict, identity: dict, rounds: int, env_steps: int
+               ) -> None:
+    """The checkpoint after `rounds` rounds, in the trainer's format, with the conventions the team met."""
+    save_checkpoint(checkpoint, {
+        "config": config.to_dict(), "model": identity, **{name: part.state_dict() for name, part in parts.items()},
+        "algorithm": {}, "update": rounds, "env_steps": env_steps, "rng": capture_rng_states(),
+        "met": fingerprints(config.distill_teacher(r) for r in range(rounds)),
+    })  # fmt: skip
 
 
 def learn_round(config: TrainConfig, round_: int, batch: TensorDictBase, env_steps: int, data: list,

@@ -300,26 +300,13 @@ def train_teams(
     # ---------------------------------------------------------------- resume or start fresh
     saved = resume_or_start(teams, resume)  # the collector's first reset hands out restored kitchens
     policy.restack()  # the weights just loaded
-    for team in teams:
-        team.run.mkdir(parents=True, exist_ok=True)
-        save_config(team.config, team.run / "config.yaml")
     remaining = lead.num_updates - teams[0].update
-    if remaining <= 0:
-        for team in teams:
-            print(f"{team.run}: already trained for {team.update} updates ({team.env_steps:,} steps); raise "
-                  "total_steps to go on")
+    if already_trained(teams, remaining):
         return runs
-    for team in teams:
-        team.loggers = make_loggers(team.config, team.run, purge_step=team.env_steps + 1 if resume else None)
-        if not resume:
-            for logger in team.loggers:
-                logger.log_hparams(hyperparameters(team.config))
+    open_logs(teams, resume)
     frames_per_batch = num_teams * lead.frames_per_batch
     collector = make_collector(env, policy, frames_per_batch, remaining * frames_per_batch, lead.runtime.collector)
-    for team, state in zip(teams, saved):
-        if state is not None:  # after the collector, whose construction runs the policy once (and draws actions)
-            with team.stream.active():
-                restore_rng_states(state["rng"])
+    restore_streams(teams, saved)  # after the collector, whose construction runs the policy once (and draws actions)
     progress = Progress(teams)
 
     # ---------------------------------------------------------------- training loop
@@ -328,14 +315,7 @@ def train_teams(
             started = time.perf_counter()
             for batch in collector:
                 collected = time.perf_counter()
-                batches = [batch[team_rows(index, lead.num_envs)] for index in range(num_teams)]
-                orders, prepare_seconds = [], []
-                for team, team_batch in zip(teams, batches):
-                    preparing = time.perf_counter()
-                    with team.stream.active():
-                        orders.append(start_update(team, team_batch))
-                    prepare_seconds.append(time.perf_counter() - preparing)
-                learned = update_teams(teams, batches, orders, runner)
+                learned, prepare_seconds = learn_from_batch(teams, batch, runner)
                 policy.restack()
                 steps_per_second = batch.numel() / (time.perf_counter() - started)
                 asked = log_update(teams, learned, prepare_seconds, collected - started, steps_per_second, on_update)
@@ -346,10 +326,58 @@ def train_teams(
     finally:
         collector.shutdown()
         progress.close()
-        for team in teams:
-            for logger in team.loggers:
-                logger.close()
+        close_logs(teams)
     return runs
+
+
+def already_trained(teams: list[TrainingTeam], remaining: int) -> bool:
+    """Saves every team's config into its run directory; says so and returns True where no update remains."""
+    for team in teams:
+        team.run.mkdir(parents=True, exist_ok=True)
+        save_config(team.config, team.run / "config.yaml")
+        if remaining <= 0:
+            print(f"{team.run}: already trained for {team.update} updates ({team.env_steps:,} steps); raise "
+                  "total_steps to go on")
+    return remaining <= 0
+
+
+def restore_streams(teams: list[TrainingTeam], saved: list[dict | None]) -> None:
+    """Each resumed team's random streams as its checkpoint left them."""
+    for team, state in zip(teams, saved):
+        if state is not None:
+            with team.stream.active():
+                restore_rng_states(state["rng"])
+
+
+def close_logs(teams: list[TrainingTeam]) -> None:
+    for team in teams:
+        for logger in team.loggers:
+            logger.close()
+
+
+def open_logs(teams: list[TrainingTeam], resume: bool) -> None:
+    """Every team's loggers (a resumed run's logs cut at its checkpoint's step), with its hyperparameters once."""
+    for team in teams:
+        team.loggers = make_loggers(team.config, team.run, purge_step=team.env_steps + 1 if resume else None)
+        if not resume:
+            for logger in team.loggers:
+                logger.log_hparams(hyperparameters(team.config))
+
+
+def learn_from_batch(teams: list[TrainingTeam], batch: TensorDictBase, runner: UpdateRunner
+                     ) -> tuple[list, list[float]]:
+    """One update of every team on its rows of the collected `batch`: each team's advantages and minibatch order
+    in its own stream (`start_update`), then their PPO epochs (`update_teams`). Returns what they learned and each
+    team's seconds of preparation."""
+    num_envs = teams[0].config.num_envs
+    batches = [batch[team_rows(index, num_envs)] for index in range(len(teams))]
+    orders, prepare_seconds = [], []
+    for team, team_batch in zip(teams, batches):
+        preparing = time.perf_counter()
+        with team.stream.active():
+            orders.append(start_update(team, team_batch))
+        prepare_seconds.append(time.perf_counter() - preparing)
+    return update_teams(teams, batches, orders, runner), prepare_seconds
 
 
 def run_directories(configs: Sequence[TrainConfig], runs: Sequence[Path] | None, resume: bool,

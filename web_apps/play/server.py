@@ -182,6 +182,53 @@ def checkpoint_version(name: str) -> tuple[int, int] | None:
     return status.st_mtime_ns, status.st_size
 
 
+class Lobby:
+    """The server's games made and not yet connected, and how a new one is made: its partner (shared between games,
+    `SharedPartners`), its kitchen, its record. A game nobody connects to within `connect_s` seconds expires."""
+
+    def __init__(self, runs: list[str], records: Path, tick_ms: int, device: str, level_files: list[str],
+                 max_steps: int, runs_root: str, connect_s: float):
+        self.runs, self.records, self.tick_ms, self.device = runs, records, tick_ms, device
+        self.level_files, self.max_steps, self.runs_root, self.connect_s = level_files, max_steps, runs_root, connect_s
+        self.games: dict[str, tuple[Game, str, float]] = {}  # game id -> (game, mode, made at)
+        self.counter = itertools.count()
+        self.shared_partner = SharedPartners(device)
+
+    def partners(self) -> list[str]:
+        return [*dict.fromkeys([*self.runs, *find_runs(self.runs_root)]), SCRIPTED, RANDOM]
+
+    def expire_unconnected(self) -> None:
+        for game_id, (game, _, made) in list(self.games.items()):
+            if time.monotonic() - made > self.connect_s and self.games.pop(game_id, None) is not None:
+                game.end("never connected")
+                log.info("game %s expired: nobody connected within %g s", game_id, self.connect_s)
+
+    def new_game(self, choice: Choice) -> dict:
+        """A game as `choice` asks (an HTTP 400 saying why not), waiting for its player under a key nobody can
+        guess: {"id", "record"}."""
+        self.expire_unconnected()
+        if choice.mode not in MODES:
+            raise HTTPException(400, f"unknown mode {choice.mode!r}; one of {', '.join(MODES)}")
+        if choice.seat not in (0, 1):
+            raise HTTPException(400, f"seat must be 0 or 1, got {choice.seat}")
+        if choice.partner not in self.partners():
+            raise HTTPException(400, f"unknown partner {choice.partner!r}; one of {', '.join(self.partners())}")
+        number = next(self.counter)
+        seed = choice.seed if choice.seed is not None else int(time.time()) % 100_000 + number
+        try:
+            layout = make_kitchen(choice.kitchen, self.level_files, seed)
+            partner = self.shared_partner(choice.partner)
+            record = self.records / f"{time.strftime('%Y%m%d-%H%M%S')}-{number}.jsonl"
+            game = Game(layout, partner, choice.seat, record, seed=seed, max_steps=self.max_steps,
+                        tick_ms=self.tick_ms, mode=choice.mode, device=self.device)
+        except (ValueError, CheckpointError) as error:
+            raise HTTPException(400, str(error)) from None
+        game_id = secrets.token_urlsafe(16)  # the game's key: whoever holds it plays it, so nobody can guess it
+        self.games[game_id] = (game, choice.mode, time.monotonic())
+        log.info("game %s: %s with %s on %s, seat %d", game_id, choice.mode, partner.name, layout.name, choice.seat)
+        return {"id": game_id, "record": str(game.recorder.path)}
+
+
 class SharedPartners:
     """The partners of a server's games, each loaded once per version of its checkpoint (a run still training
     writes a new latest one): games with one partner then share it, and its forward pass runs once a round
@@ -380,55 +427,21 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
     if FastAPI is None:
         raise ImportError("kitchen-play needs the play extra: pip install .[play]")
     app = FastAPI(title="kitchen-play")
-    games: dict[str, tuple[Game, str, float]] = {}  # games made, not yet connected: (game, mode, made at)
-
     admits = guard(app, hosts, token)
-
-    def expire_unconnected() -> None:
-        for game_id, (game, _, made) in list(games.items()):
-            if time.monotonic() - made > connect_s and games.pop(game_id, None) is not None:
-                game.end("never connected")
-                log.info("game %s expired: nobody connected within %g s", game_id, connect_s)
-    counter = itertools.count()
-    shared_partner = SharedPartners(device)
-    records = Path(records)
-    level_files = list(level_files)
-
-    def partners() -> list[str]:
-        return [*dict.fromkeys([*runs, *find_runs(runs_root)]), SCRIPTED, RANDOM]
+    lobby = Lobby(list(runs), Path(records), tick_ms, device, list(level_files), max_steps, runs_root, connect_s)
 
     @app.get("/", response_class=HTMLResponse)
-    def lobby() -> str:
+    def index() -> str:
         return page_html("index.html")
 
     @app.get("/api/options")
     def options() -> dict:
-        return {"partners": partners(), "kitchens": kitchen_names(level_files), "modes": list(MODES),
+        return {"partners": lobby.partners(), "kitchens": kitchen_names(lobby.level_files), "modes": list(MODES),
                 "tick_ms": tick_ms}
 
     @app.post("/api/games")
     def new_game(choice: Choice) -> dict:
-        expire_unconnected()
-        if choice.mode not in MODES:
-            raise HTTPException(400, f"unknown mode {choice.mode!r}; one of {', '.join(MODES)}")
-        if choice.seat not in (0, 1):
-            raise HTTPException(400, f"seat must be 0 or 1, got {choice.seat}")
-        if choice.partner not in partners():
-            raise HTTPException(400, f"unknown partner {choice.partner!r}; one of {', '.join(partners())}")
-        number = next(counter)
-        seed = choice.seed if choice.seed is not None else int(time.time()) % 100_000 + number
-        try:
-            layout = make_kitchen(choice.kitchen, level_files, seed)
-            partner = shared_partner(choice.partner)
-            record = records / f"{time.strftime('%Y%m%d-%H%M%S')}-{number}.jsonl"
-            game = Game(layout, partner, choice.seat, record, seed=seed, max_steps=max_steps,
-                        tick_ms=tick_ms, mode=choice.mode, device=device)
-        except (ValueError, CheckpointError) as error:
-            raise HTTPException(400, str(error)) from None
-        game_id = secrets.token_urlsafe(16)  # the game's key: whoever holds it plays it, so nobody can guess it
-        games[game_id] = (game, choice.mode, time.monotonic())
-        log.info("game %s: %s with %s on %s, seat %d", game_id, choice.mode, partner.name, layout.name, choice.seat)
-        return {"id": game_id, "record": str(game.recorder.path)}
+        return lobby.new_game(choice)
 
     @app.websocket("/ws/games/{game_id}")
     async def play(websocket: WebSocket, game_id: str) -> None:
@@ -436,13 +449,13 @@ def create_app(runs: list[str] = (), records: str | Path = "games", tick_ms: int
             await websocket.close(code=1008)  # policy violation, before accepting: the game stays its owner's
             return
         await websocket.accept()
-        expire_unconnected()
-        if game_id not in games:
+        lobby.expire_unconnected()
+        if game_id not in lobby.games:
             await websocket.send_json({"type": "error", "reason": "no such game waiting (ended, expired or taken)"})
             await websocket.close()
             return
         # One connection per game; the game is held by `play_game` alone, which frees it when it ends.
-        await play_game(websocket, game_id, *games.pop(game_id)[:2], tick_ms, idle_s)
+        await play_game(websocket, game_id, *lobby.games.pop(game_id)[:2], tick_ms, idle_s)
 
     return app
 

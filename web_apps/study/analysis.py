@@ -117,25 +117,43 @@ def analyse(folder: str | Path) -> Path:
 
 
 def write_report(config: StudyConfig, database: StudyDatabase, folder: Path) -> Path:
+    """analysis/report.md with games.csv, answers.csv and deliveries.png: the games that replay exactly and the
+    answers that follow them, by condition, kitchen and participant."""
     out = folder / "analysis"
     out.mkdir(exist_ok=True)
     conditions = list(config.conditions)
     counted, left_out = checked_games(database, folder)
-    progress = database.progress()
-    kept = {(game.participant, game.position) for game in counted}
     condition_of = {(game.participant, game.position): game.condition for game in counted}
+    answers = counted_answers(config, database, condition_of)
+    write_tables(counted, answers, out)
+    cells = {(condition, kitchen): [g.deliveries for g in counted
+                                    if g.condition == condition and kitchen in ("all", g.kitchen)]
+             for condition in conditions for kitchen in [*config.kitchens, "all"]}
+    lines = [*count_lines(config, folder, database.progress(), counted, left_out, answers), *delivery_lines(cells),
+             *within_lines(counted, conditions), *question_lines(config, answers),
+             *choice_lines(config, forced_choices(answers, condition_of)), *left_out_lines(left_out)]
+    plot(cells, conditions, config.kitchens, out / "deliveries.png")
+    report = out / "report.md"
+    report.write_text("\n".join(lines), encoding="utf-8")
+    return report
 
-    # The questions of each counted game: stage rows tell which game a questions stage followed.
+
+def counted_answers(config: StudyConfig, database: StudyDatabase, condition_of: dict) -> list[tuple]:
+    """(participant, position, condition, item, value) of every answer that follows a counted game: stage rows
+    tell which game a questions stage followed."""
     answers = []
     for row in database.rows("SELECT a.participant, a.stage, a.item, a.value, s.kind FROM answers a JOIN stages s "
                              "ON a.participant = s.participant AND a.stage = s.stage ORDER BY a.participant, a.stage"):
         if row["kind"] != QUESTIONS:
             continue
         position = position_of_questions(config, row["stage"])
-        if (row["participant"], position) in kept:
+        if (row["participant"], position) in condition_of:
             answers.append((row["participant"], position, condition_of[row["participant"], position], row["item"],
                             row["value"]))
+    return answers
 
+
+def write_tables(counted: list, answers: list[tuple], out: Path) -> None:
     with open(out / "games.csv", "w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(["participant", "position", "condition", "kitchen", "seed", "record", "sha256", "deliveries"])
@@ -146,40 +164,42 @@ def write_report(config: StudyConfig, database: StudyDatabase, folder: Path) -> 
         writer.writerow(["participant", "position", "condition", "item", "value"])
         writer.writerows(answers)
 
-    lines = [f"# Study {config.name}: report", "",
-             f"From `{folder / DATABASE}` and the records under `{folder / 'records'}`. Every game counted is listed "
-             "in `games.csv` (its record and SHA-256), every answer counted in `answers.csv`.", "",
-             "## Counts", "",
-             "| | count |", "|---|---:|",
-             f"| participants started | {progress['started']} |",
-             f"| participants finished | {progress['finished']} |",
-             f"| assigned games finished (database) | {progress['games_finished']} |",
-             f"| games counted (replayed exactly) | {len(counted)} |",
-             f"| games left out | {len(left_out)} |",
-             f"| attempts cut and played again (never counted) | {progress['games_cut']} |",
-             f"| answers counted | {len(answers)} |", ""]
 
-    lines += ["## Deliveries per game", "",
-              f"Mean deliveries per game with its {CONFIDENCE:.0%} percentile bootstrap interval ({RESAMPLES} "
-              "resamples, `scipy.stats.bootstrap`); n: games.", "",
-              "| condition | kitchen | n | mean | 95% interval |", "|---|---|---:|---:|---|"]
-    cells = {}
-    for condition in conditions:
-        for kitchen in [*config.kitchens, "all"]:
-            values = [g.deliveries for g in counted if g.condition == condition and kitchen in ("all", g.kitchen)]
-            cells[condition, kitchen] = values
-            if values:
-                low, high = interval(values)
-                lines.append(f"| {condition} | {kitchen} | {len(values)} | {np.mean(values):.2f} | "
-                             f"{span(low, high)} |")
-    lines.append("")
+def count_lines(config: StudyConfig, folder: Path, progress: dict, counted: list, left_out: list, answers: list
+                ) -> list[str]:
+    return [f"# Study {config.name}: report", "",
+            f"From `{folder / DATABASE}` and the records under `{folder / 'records'}`. Every game counted is listed "
+            "in `games.csv` (its record and SHA-256), every answer counted in `answers.csv`.", "",
+            "## Counts", "",
+            "| | count |", "|---|---:|",
+            f"| participants started | {progress['started']} |",
+            f"| participants finished | {progress['finished']} |",
+            f"| assigned games finished (database) | {progress['games_finished']} |",
+            f"| games counted (replayed exactly) | {len(counted)} |",
+            f"| games left out | {len(left_out)} |",
+            f"| attempts cut and played again (never counted) | {progress['games_cut']} |",
+            f"| answers counted | {len(answers)} |", ""]
 
-    lines += ["## Within participants", "",
-              "Per participant, the mean deliveries with the first condition minus those with the second, over the "
-              "participants who played both; its mean with a 95% bootstrap interval, and the two-sided p-value of "
-              "the Wilcoxon signed-rank test (`scipy.stats.wilcoxon`) that the differences centre on 0.", "",
-              "| first | second | participants | mean difference | 95% interval | Wilcoxon p |",
-              "|---|---|---:|---:|---|---:|"]
+
+def delivery_lines(cells: dict[tuple[str, str], list]) -> list[str]:
+    lines = ["## Deliveries per game", "",
+             f"Mean deliveries per game with its {CONFIDENCE:.0%} percentile bootstrap interval ({RESAMPLES} "
+             "resamples, `scipy.stats.bootstrap`); n: games.", "",
+             "| condition | kitchen | n | mean | 95% interval |", "|---|---|---:|---:|---|"]
+    for (condition, kitchen), values in cells.items():
+        if values:
+            low, high = interval(values)
+            lines.append(f"| {condition} | {kitchen} | {len(values)} | {np.mean(values):.2f} | {span(low, high)} |")
+    return [*lines, ""]
+
+
+def within_lines(counted: list, conditions: list[str]) -> list[str]:
+    lines = ["## Within participants", "",
+             "Per participant, the mean deliveries with the first condition minus those with the second, over the "
+             "participants who played both; its mean with a 95% bootstrap interval, and the two-sided p-value of "
+             "the Wilcoxon signed-rank test (`scipy.stats.wilcoxon`) that the differences centre on 0.", "",
+             "| first | second | participants | mean difference | 95% interval | Wilcoxon p |",
+             "|---|---|---:|---:|---|---:|"]
     per_participant = {}
     for game in counted:
         per_participant.setdefault((game.participant, game.condition), []).append(game.deliveries)
@@ -191,47 +211,49 @@ def write_report(config: StudyConfig, database: StudyDatabase, folder: Path) -> 
             low, high = interval(differences)
             lines.append(f"| {first} | {second} | {len(differences)} | {np.mean(differences):.2f} | "
                          f"{span(low, high)} | {number(wilcoxon_p(differences), 3)} |")
-    lines.append("")
+    return [*lines, ""]
 
+
+def question_lines(config: StudyConfig, answers: list[tuple]) -> list[str]:
     scale = config.likert.scale
-    lines += ["## Questions", "",
-              f"Likert items on 1 ({scale[0]}) to {len(scale)} ({scale[-1]}): mean, median and the count of each "
-              "answer, per condition; n: answers.", "",
-              "| condition | item | n | mean | median | " + " | ".join(map(str, range(1, len(scale) + 1))) + " |",
-              "|---|---|---:|---:|---:|" + "---:|" * len(scale)]
-    for condition in conditions:
+    lines = ["## Questions", "",
+             f"Likert items on 1 ({scale[0]}) to {len(scale)} ({scale[-1]}): mean, median and the count of each "
+             "answer, per condition; n: answers.", "",
+             "| condition | item | n | mean | median | " + " | ".join(map(str, range(1, len(scale) + 1))) + " |",
+             "|---|---|---:|---:|---:|" + "---:|" * len(scale)]
+    for condition in config.conditions:
         for item in config.likert.items:
             values = [a[4] for a in answers if a[2] == condition and a[3] == item]
             if values:
                 counts = " | ".join(str(values.count(v)) for v in range(1, len(scale) + 1))
                 lines.append(f"| {condition} | {item} | {len(values)} | {np.mean(values):.2f} | "
                              f"{np.median(values):g} | {counts} |")
-    lines.append("")
+    return [*lines, ""]
 
-    choices = forced_choices(answers, condition_of)
-    if config.forced_choice and len(conditions) > 1:
-        lines += ["## Forced choice", "", f"\"{config.forced_choice}\", asked after every game but the first, "
-                  "between the last two partners: per condition, how often it was one of the two and how often "
-                  "chosen.", "", "| condition | offered | chosen | share |", "|---|---:|---:|---:|"]
-        for condition in conditions:
-            offered = sum(condition in pair for pair, _ in choices)
-            chosen = sum(choice == condition for _, choice in choices)
-            share = chosen / offered if offered else float("nan")
-            lines.append(f"| {condition} | {offered} | {chosen} | {number(share)} |")
-        lines.append("")
 
-    lines += ["## Games left out", ""]
+def choice_lines(config: StudyConfig, choices: list) -> list[str]:
+    if not config.forced_choice or len(config.conditions) < 2:
+        return []
+    lines = ["## Forced choice", "", f"\"{config.forced_choice}\", asked after every game but the first, "
+             "between the last two partners: per condition, how often it was one of the two and how often "
+             "chosen.", "", "| condition | offered | chosen | share |", "|---|---:|---:|---:|"]
+    for condition in config.conditions:
+        offered = sum(condition in pair for pair, _ in choices)
+        chosen = sum(choice == condition for _, choice in choices)
+        share = chosen / offered if offered else float("nan")
+        lines.append(f"| {condition} | {offered} | {chosen} | {number(share)} |")
+    return [*lines, ""]
+
+
+def left_out_lines(left_out: list) -> list[str]:
+    lines = ["## Games left out", ""]
     if left_out:
         lines += ["| participant | position | condition | record | reason |", "|---:|---:|---|---|---|"]
         lines += [f"| {row['participant']} | {row['position']} | {row['condition']} | `{row['record']}` | {why} |"
                   for row, why in left_out]
     else:
         lines.append("None: every finished game replayed exactly to the score the database holds.")
-    lines += ["", "![deliveries per game](deliveries.png)", ""]
-    plot(cells, conditions, config.kitchens, out / "deliveries.png")
-    report = out / "report.md"
-    report.write_text("\n".join(lines), encoding="utf-8")
-    return report
+    return [*lines, "", "![deliveries per game](deliveries.png)", ""]
 
 
 def position_of_questions(config: StudyConfig, stage: int) -> int:

@@ -31,7 +31,7 @@ from urllib.parse import quote
 
 from web_apps.play.game import Game, Partner, file_sha256
 from web_apps.play.server import guard, play_game
-from web_apps.study.assignment import COMPLETE, CONSENT, PLAYED, QUESTIONS, assign, stages_of
+from web_apps.study.assignment import COMPLETE, CONSENT, PLAYED, QUESTIONS, Stage, assign, stages_of
 from web_apps.study.config import FORCED_CHOICE, StudyConfig, StudyError, kitchen_of, partner_key, study_partners
 from web_apps.study.database import DATABASE, Refused, StillPlaying, StudyDatabase
 from web_apps.study.pages import allowed_answers, progress_page, stage_page
@@ -106,19 +106,9 @@ def create_study_app(config: StudyConfig, database: StudyDatabase, token: str, o
         raise ImportError("kitchen-study needs the play extra: pip install .[play]")
     app = FastAPI(title="kitchen-study")
     admits = guard(app, hosts, token)
-    folder = config.folder
     # Loaded once: a game starting beside others then costs a kitchen, not a checkpoint read (the participants'
     # first games start together, and each load held the ticking games back).
-    partners = partners if partners is not None else study_partners(config)
-
-    def participant_of(key: str):
-        participant = database.participant(key)
-        if participant is None:
-            raise HTTPException(404, "no such participant: open the study's link again")
-        return participant
-
-    def visit(participant):
-        return stages_of(database.slots(participant["number"]))
+    visits = Visits(config, database, partners if partners is not None else study_partners(config))
 
     @app.get("/")
     def entry(request: Request) -> RedirectResponse:
@@ -132,26 +122,86 @@ def create_study_app(config: StudyConfig, database: StudyDatabase, token: str, o
 
     @app.get("/p/{key}", response_class=HTMLResponse)
     def page(key: str) -> str:
-        participant = participant_of(key)
-        stages = visit(participant)
-        stage = stages[min(database.stage(participant["number"]), len(stages) - 1)]
+        participant, stage, stages = visits.at(key)
         return stage_page(config, stage, stages, key, token, participant["completion_code"])
 
     @app.get("/api/p/{key}")
     def where(key: str) -> dict:
-        participant = participant_of(key)
-        stages = visit(participant)
-        stage = stages[min(database.stage(participant["number"]), len(stages) - 1)]
+        return visits.where(key)
+
+    @app.post("/api/p/{key}/stages/{index}")
+    def complete(key: str, index: int, done: StageDone) -> dict:
+        return visits.complete(key, index, done)
+
+    @app.websocket("/ws/p/{key}/stages/{index}")
+    async def play(websocket: WebSocket, key: str, index: int) -> None:
+        if not admits(websocket):
+            await websocket.close(code=1008)  # policy violation, before accepting
+            return
+        await websocket.accept()
+        try:
+            game = await visits.start_when_free(key, index)
+        except (Refused, StudyError) as refused:
+            await websocket.send_json({"type": "error", "reason": str(refused)})
+            await websocket.close()
+            return
+        await play_game(websocket, f"{key[:6]}/{index}", game, config.pace, config.tick_ms, config.idle_s)
+
+    add_operator_pages(app, config, database, operator)
+    return app
+
+
+def add_operator_pages(app: FastAPI, config: StudyConfig, database: StudyDatabase, operator: str) -> None:
+    """The operator's progress page and its numbers, for the holder of the operator key alone."""
+
+    def operator_only(key: str | None) -> None:
+        if key is None or not secrets.compare_digest(key.encode(), operator.encode()):
+            raise HTTPException(403, "the operator's page needs &key=<the operator key printed when the study "
+                                     "started>")
+
+    @app.get("/operator", response_class=HTMLResponse)
+    def operator_page(key: str | None = None) -> str:
+        operator_only(key)
+        return progress_page(config.name, database.progress(), config.target_participants)
+
+    @app.get("/api/progress")
+    def progress(key: str | None = None) -> dict:
+        operator_only(key)
+        return database.progress()
+
+
+class Visits:
+    """A participant's visit through the study's stages, over the study's `database`: where a participant is,
+    completing a stage that is done by a post, and starting a stage's game beside its condition's partner."""
+
+    def __init__(self, config: StudyConfig, database: StudyDatabase, partners: dict[str, Partner]):
+        self.config, self.database, self.partners = config, database, partners
+
+    def participant(self, key: str):
+        participant = self.database.participant(key)
+        if participant is None:
+            raise HTTPException(404, "no such participant: open the study's link again")
+        return participant
+
+    def at(self, key: str) -> tuple[dict, Stage, list[Stage]]:
+        """(participant, its current stage, all its stages)."""
+        participant = self.participant(key)
+        stages = stages_of(self.database.slots(participant["number"]))
+        return participant, stages[min(self.database.stage(participant["number"]), len(stages) - 1)], stages
+
+    def where(self, key: str) -> dict:
+        participant, stage, stages = self.at(key)
+        config = self.config
         return {"stage": stage.index, "kind": stage.kind, "label": stage.label, "stages": len(stages),
                 **({"position": stage.slot.position} if stage.slot else {}),
                 **({"asks": allowed_answers(config, stage)} if stage.kind == QUESTIONS else {}),
                 **({"code": participant["completion_code"]} if stage.kind == COMPLETE else {})}
 
-    @app.post("/api/p/{key}/stages/{index}")
-    def complete(key: str, index: int, done: StageDone) -> dict:
-        participant = participant_of(key)
-        number, stages = participant["number"], visit(participant)
-        current = database.stage(number)
+    def complete(self, key: str, index: int, done: StageDone) -> dict:
+        """Stage `index` done by a post (consent, questions): stored once, refused out of turn or for a game."""
+        participant = self.participant(key)
+        number, stages = participant["number"], stages_of(self.database.slots(participant["number"]))
+        current = self.database.stage(number)
         if not 0 <= index < len(stages):
             raise HTTPException(404, f"no stage {index}: the study has stages 0 to {len(stages) - 1}")
         if index < current:
@@ -168,41 +218,30 @@ def create_study_app(config: StudyConfig, database: StudyDatabase, token: str, o
         if stage.kind == COMPLETE:
             raise HTTPException(409, "the study is complete: nothing more to post")
         if stage.kind == QUESTIONS:
-            answers = checked_answers(config, stage, done.answers)
+            answers = checked_answers(self.config, stage, done.answers)
         try:
-            database.complete_stage(number, index, stage.kind, stages[index + 1].kind, answers)
+            self.database.complete_stage(number, index, stage.kind, stages[index + 1].kind, answers)
         except Refused as refused:
             raise HTTPException(409, str(refused)) from None
         return {"stage": index + 1}
 
-    @app.websocket("/ws/p/{key}/stages/{index}")
-    async def play(websocket: WebSocket, key: str, index: int) -> None:
-        if not admits(websocket):
-            await websocket.close(code=1008)  # policy violation, before accepting
-            return
-        await websocket.accept()
-        try:
-            game = await start_when_free(key, index)
-        except (Refused, StudyError) as refused:
-            await websocket.send_json({"type": "error", "reason": str(refused)})
-            await websocket.close()
-            return
-        await play_game(websocket, f"{key[:6]}/{index}", game, config.pace, config.tick_ms, config.idle_s)
-
-    async def start_when_free(key: str, index: int) -> StudyGame:
+    async def start_when_free(self, key: str, index: int) -> StudyGame:
         """`start_game`, once the participant's game still playing (a reloaded tab's) has ended; StillPlaying if it
         goes on for `LEFT_GAME_S` plus a few ticks (a second tab)."""
         loop = asyncio.get_running_loop()
-        deadline = loop.time() + LEFT_GAME_S + 3 * config.tick_ms / 1000
+        deadline = loop.time() + LEFT_GAME_S + 3 * self.config.tick_ms / 1000
         while True:
             try:
-                return await asyncio.to_thread(start_game, key, index)
+                return await asyncio.to_thread(self.start_game, key, index)
             except StillPlaying:
                 if loop.time() > deadline:
                     raise
                 await asyncio.sleep(0.05)
 
-    def start_game(key: str, index: int) -> StudyGame:
+    def start_game(self, key: str, index: int) -> StudyGame:
+        """Stage `index`'s game (a new try of it), its end written to the database; Refused, or StudyError if it
+        could not start."""
+        config, database = self.config, self.database
         participant = database.participant(key)
         if participant is None:
             raise Refused("no such participant: open the study's link again")
@@ -220,31 +259,14 @@ def create_study_app(config: StudyConfig, database: StudyDatabase, token: str, o
             log.info("participant %d %s ended (%s), score %d", number, stage.label, reason, game.score)
 
         try:
-            partner = partners[partner_key(config.practice_partner if slot.practice
-                                           else config.conditions[slot.condition], slot.kitchen)]
-            return StudyGame(kitchen_of(slot.kitchen, slot.seed), partner, config.seat, folder / record,
+            partner = self.partners[partner_key(config.practice_partner if slot.practice
+                                                else config.conditions[slot.condition], slot.kitchen)]
+            return StudyGame(kitchen_of(slot.kitchen, slot.seed), partner, config.seat, config.folder / record,
                              seed=slot.seed, max_steps=config.practice_steps if slot.practice else config.max_steps,
                              tick_ms=config.tick_ms, mode=config.pace, device=config.device, on_end=ended)
         except (StudyError, ValueError, OSError) as error:
             database.end_game(game_id, f"could not start: {error}", 0, 0, None, stage.kind, after)
             raise StudyError(f"the game could not start: {error}") from None
-
-    def operator_only(key: str | None) -> None:
-        if key is None or not secrets.compare_digest(key.encode(), operator.encode()):
-            raise HTTPException(403, "the operator's page needs &key=<the operator key printed when the study "
-                                     "started>")
-
-    @app.get("/operator", response_class=HTMLResponse)
-    def operator_page(key: str | None = None) -> str:
-        operator_only(key)
-        return progress_page(config.name, database.progress(), config.target_participants)
-
-    @app.get("/api/progress")
-    def progress(key: str | None = None) -> dict:
-        operator_only(key)
-        return database.progress()
-
-    return app
 
 
 def checked_answers(config: StudyConfig, stage, answers: dict[str, int] | None) -> dict[str, int]:
