@@ -31,7 +31,7 @@ CONFIG = ROOT / "configs" / "ippo" / "mlp_ik.yaml"
 def overrides(architecture: str, budget: int, seed: int, runs: Path) -> list[str]:
     """The one config every architecture trains with (only `architecture` and `seed` differ)."""
     return [f"architecture={architecture}", "hidden=64", "num_envs=16", "rollout_steps=128",
-            f"total_steps={budget}", "lr=0.001", "shaping_weight=1.0", f"shaping_anneal_steps={budget}",
+            f"total_steps={budget}", "ppo.lr=0.001", "ppo.shaping_weight=1.0", f"ppo.shaping_anneal_steps={budget}",
             "eval_episodes=0", "progress=false", "checkpoint_every=50", f"seed={seed}",
             f"run_dir={runs / architecture}"]
 

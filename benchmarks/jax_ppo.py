@@ -205,7 +205,7 @@ def standardize(advantage: jax.Array) -> jax.Array:
 def ppo_loss(params: dict, networks: ActorCritic, batch: Minibatch, config: TrainConfig
              ) -> tuple[jax.Array, dict[str, jax.Array]]:
     """ClipPPOLoss's total (policy + critic + entropy terms) and its logged parts, named as our trainer logs them."""
-    eps = config.clip_epsilon
+    eps = config.ppo.clip_epsilon
     logits = networks.logits(params, batch.observation)
     log_probs = jax.nn.log_softmax(logits)
     log_prob = jnp.take_along_axis(log_probs, batch.action[..., None], axis=-1)[..., 0]
@@ -216,13 +216,13 @@ def ppo_loss(params: dict, networks: ActorCritic, batch: Minibatch, config: Trai
     gain = jnp.minimum(jnp.exp(log_ratio) * advantage, jnp.exp(clipped_log_ratio) * advantage)
     policy_loss = -gain.mean()
     entropy = -(jnp.exp(log_probs) * log_probs).sum(-1).mean()
-    entropy_loss = -config.entropy_coef * entropy
+    entropy_loss = -config.ppo.entropy_coef * entropy
 
     value = networks.value(params, batch.observation)
     value_change = value - batch.value
     clipped_value = batch.value + jnp.clip(value_change, -eps, eps)
     value_error = jnp.maximum((batch.target - value) ** 2, (batch.target - clipped_value) ** 2)
-    value_loss = config.value_coef * value_error.mean()
+    value_loss = config.ppo.value_coef * value_error.mean()
 
     total = policy_loss + value_loss + entropy_loss
     stats = {
@@ -239,7 +239,7 @@ def ppo_loss(params: dict, networks: ActorCritic, batch: Minibatch, config: Trai
 
 def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
     """Adam(lr, eps=adam_eps) whose learning rate can be set per update (`with_learning_rate`)."""
-    return optax.inject_hyperparams(optax.adam)(learning_rate=config.lr, eps=config.adam_eps)
+    return optax.inject_hyperparams(optax.adam)(learning_rate=config.ppo.lr, eps=config.ppo.adam_eps)
 
 
 def with_learning_rate(opt_state, learning_rate: jax.Array):
@@ -252,7 +252,7 @@ def minibatch_step(params: dict, opt_state, networks: ActorCritic, optimizer: op
     """One gradient step as our trainer's inner loop: loss, gradient clipped to max_grad_norm, Adam."""
     (_, stats), grads = jax.value_and_grad(ppo_loss, has_aux=True)(params, networks, batch, config)
     grad_norm = optax.tree.norm(grads)
-    scale = jnp.minimum(1.0, config.max_grad_norm / (grad_norm + GRAD_NORM_EPS))
+    scale = jnp.minimum(1.0, config.ppo.max_grad_norm / (grad_norm + GRAD_NORM_EPS))
     grads = jax.tree_util.tree_map(lambda grad: grad * scale, grads)
     updates, opt_state = optimizer.update(grads, opt_state, params)
     return optax.apply_updates(params, updates), opt_state, {**stats, "losses/grad_norm": grad_norm}
@@ -273,8 +273,8 @@ def check_supported(config: TrainConfig) -> None:
             f"the JAX reference implements IPPO with the mlp architecture only, got algorithm={config.algorithm}, "
             f"architecture={config.architecture}"
         )
-    if config.num_envs % config.minibatches:
-        raise ValueError(f"minibatches ({config.minibatches}) must divide num_envs ({config.num_envs})")
+    if config.num_envs % config.ppo.minibatches:
+        raise ValueError(f"minibatches ({config.ppo.minibatches}) must divide num_envs ({config.num_envs})")
     if config.planned_steps >= 2**31:
         raise ValueError("the reference counts env steps in int32: keep total_steps below 2**31")
 
@@ -287,7 +287,7 @@ def make_train(config: TrainConfig) -> Callable[[jax.Array], dict[str, jax.Array
     env = Overcooked(config.levels, max_steps=config.max_steps)
     networks = make_actor_critic(config.hidden, config.share_params)
     optimizer = make_optimizer(config)
-    num_envs, steps, minibatches = config.num_envs, config.rollout_steps, config.minibatches
+    num_envs, steps, minibatches = config.num_envs, config.rollout_steps, config.ppo.minibatches
     per_update = {key: jnp.asarray(value) for key, value in schedules(config).items()}
 
     def rollout(carry, _):
@@ -331,14 +331,14 @@ def make_train(config: TrainConfig) -> Callable[[jax.Array], dict[str, jax.Array
         reward = transitions.reward + schedule["shaping_weight"] * transitions.shaped_reward
         last_value = networks.value(params, observation)
         advantage, target = generalized_advantages(reward, transitions.value, transitions.done, last_value,
-                                                   config.gamma, config.gae_lambda)
+                                                   config.ppo.gamma, config.ppo.gae_lambda)
         data = Minibatch(transitions.observation, transitions.action, transitions.log_prob, transitions.value,
                          advantage, target)
 
         opt_state = with_learning_rate(opt_state, schedule["learning_rate"])
         rng, rng_epochs = jax.random.split(rng)
         (params, opt_state, _, _), stats = jax.lax.scan(
-            epoch, (params, opt_state, data, rng_epochs), None, length=config.epochs
+            epoch, (params, opt_state, data, rng_epochs), None, length=config.ppo.epochs
         )
 
         episodes = transitions.done.sum()

@@ -20,7 +20,7 @@ runs() {  # TREE LOGS
     (cd "$tree" && PYTHONPATH=$tree "$PY" -m trainers.train_command "$@" $common run_dir="$logs/$name" \
       > "$logs/$name.log" 2>&1) || echo "$name: failed in $tree (see $logs/$name.log)"; }
   mkdir -p "$logs"
-  run mlp configs/ippo/mlp_sk_cramped_room.yaml total_steps=65536 shaping_weight=1 anneal_lr=true
+  run mlp configs/ippo/mlp_sk_cramped_room.yaml total_steps=65536 ppo.shaping_weight=1 ppo.anneal_lr=true
   run mlp_kitchen configs/ippo/mlp_sk_cramped_room.yaml total_steps=32768 runtime.collector=kitchen hidden=128
   run teams3 configs/ippo/mlp_sk_cramped_room.yaml total_steps=16384 runtime.teams=3 runtime.parallel_teams=2
   run gnn_shards configs/ippo/gnn_sk_cramped_room.yaml total_steps=8192 runtime.minibatch_shards=2

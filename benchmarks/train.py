@@ -79,8 +79,8 @@ def learning_check(target: float, budget: int, threads: int, device: str, seed: 
             [
                 "num_envs=16",
                 "rollout_steps=128",
-                "shaping_weight=1.0",
-                "shaping_anneal_steps=2.5e6",
+                "ppo.shaping_weight=1.0",
+                "ppo.shaping_anneal_steps=2.5e6",
                 f"total_steps={budget}",
                 f"runtime.threads={threads}",
                 f"runtime.device={device}",
@@ -179,7 +179,7 @@ def profile(setting: str, updates: int, threads: int, rows: int, device: str = "
     collect, update = (sum(column) / len(timed) for column in zip(*timed))
     print(f"setting {setting}, {config.frames_per_batch:,} steps per batch, under the profiler: collection "
           f"{collect:.3f} s ({collect / config.rollout_steps * 1e3:.2f} ms per step), update {update:.3f} s "
-          f"({update / (config.epochs * config.minibatches) * 1e3:.1f} ms per minibatch)")
+          f"({update / (config.ppo.epochs * config.ppo.minibatches) * 1e3:.1f} ms per minibatch)")
     pstats.Stats(profiler).sort_stats("cumulative").print_stats(rows)
 
 

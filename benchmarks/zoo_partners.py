@@ -27,7 +27,7 @@ from torch_kitchen.partners.conventions import ZOO_FILE, load_zoo
 from trainers.config.compose import load_config
 from trainers.machine import machine_name
 
-SHAPE = ["architecture=ego_mlp", "hidden=128", "share_params=true", "shaping_weight=0", "num_envs=32",
+SHAPE = ["architecture=ego_mlp", "hidden=128", "share_params=true", "ppo.shaping_weight=0", "num_envs=32",
          "rollout_steps=256"]
 GOAL = 0.8
 

@@ -37,7 +37,7 @@ REFUSED = "refused"  # a comment that begins so marks a command meant to fail
 # 16-step episodes, narrow networks, one distillation round, 1-2 test levels, no progress bars; evaluations by the
 # kitchens' collector, since a tiny one compiles longer inside XLA than it plays (that path has tests of its own:
 # tests/torch_kitchen/test_xla_rollout.py, the stranger benchmark's).
-TRAIN_SHRINK = ["num_envs=4", "rollout_steps=16", "max_steps=16", "hidden=16", "minibatches=2", "epochs=2",
+TRAIN_SHRINK = ["num_envs=4", "rollout_steps=16", "max_steps=16", "hidden=16", "ppo.minibatches=2", "ppo.epochs=2",
                 "total_steps=64", "runtime.threads=1", "progress=false", "eval_episodes=0", "distill.kitchens=4",
                 "distill.rounds=1", "distill.epochs=1"]
 EVAL_SHRINK = ["rollouts=1", "heldout=1", "max_steps=16", "progress=false", "runtime.threads=1", "workers=1",
@@ -195,7 +195,7 @@ def test_make_main_stands_for_the_makefiles_recipe():
     assert recipe in (ROOT / "Makefile").read_text(), f"the Makefile's main target no longer runs {recipe}"
     assert split_comment("kitchen-eval 'a # b' x=1   # refused until # then") == ("kitchen-eval 'a # b' x=1",
                                                                                  "refused until # then")
-    assert shrink_of(["kitchen-sweep", "c.yaml", "seed=0,1,2", "lr=1,2", "x=range(0,6)", "hydra.a=1,2,3"])[-1:] == [
+    assert shrink_of(["kitchen-sweep", "c.yaml", "seed=0,1,2", "ppo.lr=1,2", "x=range(0,6)", "hydra.a=1,2,3"])[-1:] == [
         "seed=0,2"]
 
 

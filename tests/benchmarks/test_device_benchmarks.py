@@ -16,7 +16,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 import launches  # noqa: E402
 import phases  # noqa: E402
 
-TINY_SHAPE = ["num_envs=4", "rollout_steps=8", "hidden=8", "minibatches=2", "epochs=1"]
+TINY_SHAPE = ["num_envs=4", "rollout_steps=8", "hidden=8", "ppo.minibatches=2", "ppo.epochs=1"]
 
 
 def test_the_phases_of_every_timed_update_are_labelled_and_leave_the_trainer_as_it_was():

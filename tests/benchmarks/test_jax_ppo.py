@@ -30,7 +30,7 @@ sys.modules[_spec.name] = jax_ppo  # flax's dataclasses look their module up the
 _spec.loader.exec_module(jax_ppo)
 
 # The shared tiny run (16-step episodes: every update ends one per kitchen), 2 updates, shaping annealed.
-TINY_JAX = [*TINY, "total_steps=128", "shaping_weight=1", "shaping_anneal_steps=1000"]
+TINY_JAX = [*TINY, "total_steps=128", "ppo.shaping_weight=1", "ppo.shaping_anneal_steps=1000"]
 
 
 def tiny_config(*overrides):
@@ -46,7 +46,7 @@ def test_the_reference_runs_with_finite_metrics_and_is_seeded():
     np.testing.assert_array_equal(metrics["charts/env_steps"], [64, 128])
     np.testing.assert_array_equal(metrics["charts/episodes"], [4, 4])
     assert (metrics["charts/episode_deliveries"] >= 0).all()
-    np.testing.assert_allclose(metrics["charts/learning_rate"], [config.lr, config.lr / 2])
+    np.testing.assert_allclose(metrics["charts/learning_rate"], [config.ppo.lr, config.ppo.lr / 2])
     np.testing.assert_allclose(metrics["charts/shaping_weight"], [shaping_weight_at(config, 64),
                                                                   shaping_weight_at(config, 128)])
     assert (metrics["losses/entropy"] > 1.7).all()  # near log(6): small output gain, two updates
@@ -122,7 +122,7 @@ def assert_trees_close(actual, expected, **tolerance):
 @pytest.mark.parametrize("share_params", [True, False])
 def test_loss_gradients_and_adam_steps_equal_our_trainers(share_params):
     torch.manual_seed(0)
-    config = tiny_config("lr=1e-3", f"share_params={str(share_params).lower()}", "max_grad_norm=0.05")
+    config = tiny_config("ppo.lr=1e-3", f"share_params={str(share_params).lower()}", "ppo.max_grad_norm=0.05")
     kitchens, steps = 2, 8
     actor_critic = make_actor_critic("mlp", (7, 7, 26), config.hidden, share_params)
     observation = torch.randint(0, 3, (kitchens, steps, 2, 7, 7, 26), dtype=torch.uint8)
@@ -165,18 +165,18 @@ def test_loss_gradients_and_adam_steps_equal_our_trainers(share_params):
 
     # A few steps of our trainer's inner loop (clip the gradient norm, then Adam) against the reference's.
     parameters = list(loss_module.parameters())
-    optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps)
+    optimizer = torch.optim.Adam(parameters, lr=config.ppo.lr, eps=config.ppo.adam_eps)
     jax_optimizer = jax_ppo.make_optimizer(config)
     opt_state = jax_optimizer.init(params)
     for _ in range(3):
         optimizer.zero_grad()
         total_loss(loss_module(batch)).backward()
-        norm = torch.nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
+        norm = torch.nn.utils.clip_grad_norm_(parameters, config.ppo.max_grad_norm)
         optimizer.step()
         params, opt_state, stats = jax_ppo.minibatch_step(params, opt_state, networks, jax_optimizer, minibatch,
                                                           config)
         np.testing.assert_allclose(float(stats["losses/grad_norm"]), float(norm), rtol=1e-5)
-    assert float(norm) > config.max_grad_norm  # the clip acted
+    assert float(norm) > config.ppo.max_grad_norm  # the clip acted
     assert_trees_close(params, {"actor": flax_params(actor_critic.actor), "critic": flax_params(actor_critic.critic)},
                        rtol=1e-4, atol=1e-6)
 

@@ -13,8 +13,8 @@ from trainers.config.compose import load_config
 ROOT = Path(__file__).resolve().parents[2]
 reproduce = script_module("reproduce")
 
-TINY = ["hidden=8", "num_envs=4", "rollout_steps=16", "max_steps=16", "total_steps=128", "epochs=1",
-        "minibatches=2", "checkpoint_every=1", "eval_episodes=0", "progress=false", "loggers=[csv]"]
+TINY = ["hidden=8", "num_envs=4", "rollout_steps=16", "max_steps=16", "total_steps=128", "ppo.epochs=1",
+        "ppo.minibatches=2", "checkpoint_every=1", "eval_episodes=0", "progress=false", "loggers=[csv]"]
 
 
 @pytest.mark.slow
@@ -78,9 +78,9 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     monkeypatch.setattr(reproduce, "human_proxies", scripted_proxy)
     # Run again with a setting changed: the runs trained with the old one are refused in one line, not reused.
     capsys.readouterr()
-    assert reproduce.main([argv[0], "lr=0.1", *argv[1:]]) == 2
+    assert reproduce.main([argv[0], "ppo.lr=0.1", *argv[1:]]) == 2
     error = capsys.readouterr().err
-    assert "was trained with lr=0.00025, not lr=0.1: a resume keeps what the run learns" in error
+    assert "was trained with ppo.lr=0.00025, not ppo.lr=0.1: a resume keeps what the run learns" in error
     assert error.count("\n") == 1
 
     # Part of the protocol: the conditions named, their family and the report saying what it left out.
@@ -196,7 +196,7 @@ def test_a_strangers_section_trains_its_instruments_per_stranger_and_never_evalu
         "conditions": {"ik": "a.yaml", "sk": "b.yaml", "other": "c.yaml"},
         "families": {"MLP": {"ik": "ik", "sk": []}},
         "sections": {"strangers": {"title": "S", "conditions": ["ik", "sk"], "strangers": zoo,
-                                   "best_responses": {"config": "a.yaml", "overrides": [["hidden=8"], "lr=0.1"]},
+                                   "best_responses": {"config": "a.yaml", "overrides": [["hidden=8"], "ppo.lr=0.1"]},
                                    "learned_strangers": {"config": "a.yaml", "runs": ["other"]}},
                      "plain": {"title": "P", "conditions": ["other"]}}})
     swapped = reproduce.with_strangers(protocol, "other.yaml")["sections"]  # --strangers ZOO: only where seated
@@ -205,7 +205,7 @@ def test_a_strangers_section_trains_its_instruments_per_stranger_and_never_evalu
     assert section["best_responses"] == {"server": "best_response_server", "loader": "best_response_loader"}
     assert section["learned_strangers"] == {"server": "learned_server", "loader": "learned_loader", "other": "other"}
     assert protocol["conditions"]["best_response_loader"] == {"config": "a.yaml", "overrides": [
-        "hidden=8", "lr=0.1", "algorithm=zoo_ippo", "algorithm_config.best_response_to=loader", f"zoo={zoo}",
+        "hidden=8", "ppo.lr=0.1", "algorithm=zoo_ippo", "algorithm_config.best_response_to=loader", f"zoo={zoo}",
         "runtime.teams=1"]}
     assert protocol["conditions"]["learned_server"]["overrides"] == [
         "distill.teachers=[server]", "learned_stranger=true", "snapshots=3", f"zoo={zoo}", "runtime.teams=1"]

@@ -17,7 +17,7 @@ from trainers.evaluation import load_team
 from trainers.ppo.loop import train
 from trainers.train_command import main as train_main
 
-FAST = ["lr=0.01", "anneal_lr=false"]  # large steps, so that two updates move the policy visibly
+FAST = ["ppo.lr=0.01", "ppo.anneal_lr=false"]  # large steps, so that two updates move the policy visibly
 
 
 def kl_from(start, actor, observation) -> float:

@@ -70,7 +70,7 @@ def test_a_group_chosen_on_the_command_line_takes_the_files_choices_place_before
     main = load_config(CONFIG_DIR / "main.yaml")
     assert (main.levels, main.hidden, main.share_params) == ("infinite", 128, True)  # the file's own width
     ik = load_config(CONFIG_DIR / "main.yaml", ["regime=ik"])  # the regime's hidden (256) gives way to the file's
-    assert (ik.levels, ik.hidden, ik.share_params, ik.lr) == ("infinite", 128, True, main.lr)
+    assert (ik.levels, ik.hidden, ik.share_params, ik.ppo.lr) == ("infinite", 128, True, main.ppo.lr)
     sk = load_config(CONFIG_DIR / "main.yaml", ["regime=sk_forced_coord"])
     assert (sk.levels, sk.hidden, sk.share_params, sk.init_from) == ("forced_coord_7x7", 128, False, main.init_from)
     assert load_config(CONFIG_DIR / "main.yaml", ["hidden=64", "regime=ik"]).hidden == 64
@@ -129,7 +129,8 @@ def test_regimes_follow_the_protocol(architecture):
         sk = load_config(CONFIG_DIR / f"ippo/{architecture}_sk_{layout}.yaml")
         assert (sk.levels, sk.hidden, sk.share_params) == (f"{layout}_7x7", 128, False)
         assert sk.name == f"ippo_{architecture}_sk_{layout}"
-    assert (ik.num_envs, ik.rollout_steps, ik.epochs, ik.minibatches, ik.shaping_weight) == (32, 256, 4, 4, 0.0)
+    assert (ik.num_envs, ik.rollout_steps) == (32, 256)
+    assert (ik.ppo.epochs, ik.ppo.minibatches, ik.ppo.shaping_weight) == (4, 4, 0.0)
 
 
 @pytest.mark.parametrize("encoder", ["mlp", "gnn"])
@@ -147,8 +148,8 @@ def test_e3t_configs_follow_the_protocol_on_top_of_ippo(encoder):
 
 
 def test_overrides_apply_on_top_of_the_file_and_are_typed():
-    config = load_config(CONFIG_DIR / "ippo/mlp_ik.yaml", ["seed=3", "lr=1e-3", "total_steps=2e6", "levels=[a, b]"])
-    assert (config.seed, config.lr, config.total_steps, config.levels) == (3, 1e-3, 2_000_000, ["a", "b"])
+    config = load_config(CONFIG_DIR / "ippo/mlp_ik.yaml", ["seed=3", "ppo.lr=1e-3", "total_steps=2e6", "levels=[a, b]"])
+    assert (config.seed, config.ppo.lr, config.total_steps, config.levels) == (3, 1e-3, 2_000_000, ["a", "b"])
     assert config.run_path == Path("runs/ippo_mlp_ik/seed3")
 
 
@@ -157,18 +158,18 @@ def test_a_file_edited_between_two_loads_composes_anew(tmp_path):
     # the file system's clock and to the same size, is still read.
     (tmp_path / "mine.yaml").write_text("defaults: [base, _self_]\nlr: 0.1\n")
     (tmp_path / "base.yaml").write_text("hidden: 16\n")
-    assert (load_config(tmp_path / "mine.yaml").lr, load_config(tmp_path / "mine.yaml").hidden) == (0.1, 16)
+    assert (load_config(tmp_path / "mine.yaml").ppo.lr, load_config(tmp_path / "mine.yaml").hidden) == (0.1, 16)
     (tmp_path / "mine.yaml").write_text("defaults: [base, _self_]\nlr: 0.2\n")
     (tmp_path / "base.yaml").write_text("hidden: 32\n")
     again = load_config(tmp_path / "mine.yaml")
-    assert (again.lr, again.hidden) == (0.2, 32)
+    assert (again.ppo.lr, again.hidden) == (0.2, 32)
     first, second = compose(tmp_path / "mine.yaml"), compose(tmp_path / "mine.yaml")
     first["lr"] = 9.0  # each caller's own copy
     assert second["lr"] == 0.2 and compose(tmp_path / "mine.yaml")["lr"] == 0.2
 
 
 def test_unknown_keys_are_refused_with_the_valid_ones(tmp_path):
-    with pytest.raises(ConfigError, match=r"unknown config key 'lrr'.*did you mean 'lr'.*valid keys: name, run_dir"):
+    with pytest.raises(ConfigError, match=r"unknown config key 'lrr'.*did you mean 'ppo.lr'.*valid keys: name, "):
         load_config(None, ["lrr=0.1"])
     bad = tmp_path / "bad.yaml"
     bad.write_text("defaults: ['/ippo/mlp_ik@_global_', _self_]\nnum_env: 8\n")  # a shipped file, its keys on top
@@ -180,7 +181,7 @@ def test_unknown_keys_are_refused_with_the_valid_ones(tmp_path):
     "override, message",
     [
         ("share_params=3", "share_params in the command line must be bool"),
-        ("lr=fast", "lr in the command line must be float"),
+        ("ppo.lr=fast", "ppo.lr in the command line must be float"),
         ("num_envs=0", "num_envs must be at least 1"),
         ("num_envs=30", r"minibatches \(4\) must divide num_envs \(30\)"),
         ("seed", "must look like key=value"),
@@ -208,7 +209,7 @@ def test_minibatch_shards_default_to_two_where_they_pay_and_never_for_e3t():
 
     assert shards() == 2  # the paper's IK setting: hidden 256 on a CPU
     assert shards("hidden=128") == 2 and shards("hidden=64") == 1  # small networks: the loss's Python dominates
-    assert shards("num_envs=4", "minibatches=4") == 1  # one kitchen per minibatch cannot be split
+    assert shards("num_envs=4", "ppo.minibatches=4") == 1  # one kitchen per minibatch cannot be split
     assert shards("algorithm=e3t", "architecture=e3t_mlp") == 1  # its losses are means over the ego's transitions
     assert shards("hidden=64", "runtime.minibatch_shards=4") == 4  # asked for: as asked
     on_gpu = load_config(None)
@@ -234,7 +235,7 @@ def test_a_run_saved_before_runtime_and_algorithm_config_had_sections_loads_into
     assert ippo == load_config(CONFIG_DIR / "ippo" / "mlp_ik.yaml")
 
 
-def test_a_run_saved_before_distillation_had_a_section_loads_into_it_and_resumes_key_by_key(tmp_path):
+def test_a_run_saved_before_ppo_and_distillation_had_sections_loads_into_them_and_resumes_key_by_key(tmp_path):
     recorded = json.loads((Path(__file__).parent / "data" / "config_values.json").read_text())
     flat = {**recorded["configs/main.yaml"], "distill_epochs": 16, "distill_teacher_mix": "round"}
     assert flat["distill_rounds"] == 6  # the recorded main job: distillation's keys at the top, as runs saved them
@@ -243,9 +244,9 @@ def test_a_run_saved_before_distillation_had_a_section_loads_into_it_and_resumes
         assert (config.distill.rounds, config.distill.epochs, config.distill.teacher_mix) == (6, 16, "round")
         assert not any(key.startswith("distill_") for key in config.to_dict())
     # A checkpoint's config from before the section is compared key by key with today's: only what differs.
-    today = load_config(CONFIG_DIR / "main.yaml", ["distill.epochs=8", "lr=0.1"])
+    today = load_config(CONFIG_DIR / "main.yaml", ["distill.epochs=8", "ppo.lr=0.1"])
     changed = today.changes_to_learning({**flat, "runtime": None})
-    assert changed == {"distill.epochs": (16, 8), "distill.teacher_mix": ("round", "seed"), "lr": (flat["lr"], 0.1)}
+    assert changed == {"distill.epochs": (16, 8), "distill.teacher_mix": ("round", "seed"), "ppo.lr": (flat["lr"], 0.1)}
 
 
 def test_a_group_the_file_does_not_choose_is_added_and_the_runtime_group_fills_its_section(tmp_path):
@@ -253,7 +254,7 @@ def test_a_group_the_file_does_not_choose_is_added_and_the_runtime_group_fills_i
     mine = load_config(tmp_path / "mine.yaml", ["regime=sk_coord_ring", "algorithm=e3t", "architecture=e3t_mlp"])
     # Added as Hydra adds a group (`+regime=...`): after the file's own values, so the regime's width wins here,
     # as it would in a sweep of the same file; a group the file chooses would keep the file's values on top.
-    assert (mine.levels, mine.hidden, mine.share_params, mine.lr) == ("coord_ring_7x7", 128, False, 2.5e-4)
+    assert (mine.levels, mine.hidden, mine.share_params, mine.ppo.lr) == ("coord_ring_7x7", 128, False, 2.5e-4)
     assert (mine.algorithm, mine.architecture, mine.algorithm_config["partner_epsilon"]) == ("e3t", "e3t_mlp", 0.3)
     assert compose(None, ["runtime=gpu"]) == {"runtime": {"device": "cuda", "threads": 1}}
     assert load_config(tmp_path / "mine.yaml", ["runtime=cpu", "runtime.threads=2"]).runtime.threads == 2

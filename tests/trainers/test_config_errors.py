@@ -12,16 +12,16 @@ from tiny import TINY
 from jax_env import get_layout, save_layout
 from trainers.algorithms import algorithm_settings, check_algorithm
 from trainers.algorithms.e3t import E3TSettings
-from trainers.config import ConfigError, DeviceConfig, EvalConfig, RuntimeConfig, TrainConfig, check_device
+from trainers.config import ConfigError, DeviceConfig, EvalConfig, PPOConfig, RuntimeConfig, TrainConfig, check_device
 from trainers.config.compose import config_help, load_config, save_config
 
 # A 5x5 kitchen whose only pot is walled in: no team can ever cook. The same kitchen with the pot in reach.
 WALLED_POT = "WWWWW\nOA  W\nB  AW\nWWXWW\nWPWWW\n"
 OPEN_POT = "WWPWW\nOA  W\nB  AW\nWWXWW\nWWWWW\n"
 RUNTIME_DEVICES = r"use runtime.device=cpu, runtime.device=cuda or runtime.device=cuda:<index>"
-COUNTS = ("max_steps num_envs rollout_steps total_steps hidden epochs minibatches checkpoint_every runtime.threads "
-          "runtime.teams distill.rounds distill.kitchens distill.epochs distill.minibatch").split()
-NON_NEGATIVE = ("eval_episodes shaping_anneal_steps entropy_coef value_coef shaping_weight "
+COUNTS = ("max_steps num_envs rollout_steps total_steps hidden ppo.epochs ppo.minibatches checkpoint_every "
+          "runtime.threads runtime.teams distill.rounds distill.kitchens distill.epochs distill.minibatch").split()
+NON_NEGATIVE = ("eval_episodes ppo.shaping_anneal_steps ppo.entropy_coef ppo.value_coef ppo.shaping_weight "
                 "runtime.minibatch_shards runtime.parallel_teams").split()
 
 
@@ -30,14 +30,14 @@ NON_NEGATIVE = ("eval_episodes shaping_anneal_steps entropy_coef value_coef shap
     [
         *[(f"{name}=0", rf"^{name} must be at least 1, got 0$") for name in COUNTS],
         *[(f"{name}=-1", rf"^{name} must be at least 0, got -1") for name in NON_NEGATIVE],
-        ("lr=0", r"^lr must be greater than 0, got 0.0$"),
-        ("adam_eps=-1e-5", r"^adam_eps must be greater than 0, got -1e-05$"),
-        ("clip_epsilon=-1", r"^clip_epsilon must be greater than 0, got -1.0$"),
-        ("max_grad_norm=0", r"^max_grad_norm must be greater than 0, got 0.0$"),
-        ("gamma=5", r"^gamma must lie in \[0, 1\], got 5.0$"),
-        ("gae_lambda=-3", r"^gae_lambda must lie in \[0, 1\], got -3.0$"),
-        ("lr=nan", r"^lr must be a finite number, got nan$"),
-        ("gamma=.inf", r"^gamma must be a finite number, got inf$"),
+        ("ppo.lr=0", r"^ppo.lr must be greater than 0, got 0.0$"),
+        ("ppo.adam_eps=-1e-5", r"^ppo.adam_eps must be greater than 0, got -1e-05$"),
+        ("ppo.clip_epsilon=-1", r"^ppo.clip_epsilon must be greater than 0, got -1.0$"),
+        ("ppo.max_grad_norm=0", r"^ppo.max_grad_norm must be greater than 0, got 0.0$"),
+        ("ppo.gamma=5", r"^ppo.gamma must lie in \[0, 1\], got 5.0$"),
+        ("ppo.gae_lambda=-3", r"^ppo.gae_lambda must lie in \[0, 1\], got -3.0$"),
+        ("ppo.lr=nan", r"^ppo.lr must be a finite number, got nan$"),
+        ("ppo.gamma=.inf", r"^ppo.gamma must be a finite number, got inf$"),
         ("seed=-1", r"^seed must be an integer in \[0, 4294967295\] .*, got -1$"),
         ("seed=4294967296", r"^seed must be an integer in \[0, 4294967295\] .*, got 4294967296$"),
         (f"seed={2**63}", rf"^seed must be an integer in \[0, 4294967295\] .*, got {2**63}$"),
@@ -50,6 +50,7 @@ NON_NEGATIVE = ("eval_episodes shaping_anneal_steps entropy_coef value_coef shap
         ("threads=2", r"^unknown config key 'threads' in the command line \(did you mean 'runtime.threads'\?\)"),
         ("distill_rounds=2",
          r"^unknown config key 'distill_rounds' in the command line \(did you mean 'distill.rounds'\?\)"),
+        ("lr=0.1", r"^unknown config key 'lr' in the command line \(did you mean 'ppo.lr'\?\)"),
         ("partner_epsilon=0.5", r"^unknown config key 'partner_epsilon' in the command line"),
         ("runtime.thread=2", r"^unknown config key 'runtime.thread' .*\(did you mean 'runtime.threads'\?\)"),
         ("runtime.threads=x", r"^runtime.threads in the command line must be int, got 'x'$"),
@@ -111,15 +112,15 @@ def test_an_algorithms_own_settings_are_refused_by_the_algorithm_before_any_work
         ({"seed": 1.0}, r"^seed must be int, got 1.0$"),
         ({"seed": 2**64}, r"^seed must be an integer in \[0, 4294967295\]"),
         ({"num_envs": True}, r"^num_envs must be int, got True$"),
-        ({"lr": "fast"}, r"^lr must be float, got 'fast'$"),
+        ({"ppo": PPOConfig(lr="fast")}, r"^ppo.lr must be float, got 'fast'$"),
         ({"share_params": 1}, r"^share_params must be bool, got 1$"),
         ({"levels": ("a", "b")}, r"^levels must be str \| list\[str\], got \('a', 'b'\)$"),
         ({"levels": ["a", 3]}, r"^levels must be str \| list\[str\], got \['a', 3\]$"),
         ({"name": Path("run")}, r"^name must be str, got PosixPath\('run'\)$"),
         ({"runtime": RuntimeConfig(device=None)}, r"^runtime.device must be str, got None$"),
         ({"runtime": RuntimeConfig(threads=0)}, r"^runtime.threads must be at least 1, got 0$"),
-        ({"gamma": 5}, r"^gamma must lie in \[0, 1\], got 5$"),
-        ({"clip_epsilon": -1.0}, r"^clip_epsilon must be greater than 0, got -1.0$"),
+        ({"ppo": PPOConfig(gamma=5)}, r"^ppo.gamma must lie in \[0, 1\], got 5$"),
+        ({"ppo": PPOConfig(clip_epsilon=-1.0)}, r"^ppo.clip_epsilon must be greater than 0, got -1.0$"),
         ({"checkpoint_every": 0}, r"^checkpoint_every must be at least 1, got 0$"),
         ({"eval_heldout": 101}, r"^eval_heldout must be between 0 and 100"),
         ({"name": "../.."}, r"^name='../..' must be a relative path inside run_dir"),
@@ -132,10 +133,10 @@ def test_configs_built_in_python_are_checked_too(kwargs, message):
 
 def test_values_at_the_edges_are_accepted():
     config = load_config(None, [
-        "seed=4294967295", "eval_heldout=100", "gamma=1", "gae_lambda=0", "lr=1", "shaping_weight=0",
+        "seed=4294967295", "eval_heldout=100", "ppo.gamma=1", "ppo.gae_lambda=0", "ppo.lr=1", "ppo.shaping_weight=0",
         "eval_episodes=0", "name=ablation/mlp", "runtime.device=cpu:0",
     ])  # fmt: skip
-    assert (config.seed, config.lr, config.gamma) == (2**32 - 1, 1.0, 1.0)
+    assert (config.seed, config.ppo.lr, config.ppo.gamma) == (2**32 - 1, 1.0, 1.0)
     assert config.run_path == Path("runs/ablation/mlp/seed4294967295")
     assert TrainConfig().check() == TrainConfig() and EvalConfig().check() == EvalConfig()
 
@@ -229,7 +230,7 @@ def test_cuda_is_refused_where_this_machine_has_no_such_gpu(monkeypatch):
         ("5: 3\n", r"^the key 5 in .*bad\.yaml is not a config key \(keys are names\): valid keys: name, run_dir"),
         ("seed: 1\ntrue: 3\n", r"^the key True in .*bad\.yaml is not a config key"),
         ("seed: -4\n", r"^seed must be an integer in \[0, 4294967295\]"),
-        ("gamma: 5\n", r"^gamma must lie in \[0, 1\], got 5.0$"),
+        ("gamma: 5\n", r"^ppo.gamma must lie in \[0, 1\], got 5.0$"),  # a file of before the ppo section
         ("runtime:\n  device: tpu\n", r"^runtime.device=tpu is not a device"),
         ("device: tpu\n", r"^runtime.device=tpu is not a device"),  # a file from before the section: read into it
         ("runtime: 4\n", r"^runtime in .*bad\.yaml must be a mapping of its keys \(device, threads, "),
@@ -254,7 +255,7 @@ def test_a_file_beside_it_in_the_defaults_merges_under_the_files_own_values(tmp_
     (tmp_path / "base.yaml").write_text("seed: 1\nlr: 1e-3\n")
     (tmp_path / "run.yaml").write_text("defaults: [base.yaml]\nseed: 2\n")
     config = load_config(tmp_path / "run.yaml")
-    assert (config.seed, config.lr) == (2, 1e-3)
+    assert (config.seed, config.ppo.lr) == (2, 1e-3)
 
 
 def test_a_defaults_list_merges_files_then_group_choices_then_the_file(tmp_path):
@@ -262,7 +263,7 @@ def test_a_defaults_list_merges_files_then_group_choices_then_the_file(tmp_path)
     (tmp_path / "run.yaml").write_text("defaults: [base.yaml, regime: sk_coord_ring]\nseed: 2\n")
     config = load_config(tmp_path / "run.yaml")
     # base.yaml's hidden gives way to the regime's, which gives way to the file's own values.
-    assert (config.seed, config.lr, config.hidden, config.levels) == (2, 1e-3, 128, "coord_ring_7x7")
+    assert (config.seed, config.ppo.lr, config.hidden, config.levels) == (2, 1e-3, 128, "coord_ring_7x7")
 
 
 def test_a_saved_config_loads_back_equal(tmp_path):
@@ -405,9 +406,9 @@ def cli_cases(tmp_path: Path) -> list[tuple[list[str], str]]:
         (["runtime.threads=0"], "runtime.threads must be at least 1"),
         (["threads=2"], "unknown config key 'threads' in the command line (did you mean 'runtime.threads'?)"),
         ([f"seed={2**63}"], "seed must be an integer in [0, 4294967295]"),
-        (["gamma=5"], "gamma must lie in [0, 1]"),
-        (["gae_lambda=-3"], "gae_lambda must lie in [0, 1]"),
-        (["clip_epsilon=-1"], "clip_epsilon must be greater than 0"),
+        (["ppo.gamma=5"], "ppo.gamma must lie in [0, 1]"),
+        (["ppo.gae_lambda=-3"], "ppo.gae_lambda must lie in [0, 1]"),
+        (["ppo.clip_epsilon=-1"], "ppo.clip_epsilon must be greater than 0"),
         (["eval_heldout=200"], "eval_heldout must be between 0 and 100"),
         (["name=../.."], "name='../..' must be a relative path inside run_dir"),
         ([f"run_dir={tmp_path / 'a_file' / 'runs'}"], f"run_dir={tmp_path / 'a_file' / 'runs'}: "),

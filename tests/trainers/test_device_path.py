@@ -81,8 +81,8 @@ def test_compiled_training_recompiles_nothing_as_the_learning_rate_and_shaping_a
     after the first compiles. With one network per agent (the SK configs'), which TorchRL runs under vmap, and with
     shared networks, whose sparse first layers are operators of the graph: their inputs' entries, as many as the
     minibatch has, stay outside it."""
-    config = tiny_config(tmp_path, "runtime.compile_update=true", "anneal_lr=true", "shaping_weight=1",
-                         "shaping_anneal_steps=200", f"share_params={share_params}", updates=3)
+    config = tiny_config(tmp_path, "runtime.compile_update=true", "ppo.anneal_lr=true", "ppo.shaping_weight=1",
+                         "ppo.shaping_anneal_steps=200", f"share_params={share_params}", updates=3)
     torch._dynamo.reset()
     counters.clear()
     graphs, rates = [], []
@@ -159,8 +159,8 @@ def test_the_teams_stacked_step_compiles_to_the_eager_one_and_launches_fewer_ker
 def test_a_run_resumed_with_the_compiled_update_recompiles_nothing_either(tmp_path):
     """A checkpoint saved without `compile_update` holds the learning rate as a number: resumed with it, the rate
     becomes a tensor again, so annealing it still changes a value rather than the graph."""
-    train(tiny_config(tmp_path, "anneal_lr=true", updates=1))
-    resumed = tiny_config(tmp_path, "anneal_lr=true", "runtime.compile_update=true", updates=4)
+    train(tiny_config(tmp_path, "ppo.anneal_lr=true", updates=1))
+    resumed = tiny_config(tmp_path, "ppo.anneal_lr=true", "runtime.compile_update=true", updates=4)
     torch._dynamo.reset()
     counters.clear()
     graphs = []

@@ -64,8 +64,8 @@ def test_self_play_starts_from_the_distilled_team_and_resumes_without_it(tmp_pat
     distilled = distill(tiny_config(tmp_path, *ROUNDS, "name=distilled", "seed=1"))
     init_from = f"init_from={tmp_path}/distilled/seed{{seed}}"  # {seed}: each team its own
     # A rate so small that the first update leaves the weights where they started.
-    run = train(tiny_config(tmp_path, init_from, "seed=1", "lr=1e-12", "anneal_lr=false", updates=1))
-    scratch = train(tiny_config(tmp_path / "scratch", "seed=1", "lr=1e-12", "anneal_lr=false", updates=1))
+    run = train(tiny_config(tmp_path, init_from, "seed=1", "ppo.lr=1e-12", "ppo.anneal_lr=false", updates=1))
+    scratch = train(tiny_config(tmp_path / "scratch", "seed=1", "ppo.lr=1e-12", "ppo.anneal_lr=false", updates=1))
     for part in ("actor", "critic"):
         weights = load_checkpoint(run)[part]
         torch.testing.assert_close(weights, load_checkpoint(distilled)[part], rtol=0, atol=1e-9)
@@ -83,7 +83,7 @@ def test_self_play_starts_from_the_distilled_team_and_resumes_without_it(tmp_pat
 
 
 def test_a_run_from_the_scripted_cook_distils_its_start_into_its_own_folder_first(tmp_path):
-    config = tiny_config(tmp_path, *ROUNDS, "init_from=scripted_cook", "lr=1e-12", "anneal_lr=false", updates=1)
+    config = tiny_config(tmp_path, *ROUNDS, "init_from=scripted_cook", "ppo.lr=1e-12", "ppo.anneal_lr=false", updates=1)
     run = train(config)
     distilled = run / "distilled"
     assert load_checkpoint(distilled)["update"] == 3  # every round

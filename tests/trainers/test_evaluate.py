@@ -268,7 +268,7 @@ def test_e3t_teams_play_self_play_cross_play_and_beside_other_teams(tmp_path, bo
     for seed in (0, 1):
         config = load_config(None, [
             "algorithm=e3t", "architecture=e3t_mlp", f"levels={two_booths}", "num_envs=4", "rollout_steps=16",
-            "max_steps=16", "total_steps=64", "hidden=16", "minibatches=2", "epochs=1", "progress=false",
+            "max_steps=16", "total_steps=64", "hidden=16", "ppo.minibatches=2", "ppo.epochs=1", "progress=false",
             "eval_episodes=0", f"run_dir={tmp_path / 'runs'}", f"seed={seed}",
         ])  # fmt: skip
         runs.append(str(train(config)))

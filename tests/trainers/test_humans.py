@@ -334,6 +334,6 @@ def test_a_fine_tune_is_anchored_ippo_from_the_cloned_proxy_saved_beside_the_tea
         config = tuned.config
         assert (config.algorithm, config.algorithm_config, config.init_from) == (
             "anchored_ippo", {"anchor_coef": float(coef)}, str(team / "cloned"))
-        assert (config.levels, config.max_steps, config.lr, config.hidden) == ("cramped_room", 20, 1e-3, 8)
+        assert (config.levels, config.max_steps, config.ppo.lr, config.hidden) == ("cramped_room", 20, 1e-3, 8)
         assert load_checkpoint(team / "anchored" / f"anchor{coef}" / "seed1")["env_steps"] == 32 * 256
     assert load_team(team / "cloned").config.levels == "cramped_room"

@@ -12,7 +12,7 @@ from trainers.config import ConfigError
 from trainers.ppo.loop import train
 from trainers.train_command import main as train_main
 
-FAST = ["lr=0.01", "anneal_lr=false"]  # large steps, so that two updates move the policy visibly
+FAST = ["ppo.lr=0.01", "ppo.anneal_lr=false"]  # large steps, so that two updates move the policy visibly
 
 
 def test_the_teacher_weight_is_constant_or_falls_linearly_to_zero():
@@ -29,7 +29,7 @@ def test_a_large_teacher_weight_brings_the_policy_to_the_cook_and_none_leaves_it
     logged = {}
     for coef in (0.0, 30.0):
         run = train(tiny_config(tmp_path, "algorithm=kickstarted_ippo", f"algorithm_config.teacher_coef={coef}",
-                                f"name=coef{coef:g}", "epochs=8", *FAST, updates=1))
+                                f"name=coef{coef:g}", "ppo.epochs=8", *FAST, updates=1))
         metrics = read_metrics(run)
         [(_, logged[coef])] = metrics["charts/teacher_cross_entropy"]
         assert metrics["charts/teacher_weight"] == [(64.0, coef)]

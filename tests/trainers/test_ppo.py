@@ -85,7 +85,7 @@ def test_the_entry_point_trains_checkpoints_logs_and_evaluates(tmp_path, capsys)
     assert expected <= tags
     assert [event.step for event in events.Scalars("losses/policy")] == [64, 128]
     lr = [event.value for event in events.Scalars("charts/learning_rate")]
-    base_lr = load_config(run / "config.yaml").lr
+    base_lr = load_config(run / "config.yaml").ppo.lr
     assert lr[0] == pytest.approx(base_lr) and lr[1] == pytest.approx(base_lr / 2)  # annealed linearly
 
     table = (run / "eval.md").read_text()
@@ -130,8 +130,8 @@ def test_every_architecture_trains_and_reloads(tmp_path, architecture, share_par
 @pytest.mark.parametrize("architecture, algorithm", [("mlp", "ippo"), ("mlp_lstm", "ippo"), ("e3t_mlp", "e3t")])
 @pytest.mark.bitwise
 def test_a_crashed_run_resumes_from_its_checkpoint_with_the_same_metrics(tmp_path, architecture, algorithm):
-    common = (f"architecture={architecture}", f"algorithm={algorithm}", "checkpoint_every=2", "shaping_weight=1",
-              "shaping_anneal_steps=256", *(["algorithm_config.partner_policy=copy"] if algorithm == "e3t" else []))
+    common = (f"architecture={architecture}", f"algorithm={algorithm}", "checkpoint_every=2", "ppo.shaping_weight=1",
+              "ppo.shaping_anneal_steps=256", *(["algorithm_config.partner_policy=copy"] if algorithm == "e3t" else []))
     whole = train(tiny_config(tmp_path / "whole", *common, updates=4))
 
     def crash_at_update_3(update, metrics):
@@ -176,9 +176,10 @@ def test_bad_runs_and_checkpoints_get_a_clear_message(tmp_path, capsys):
 
     # A resume that would change what the run learns is refused, its record kept; one that runs longer is not.
     saved = (run / "config.yaml").read_text()
-    assert main(["--resume", str(run), "lr=0.1", "distill.epochs=16"]) == 2
+    assert main(["--resume", str(run), "ppo.lr=0.1", "distill.epochs=16"]) == 2
     err = capsys.readouterr().err
-    assert f"{run} was trained with lr={config.lr!r}, distill.epochs=8, not lr=0.1, distill.epochs=16" in err
+    assert (f"{run} was trained with ppo.lr={config.ppo.lr!r}, distill.epochs=8, not ppo.lr=0.1, distill.epochs=16"
+            in err)
     assert err.count("\n") == 1 and (run / "config.yaml").read_text() == saved
 
     assert main([MAIN_CONFIG, "lrr=0.1"]) == 2
@@ -204,7 +205,7 @@ def test_bad_runs_and_checkpoints_get_a_clear_message(tmp_path, capsys):
 @pytest.mark.parametrize("architecture", ["mlp", "gnn_lstm"])
 def test_ppo_updates_lower_the_loss_on_a_fixed_batch(tmp_path, architecture):
     torch.manual_seed(0)
-    config = tiny_config(tmp_path, f"architecture={architecture}", "shaping_weight=1")
+    config = tiny_config(tmp_path, f"architecture={architecture}", "ppo.shaping_weight=1")
     actor_critic = make_actor_critic(architecture, (7, 7, 26), hidden=16, share_params=True)
     env = with_model_transforms(make_env(config), actor_critic)
     frames = config.num_envs * config.max_steps
@@ -464,7 +465,7 @@ def test_a_compiled_acting_policy_takes_the_same_actions_and_learns_the_same(tmp
     monkeypatch.setattr(torch, "compile", lambda function, **options: compiled_functions.append(function) or
                         compile(function, **options))
     for compiled in ("false", "true"):
-        config = tiny_config(tmp_path / compiled, "shaping_weight=1", f"runtime.compile_policy={compiled}",
+        config = tiny_config(tmp_path / compiled, "ppo.shaping_weight=1", f"runtime.compile_policy={compiled}",
                              "runtime.collector=kitchen", updates=2)
         run = train(config)
         metrics[compiled] = read_metrics(run)
@@ -491,7 +492,7 @@ def test_minibatches_are_the_rows_of_their_kitchens():
 
 
 def test_a_learners_minibatches_carry_only_what_the_losses_read_and_step_as_the_whole_batch_would(tmp_path):
-    config = tiny_config(tmp_path, "shaping_weight=1", "lr=1e-3")
+    config = tiny_config(tmp_path, "ppo.shaping_weight=1", "ppo.lr=1e-3")
     team, batch = team_and_minibatch(config, tmp_path)
     kitchens = torch.arange(config.num_envs)
     [minibatch] = Learner(config, [team]).minibatches([batch], [[(kitchens,)]])
@@ -531,18 +532,19 @@ def team_and_minibatch(config, tmp_path):
 def test_a_ppo_step_moves_the_weights_bit_for_bit_as_backward_clipping_and_fused_adam_do(tmp_path, architecture):
     """The step written once for K teams (`ppo_step`, a team dim of 1 here) is what a team's step was before it:
     backward(), `clip_grad_norm_` and its fused Adam."""
-    config = tiny_config(tmp_path, f"architecture={architecture}", "shaping_weight=1", "lr=1e-3", "max_grad_norm=0.01")
+    config = tiny_config(tmp_path, f"architecture={architecture}", "ppo.shaping_weight=1", "ppo.lr=1e-3",
+                         "ppo.max_grad_norm=0.01")
     team, minibatch = team_and_minibatch(config, tmp_path)
     reference = copy.deepcopy(team.loss_module)
     parameters = list(reference.parameters())
     assert [p.shape for p in parameters] == [p.shape for p in team.parameters]
-    optimizer = torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps, fused=True)
+    optimizer = torch.optim.Adam(parameters, lr=config.ppo.lr, eps=config.ppo.adam_eps, fused=True)
     theirs = minibatch.clone()
     team.algorithm.process_minibatch(theirs)  # as the step does
     with set_recurrent_mode(True):
         trainers.ppo.step.total_loss(reference(theirs)).backward()
         losses = Learner(config, [team]).step(minibatch.clone())
-    norm = torch.nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
+    norm = torch.nn.utils.clip_grad_norm_(parameters, config.ppo.max_grad_norm)
     optimizer.step()
     assert losses["grad_norm"].shape == (1,) and torch.equal(losses["grad_norm"][0], norm) and norm > 0.01
     for ours, theirs in zip(team.parameters, parameters):
@@ -557,7 +559,7 @@ def test_a_ppo_step_moves_the_weights_bit_for_bit_as_backward_clipping_and_fused
 ], ids=["mlp", "lstm-per-agent", "gnn"])
 @pytest.mark.bitwise
 def test_a_minibatch_in_shards_has_the_losses_and_gradient_of_the_whole_on_threads_or_not(tmp_path, overrides):
-    config = tiny_config(tmp_path, *overrides, "shaping_weight=1")
+    config = tiny_config(tmp_path, *overrides, "ppo.shaping_weight=1")
     team, minibatch = team_and_minibatch(config, tmp_path)
 
     def gradients(gradients_of):

@@ -14,7 +14,7 @@ from trainers.config.compose import compose, group_choices, load_config
 from trainers.sweep import as_hydra_overrides, main
 
 ROOT = Path(__file__).resolve().parents[2]
-TINY = ["num_envs=2", "rollout_steps=8", "max_steps=8", "hidden=8", "minibatches=1", "eval_episodes=0", "gif=false",
+TINY = ["num_envs=2", "rollout_steps=8", "max_steps=8", "hidden=8", "ppo.minibatches=1", "eval_episodes=0", "gif=false",
         "progress=false", "checkpoint_every=1", "init_from=''"]  # from scratch, whatever the config starts from
 
 
@@ -30,18 +30,18 @@ def csv_rows(run: Path) -> list[str]:
 
 
 def test_a_two_by_two_grid_writes_four_runs_named_by_the_keys_that_vary(tmp_path):
-    sweep = kitchen_sweep(tmp_path, "seed=0,1", "lr=0.001,0.002", "total_steps=32", *TINY, "eval_episodes=1",
+    sweep = kitchen_sweep(tmp_path, "seed=0,1", "ppo.lr=0.001,0.002", "total_steps=32", *TINY, "eval_episodes=1",
                           "eval_heldout=0")
     output, _ = sweep.communicate(timeout=600)
     assert sweep.returncode == 0, output
     assert "kitchen-sweep: the runs are in runs/main/" in output
     runs = sorted(tmp_path.glob("runs/main/*/seed*"))
     assert [str(run.relative_to(tmp_path / "runs" / "main")) for run in runs] == [
-        "lr=0.001/seed0", "lr=0.001/seed1", "lr=0.002/seed0", "lr=0.002/seed1"]
+        "ppo.lr=0.001/seed0", "ppo.lr=0.001/seed1", "ppo.lr=0.002/seed0", "ppo.lr=0.002/seed1"]
     for run in runs:
         state = torch.load(run / "checkpoints" / "latest.pt", weights_only=False)
         assert state["env_steps"] == 32 and state["config"]["seed"] == int(run.name.removeprefix("seed"))
-        assert state["config"]["lr"] == float(run.parent.name.removeprefix("lr="))
+        assert state["config"]["ppo"]["lr"] == float(run.parent.name.removeprefix("ppo.lr="))
         assert [int(row.split(",")[0]) for row in csv_rows(run)] == [16, 32]
         assert f"| main/{run.parent.name} | cramped_room_7x7 |" in (run / "eval.md").read_text()  # as kitchen-train
     assert list(tmp_path.glob("runs/main/.sweeps/*/multirun.yaml"))  # Hydra's record of the sweep, beside the runs
@@ -88,7 +88,7 @@ def test_keys_and_values_are_checked_before_any_job_starts(tmp_path, capsys, mon
     assert "unknown config key 'lrr' in the command line (did you mean 'lr'?); valid keys: name, " in refused
     assert main([str(ROOT / "configs" / "main.yaml"), "seed=0,x"]) == 2
     assert "seed in the command line must be int, got 'x'" in capsys.readouterr().err
-    assert main([str(ROOT / "configs" / "main.yaml"), "num_envs=2,3", "minibatches=2"]) == 2
+    assert main([str(ROOT / "configs" / "main.yaml"), "num_envs=2,3", "ppo.minibatches=2"]) == 2
     assert "minibatches (2) must divide num_envs (3)" in capsys.readouterr().err
     assert main([str(ROOT / "configs" / "main.yaml"), "regime=ik,sk_nowhere"]) == 2
     assert ("regime on the command line must be one of ik, sk_asymm_advantages, sk_coord_ring, sk_counter_circuit, "

@@ -73,8 +73,8 @@ def tiny_args(run_dir):
 
 def test_teams_trained_together_share_every_setting_but_the_seed(tmp_path):
     first, second = team_configs(tiny_config(tmp_path, "runtime.teams=2"))
-    second.lr = 1e-3
-    with pytest.raises(ConfigError, match="seed 1 differs from seed 0 in lr"):
+    second = dataclasses.replace(second, ppo=dataclasses.replace(second.ppo, lr=1e-3))
+    with pytest.raises(ConfigError, match="seed 1 differs from seed 0 in ppo.lr"):
         train_teams([first, second])
     with pytest.raises(ConfigError, match="train_teams"):
         train(tiny_config(tmp_path, "runtime.teams=2"))
@@ -240,7 +240,7 @@ def test_teams_trained_the_gpus_way_learn_what_they_learn_one_after_another(tmp_
     agree to float rounding, which Adam's first steps amplify where a gradient is near zero (up to 2e-4 here)."""
     import trainers.ppo.runtime
 
-    overrides = ["levels=infinite", "runtime.teams=2", "shaping_weight=1"]
+    overrides = ["levels=infinite", "runtime.teams=2", "ppo.shaping_weight=1"]
     apart = tiny_config(tmp_path / "apart", *overrides)
     train_teams(team_configs(apart))
     monkeypatch.setattr(trainers.ppo.runtime, "acts_stacked", lambda config, policies: True)

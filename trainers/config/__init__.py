@@ -33,15 +33,16 @@ from trainers.config.sections import (
     TEACHER_MIXES,
     DeviceConfig,
     DistillConfig,
+    PPOConfig,
     RuntimeConfig,
-    distill_sectioned,
+    sectioned_keys,
 )
-from trainers.config.train import GENERATED_LEVELS, LOGGERS, PLANNER_START, RESUMABLE, TrainConfig
+from trainers.config.train import GENERATED_LEVELS, LOGGERS, PLANNER_START, RESUMABLE, TrainConfig, learning_keys
 
 __all__ = [
     "COLLECTORS", "EVAL_COLLECTORS", "GENERATED_LEVELS", "LOGGERS", "MAX_SEED", "PLANNER_START", "RESUMABLE",
-    "TEACHER_MIXES", "ConfigError", "DeviceConfig", "DistillConfig", "EvalConfig", "RuntimeConfig", "TrainConfig",
-    "distill_sectioned",
-    "build_config", "check_cpp_compiler", "check_device", "config_keys", "is_config_key", "merge_layer", "option",
-    "settings_from", "structured_schema", "type_hints", "type_name", "unknown_key",
+    "TEACHER_MIXES", "ConfigError", "DeviceConfig", "DistillConfig", "EvalConfig", "PPOConfig", "RuntimeConfig",
+    "TrainConfig", "build_config", "check_cpp_compiler", "check_device", "config_keys", "is_config_key",
+    "learning_keys", "merge_layer", "option", "sectioned_keys", "settings_from", "structured_schema", "type_hints",
+    "type_name", "unknown_key",
 ]

@@ -7,8 +7,8 @@ file's own values; a group chosen on the command line (`regime=sk_coord_ring`) t
 `kitchen-sweep` sweeps the same groups over the same files. The layers (the schema's defaults, a saved run's values,
 the composed file, the command line's keys) are merged and converted by OmegaConf (`trainers.config.merge_layer`);
 Hydra's own composition errors become one line naming the file. Configs and saved runs from before the `runtime`,
-`distill` and `algorithm_config` sections are read into them (`sectioned`). `config_help` lists every key and group
-for `--help`.
+`ppo`, `distill` and `algorithm_config` sections are read into them (`sectioned`). `config_help` lists every key and
+group for `--help`.
 """
 
 from __future__ import annotations
@@ -36,9 +36,9 @@ from trainers.config import (
     TrainConfig,
     build_config,
     config_keys,
-    distill_sectioned,
     is_config_key,
     merge_layer,
+    sectioned_keys,
     structured_schema,
     type_name,
     unknown_key,
@@ -103,14 +103,14 @@ E3T_SETTINGS = ("partner_epsilon", "partner_policy", "partner_copy_rate", "predi
 
 
 def sectioned(values: dict, schema: type = TrainConfig) -> dict:
-    """A config's values written before the run options, distillation and the algorithm's settings had sections, put
-    in them: the run options under `runtime` (an evaluation's device and threads too), distillation's keys under
-    `distill`, E3T's under `algorithm_config` where the values train E3T (others ignored them, and a config saved by
-    any run held them all)."""
+    """A config's values written before the run options, PPO's settings, distillation and the algorithm's settings had
+    sections, put in them: the run options under `runtime` (an evaluation's device and threads too), PPO's under
+    `ppo`, distillation's under `distill`, E3T's under `algorithm_config` where the values train E3T (others ignored
+    them, and a config saved by any run held them all)."""
     run_options = RUN_OPTIONS.get(schema, ())
     settings_keys = E3T_SETTINGS if schema is TrainConfig else ()
     if schema is TrainConfig:
-        values = distill_sectioned(values)
+        values = sectioned_keys(values)
     if not any(key in values for key in (*run_options, *settings_keys)):
         return values
     values = dict(values)
@@ -261,7 +261,7 @@ def _yaml_files_state(path: Path | None) -> int:
 
 
 def parse_overrides(overrides: list[str], schema: type = TrainConfig) -> dict:
-    """`["lr=1e-3", "levels=[a, b]", "runtime.threads=2"]` -> {key: value} (a section's keys nested under it), each
+    """`["ppo.lr=1e-3", "levels=[a, b]", "runtime.threads=2"]` -> {key: value} (a section's keys nested under it), each
     value read by OmegaConf's dotlist grammar (YAML)."""
     parsed = {}
     for item in overrides:

@@ -175,7 +175,11 @@ def is_config_key(schema: type, key: str) -> bool:
 def unknown_key(schema: type, key: str, source: str) -> ConfigError:
     keys = config_keys(schema)
     moved = [known for known in keys if known.endswith(f".{key}") or known == key.replace("_", ".", 1)]
-    hint = moved or difflib.get_close_matches(key, keys, n=1)
+    short: dict[str, str] = {}  # a section's key by its own name (`lr` -> `ppo.lr`), the first section's
+    for known in keys:
+        short.setdefault(known.rpartition(".")[2], known)
+    hint = (moved or difflib.get_close_matches(key, keys, n=1)
+            or [short[name] for name in difflib.get_close_matches(key, list(short), n=1)])
     did_you_mean = f" (did you mean {hint[0]!r}?)" if hint else ""
     return ConfigError(f"unknown config key {key!r} in {source}{did_you_mean}; valid keys: {', '.join(keys)}")
 

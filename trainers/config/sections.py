@@ -91,6 +91,35 @@ class RuntimeConfig(DeviceConfig):
 
 
 @dataclass
+class PPOConfig:
+    """The PPO core's settings (`trainers.ppo`): what every algorithm optimises with, whatever it adds."""
+
+    lr: float = option(2.5e-4, "Adam's learning rate")
+    anneal_lr: bool = option(True, "anneal the learning rate linearly to 0 over the run")
+    adam_eps: float = option(1e-5, "Adam's epsilon")
+    epochs: int = option(4, "passes over each batch")
+    minibatches: int = option(4, "split over kitchens, so every minibatch holds whole sequences (for recurrent models)")
+    gamma: float = option(0.99, "discount factor")
+    gae_lambda: float = option(0.95, "lambda of the generalised advantage estimate")
+    clip_epsilon: float = option(0.2, "PPO clip range, for the policy ratio and the value")
+    entropy_coef: float = option(0.01, "weight of the entropy bonus in the loss")
+    value_coef: float = option(0.5, "weight of the value loss")
+    max_grad_norm: float = option(0.5, "gradients are clipped to this global norm")
+    shaping_weight: float = option(0.0, "weight of the shaped reward added to the sparse one (0: sparse only)")
+    shaping_anneal_steps: int = option(0, "anneal shaping_weight linearly to 0 over this many env steps (0: constant)")
+
+    def check(self) -> None:
+        at_least(self, ["epochs", "minibatches"], 1, "ppo.")
+        at_least(self, ["entropy_coef", "value_coef", "shaping_weight", "shaping_anneal_steps"], 0, "ppo.")
+        for name in ("lr", "adam_eps", "clip_epsilon", "max_grad_norm"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"ppo.{name} must be greater than 0, got {getattr(self, name)}")
+        for name in ("gamma", "gae_lambda"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"ppo.{name} must lie in [0, 1], got {getattr(self, name)}")
+
+
+@dataclass
 class DistillConfig:
     """The planner-guided start (`kitchen-distill`, and `init_from: scripted_cook`): the scripted cook, or conventions
     of the zoo, distilled into the team's networks by DAgger (`trainers.ppo.distill`)."""
@@ -134,15 +163,18 @@ class DistillConfig:
                               "conventions: give one or the other")
 
 
-# Distillation's keys as they were before it had a section, as saved runs and older files hold them.
-FLAT_DISTILL_KEYS = {f"distill_{field.name}": field.name for field in dataclasses.fields(DistillConfig)}
+# The PPO core's and distillation's keys as they were before they had sections, as saved runs and older files hold
+# them: `lr` is now `ppo.lr`, `distill_rounds` is `distill.rounds`.
+FLAT_KEYS = {**{field.name: ("ppo", field.name) for field in dataclasses.fields(PPOConfig)},
+             **{f"distill_{field.name}": ("distill", field.name) for field in dataclasses.fields(DistillConfig)}}
 
 
-def distill_sectioned(values: dict) -> dict:
-    """`values` with distillation's keys of before its section (`distill_rounds`) put in it (`distill.rounds`)."""
-    if not any(key in values for key in FLAT_DISTILL_KEYS):
+def sectioned_keys(values: dict) -> dict:
+    """`values` with the keys of before the `ppo` and `distill` sections (`lr`, `distill_rounds`) put in them."""
+    if not any(key in values for key in FLAT_KEYS):
         return values
     values = dict(values)
-    moved = {FLAT_DISTILL_KEYS[key]: values.pop(key) for key in list(values) if key in FLAT_DISTILL_KEYS}
-    values["distill"] = {**moved, **(values.get("distill") or {})}
+    for key in [key for key in values if key in FLAT_KEYS]:
+        section, name = FLAT_KEYS[key]
+        values[section] = {name: values.pop(key), **(values.get(section) or {})}
     return values

@@ -24,7 +24,7 @@ from jax_env.generator import NUM_HELDOUT_GENERATED, GeneratorConfig
 from jax_env.generator import SIZES as GENERATOR_SIZES
 from torch_kitchen.partners.conventions import STRANGER, TRAIN, ZOO_FILE, Convention, ConventionError, load_zoo
 from trainers.config.schema import ConfigError, at_least, check_name, check_seed, check_types, option
-from trainers.config.sections import DistillConfig, RuntimeConfig, distill_sectioned
+from trainers.config.sections import DistillConfig, PPOConfig, RuntimeConfig, sectioned_keys
 
 LOGGERS = ("tensorboard", "csv", "wandb", "mlflow", "trackio")  # TorchRL's `get_logger` backends
 PLANNER_START = "scripted_cook"  # init_from: start from the scripted cook, distilled into the run's folder
@@ -86,19 +86,10 @@ class TrainConfig:
     share_params: bool = option(True, "one network for both agents (IK) or one per agent (SK)")
 
     # --- PPO
-    lr: float = option(2.5e-4, "Adam's learning rate", group="PPO")
-    anneal_lr: bool = option(True, "anneal the learning rate linearly to 0 over the run")
-    adam_eps: float = option(1e-5, "Adam's epsilon")
-    epochs: int = option(4, "passes over each batch")
-    minibatches: int = option(4, "split over kitchens, so every minibatch holds whole sequences (for recurrent models)")
-    gamma: float = option(0.99, "discount factor")
-    gae_lambda: float = option(0.95, "lambda of the generalised advantage estimate")
-    clip_epsilon: float = option(0.2, "PPO clip range, for the policy ratio and the value")
-    entropy_coef: float = option(0.01, "weight of the entropy bonus in the loss")
-    value_coef: float = option(0.5, "weight of the value loss")
-    max_grad_norm: float = option(0.5, "gradients are clipped to this global norm")
-    shaping_weight: float = option(0.0, "weight of the shaped reward added to the sparse one (0: sparse only)")
-    shaping_anneal_steps: int = option(0, "anneal shaping_weight linearly to 0 over this many env steps (0: constant)")
+    ppo: PPOConfig = option(
+        PPOConfig(), "the PPO core's settings: its Adam, its epochs and minibatches, its returns and losses, and the "
+                     "shaped reward it optimises (the paper's IPPO: configs/algorithm/ippo.yaml)", group="PPO"
+    )
 
     # --- planner-guided start (kitchen-distill, then init_from)
     init_from: str = option(
@@ -158,7 +149,7 @@ class TrainConfig:
 
     @property
     def kitchens_per_minibatch(self) -> int:
-        return self.num_envs // self.minibatches
+        return self.num_envs // self.ppo.minibatches
 
     @property
     def planned_steps(self) -> int:
@@ -186,7 +177,7 @@ class TrainConfig:
         """The keys where this config would change what a run with the identity `trained` (its checkpoint's config)
         learns, each as (trained value, this value). A resume may change only where the run is kept, how long it
         runs, its checkpoints, logs and final evaluation (`resumable`), and its run options. Keys the checkpoint
-        predates are not compared; distillation's are compared one by one (`distill.rounds`)."""
+        predates are not compared; the PPO and distillation sections' are compared one by one (`ppo.lr`)."""
         asked = learning_keys(self.identity())
         return {key: (value, asked[key]) for key, value in learning_keys(trained).items()
                 if key in asked and key not in resumable and value != asked[key]}
@@ -221,18 +212,11 @@ class TrainConfig:
         check_types(self)
         check_name(self.name)
         check_seed(self.seed)
-        counts = ["max_steps", "num_envs", "rollout_steps", "total_steps", "hidden", "epochs", "minibatches"]
-        at_least(self, [*counts, "checkpoint_every"], 1)
-        weights = ["entropy_coef", "value_coef", "shaping_weight"]
-        at_least(self, ["eval_episodes", "snapshots", "shaping_anneal_steps", *weights], 0)
+        at_least(self, ["max_steps", "num_envs", "rollout_steps", "total_steps", "hidden", "checkpoint_every"], 1)
+        at_least(self, ["eval_episodes", "snapshots"], 0)
+        self.ppo.check()
         self.distill.check()
         self.check_teachers()
-        for name in ("lr", "adam_eps", "clip_epsilon", "max_grad_norm"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"{name} must be greater than 0, got {getattr(self, name)}")
-        for name in ("gamma", "gae_lambda"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ConfigError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
         if not 0 <= self.eval_heldout <= NUM_HELDOUT_GENERATED:
             raise ConfigError(
                 f"eval_heldout must be between 0 and {NUM_HELDOUT_GENERATED} (the held-out levels), "
@@ -257,10 +241,10 @@ class TrainConfig:
                 raise ConfigError(f"loggers holds {logger!r}; the TorchRL loggers are {', '.join(LOGGERS)}")
         if len(set(self.loggers)) < len(self.loggers):
             raise ConfigError(f"loggers names a logger twice: {self.loggers}")
-        if self.num_envs % self.minibatches:
+        if self.num_envs % self.ppo.minibatches:
             raise ConfigError(
-                f"minibatches ({self.minibatches}) must divide num_envs ({self.num_envs}): minibatches are whole "
-                "kitchens' sequences"
+                f"ppo.minibatches ({self.ppo.minibatches}) must divide num_envs ({self.num_envs}): minibatches are "
+                "whole kitchens' sequences"
             )
         self.runtime.check(self.seed, self.kitchens_per_minibatch)
         return self
@@ -324,10 +308,14 @@ class TrainConfig:
         ]
 
 
+SPREAD = ("ppo", "distill")  # the sections a resume compares key by key
+
+
 def learning_keys(values: dict) -> dict:
-    """A run's identity (its checkpoint's config) with distillation's section spread into its keys
-    (`distill.rounds`), a checkpoint of before that section read into them."""
-    values = distill_sectioned(values)
-    spread = {key: value for key, value in values.items() if key != "distill"}
-    spread.update({f"distill.{key}": value for key, value in (values.get("distill") or {}).items()})
+    """A run's identity (its checkpoint's config) with the PPO and distillation sections spread into their keys
+    (`ppo.lr`, `distill.rounds`), a checkpoint of before those sections read into them."""
+    values = sectioned_keys(values)
+    spread = {key: value for key, value in values.items() if key not in SPREAD}
+    for section in SPREAD:
+        spread.update({f"{section}.{key}": value for key, value in (values.get(section) or {}).items()})
     return spread

@@ -221,7 +221,7 @@ def fine_tune(start: Path, layout: str, settings: ProxySettings, coef: float, ga
     config = load_config(None, [
         f"levels={layout}", f"architecture={settings.architecture}", f"hidden={settings.hidden}", "share_params=true",
         "algorithm=anchored_ippo", f"algorithm_config.anchor_coef={coef}", f"init_from={start}",
-        f"total_steps={settings.fine_tune_steps}", f"max_steps={game_steps}", f"lr={settings.fine_tune_lr}",
+        f"total_steps={settings.fine_tune_steps}", f"max_steps={game_steps}", f"ppo.lr={settings.fine_tune_lr}",
         f"seed={seed}", f"run_dir={run_dir}", f"name=anchor{coef:g}", "eval_episodes=0",
         f"runtime.threads={settings.threads}", f"runtime.device={settings.device}",
     ])  # fmt: skip

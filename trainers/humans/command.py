@@ -127,7 +127,7 @@ def games_from_records(paths: Sequence[str | Path], split: str) -> list[HumanGam
     import numpy as np
 
     from jax_env import layout_names
-    from web_apps.play.game import replayed_states
+    from torch_kitchen.records import replayed_states
 
     games = []
     for path in paths:

@@ -66,9 +66,9 @@ def generalized_advantages(
 def shaping_weight_at(config: TrainConfig, env_steps: int) -> float:
     """The weight of the shaped reward in the training reward after `env_steps`: annealed linearly to 0 over
     `shaping_anneal_steps` (0: constant)."""
-    if config.shaping_anneal_steps <= 0:
-        return config.shaping_weight
-    return config.shaping_weight * max(0.0, 1.0 - env_steps / config.shaping_anneal_steps)
+    if config.ppo.shaping_anneal_steps <= 0:
+        return config.ppo.shaping_weight
+    return config.ppo.shaping_weight * max(0.0, 1.0 - env_steps / config.ppo.shaping_anneal_steps)
 
 
 def compute_advantages(batch: TensorDictBase, critic, config: TrainConfig, shaping_weight: float) -> None:
@@ -87,7 +87,7 @@ def compute_advantages(batch: TensorDictBase, critic, config: TrainConfig, shapi
         after = critic(batch["next"][:, -1].clone()).get(VALUE)
     next_value = torch.cat([value[:, 1:], after.unsqueeze(1)], dim=1)
     advantage, target = generalized_advantages(
-        config.gamma, config.gae_lambda, value, next_value, reward, done, done, time_dim=1
+        config.ppo.gamma, config.ppo.gae_lambda, value, next_value, reward, done, done, time_dim=1
     )
     batch.set(ADVANTAGE, advantage)
     batch.set(VALUE_TARGET, target)

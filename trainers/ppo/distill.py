@@ -140,11 +140,11 @@ def fit(actor_critic: ActorCritic, optimizer: torch.optim.Optimizer, data: Tenso
                 if current is not None:
                     value = actor_critic.critic(current.clone(False)).get(VALUE)
                     value_error = (value - current.get(VALUE_TARGET)).pow(2).mean()
-                    loss = loss + config.value_coef * value_error
+                    loss = loss + config.ppo.value_coef * value_error
                     value_errors.append(value_error.detach())
                 optimizer.zero_grad()
                 loss.backward()
-                nn.utils.clip_grad_norm_(parameters, config.max_grad_norm)
+                nn.utils.clip_grad_norm_(parameters, config.ppo.max_grad_norm)
                 optimizer.step()
                 agreement = (logits.argmax(-1) == probs.argmax(-1)).float().mean()
                 imitations.append(torch.stack([imitation.detach(), agreement]))

@@ -71,7 +71,7 @@ PPO_METRICS = {
 
 def learning_rate_at(config: TrainConfig, update: int) -> float:
     """The learning rate of update `update` (1-based): annealed linearly towards 0 over the run if `anneal_lr`."""
-    return config.lr * (1.0 - (update - 1) / config.num_updates) if config.anneal_lr else config.lr
+    return config.ppo.lr * (1.0 - (update - 1) / config.num_updates) if config.ppo.anneal_lr else config.ppo.lr
 
 
 def diverged(losses: dict[str, torch.Tensor], update: int, env_steps: int) -> TrainingDiverged:
@@ -102,8 +102,8 @@ def start_update(team: TrainingTeam, batch: TensorDictBase) -> list[tuple[torch.
     compute_advantages(batch, team.actor_critic.critic, config, shaping_weight_at(config, team.env_steps))
     team.algorithm.process_batch(batch)
     # Drawn where the batch is: a GPU's minibatches then need nothing from the host.
-    return [torch.randperm(config.num_envs, device=config.runtime.device).chunk(config.minibatches)
-            for _ in range(config.epochs)]
+    return [torch.randperm(config.num_envs, device=config.runtime.device).chunk(config.ppo.minibatches)
+            for _ in range(config.ppo.epochs)]
 
 
 def update_teams(teams: Sequence[TrainingTeam], batches: Sequence[TensorDictBase], orders: Sequence[list],

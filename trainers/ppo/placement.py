@@ -28,9 +28,9 @@ def make_optimizer(config: TrainConfig, parameters: list[torch.nn.Parameter]) ->
     rather than the compiled graph, and on a GPU its step counts on the device, as a CUDA graph needs; else fused,
     one kernel for all parameters instead of a few per tensor (3x faster on a CPU at hidden 256)."""
     if config.runtime.compile_update:
-        lr = torch.tensor(config.lr, device=config.runtime.device)
-        return torch.optim.Adam(parameters, lr=lr, eps=config.adam_eps, capturable=config.runtime.on_gpu)
-    return torch.optim.Adam(parameters, lr=config.lr, eps=config.adam_eps, fused=True)
+        lr = torch.tensor(config.ppo.lr, device=config.runtime.device)
+        return torch.optim.Adam(parameters, lr=lr, eps=config.ppo.adam_eps, capturable=config.runtime.on_gpu)
+    return torch.optim.Adam(parameters, lr=config.ppo.lr, eps=config.ppo.adam_eps, fused=True)
 
 
 def set_learning_rate(config: TrainConfig, optimizer: torch.optim.Optimizer, lr: float) -> None:

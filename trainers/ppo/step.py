@@ -35,7 +35,8 @@ def ppo_step(teams: Sequence[TrainingTeam], gradients_of: GradientsOf, minibatch
     the losses were finite is the update's to check, once at its end."""
     losses, gradients = gradients_of(minibatch)
     used = [index for index, gradient in enumerate(gradients) if gradient is not None]
-    clipped, losses["grad_norm"] = clip_per_team([gradients[index] for index in used], teams[0].config.max_grad_norm)
+    max_norm = teams[0].config.ppo.max_grad_norm
+    clipped, losses["grad_norm"] = clip_per_team([gradients[index] for index in used], max_norm)
     gradients = list(gradients)
     for index, gradient in zip(used, clipped):
         gradients[index] = gradient

@@ -25,7 +25,7 @@ from torch_kitchen.teams import RandomStream, TeamTransform
 from torch_kitchen.torchrl_internals import entropy_without_host_check, hold_value_clip_on_host
 from trainers.algorithms import ALGORITHMS, Algorithm, check_algorithm
 from trainers.checkpoint import LATEST, capture_rng_states, model_identity, save_checkpoint
-from trainers.config import ConfigError, TrainConfig
+from trainers.config import ConfigError, TrainConfig, learning_keys
 from trainers.ppo.placement import make_optimizer, place_networks
 
 
@@ -62,9 +62,9 @@ def make_loss(config: TrainConfig, actor_critic: ActorCritic, algorithm: Algorit
     loss = ClipPPOLoss(
         algorithm.loss_actor(),
         actor_critic.critic,
-        clip_epsilon=config.clip_epsilon,
-        entropy_coeff=config.entropy_coef,
-        critic_coeff=config.value_coef,
+        clip_epsilon=config.ppo.clip_epsilon,
+        entropy_coeff=config.ppo.entropy_coef,
+        critic_coeff=config.ppo.value_coef,
         loss_critic_type="l2",
         normalize_advantage=False,
         clip_value=True,
@@ -205,8 +205,9 @@ def check_teams(configs: Sequence[TrainConfig]) -> list[TrainConfig]:
             raise ConfigError(f"runtime.teams={config.runtime.teams}: a team's own config has runtime.teams=1 "
                               "(see `team_configs`)")
     for config in configs[1:]:
-        differ = [field.name for field in dataclasses.fields(TrainConfig)
-                  if field.name != "seed" and getattr(config, field.name) != getattr(configs[0], field.name)]
+        first = learning_keys(configs[0].to_dict())
+        differ = [key for key, value in learning_keys(config.to_dict()).items()
+                  if key != "seed" and value != first[key]]
         if differ:
             raise ConfigError(
                 f"teams trained together share every setting but the seed; seed {config.seed} differs from seed "

@@ -18,8 +18,9 @@ import uvicorn  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 
 from torch_kitchen.keys import OBSERVATION  # noqa: E402
+from torch_kitchen.records import read_record  # noqa: E402
 from trainers.humans.behaviour_cloning import HUMAN_ACTION, ProxySettings, fit_proxy, save_proxy  # noqa: E402
-from web_apps.play.game import read_record, replay  # noqa: E402
+from web_apps.play.game import replay  # noqa: E402
 from web_apps.play.server import create_app  # noqa: E402
 
 PROXY_KITCHEN = "cramped_room_in_7x7"  # a classic layout drawn inside a 7x7 kitchen, where human proxies play

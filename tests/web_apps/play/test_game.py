@@ -8,7 +8,8 @@ from jax_env.render import AGENT_COLOURS
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.models.e3t_partner import CONTEXT_ACTION
 from torch_kitchen.models.recurrence import recurrent_states
-from web_apps.play.game import SCRIPTED, Game, Partner, load_partner, read_record, replay, step_games
+from torch_kitchen.records import read_record
+from web_apps.play.game import SCRIPTED, Game, Partner, load_partner, replay, step_games
 from web_apps.play.server import GameStepper, page_html
 
 PERSON = [1, 2, 3, 4, 5, 0, 1, 2, 4, 4]  # the person's keys, seat 0

@@ -14,11 +14,12 @@ from fastapi.testclient import TestClient  # noqa: E402
 
 from torch_kitchen.keys import OBSERVATION  # noqa: E402
 from torch_kitchen.models import make_actor_critic  # noqa: E402
+from torch_kitchen.records import read_record  # noqa: E402
 from trainers.checkpoint import model_identity, save_checkpoint  # noqa: E402
 from trainers.config import TrainConfig  # noqa: E402
 from trainers.humans.behaviour_cloning import human_batch  # noqa: E402
 from trainers.humans.command import games_from_records  # noqa: E402
-from web_apps.play.game import RANDOM, SCRIPTED, read_record, replay  # noqa: E402
+from web_apps.play.game import RANDOM, SCRIPTED, replay  # noqa: E402
 from web_apps.play.server import SharedPartners, create_app, main  # noqa: E402
 
 

@@ -15,7 +15,8 @@ from fastapi import WebSocketDisconnect  # noqa: E402
 from fastapi.testclient import TestClient  # noqa: E402
 from tiny_study import TOKEN, study_config  # noqa: E402
 
-from web_apps.play.game import file_sha256, read_record, replay  # noqa: E402
+from torch_kitchen.records import read_record  # noqa: E402
+from web_apps.play.game import file_sha256, replay  # noqa: E402
 from web_apps.study.analysis import analyse  # noqa: E402
 from web_apps.study.assignment import assign, latin_square  # noqa: E402
 from web_apps.study.client import (  # noqa: E402

@@ -17,7 +17,8 @@ if CHROMIUM is None:
 import uvicorn  # noqa: E402
 from tiny_study import TOKEN, study_config  # noqa: E402
 
-from web_apps.play.game import ACTIONS, read_record  # noqa: E402
+from torch_kitchen.records import read_record  # noqa: E402
+from web_apps.play.game import ACTIONS  # noqa: E402
 from web_apps.study.client import free_port  # noqa: E402
 from web_apps.study.config import FORCED_CHOICE, load_study  # noqa: E402
 from web_apps.study.server import create_study_app, open_study  # noqa: E402
