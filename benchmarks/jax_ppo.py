@@ -60,14 +60,14 @@ from trainers.ppo.loop import learning_rate_at
 SETTINGS = {
     # JaxMARL's IPPO for Overcooked: native-size coord_ring, 16 kitchens x 128 steps, shaped reward annealed.
     "jaxmarl": {
-        "levels": "coord_ring", "num_envs": 16, "rollout_steps": 128, "hidden": 64, "epochs": 4, "minibatches": 4,
-        "shaping_weight": 1.0, "shaping_anneal_steps": 2_500_000, "max_steps": 400, "lr": 2.5e-4,
-        "share_params": True,
+        "levels": "coord_ring", "num_envs": 16, "rollout_steps": 128, "hidden": 64, "max_steps": 400,
+        "ppo.epochs": 4, "ppo.minibatches": 4, "ppo.shaping_weight": 1.0, "ppo.shaping_anneal_steps": 2_500_000,
+        "ppo.lr": 2.5e-4, "share_params": True,
     },
     # The paper's Infinite Kitchen shape: 32 kitchens x 256 steps, hidden 256, sparse reward.
     "ik": {
         "levels": "infinite", "num_envs": 32, "rollout_steps": 256, "hidden": 256, "max_steps": 256,
-        "shaping_weight": 0.0, "share_params": True,
+        "ppo.shaping_weight": 0.0, "share_params": True,
     },
 }  # fmt: skip
 # The paper's protocol: 6 teams (seeds) of the IK shape in one process.
@@ -76,7 +76,7 @@ SETTINGS["protocol_gnn"] = {**SETTINGS["protocol"], "architecture": "gnn"}  # ou
 SETTINGS["protocol_sk"] = {**SETTINGS["protocol"], "share_params": False}  # the SK configs' networks, one per agent
 # A dry run's: every path of a benchmark in seconds (benchmarks/gpu_checks.sh with SIZE=tiny).
 SETTINGS["tiny"] = {**SETTINGS["jaxmarl"], "levels": "cramped_room", "num_envs": 4, "rollout_steps": 16, "hidden": 16,
-                    "epochs": 1, "minibatches": 2, "max_steps": 16, "runtime.teams": 2}
+                    "ppo.epochs": 1, "ppo.minibatches": 2, "max_steps": 16, "runtime.teams": 2}
 
 # Torch's `clip_grad_norm_` divides by norm + 1e-6 (optax's `clip_by_global_norm` does not add it).
 GRAD_NORM_EPS = 1e-6

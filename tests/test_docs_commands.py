@@ -303,7 +303,7 @@ def test_the_checks_find_what_is_wrong():
         "Train:",
         "",
         "```bash",
-        "kitchen-train configs/ippo/mlp_ik.yaml lr=1e-3 learning_rate=1e-3",
+        "kitchen-train configs/ippo/mlp_ik.yaml ppo.lr=1e-3 learning_rate=1e-3",
         "kitchen-sweep configs/ippo/mlp_ik.yaml regime=ik,sk_nowhere hydra/launcher=joblib \\",
         "    runtime.threads=2 runtime.thread=2",
         "kitchen-train configs/e3t/mlp_ik.yaml algorithm_config.partner_epsilon=0.5 algorithm_config.anchor_coef=1",

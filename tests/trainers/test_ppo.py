@@ -183,7 +183,7 @@ def test_bad_runs_and_checkpoints_get_a_clear_message(tmp_path, capsys):
     assert err.count("\n") == 1 and (run / "config.yaml").read_text() == saved
 
     assert main([MAIN_CONFIG, "lrr=0.1"]) == 2
-    assert "unknown config key 'lrr' in the command line (did you mean 'lr'?)" in capsys.readouterr().err
+    assert "unknown config key 'lrr' in the command line (did you mean 'ppo.lr'?)" in capsys.readouterr().err
 
     assert main([MAIN_CONFIG, *TINY, f"run_dir={tmp_path}", "algorithm=e3t"]) == 2
     assert "algorithm=e3t needs a model with a partner predictor, and 'ego_mlp' has none" in capsys.readouterr().err
@@ -194,7 +194,7 @@ def test_bad_runs_and_checkpoints_get_a_clear_message(tmp_path, capsys):
     assert "partner_policy must be one of ego, copy, got 'past'" in capsys.readouterr().err
 
     assert main([MAIN_CONFIG, "lrr=0.1"]) == 2
-    assert "unknown config key 'lrr' in the command line (did you mean 'lr'?)" in capsys.readouterr().err
+    assert "unknown config key 'lrr' in the command line (did you mean 'ppo.lr'?)" in capsys.readouterr().err
 
     checkpoint = run / "checkpoints" / "latest.pt"
     checkpoint.write_bytes(checkpoint.read_bytes()[:1000])

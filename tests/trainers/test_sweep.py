@@ -85,7 +85,7 @@ def test_keys_and_values_are_checked_before_any_job_starts(tmp_path, capsys, mon
     monkeypatch.chdir(tmp_path)
     assert main([str(ROOT / "configs" / "main.yaml"), "lrr=0.1,0.2"]) == 2
     refused = capsys.readouterr().err
-    assert "unknown config key 'lrr' in the command line (did you mean 'lr'?); valid keys: name, " in refused
+    assert "unknown config key 'lrr' in the command line (did you mean 'ppo.lr'?); valid keys: name, " in refused
     assert main([str(ROOT / "configs" / "main.yaml"), "seed=0,x"]) == 2
     assert "seed in the command line must be int, got 'x'" in capsys.readouterr().err
     assert main([str(ROOT / "configs" / "main.yaml"), "num_envs=2,3", "ppo.minibatches=2"]) == 2
