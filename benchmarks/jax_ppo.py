@@ -279,6 +279,61 @@ def check_supported(config: TrainConfig) -> None:
         raise ValueError("the reference counts env steps in int32: keep total_steps below 2**31")
 
 
+def rollout_step(env: Overcooked, networks, carry):
+    """One step of every kitchen with actions sampled from the policy."""
+    params, observation, states, deliveries, rng = carry
+    rng, rng_action, rng_step = jax.random.split(rng, 3)
+    logits = networks.logits(params, observation)
+    action = jax.random.categorical(rng_action, logits)  # int32 [B, 2]
+    log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), action[..., None], axis=-1)[..., 0]
+    value = networks.value(params, observation)
+    next_observation, states, reward, done, info = env.step_batch(rng_step, states, action)
+    # Soups delivered this episode, as KitchenEnv counts them: the sparse reward is DELIVERY_REWARD per soup.
+    deliveries = deliveries + (reward[:, 0] / DELIVERY_REWARD).astype(jnp.int32)
+    transition = Transition(observation, action, log_prob, value, reward, info["shaped_reward"], done,
+                            jnp.where(done, deliveries, 0).astype(jnp.float32))
+    deliveries = jnp.where(done, 0, deliveries)
+    return (params, next_observation, states, deliveries, rng), transition
+
+
+def ppo_epoch(networks, optimizer, config: TrainConfig, carry):
+    """One pass over the batch in minibatches of whole kitchens, shuffled."""
+    params, opt_state, data, rng = carry
+    num_envs, minibatches = config.num_envs, config.ppo.minibatches
+    rng, rng_perm = jax.random.split(rng)
+    kitchens = jax.random.permutation(rng_perm, num_envs).reshape(minibatches, num_envs // minibatches)
+
+    def minibatch(carry, indices):
+        params, opt_state = carry
+        batch = jax.tree_util.tree_map(lambda x: jnp.take(x, indices, axis=1), data)  # [T, b, ...]
+        params, opt_state, stats = minibatch_step(params, opt_state, networks, optimizer, batch, config)
+        return (params, opt_state), stats
+
+    (params, opt_state), stats = jax.lax.scan(minibatch, (params, opt_state), kitchens)
+    return (params, opt_state, data, rng), stats
+
+
+def update_metrics(stats: dict, transitions: Transition, target: jax.Array, env_steps: jax.Array, schedule: dict,
+                   max_steps: int) -> dict[str, jax.Array]:
+    """An update's metrics, named as our trainer logs them: the losses' means over every minibatch of every
+    epoch, the steps, episodes and deliveries, the schedules, the explained variance."""
+    episodes = transitions.done.sum()
+    residual_variance = (target - transitions.value).var(ddof=1)
+    return {
+        **{key: value.mean() for key, value in stats.items()},
+        "charts/env_steps": env_steps,
+        "charts/episodes": episodes,
+        "charts/episode_deliveries": jnp.where(
+            episodes > 0, transitions.episode_deliveries.sum() / jnp.maximum(episodes, 1), jnp.nan
+        ),
+        "charts/episode_return": transitions.reward.mean() * max_steps,
+        "charts/shaped_return": transitions.shaped_reward.mean() * max_steps,
+        "charts/learning_rate": schedule["learning_rate"],
+        "charts/shaping_weight": schedule["shaping_weight"],
+        "losses/explained_variance": 1.0 - residual_variance / target.var(ddof=1),
+    }
+
+
 def make_train(config: TrainConfig) -> Callable[[jax.Array], dict[str, jax.Array]]:
     """`train(rng) -> metrics`: the whole run (config.num_updates updates of num_envs x rollout_steps steps), pure
     and jittable. Metrics: name -> [num_updates], named as our trainer logs them, plus "charts/env_steps" and
@@ -287,39 +342,14 @@ def make_train(config: TrainConfig) -> Callable[[jax.Array], dict[str, jax.Array
     env = Overcooked(config.levels, max_steps=config.max_steps)
     networks = make_actor_critic(config.hidden, config.share_params)
     optimizer = make_optimizer(config)
-    num_envs, steps, minibatches = config.num_envs, config.rollout_steps, config.ppo.minibatches
+    num_envs, steps = config.num_envs, config.rollout_steps
     per_update = {key: jnp.asarray(value) for key, value in schedules(config).items()}
 
     def rollout(carry, _):
-        """One step of every kitchen with actions sampled from the policy."""
-        params, observation, states, deliveries, rng = carry
-        rng, rng_action, rng_step = jax.random.split(rng, 3)
-        logits = networks.logits(params, observation)
-        action = jax.random.categorical(rng_action, logits)  # int32 [B, 2]
-        log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), action[..., None], axis=-1)[..., 0]
-        value = networks.value(params, observation)
-        next_observation, states, reward, done, info = env.step_batch(rng_step, states, action)
-        # Soups delivered this episode, as KitchenEnv counts them: the sparse reward is DELIVERY_REWARD per soup.
-        deliveries = deliveries + (reward[:, 0] / DELIVERY_REWARD).astype(jnp.int32)
-        transition = Transition(observation, action, log_prob, value, reward, info["shaped_reward"], done,
-                                jnp.where(done, deliveries, 0).astype(jnp.float32))
-        deliveries = jnp.where(done, 0, deliveries)
-        return (params, next_observation, states, deliveries, rng), transition
+        return rollout_step(env, networks, carry)
 
     def epoch(carry, _):
-        """One pass over the batch in minibatches of whole kitchens, shuffled."""
-        params, opt_state, data, rng = carry
-        rng, rng_perm = jax.random.split(rng)
-        kitchens = jax.random.permutation(rng_perm, num_envs).reshape(minibatches, num_envs // minibatches)
-
-        def minibatch(carry, indices):
-            params, opt_state = carry
-            batch = jax.tree_util.tree_map(lambda x: jnp.take(x, indices, axis=1), data)  # [T, b, ...]
-            params, opt_state, stats = minibatch_step(params, opt_state, networks, optimizer, batch, config)
-            return (params, opt_state), stats
-
-        (params, opt_state), stats = jax.lax.scan(minibatch, (params, opt_state), kitchens)
-        return (params, opt_state, data, rng), stats
+        return ppo_epoch(networks, optimizer, config, carry)
 
     def update(runner, schedule):
         """Collect num_envs x rollout_steps steps, then the PPO epochs: one update of our trainer."""
@@ -341,21 +371,7 @@ def make_train(config: TrainConfig) -> Callable[[jax.Array], dict[str, jax.Array
             epoch, (params, opt_state, data, rng_epochs), None, length=config.ppo.epochs
         )
 
-        episodes = transitions.done.sum()
-        residual_variance = (target - transitions.value).var(ddof=1)
-        metrics = {
-            **{key: value.mean() for key, value in stats.items()},  # over every minibatch of every epoch
-            "charts/env_steps": env_steps,
-            "charts/episodes": episodes,
-            "charts/episode_deliveries": jnp.where(
-                episodes > 0, transitions.episode_deliveries.sum() / jnp.maximum(episodes, 1), jnp.nan
-            ),
-            "charts/episode_return": transitions.reward.mean() * config.max_steps,
-            "charts/shaped_return": transitions.shaped_reward.mean() * config.max_steps,
-            "charts/learning_rate": schedule["learning_rate"],
-            "charts/shaping_weight": schedule["shaping_weight"],
-            "losses/explained_variance": 1.0 - residual_variance / target.var(ddof=1),
-        }
+        metrics = update_metrics(stats, transitions, target, env_steps, schedule, config.max_steps)
         return (params, opt_state, observation, states, deliveries, rng, env_steps), metrics
 
     def train(rng: jax.Array) -> dict[str, jax.Array]:

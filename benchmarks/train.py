@@ -215,7 +215,7 @@ def parity(setting: str, budget: int, rows: int, threads: int, seed: int) -> Non
         print(f"{high:16,.0f} {mine_mean:16.2f} {theirs:21.2f}", flush=True)
 
 
-def main(argv=None):
+def train_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="mode", required=True)
     speed = sub.add_parser("throughput")
@@ -267,6 +267,33 @@ def main(argv=None):
     par.add_argument("--seed", type=int, default=0)
     par.add_argument("--device", default="cpu")
     par.add_argument("--threads", type=int, default=1)
+    return parser
+
+
+def e3t_table(args: argparse.Namespace) -> None:
+    """E3T's steps per second against IPPO's, per encoder and number of kitchens."""
+    print(f"{'encoder':>8s} {'envs':>6s} {'IPPO steps/s':>13s} {'E3T steps/s':>12s} {'E3T / IPPO':>11s}")
+    for encoder in args.encoders:
+        for num_envs in args.envs:
+            ippo = throughput(encoder, num_envs, 256, args.updates, args.device, args.threads)
+            e3t = throughput(f"e3t_{encoder}", num_envs, 256, args.updates, args.device, args.threads, "e3t")
+            print(f"{encoder:>8s} {num_envs:6d} {ippo:13,.0f} {e3t:12,.0f} {e3t / ippo:11.2f}", flush=True)
+
+
+def throughput_table(args: argparse.Namespace) -> None:
+    """Steps per second per architecture and number of kitchens."""
+    print(f"{'architecture':>12s} {'envs':>6s} {'rollout':>8s} {'steps/s':>10s}")
+    for architecture in args.archs:
+        for num_envs in args.envs:
+            # The paper's 256-step rollouts at 32 envs; shorter ones keep large batches within memory and time.
+            rollout_steps = 256 if num_envs * 256 <= args.frames else max(16, args.frames // num_envs)
+            sps = throughput(architecture, num_envs, rollout_steps, args.updates, args.device, args.threads,
+                             overrides=args.overrides)
+            print(f"{architecture:>12s} {num_envs:6d} {rollout_steps:8d} {sps:10,.0f}", flush=True)
+
+
+def main(argv=None):
+    parser = train_parser()
     args = parser.parse_args(argv)
     print(f"device: {args.device}, {machine_name()}, torch threads: {args.threads}")
 
@@ -285,21 +312,9 @@ def main(argv=None):
         learning_check(args.target, int(args.budget), args.threads, args.device, args.seed, args.overrides)
         return
     if args.mode == "e3t":
-        print(f"{'encoder':>8s} {'envs':>6s} {'IPPO steps/s':>13s} {'E3T steps/s':>12s} {'E3T / IPPO':>11s}")
-        for encoder in args.encoders:
-            for num_envs in args.envs:
-                ippo = throughput(encoder, num_envs, 256, args.updates, args.device, args.threads)
-                e3t = throughput(f"e3t_{encoder}", num_envs, 256, args.updates, args.device, args.threads, "e3t")
-                print(f"{encoder:>8s} {num_envs:6d} {ippo:13,.0f} {e3t:12,.0f} {e3t / ippo:11.2f}", flush=True)
+        e3t_table(args)
         return
-    print(f"{'architecture':>12s} {'envs':>6s} {'rollout':>8s} {'steps/s':>10s}")
-    for architecture in args.archs:
-        for num_envs in args.envs:
-            # The paper's 256-step rollouts at 32 envs; shorter ones keep large batches within memory and time.
-            rollout_steps = 256 if num_envs * 256 <= args.frames else max(16, args.frames // num_envs)
-            sps = throughput(architecture, num_envs, rollout_steps, args.updates, args.device, args.threads,
-                             overrides=args.overrides)
-            print(f"{architecture:>12s} {num_envs:6d} {rollout_steps:8d} {sps:10,.0f}", flush=True)
+    throughput_table(args)
 
 
 if __name__ == "__main__":

@@ -86,6 +86,29 @@ def measure(checkout: Path, mode: str, names: list[str], envs: int, updates: int
     return rates
 
 
+def table_lines(args: argparse.Namespace, argv, runs: dict[str, dict[str, list[float]]]) -> list[str]:
+    """The table's caption (shape, runs, machine, command) and its rows: each configuration's median steps/s on
+    either side and their ratio."""
+    machine = f"{machine_name()}, torch threads {args.threads}"
+    shape = f"{args.envs} kitchens x 256 steps, hidden 256, Infinite Kitchen" if args.archs or args.e3t else ""
+    shape += (f"{'; ' if shape else ''}reference settings {', '.join(args.reference)}, ours collecting with "
+              f"runtime.collector={args.collector}" if args.reference else "")
+    shape += (f"{'; ' if shape else ''}the main job's IPPO phase: {MAIN_IPPO[1]} kitchens x {MAIN_IPPO[2]} steps, "
+              f"{MAIN_IPPO[0]}, {', '.join(MAIN_IPPO_OVERRIDES)}" if args.main else "")
+    lines = [
+        f"Training steps/s ({shape}); median of {args.repeats} alternating runs per side; {machine}.",
+        f"Earlier: `{args.revision}`. Command: `python benchmarks/train_revisions.py {' '.join(argv or sys.argv[1:])}`",
+        "",
+        "| configuration | earlier steps/s | current steps/s | current / earlier |",
+        "|---|---:|---:|---:|",
+    ]
+    for name in runs["earlier"]:
+        before, after = statistics.median(runs["earlier"][name]), statistics.median(runs["current"][name])
+        digits = 3 if name.endswith("/ yardstick") else 0  # a ratio, not steps/s
+        lines.append(f"| {name} | {before:,.{digits}f} | {after:,.{digits}f} | {after / before:.2f} |")
+    return lines
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("revision", help="the earlier git revision to compare against")
@@ -129,23 +152,7 @@ def main(argv=None) -> None:
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(earlier)], cwd=ROOT, check=False)
 
-    machine = f"{machine_name()}, torch threads {args.threads}"
-    shape = f"{args.envs} kitchens x 256 steps, hidden 256, Infinite Kitchen" if args.archs or args.e3t else ""
-    shape += (f"{'; ' if shape else ''}reference settings {', '.join(args.reference)}, ours collecting with "
-              f"runtime.collector={args.collector}" if args.reference else "")
-    shape += (f"{'; ' if shape else ''}the main job's IPPO phase: {MAIN_IPPO[1]} kitchens x {MAIN_IPPO[2]} steps, "
-              f"{MAIN_IPPO[0]}, {', '.join(MAIN_IPPO_OVERRIDES)}" if args.main else "")
-    lines = [
-        f"Training steps/s ({shape}); median of {args.repeats} alternating runs per side; {machine}.",
-        f"Earlier: `{args.revision}`. Command: `python benchmarks/train_revisions.py {' '.join(argv or sys.argv[1:])}`",
-        "",
-        "| configuration | earlier steps/s | current steps/s | current / earlier |",
-        "|---|---:|---:|---:|",
-    ]
-    for name in runs["earlier"]:
-        before, after = statistics.median(runs["earlier"][name]), statistics.median(runs["current"][name])
-        digits = 3 if name.endswith("/ yardstick") else 0  # a ratio, not steps/s
-        lines.append(f"| {name} | {before:,.{digits}f} | {after:,.{digits}f} | {after / before:.2f} |")
+    lines = table_lines(args, argv, runs)
     table = "\n".join(lines) + "\n"
     print(table)
     if args.out:

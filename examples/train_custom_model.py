@@ -116,6 +116,50 @@ def make_loss_module(actor, critic) -> ClipPPOLoss:
     return loss_module
 
 
+def ppo_epochs(loss_module: ClipPPOLoss, optimizer: torch.optim.Optimizer, data, epochs: int, minibatches: int
+               ) -> list:
+    """The batch flattened, then a few epochs of shuffled minibatches: PPO's clipped loss, the gradient clipped to
+    norm 0.5, an Adam step. Returns each minibatch's losses."""
+    flat, logs = data.reshape(-1), []
+    for _ in range(epochs):
+        for index in torch.randperm(flat.numel(), device=flat.device).chunk(minibatches):
+            losses = loss_module(flat[index])
+            loss = losses["loss_objective"] + losses["loss_critic"] + losses["loss_entropy"]
+            optimizer.zero_grad()
+            loss.backward()
+            nn.utils.clip_grad_norm_(loss_module.parameters(), max_norm=0.5)
+            optimizer.step()
+            logs.append(losses.detach())
+    return logs
+
+
+def log_iteration(logger: TensorboardLogger, losses, next_, shaped, frames: int, steps_per_second: float,
+                  label: str) -> None:
+    """An iteration's losses and deliveries to TensorBoard, and one line of them on the console."""
+    done = next_["done"].squeeze(-1)
+    scalars = {
+        "losses/objective": losses["loss_objective"],
+        "losses/critic": losses["loss_critic"],
+        "losses/entropy": losses["entropy"],  # the policy's entropy (loss_entropy is -entropy_coeff x this)
+        "losses/approx_kl": losses["kl_approx"],
+        "losses/clipfrac": losses["clip_fraction"],
+        "losses/explained_variance": losses["explained_variance"],
+        "charts/shaped_reward": shaped.mean(),
+        "charts/steps_per_second": steps_per_second,
+    }
+    if done.any():  # the episode's total is on its last step
+        scalars["charts/episode_deliveries"] = next_["episode_deliveries"][done].mean()
+    for name, value in scalars.items():
+        logger.log_scalar(name, float(value), step=frames)
+    deliveries = f"{float(scalars['charts/episode_deliveries']):.2f}" if done.any() else "-"
+    print(
+        f"{label}  steps {frames}  deliveries/episode {deliveries}  "
+        f"objective {float(losses['loss_objective']):+.4f}  critic {float(losses['loss_critic']):.4f}  "
+        f"entropy {float(losses['entropy']):.3f}  sps {steps_per_second:.0f}",
+        flush=True,
+    )
+
+
 def main(argv: list[str] | None = None) -> dict:
     """Train, log to TensorBoard and print one line per iteration.
 
@@ -155,43 +199,12 @@ def main(argv: list[str] | None = None) -> dict:
                 data, params=loss_module.critic_network_params, target_params=loss_module.target_critic_network_params
             )
 
-        # flatten the batch, then a few epochs of shuffled minibatches
-        flat, logs = data.reshape(-1), []
-        for _ in range(args.epochs):
-            for index in torch.randperm(flat.numel(), device=flat.device).chunk(args.minibatches):
-                losses = loss_module(flat[index])
-                loss = losses["loss_objective"] + losses["loss_critic"] + losses["loss_entropy"]
-                optimizer.zero_grad()
-                loss.backward()
-                nn.utils.clip_grad_norm_(loss_module.parameters(), max_norm=0.5)
-                optimizer.step()
-                logs.append(losses.detach())
+        logs = ppo_epochs(loss_module, optimizer, data, args.epochs, args.minibatches)
         collector.update_policy_weights_()  # a no-op here (same process, same device); needed with remote workers
 
         frames += data.numel()
-        losses = torch.stack(logs).apply(lambda x: x.float().mean(), batch_size=[])
-        done = next_["done"].squeeze(-1)
-        scalars = {
-            "losses/objective": losses["loss_objective"],
-            "losses/critic": losses["loss_critic"],
-            "losses/entropy": losses["entropy"],  # the policy's entropy (loss_entropy is -entropy_coeff x this)
-            "losses/approx_kl": losses["kl_approx"],
-            "losses/clipfrac": losses["clip_fraction"],
-            "losses/explained_variance": losses["explained_variance"],
-            "charts/shaped_reward": shaped.mean(),
-            "charts/steps_per_second": frames / (time.perf_counter() - start),
-        }
-        if done.any():  # the episode's total is on its last step
-            scalars["charts/episode_deliveries"] = next_["episode_deliveries"][done].mean()
-        for name, value in scalars.items():
-            logger.log_scalar(name, float(value), step=frames)
-        deliveries = f"{float(scalars['charts/episode_deliveries']):.2f}" if done.any() else "-"
-        print(
-            f"iter {iteration}/{iterations}  steps {frames}  deliveries/episode {deliveries}  "
-            f"objective {float(losses['loss_objective']):+.4f}  critic {float(losses['loss_critic']):.4f}  "
-            f"entropy {float(losses['entropy']):.3f}  sps {scalars['charts/steps_per_second']:.0f}",
-            flush=True,
-        )
+        log_iteration(logger, torch.stack(logs).apply(lambda x: x.float().mean(), batch_size=[]), next_, shaped,
+                      frames, frames / (time.perf_counter() - start), f"iter {iteration}/{iterations}")
 
     collector.shutdown()
     logger.experiment.close()
