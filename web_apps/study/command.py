@@ -49,10 +49,10 @@ def run(args) -> int:
         import uvicorn  # noqa: F401
     except ImportError:
         return error("kitchen-study needs the play extra: pip install .[play]")
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")  # before the restart's line
     database, token, operator = open_study(config, args.token)
     app = create_study_app(config, database, token, operator, served_hosts(args.host, args.port, args.allow_host),
                            partners)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     base = f"http://{args.host}:{args.port}"
     print(f"{PROG}: study {config.name} in {config.folder}/\n"
           f"  participants: {base}/?token={token}&{config.participant_param}=<their id>\n"

@@ -86,6 +86,9 @@ class StudyConfig:
     practice_steps: int = 200  # steps per practice game
     idle_s: float = 120.0  # a turns-paced game without an action for this long ends, and is played again
     participant_param: str = "participant"  # the query parameter of the platform's participant id in the link
+    # Further parameters of the link stored beside the id when present (Prolific's study and session).
+    link_params: list[str] = field(default_factory=lambda: ["STUDY_ID", "SESSION_ID"])
+    allow_without_id: bool = False  # a lab run: a visit without the id is a new participant (else it is refused)
     completion_code: str = "random"  # the code shown at the end: one for all, or "random" (one per participant)
     completion_url: str = ""  # where the last page links to, "{code}" replaced (e.g. the platform's return link)
     target_participants: int = 0  # shown on the operator page (0: none set)
@@ -195,6 +198,11 @@ def check_values(config: StudyConfig, where: str) -> None:
         fail(f"participant_param must be a query parameter's name, got {config.participant_param!r}")
     if not isinstance(config.forced_choice, str):
         fail("forced_choice must be its question, or empty to ask none")
+    if not isinstance(config.link_params, list) or not all(isinstance(p, str) and p.isidentifier()
+                                                           for p in config.link_params):
+        fail(f"link_params must be a list of query parameters' names, got {config.link_params!r}")
+    if not isinstance(config.allow_without_id, bool):
+        fail(f"allow_without_id must be true or false, got {config.allow_without_id!r}")
 
 
 def partner_key(spec: str, kitchen: str) -> str:

@@ -34,7 +34,7 @@ SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS participants (
     number INTEGER PRIMARY KEY, key TEXT NOT NULL UNIQUE, external_id TEXT UNIQUE, completion_code TEXT NOT NULL,
-    started TEXT NOT NULL, finished TEXT);
+    started TEXT NOT NULL, finished TEXT, link TEXT);
 CREATE TABLE IF NOT EXISTS slots (
     participant INTEGER NOT NULL REFERENCES participants(number), practice INTEGER NOT NULL,
     position INTEGER NOT NULL, condition TEXT NOT NULL, kitchen TEXT NOT NULL, seed INTEGER NOT NULL,
@@ -86,6 +86,9 @@ class StudyDatabase:
             self._connection.execute("PRAGMA foreign_keys=ON")
             if create:
                 self._connection.executescript(SCHEMA)
+                columns = {row["name"] for row in self._connection.execute("PRAGMA table_info(participants)")}
+                if "link" not in columns:  # a study database of before the link's parameters were kept
+                    self._connection.execute("ALTER TABLE participants ADD COLUMN link TEXT")
 
     def close(self) -> None:
         self._connection.close()
@@ -128,17 +131,20 @@ class StudyDatabase:
                               (CUT, reason, now(), PLAYING)).rowcount
 
     # ----------------------------------------------------------------------------------------- participants
-    def register(self, external_id: str | None, key: str, code: str, slots_of) -> sqlite3.Row:
-        """The participant of `external_id` (the platform's id), made with `key`, `code` and the slots
-        `slots_of(number)` gives if new; without an id, always a new one."""
+    def register(self, external_id: str | None, key: str, code: str, slots_of, link: dict[str, str] | None = None
+                 ) -> sqlite3.Row:
+        """The participant of `external_id` (the platform's id), made with `key`, `code`, the slots
+        `slots_of(number)` gives and the link's other parameters (`link`, kept as JSON) if new; without an id,
+        always a new one."""
         with self.transaction() as db:
             if external_id is not None:
                 found = db.execute("SELECT * FROM participants WHERE external_id = ?", (external_id,)).fetchone()
                 if found is not None:
                     return found
             number = db.execute("SELECT COUNT(*) FROM participants").fetchone()[0]
-            db.execute("INSERT INTO participants (number, key, external_id, completion_code, started) "
-                       "VALUES (?, ?, ?, ?, ?)", (number, key, external_id, code, now()))
+            db.execute("INSERT INTO participants (number, key, external_id, completion_code, started, link) "
+                       "VALUES (?, ?, ?, ?, ?, ?)", (number, key, external_id, code, now(),
+                                                     json.dumps(link) if link else None))
             db.executemany("INSERT INTO slots VALUES (?, ?, ?, ?, ?, ?)",
                            [(number, int(s.practice), s.position, s.condition, s.kitchen, s.seed)
                             for s in slots_of(number)])

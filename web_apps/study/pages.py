@@ -83,6 +83,14 @@ def document(title: str, body: str, script: str = "") -> str:
             + (f"<script>\n{script}</script>\n" if script else "") + "</body></html>\n")
 
 
+def without_id_page(config: StudyConfig) -> str:
+    """The page of a visit whose link does not name the participant (`participant_param`): nothing is registered."""
+    return document(config.name, paragraphs(
+        "This study is opened through the link of the platform you were recruited on, which says who you are. "
+        "Please go back to the study's page there and open it from its link.\n\n"
+        f"(The link lacks its {config.participant_param} parameter.)"))
+
+
 def stage_page(config: StudyConfig, stage: Stage, stages: list[Stage], key: str, token: str, code: str) -> str:
     """The page of the participant's current `stage`."""
     constants = script_values(KEY=key, STAGE=stage.index, TOKEN=token)
@@ -160,6 +168,9 @@ function send() {
 """
 
 
+OPERATOR_REFRESH_S = 10  # the operator's page reloads itself
+
+
 def progress_page(name: str, progress: dict, target: int) -> str:
     """The operator's page: participants started and finished, games per condition and kitchen."""
     def table(title: str, counts: dict) -> str:
@@ -173,5 +184,7 @@ def progress_page(name: str, progress: dict, target: int) -> str:
                "games cut and played again": progress["games_cut"], "games playing now": progress["playing"],
                "answers stored": progress["answers"]}
     rows = "".join(f"<tr><td>{k}</td><td>{v}</td></tr>" for k, v in summary.items())
-    return document(f"Study {name}: progress", f"<table>{rows}</table>" + table("Per condition",
-                    progress["per_condition"]) + table("Per kitchen", progress["per_kitchen"]))
+    return document(f"Study {name}: progress", f"<p>This page refreshes itself every {OPERATOR_REFRESH_S} s.</p>"
+                    f"<table>{rows}</table>" + table("Per condition", progress["per_condition"])
+                    + table("Per kitchen", progress["per_kitchen"]),
+                    script=f"setTimeout(() => location.reload(), {OPERATOR_REFRESH_S * 1000});\n")

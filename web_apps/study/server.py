@@ -34,11 +34,11 @@ from web_apps.play.server import guard, play_game
 from web_apps.study.assignment import COMPLETE, CONSENT, PLAYED, QUESTIONS, Stage, assign, stages_of
 from web_apps.study.config import FORCED_CHOICE, StudyConfig, StudyError, kitchen_of, partner_key, study_partners
 from web_apps.study.database import DATABASE, Refused, StillPlaying, StudyDatabase
-from web_apps.study.pages import allowed_answers, progress_page, stage_page
+from web_apps.study.pages import allowed_answers, progress_page, stage_page, without_id_page
 
 try:
     from fastapi import FastAPI, HTTPException, Request, WebSocket
-    from fastapi.responses import HTMLResponse, RedirectResponse
+    from fastapi.responses import HTMLResponse, RedirectResponse, Response
     from pydantic import BaseModel
 
     class StageDone(BaseModel):
@@ -111,13 +111,17 @@ def create_study_app(config: StudyConfig, database: StudyDatabase, token: str, o
     visits = Visits(config, database, partners if partners is not None else study_partners(config))
 
     @app.get("/")
-    def entry(request: Request) -> RedirectResponse:
+    def entry(request: Request) -> Response:
         external_id = request.query_params.get(config.participant_param)
-        if external_id is not None and not 0 < len(external_id) <= MAX_ID:
-            raise HTTPException(400, f"{config.participant_param} must be 1 to {MAX_ID} characters")
+        if external_id is None and not config.allow_without_id:  # nothing registered: no row taken
+            return HTMLResponse(without_id_page(config), status_code=400)
+        link = {name: request.query_params[name] for name in config.link_params if name in request.query_params}
+        for value in (external_id, *link.values()):
+            if value is not None and not 0 < len(value) <= MAX_ID:
+                raise HTTPException(400, f"the link's parameters must be 1 to {MAX_ID} characters")
         code = (secrets.token_hex(4).upper() if config.completion_code == "random" else config.completion_code)
         participant = database.register(external_id, secrets.token_urlsafe(12), code,
-                                        lambda number: assign(config, number))
+                                        lambda number: assign(config, number), link)
         return RedirectResponse(f"/p/{participant['key']}?token={quote(token, safe='')}", status_code=303)
 
     @app.get("/p/{key}", response_class=HTMLResponse)

@@ -101,6 +101,39 @@ def study(tmp_path):
         yield client, database, operator, config
 
 
+def test_a_visit_without_the_platforms_id_is_refused_and_registers_nothing_unless_the_lab_allows_it(tmp_path):
+    for allowed in (False, True):
+        config = load_study(study_config(tmp_path / str(allowed), allow_without_id=allowed))
+        database, token, _ = open_study(config, TOKEN)
+        with TestClient(create_study_app(config, database, token, "operator")) as client:
+            visits = [client.get(f"/?token={token}", follow_redirects=False) for _ in range(2)]
+            listed = client.get(f"/?token={token}&participant=p-1&STUDY_ID=s-9&SESSION_ID=x-3&other=4",
+                                follow_redirects=False)
+        rows = database.rows("SELECT external_id, link FROM participants ORDER BY number")
+        if allowed:  # a lab run: each visit without an id is a new participant, with its own row of the design
+            assert [visit.status_code for visit in visits] == [303, 303]
+            assert [row["external_id"] for row in rows] == [None, None, "p-1"]
+        else:
+            assert [visit.status_code for visit in visits] == [400, 400]
+            assert "open it from its link" in visits[0].text and "participant parameter" in visits[0].text
+            assert [row["external_id"] for row in rows] == ["p-1"]  # the refused visits took no row
+        assert listed.status_code == 303
+        assert json.loads(rows[-1]["link"]) == {"STUDY_ID": "s-9", "SESSION_ID": "x-3"}  # kept beside the id
+        database.close()
+
+
+def test_a_study_database_of_before_the_links_parameters_opens_with_them(tmp_path):
+    path = tmp_path / "study.sqlite"
+    with sqlite3.connect(path) as old:  # the participants table as studies made it before
+        old.execute("CREATE TABLE participants (number INTEGER PRIMARY KEY, key TEXT NOT NULL UNIQUE, external_id TEXT "
+                    "UNIQUE, completion_code TEXT NOT NULL, started TEXT NOT NULL, finished TEXT)")
+        old.execute("INSERT INTO participants VALUES (0, 'k', 'p-0', 'CODE', '2026-12-01T00:00:00Z', NULL)")
+    database = StudyDatabase(path)
+    assert [dict(row) for row in database.rows("SELECT external_id, link FROM participants")] == [
+        {"external_id": "p-0", "link": None}]
+    database.close()
+
+
 def test_reload_second_tab_double_answer_skipped_stage_and_bad_token(study, monkeypatch):
     client, database, operator, config = study
 
@@ -180,7 +213,8 @@ def test_reload_second_tab_double_answer_skipped_stage_and_bad_token(study, monk
     progress = client.get(f"/api/progress?token={TOKEN}&key={operator}").json()
     assert (progress["started"], progress["finished"], progress["games_finished"]) == (1, 1, 2)
     assert progress["games_cut"] == 1 and sum(progress["per_condition"].values()) == 2
-    assert "Per kitchen" in client.get(f"/operator?token={TOKEN}&key={operator}").text
+    operator_page = client.get(f"/operator?token={TOKEN}&key={operator}").text
+    assert "Per kitchen" in operator_page and "location.reload()" in operator_page  # it refreshes itself
 
 
 def test_a_restarted_study_refuses_another_config(study, tmp_path):

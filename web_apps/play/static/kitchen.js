@@ -50,7 +50,7 @@ function draw(state) {
   document.getElementById("holding").textContent =
     `you hold ${ITEMS[state.holding[state.seat]]}, your partner ${ITEMS[state.holding[1 - state.seat]]}`;
   if (state.over) {
-    document.getElementById("over").textContent = `Game over: ${state.score} soups delivered.`;
+    document.getElementById("over").textContent = `Game over: ${state.score} ${state.score === 1 ? "soup" : "soups"} delivered.`;
     document.getElementById("again").style.display = "inline";
   }
 }
