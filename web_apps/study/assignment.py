@@ -1,11 +1,15 @@
-"""Who plays what, in which order: a balanced Latin square over the conditions, kitchens drawn per participant.
+"""Who plays what, in which order: a design balanced by construction over conditions, kitchens and positions.
 
-Participant k (numbered by arrival from 0) takes row k mod len(square) of `latin_square(n)`, repeated until it
-fills the participant's games: over every len(square) participants each condition is played equally often at each
-position, and (Williams' design) follows every other condition equally often. Each participant's kitchens and game
-seeds are drawn from the study's seed and the participant's number alone, so an assignment is the same whenever it
-is made again. A visit is a list of stages: consent, instructions, the practice games, then each assigned game
-followed by its questions, then the completion code.
+A block of the design has `block_size` rows: every row of Williams' balanced Latin square over the conditions
+(`latin_square`), each with every shift of the kitchens. Row r plays the square's row r mod R (R rows), repeated until
+it fills the participant's games, and at position p the kitchen (p + r // R) mod K of the study's kitchens (K of
+them, in an order drawn once from the study's seed). Over each block every condition is played equally often at each
+position and (Williams) follows every other equally often, every condition meets every kitchen equally often, and
+every kitchen appears equally often at each position; each participant plays each kitchen once before any twice
+(`design_counts` counts them). Participant k takes row k here (`assign`); the games' seeds are drawn from the study's
+seed and the participant's number, so an assignment is the same whenever it is made again. A visit is a list of
+stages: consent, instructions, the practice games, then each assigned game followed by its questions, then the
+completion code.
 """
 
 from __future__ import annotations
@@ -45,19 +49,42 @@ class Slot:
     seed: int
 
 
-def assign(config: StudyConfig, number: int) -> list[Slot]:
-    """The games of participant `number`: the practice ones, then the assigned ones in their counterbalanced order."""
+def block_size(config: StudyConfig) -> int:
+    """Rows (participants) in one block of the design: the conditions' square's rows times the kitchens."""
+    return len(latin_square(len(config.conditions))) * len(config.kitchens)
+
+
+def design_row(config: StudyConfig, row: int) -> list[tuple[str, str]]:
+    """(condition, kitchen) of each assigned game of the design's row `row` (see the module docstring)."""
     names = list(config.conditions)
-    row = latin_square(len(names))[number % len(latin_square(len(names)))]
-    order = [names[condition] for condition in row] * (config.games // len(names))
+    square = latin_square(len(names))
+    order = [names[condition] for condition in square[row % len(square)]] * (config.games // len(names))
+    kitchens = random.Random(f"{config.seed}:kitchens").sample(config.kitchens, len(config.kitchens))
+    shift = (row // len(square)) % len(kitchens)
+    return [(condition, kitchens[(position + shift) % len(kitchens)]) for position, condition in enumerate(order)]
+
+
+def assign(config: StudyConfig, number: int) -> list[Slot]:
+    """The games of participant `number`: the practice ones, then the assigned ones of its row of the design."""
     draw = random.Random(f"{config.seed}:{number}")
-    kitchens = []
-    while len(kitchens) < len(order):  # each kitchen once before any twice
-        kitchens += draw.sample(config.kitchens, len(config.kitchens))
     practice = [Slot(i, True, "practice", config.practice_kitchen, draw.randrange(2**31))
                 for i in range(config.practice_games)]
     return practice + [Slot(i, False, condition, kitchen, draw.randrange(2**31))
-                       for i, (condition, kitchen) in enumerate(zip(order, kitchens))]
+                       for i, (condition, kitchen) in enumerate(design_row(config, number))]
+
+
+def design_counts(config: StudyConfig, rows: int) -> dict[str, dict[tuple[str, str], int]]:
+    """Over rows 0..rows-1 of the design, the games of each condition x kitchen, condition x position and kitchen x
+    position (positions counted from 1)."""
+    counts: dict[str, dict[tuple[str, str], int]] = {"condition x kitchen": {}, "condition x position": {},
+                                                      "kitchen x position": {}}
+    for row in range(rows):
+        for position, (condition, kitchen) in enumerate(design_row(config, row), 1):
+            for table, key in (("condition x kitchen", (condition, kitchen)),
+                               ("condition x position", (condition, str(position))),
+                               ("kitchen x position", (kitchen, str(position)))):
+                counts[table][key] = counts[table].get(key, 0) + 1
+    return counts
 
 
 @dataclass(frozen=True)

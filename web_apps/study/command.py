@@ -12,7 +12,7 @@ import logging
 import sys
 
 from web_apps.play.server import port_in_use, served_hosts
-from web_apps.study.assignment import assign, latin_square
+from web_apps.study.assignment import assign, block_size, design_counts
 from web_apps.study.config import StudyError, load_study, study_partners
 
 PROG = "kitchen-study"
@@ -25,13 +25,24 @@ def error(message: str, status: int = 2) -> int:
 
 def check(args) -> int:
     config = load_study(args.config)
-    rows = len(latin_square(len(config.conditions)))
+    block = block_size(config)
+    participants = args.participants or block
     print(f"{args.config}: {len(config.conditions)} conditions ({', '.join(config.conditions)}), "
           f"{len(config.kitchens)} kitchens, {config.practice_games} practice + {config.games} games per participant; "
-          f"balanced over every {rows} participants; the study's folder: {config.folder}/")
-    for number in range(rows):
+          f"balanced over every {block} participants; the study's folder: {config.folder}/")
+    for number in range(participants):
         games = [f"{slot.condition} on {slot.kitchen}" for slot in assign(config, number) if not slot.practice]
         print(f"  participant {number}: {', '.join(games)}")
+    for table, counts in design_counts(config, participants).items():
+        print(f"games per {table} over the {participants} participants:")
+        rows = list(dict.fromkeys(key[0] for key in counts))
+        columns = list(dict.fromkeys(key[1] for key in counts))
+        width, first = max(4, *map(len, columns)), max(map(len, rows))
+        print("  " + " " * first + "".join(f" {column:>{width}}" for column in columns))
+        for row in rows:
+            print(f"  {row:{first}}" + "".join(f" {counts.get((row, column), 0):{width}d}" for column in columns))
+    if participants % block:
+        print(f"{participants} participants fill no whole number of blocks of {block}: the counts above are unequal")
     return 0
 
 
@@ -79,6 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     commands = parser.add_subparsers(dest="command", required=True)
     checking = commands.add_parser("check", help="check a study config and show the first participants' orders")
     checking.add_argument("config")
+    checking.add_argument("--participants", type=int, default=0,
+                          help="the first N participants' games and the design's counts over them (default: a block)")
     checking.set_defaults(handle=check)
     serving = commands.add_parser("run", help="serve a study (resumes it where it stopped)")
     serving.add_argument("config")

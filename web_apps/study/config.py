@@ -91,7 +91,8 @@ class StudyConfig:
     allow_without_id: bool = False  # a lab run: a visit without the id is a new participant (else it is refused)
     completion_code: str = "random"  # the code shown at the end: one for all, or "random" (one per participant)
     completion_url: str = ""  # where the last page links to, "{code}" replaced (e.g. the platform's return link)
-    target_participants: int = 0  # shown on the operator page (0: none set)
+    target_participants: int = 0  # shown on the operator page (0: none set); whole blocks of the design
+    accept_unbalanced: bool = False  # a target_participants that fills no whole number of blocks is then taken
     out_dir: str = ""  # the study's folder ("" : studies/<name>)
     device: str = "cpu"
     texts: dict[str, str] = field(default_factory=dict)  # consent, instructions, practice, questions, complete
@@ -203,6 +204,24 @@ def check_values(config: StudyConfig, where: str) -> None:
         fail(f"link_params must be a list of query parameters' names, got {config.link_params!r}")
     if not isinstance(config.allow_without_id, bool):
         fail(f"allow_without_id must be true or false, got {config.allow_without_id!r}")
+    check_balance(config, fail)
+
+
+def check_balance(config: StudyConfig, fail) -> None:
+    """Refuses a target of participants that fills no whole number of the design's blocks (its counts would not
+    balance), naming the nearest targets that do, unless the config accepts an unbalanced design."""
+    from web_apps.study.assignment import block_size  # it reads a config: imported here, not at the top
+
+    block = block_size(config)
+    target = config.target_participants
+    if not isinstance(config.accept_unbalanced, bool):
+        fail(f"accept_unbalanced must be true or false, got {config.accept_unbalanced!r}")
+    if target and target % block and not config.accept_unbalanced:
+        lower, upper = target // block * block, (target // block + 1) * block
+        fail(f"target_participants={target} fills no whole number of the design's blocks of {block} participants "
+             f"({len(config.conditions)} conditions' rows x {len(config.kitchens)} kitchens), so conditions, "
+             f"kitchens and positions would not balance: take {' or '.join(map(str, filter(None, (lower, upper))))}, "
+             "or set accept_unbalanced: true")
 
 
 def partner_key(spec: str, kitchen: str) -> str:

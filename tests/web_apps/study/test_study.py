@@ -18,7 +18,7 @@ from tiny_study import TOKEN, study_config  # noqa: E402
 from torch_kitchen.records import read_record  # noqa: E402
 from web_apps.play.game import file_sha256, replay  # noqa: E402
 from web_apps.study.analysis import analyse  # noqa: E402
-from web_apps.study.assignment import assign, latin_square  # noqa: E402
+from web_apps.study.assignment import assign, block_size, design_counts, latin_square  # noqa: E402
 from web_apps.study.client import (  # noqa: E402
     InProcessTransport,
     Participant,
@@ -28,7 +28,7 @@ from web_apps.study.client import (  # noqa: E402
     wait_until_serving,
 )
 from web_apps.study.command import main  # noqa: E402
-from web_apps.study.config import load_study  # noqa: E402
+from web_apps.study.config import StudyError, load_study  # noqa: E402
 from web_apps.study.database import StudyDatabase  # noqa: E402
 from web_apps.study.server import create_study_app, open_study  # noqa: E402
 
@@ -74,23 +74,47 @@ def test_a_config_that_cannot_run_is_refused_in_one_line_and_nothing_is_written(
     assert main(["analyse", str(tmp_path / "nowhere")]) == 2 and "holds no study" in capsys.readouterr().err
 
 
-def test_the_assignment_is_a_balanced_latin_square_with_kitchens_drawn_per_participant(tmp_path):
+def test_the_design_balances_conditions_kitchens_and_positions_over_every_block(tmp_path):
     for n in range(2, 7):
         square = latin_square(n)
         assert all(sorted(row) == list(range(n)) for row in square)
-        for position in range(n):  # each condition equally often at each position
-            column = [row[position] for row in square]
-            assert all(column.count(c) == len(square) // n for c in range(n))
         follows = [(row[i], row[i + 1]) for row in square for i in range(n - 1)]  # Williams: each pair as often
         assert len(set(follows)) == n * (n - 1) and len(set(map(follows.count, set(follows)))) == 1
-    config = load_study(study_config(tmp_path, games_per_participant=4, kitchens=["cramped_room_7x7",
-                                                                                 "coord_ring_7x7"]), check=False)
-    games = [[slot for slot in assign(config, number) if not slot.practice] for number in range(6)]
-    assert [[slot.condition for slot in row] for row in games[:2]] == [["cook", "team"] * 2, ["team", "cook"] * 2]
-    for row in games:  # each kitchen once before any twice; the same again from the same seed
-        assert sorted(slot.kitchen for slot in row[:2]) == ["coord_ring_7x7", "cramped_room_7x7"]
-    assert games[3] == [slot for slot in assign(config, 3) if not slot.practice]
-    assert len({tuple(slot.kitchen for slot in row) for row in games}) > 1  # drawn per participant
+    kitchens = ["cramped_room_7x7", "coord_ring_7x7", "asymm_advantages_7x7", "counter_circuit_7x7"]
+    for n, k, per_condition in [(2, 1, 1), (2, 2, 2), (2, 3, 2), (3, 2, 1), (3, 4, 2), (4, 3, 1)]:
+        conditions = {f"c{i}": "scripted_cook" for i in range(n)}
+        config = load_study(study_config(tmp_path / f"{n}{k}{per_condition}", conditions=conditions,
+                                         kitchens=kitchens[:k], games_per_participant=n * per_condition), check=False)
+        block = block_size(config)
+        assert block == len(latin_square(n)) * k
+        counts = design_counts(config, 2 * block)  # two blocks: every cell of every table the same
+        names, positions = list(conditions), [str(p) for p in range(1, n * per_condition + 1)]
+        for table, rows, columns in (("condition x kitchen", names, kitchens[:k]),
+                                     ("condition x position", names, positions),
+                                     ("kitchen x position", kitchens[:k], positions)):
+            cells = [counts[table].get((row, column), 0) for row in rows for column in columns]
+            assert len(set(cells)) == 1 and cells[0] > 0, (n, k, per_condition, table, cells)
+        for number in range(block):  # each kitchen once before any twice; the same again whenever made
+            games = [slot for slot in assign(config, number) if not slot.practice]
+            seen = [slot.kitchen for slot in games]
+            assert all(len(set(seen[i:i + k])) == len(seen[i:i + k]) for i in range(0, len(seen), k))
+            assert games == [slot for slot in assign(config, number) if not slot.practice]
+    config = load_study(study_config(tmp_path, games_per_participant=4), check=False)
+    assert [[slot.condition for slot in assign(config, number) if not slot.practice] for number in range(2)] == [
+        ["cook", "team"] * 2, ["team", "cook"] * 2]
+
+
+def test_a_target_that_fills_no_whole_block_is_refused_with_the_nearest_that_do(tmp_path, capsys):
+    refused = study_config(tmp_path, target_participants=10)  # blocks of 2 rows x 2 kitchens
+    with pytest.raises(StudyError, match=r"target_participants=10 fills no whole number of the design's blocks of 4 "
+                                         r"participants .*: take 8 or 12, or set accept_unbalanced: true$"):
+        load_study(refused, check=False)
+    assert load_study(study_config(tmp_path, target_participants=10, accept_unbalanced=True), check=False)
+    assert load_study(study_config(tmp_path, target_participants=12), check=False).target_participants == 12
+    assert main(["check", str(study_config(tmp_path)), "--participants", "6"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("  participant ") == 6 and "games per condition x kitchen over the 6 participants" in out
+    assert "6 participants fill no whole number of blocks of 4: the counts above are unequal" in out
 
 
 @pytest.fixture()
