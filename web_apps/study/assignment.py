@@ -6,10 +6,11 @@ it fills the participant's games, and at position p the kitchen (p + r // R) mod
 them, in an order drawn once from the study's seed). Over each block every condition is played equally often at each
 position and (Williams) follows every other equally often, every condition meets every kitchen equally often, and
 every kitchen appears equally often at each position; each participant plays each kitchen once before any twice
-(`design_counts` counts them). Participant k takes row k here (`assign`); the games' seeds are drawn from the study's
-seed and the participant's number, so an assignment is the same whenever it is made again. A visit is a list of
-stages: consent, instructions, the practice games, then each assigned game followed by its questions, then the
-completion code.
+(`design_counts` counts them). A new arrival takes the row of the block with the fewest participants finished or in
+progress (`StudyDatabase.register`), so that the block balances over those who finish; the games' seeds are drawn
+from the study's seed and the participant's number, so an assignment is the same whenever it is made again. A visit
+is a list of stages: consent, instructions, the practice games, then each assigned game followed by its questions,
+then the completion code.
 """
 
 from __future__ import annotations
@@ -64,13 +65,14 @@ def design_row(config: StudyConfig, row: int) -> list[tuple[str, str]]:
     return [(condition, kitchens[(position + shift) % len(kitchens)]) for position, condition in enumerate(order)]
 
 
-def assign(config: StudyConfig, number: int) -> list[Slot]:
-    """The games of participant `number`: the practice ones, then the assigned ones of its row of the design."""
+def assign(config: StudyConfig, number: int, row: int | None = None) -> list[Slot]:
+    """The games of participant `number`: the practice ones, then the assigned ones of row `row` of the design (the
+    server's choice, `StudyDatabase.register`; by default the participant's number)."""
     draw = random.Random(f"{config.seed}:{number}")
     practice = [Slot(i, True, "practice", config.practice_kitchen, draw.randrange(2**31))
                 for i in range(config.practice_games)]
     return practice + [Slot(i, False, condition, kitchen, draw.randrange(2**31))
-                       for i, (condition, kitchen) in enumerate(design_row(config, number))]
+                       for i, (condition, kitchen) in enumerate(design_row(config, number if row is None else row))]
 
 
 def design_counts(config: StudyConfig, rows: int) -> dict[str, dict[tuple[str, str], int]]:

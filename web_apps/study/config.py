@@ -89,6 +89,9 @@ class StudyConfig:
     # Further parameters of the link stored beside the id when present (Prolific's study and session).
     link_params: list[str] = field(default_factory=lambda: ["STUDY_ID", "SESSION_ID"])
     allow_without_id: bool = False  # a lab run: a visit without the id is a new participant (else it is refused)
+    # A participant neither finished nor active (a stage done, a game started or ended) for this many seconds has
+    # abandoned the study: the next arrival may take its row of the design.
+    abandon_after: float = 1800.0
     completion_code: str = "random"  # the code shown at the end: one for all, or "random" (one per participant)
     completion_url: str = ""  # where the last page links to, "{code}" replaced (e.g. the platform's return link)
     target_participants: int = 0  # shown on the operator page (0: none set); whole blocks of the design
@@ -179,6 +182,8 @@ def check_values(config: StudyConfig, where: str) -> None:
     for key in ("tick_ms", "max_steps", "practice_steps"):
         if not isinstance(getattr(config, key), int) or getattr(config, key) <= 0:
             fail(f"{key} must be a positive whole number, got {getattr(config, key)!r}")
+    if not isinstance(config.abandon_after, int | float) or config.abandon_after <= 0:
+        fail(f"abandon_after must be a positive number of seconds, got {config.abandon_after!r}")
     if not isinstance(config.idle_s, int | float) or config.idle_s <= 0:
         fail(f"idle_s must be a positive number of seconds, got {config.idle_s!r}")
     if config.games % len(config.conditions):

@@ -19,6 +19,7 @@ or killed) stays as a cut attempt and its stage is played again. Times are UTC, 
 from __future__ import annotations
 
 import json
+import math
 import sqlite3
 import threading
 import time
@@ -30,11 +31,12 @@ from web_apps.study.assignment import COMPLETE, Slot
 
 DATABASE = "study.sqlite"
 PLAYING, FINISHED, CUT = "playing", "finished", "cut"
+IN_PROGRESS, ABANDONED = "in progress", "abandoned"  # a participant's state, beside FINISHED
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS participants (
     number INTEGER PRIMARY KEY, key TEXT NOT NULL UNIQUE, external_id TEXT UNIQUE, completion_code TEXT NOT NULL,
-    started TEXT NOT NULL, finished TEXT, link TEXT);
+    started TEXT NOT NULL, finished TEXT, link TEXT, row INTEGER);
 CREATE TABLE IF NOT EXISTS slots (
     participant INTEGER NOT NULL REFERENCES participants(number), practice INTEGER NOT NULL,
     position INTEGER NOT NULL, condition TEXT NOT NULL, kitchen TEXT NOT NULL, seed INTEGER NOT NULL,
@@ -89,6 +91,9 @@ class StudyDatabase:
                 columns = {row["name"] for row in self._connection.execute("PRAGMA table_info(participants)")}
                 if "link" not in columns:  # a study database of before the link's parameters were kept
                     self._connection.execute("ALTER TABLE participants ADD COLUMN link TEXT")
+                if "row" not in columns:  # before rows were chosen by those who finish: the arrival's number
+                    self._connection.execute("ALTER TABLE participants ADD COLUMN row INTEGER")
+                    self._connection.execute("UPDATE participants SET row = number")
 
     def close(self) -> None:
         self._connection.close()
@@ -131,24 +136,42 @@ class StudyDatabase:
                               (CUT, reason, now(), PLAYING)).rowcount
 
     # ----------------------------------------------------------------------------------------- participants
-    def register(self, external_id: str | None, key: str, code: str, slots_of, link: dict[str, str] | None = None
-                 ) -> sqlite3.Row:
-        """The participant of `external_id` (the platform's id), made with `key`, `code`, the slots
-        `slots_of(number)` gives and the link's other parameters (`link`, kept as JSON) if new; without an id,
-        always a new one."""
+    def register(self, external_id: str | None, key: str, code: str, slots_of, link: dict[str, str] | None = None,
+                 rows: int = 1, abandon_after: float = math.inf) -> sqlite3.Row:
+        """The participant of `external_id` (the platform's id); if new, made with `key`, `code`, the link's other
+        parameters (`link`, kept as JSON), the row of the design's block of `rows` with the fewest participants
+        finished or in progress (active within `abandon_after` seconds; the lowest such row), and the slots
+        `slots_of(number, row)` gives. Without an id, always a new one."""
         with self.transaction() as db:
             if external_id is not None:
                 found = db.execute("SELECT * FROM participants WHERE external_id = ?", (external_id,)).fetchone()
                 if found is not None:
                     return found
             number = db.execute("SELECT COUNT(*) FROM participants").fetchone()[0]
-            db.execute("INSERT INTO participants (number, key, external_id, completion_code, started, link) "
-                       "VALUES (?, ?, ?, ?, ?, ?)", (number, key, external_id, code, now(),
-                                                     json.dumps(link) if link else None))
+            taken = [0] * rows
+            for holder in self._row_states(db, abandon_after):
+                if holder["state"] != ABANDONED and holder["row"] < rows:
+                    taken[holder["row"]] += 1
+            row = min(range(rows), key=lambda index: (taken[index], index))
+            db.execute("INSERT INTO participants (number, key, external_id, completion_code, started, link, row) "
+                       "VALUES (?, ?, ?, ?, ?, ?, ?)", (number, key, external_id, code, now(),
+                                                        json.dumps(link) if link else None, row))
             db.executemany("INSERT INTO slots VALUES (?, ?, ?, ?, ?, ?)",
                            [(number, int(s.practice), s.position, s.condition, s.kitchen, s.seed)
-                            for s in slots_of(number)])
+                            for s in slots_of(number, row)])
             return db.execute("SELECT * FROM participants WHERE number = ?", (number,)).fetchone()
+
+    @staticmethod
+    def _row_states(db, abandon_after: float) -> list[sqlite3.Row]:
+        """Every participant's row and state: finished, in progress (active within `abandon_after` seconds: its
+        start, a stage done, a game started or ended) or abandoned."""
+        cutoff = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(time.time() - min(abandon_after, 1e10)))
+        return db.execute(
+            "SELECT number, row, CASE WHEN finished IS NOT NULL THEN ? WHEN MAX(started, "
+            "COALESCE((SELECT MAX(done) FROM stages WHERE participant = number), ''), "
+            "COALESCE((SELECT MAX(COALESCE(ended, started)) FROM games WHERE participant = number), '')) >= ? "
+            "THEN ? ELSE ? END AS state FROM participants ORDER BY number",
+            (FINISHED, cutoff, IN_PROGRESS, ABANDONED)).fetchall()
 
     def participant(self, key: str) -> sqlite3.Row | None:
         found = self.rows("SELECT * FROM participants WHERE key = ?", key)
@@ -218,8 +241,9 @@ class StudyDatabase:
                 self._complete(db, row["participant"], row["stage"], kind, next_kind)
 
     # ------------------------------------------------------------------------------------------- progress
-    def progress(self) -> dict:
-        """Participants started and finished, games finished per condition and kitchen, games cut, playing now."""
+    def progress(self, abandon_after: float = math.inf) -> dict:
+        """Participants started and finished, games finished per condition and kitchen, games cut, playing now, and
+        the design's rows by their participants' states (finished, in progress, abandoned)."""
         def one(query: str) -> int:
             return self.rows(query)[0][0]
 
@@ -239,4 +263,15 @@ class StudyDatabase:
             "answers": one("SELECT COUNT(*) FROM answers"),
             "per_condition": per("condition"),
             "per_kitchen": per("kitchen"),
+            "rows": self.row_counts(abandon_after),
         }  # fmt: skip
+
+    def row_counts(self, abandon_after: float = math.inf) -> dict[int, dict[str, int]]:
+        """Per row of the design, its participants finished, in progress and abandoned."""
+        with self._lock:
+            states = self._row_states(self._connection, abandon_after)
+        counts: dict[int, dict[str, int]] = {}
+        for holder in states:
+            row = counts.setdefault(holder["row"], {FINISHED: 0, IN_PROGRESS: 0, ABANDONED: 0})
+            row[holder["state"]] += 1
+        return dict(sorted(counts.items()))

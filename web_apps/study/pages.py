@@ -184,7 +184,11 @@ def progress_page(name: str, progress: dict, target: int) -> str:
                "games cut and played again": progress["games_cut"], "games playing now": progress["playing"],
                "answers stored": progress["answers"]}
     rows = "".join(f"<tr><td>{k}</td><td>{v}</td></tr>" for k, v in summary.items())
+    design = "".join(f"<tr><td>{row}</td>" + "".join(f"<td>{n}</td>" for n in states.values()) + "</tr>"
+                     for row, states in progress["rows"].items())
     return document(f"Study {name}: progress", f"<p>This page refreshes itself every {OPERATOR_REFRESH_S} s.</p>"
                     f"<table>{rows}</table>" + table("Per condition", progress["per_condition"])
-                    + table("Per kitchen", progress["per_kitchen"]),
+                    + table("Per kitchen", progress["per_kitchen"])
+                    + "<h2>The design's rows</h2><table><tr><th>row</th><th>finished</th><th>in progress</th>"
+                    f"<th>abandoned</th></tr>{design}</table>",
                     script=f"setTimeout(() => location.reload(), {OPERATOR_REFRESH_S * 1000});\n")

@@ -5,6 +5,7 @@ import csv
 import json
 import signal
 import sqlite3
+import time
 from pathlib import Path
 
 import pytest
@@ -156,6 +157,39 @@ def test_a_study_database_of_before_the_links_parameters_opens_with_them(tmp_pat
     assert [dict(row) for row in database.rows("SELECT external_id, link FROM participants")] == [
         {"external_id": "p-0", "link": None}]
     database.close()
+
+
+def test_an_abandoned_row_goes_to_the_next_arrival_and_a_late_return_still_finishes_and_counts(tmp_path):
+    config = load_study(study_config(tmp_path, abandon_after=2))  # blocks of 2 rows x 2 kitchens
+    database, token, operator = open_study(config, TOKEN)
+    with TestClient(create_study_app(config, database, token, operator)) as client:
+        first, second, third = (Participant(InProcessTransport(client), f"p-{i}", TOKEN) for i in range(3))
+
+        def row(person: Participant) -> int:
+            return database.rows("SELECT row FROM participants WHERE key = ?", person.key)[0]["row"]
+
+        first.enter()
+        second.enter()
+        assert (row(first), row(second)) == (0, 1)  # by arrival while both are in progress
+        time.sleep(3)  # both abandon: nothing done for longer than abandon_after
+        second.take_stage()  # the second comes back: in progress again
+        third.enter()
+        assert row(third) == 0  # the abandoned first's row, not a new one
+        assert [slot for slot in database.slots(2) if not slot.practice][0].condition == conditions_of(
+            database, first)[0]  # the row's design: its games' conditions and kitchens
+        assert database.row_counts(config.abandon_after) == {0: {"finished": 0, "in progress": 1, "abandoned": 1},
+                                                             1: {"finished": 0, "in progress": 1, "abandoned": 0}}
+        first.enter()  # the late return: the same participant, its own visit, played to the end and counted
+        order = conditions_of(database, first)
+        while first.take_stage(order) != "complete":
+            pass
+        finished = database.row_counts(config.abandon_after)[0]  # the third, idle meanwhile, may have abandoned
+        assert finished["finished"] == 1 and finished["in progress"] + finished["abandoned"] == 1
+        assert "The design's rows" in client.get(f"/operator?token={TOKEN}&key={operator}").text
+    database.close()
+    reopened = StudyDatabase(config.folder / "study.sqlite")  # a restart changes none of it
+    assert [r["row"] for r in reopened.rows("SELECT row FROM participants ORDER BY number")] == [0, 1, 0]
+    reopened.close()
 
 
 def test_reload_second_tab_double_answer_skipped_stage_and_bad_token(study, monkeypatch):
