@@ -5,11 +5,14 @@ there, has the checksum the database stored, replays exactly through the JAX env
 replays to the score the database stored; any other is listed with its reason and left out, with its questions.
 Written into STUDY_DIR/analysis/:
 
-    report.md      participants, games counted and left out, deliveries per condition and kitchen with 95%
-                   bootstrap intervals, paired differences between conditions within participants (bootstrap
-                   interval, Wilcoxon signed-rank test), the Likert answers and the forced choice per condition
+    report.md      participants, games counted and left out; the headline, a mixed model of deliveries (condition,
+                   kitchen and position, a random intercept per participant: `web_apps.study.inference`) with the
+                   primary contrast first and the other pairs Holm-corrected; deliveries per condition and kitchen
+                   over participants (intervals resampling participants); paired differences within participants;
+                   the Likert answers per participant; the forced choice with a sign test per pair
     games.csv      every counted game: participant, position, condition, kitchen, seed, record, sha256, deliveries
-    answers.csv    every counted answer: participant, position, condition, item, value
+    answers.csv    every counted answer: participant, position, condition, item, value, and for the forced choice
+                   the condition chosen and the one not chosen
     deliveries.png deliveries per game by condition and kitchen, with the intervals
 """
 
@@ -29,9 +32,16 @@ from web_apps.play.game import file_sha256, replay
 from web_apps.study.assignment import QUESTIONS
 from web_apps.study.config import FORCED_CHOICE, StudyConfig, StudyError, config_from_dict
 from web_apps.study.database import DATABASE, FINISHED, StudyDatabase
-
-CONFIDENCE = 0.95
-RESAMPLES = 2000
+from web_apps.study.inference import (
+    CONFIDENCE,
+    RESAMPLES,
+    Observation,
+    fit_mixed_model,
+    holm,
+    participant_interval,
+    per_participant,
+    sign_test,
+)
 
 
 @dataclass
@@ -125,11 +135,13 @@ def write_report(config: StudyConfig, database: StudyDatabase, folder: Path) -> 
     counted, left_out = checked_games(database, folder)
     condition_of = {(game.participant, game.position): game.condition for game in counted}
     answers = counted_answers(config, database, condition_of)
-    write_tables(counted, answers, out)
-    cells = {(condition, kitchen): [g.deliveries for g in counted
-                                    if g.condition == condition and kitchen in ("all", g.kitchen)]
+    write_tables(counted, answers, condition_of, out)
+    observations = [Observation(g.participant, g.condition, g.kitchen, g.position, g.deliveries) for g in counted]
+    cells = {(condition, kitchen): participant_interval([o for o in observations if kitchen in ("all", o.kitchen)],
+                                                        condition)
              for condition in conditions for kitchen in [*config.kitchens, "all"]}
-    lines = [*count_lines(config, folder, database.progress(), counted, left_out, answers), *delivery_lines(cells),
+    lines = [*count_lines(config, folder, database.progress(config.abandon_after), counted, left_out, answers),
+             *model_lines(config, observations), *delivery_lines(cells, len(counted)),
              *within_lines(counted, conditions), *question_lines(config, answers),
              *choice_lines(config, forced_choices(answers, condition_of)), *left_out_lines(left_out)]
     plot(cells, conditions, config.kitchens, out / "deliveries.png")
@@ -153,7 +165,8 @@ def counted_answers(config: StudyConfig, database: StudyDatabase, condition_of: 
     return answers
 
 
-def write_tables(counted: list, answers: list[tuple], out: Path) -> None:
+def write_tables(counted: list, answers: list[tuple], condition_of: dict, out: Path) -> None:
+    """games.csv and answers.csv (the forced choice's rows naming the condition chosen and the one not chosen)."""
     with open(out / "games.csv", "w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(["participant", "position", "condition", "kitchen", "seed", "record", "sha256", "deliveries"])
@@ -161,8 +174,14 @@ def write_tables(counted: list, answers: list[tuple], out: Path) -> None:
                          for g in counted)
     with open(out / "answers.csv", "w", newline="") as handle:
         writer = csv.writer(handle)
-        writer.writerow(["participant", "position", "condition", "item", "value"])
-        writer.writerows(answers)
+        writer.writerow(["participant", "position", "condition", "item", "value", "chosen", "not_chosen"])
+        for participant, position, condition, item, value in answers:
+            chosen = not_chosen = ""
+            if item == FORCED_CHOICE:
+                offered = [condition_of.get((participant, position - 1)), condition_of.get((participant, position))]
+                chosen = condition_of.get((participant, value), "")
+                not_chosen = next((other for other in offered if other != chosen), chosen) if chosen else ""
+            writer.writerow([participant, position, condition, item, value, chosen, not_chosen])
 
 
 def count_lines(config: StudyConfig, folder: Path, progress: dict, counted: list, left_out: list, answers: list
@@ -181,53 +200,90 @@ def count_lines(config: StudyConfig, folder: Path, progress: dict, counted: list
             f"| answers counted | {len(answers)} |", ""]
 
 
-def delivery_lines(cells: dict[tuple[str, str], list]) -> list[str]:
-    lines = ["## Deliveries per game", "",
-             f"Mean deliveries per game with its {CONFIDENCE:.0%} percentile bootstrap interval ({RESAMPLES} "
-             "resamples, `scipy.stats.bootstrap`); n: games.", "",
+def model_lines(config: StudyConfig, observations: list[Observation]) -> list[str]:
+    """The headline: the mixed model's contrasts, the primary one first."""
+    first, second = config.primary_contrast
+    lines = ["## The headline: a mixed model of deliveries", "",
+             "deliveries ~ condition + kitchen + position, a random intercept per participant (statsmodels' MixedLM, "
+             f"REML): each contrast first - second in deliveries per game, its {CONFIDENCE:.0%} interval and p-value. "
+             f"The primary contrast ({first} - {second}, the config's `primary`) answers the study's question and is "
+             "not corrected; the other pairs are Holm-corrected among themselves.", "",
+             "| contrast | estimate | 95% interval | p | p (Holm) |", "|---|---:|---|---:|---:|"]
+    contrasts = fit_mixed_model(observations, list(config.conditions), (first, second))
+    if not contrasts:
+        return [*lines, "| (not fitted: too few participants, or conditions confounded with kitchens or positions) "
+                        "| | | | |", ""]
+    for index, contrast in enumerate(contrasts):
+        label = f"{contrast.first} - {contrast.second}" + (" (primary)" if index == 0 else "")
+        lines.append(f"| {label} | {contrast.estimate:+.2f} | {span(contrast.low, contrast.high)} | "
+                     f"{number(contrast.p, 3)} | {'-' if index == 0 else number(contrast.p_holm, 3)} |")
+    return [*lines, ""]
+
+
+def delivery_lines(cells: dict[tuple[str, str], tuple], games: int) -> list[str]:
+    lines = ["## Deliveries per condition, over participants", "",
+             "Each participant's mean deliveries per game beside the condition (on the kitchen, or on all), their "
+             "mean, "
+             f"and its {CONFIDENCE:.0%} percentile bootstrap interval resampling participants, each with all its games "
+             f"({RESAMPLES} resamples); n: participants ({games} games in all).", "",
              "| condition | kitchen | n | mean | 95% interval |", "|---|---|---:|---:|---|"]
-    for (condition, kitchen), values in cells.items():
-        if values:
-            low, high = interval(values)
-            lines.append(f"| {condition} | {kitchen} | {len(values)} | {np.mean(values):.2f} | {span(low, high)} |")
+    for (condition, kitchen), (mean, low, high, participants) in cells.items():
+        if participants:
+            lines.append(f"| {condition} | {kitchen} | {participants} | {mean:.2f} | {span(low, high)} |")
     return [*lines, ""]
 
 
 def within_lines(counted: list, conditions: list[str]) -> list[str]:
     lines = ["## Within participants", "",
              "Per participant, the mean deliveries with the first condition minus those with the second, over the "
-             "participants who played both; its mean with a 95% bootstrap interval, and the two-sided p-value of "
-             "the Wilcoxon signed-rank test (`scipy.stats.wilcoxon`) that the differences centre on 0.", "",
-             "| first | second | participants | mean difference | 95% interval | Wilcoxon p |",
-             "|---|---|---:|---:|---|---:|"]
-    per_participant = {}
+             "participants who played both; its mean with a 95% bootstrap interval over participants, and the "
+             "two-sided p-value of the Wilcoxon signed-rank test (`scipy.stats.wilcoxon`) that the differences centre "
+             "on 0, Holm-corrected over the pairs.", "",
+             "| first | second | participants | mean difference | 95% interval | Wilcoxon p | p (Holm) |",
+             "|---|---|---:|---:|---|---:|---:|"]
+    per_participant_games = {}
     for game in counted:
-        per_participant.setdefault((game.participant, game.condition), []).append(game.deliveries)
+        per_participant_games.setdefault((game.participant, game.condition), []).append(game.deliveries)
     participants = sorted({game.participant for game in counted})
+    rows = []
     for first, second in itertools.combinations(conditions, 2):
-        differences = [np.mean(per_participant[p, first]) - np.mean(per_participant[p, second])
-                       for p in participants if (p, first) in per_participant and (p, second) in per_participant]
+        differences = [np.mean(per_participant_games[p, first]) - np.mean(per_participant_games[p, second])
+                       for p in participants
+                       if (p, first) in per_participant_games and (p, second) in per_participant_games]
         if differences:
-            low, high = interval(differences)
-            lines.append(f"| {first} | {second} | {len(differences)} | {np.mean(differences):.2f} | "
-                         f"{span(low, high)} | {number(wilcoxon_p(differences), 3)} |")
+            rows.append((first, second, differences, wilcoxon_p(differences)))
+    for (first, second, differences, p), adjusted in zip(rows, holm([row[3] for row in rows])):
+        low, high = interval(differences)
+        lines.append(f"| {first} | {second} | {len(differences)} | {np.mean(differences):.2f} | {span(low, high)} | "
+                     f"{number(p, 3)} | {number(adjusted, 3)} |")
     return [*lines, ""]
 
 
 def question_lines(config: StudyConfig, answers: list[tuple]) -> list[str]:
     scale = config.likert.scale
+    first, second = config.primary_contrast
     lines = ["## Questions", "",
-             f"Likert items on 1 ({scale[0]}) to {len(scale)} ({scale[-1]}): mean, median and the count of each "
-             "answer, per condition; n: answers.", "",
-             "| condition | item | n | mean | median | " + " | ".join(map(str, range(1, len(scale) + 1))) + " |",
-             "|---|---|---:|---:|---:|" + "---:|" * len(scale)]
+             f"Likert items on 1 ({scale[0]}) to {len(scale)} ({scale[-1]}), per participant: each participant's mean "
+             "answer to the item after its games beside the condition; the median and mean of those, n: "
+             f"participants. Then, per item, the participants' mean answers beside {first} minus beside {second}, "
+             "and the Wilcoxon signed-rank test that they centre on 0.", "",
+             "| condition | item | n | median | mean |", "|---|---|---:|---:|---:|"]
+    by_item = {}
     for condition in config.conditions:
         for item in config.likert.items:
-            values = [a[4] for a in answers if a[2] == condition and a[3] == item]
-            if values:
-                counts = " | ".join(str(values.count(v)) for v in range(1, len(scale) + 1))
-                lines.append(f"| {condition} | {item} | {len(values)} | {np.mean(values):.2f} | "
-                             f"{np.median(values):g} | {counts} |")
+            values = [Observation(a[0], a[2], "", a[1], a[4]) for a in answers if a[3] == item]
+            means = per_participant(values, condition)
+            by_item[condition, item] = means
+            if means:
+                lines.append(f"| {condition} | {item} | {len(means)} | {np.median(list(means.values())):g} | "
+                             f"{np.mean(list(means.values())):.2f} |")
+    lines += ["", f"| item | participants | mean {first} - {second} | Wilcoxon p |", "|---|---:|---:|---:|"]
+    for item in config.likert.items:
+        a, b = by_item.get((first, item), {}), by_item.get((second, item), {})
+        differences = [a[p] - b[p] for p in a if p in b]
+        if differences:
+            lines.append(f"| {item} | {len(differences)} | {np.mean(differences):+.2f} | "
+                         f"{number(wilcoxon_p(differences), 3)} |")
     return [*lines, ""]
 
 
@@ -235,13 +291,17 @@ def choice_lines(config: StudyConfig, choices: list) -> list[str]:
     if not config.forced_choice or len(config.conditions) < 2:
         return []
     lines = ["## Forced choice", "", f"\"{config.forced_choice}\", asked after every game but the first, "
-             "between the last two partners: per condition, how often it was one of the two and how often "
-             "chosen.", "", "| condition | offered | chosen | share |", "|---|---:|---:|---:|"]
-    for condition in config.conditions:
-        offered = sum(condition in pair for pair, _ in choices)
-        chosen = sum(choice == condition for _, choice in choices)
-        share = chosen / offered if offered else float("nan")
-        lines.append(f"| {condition} | {offered} | {chosen} | {number(share)} |")
+             "between the last two partners: per pair of conditions offered, how often each was chosen over the "
+             "other, and the two-sided sign test (a binomial test against one half) that people choose as a coin "
+             "would; choices between two games of one condition do not count.", "",
+             "| first | second | offered | first chosen | second chosen | sign test p |",
+             "|---|---|---:|---:|---:|---:|"]
+    for first, second in itertools.combinations(config.conditions, 2):
+        offered = [choice for pair, choice in choices if set(pair) == {first, second}]
+        won, lost = offered.count(first), offered.count(second)
+        if offered:
+            p = number(sign_test(won, lost), 3)
+            lines.append(f"| {first} | {second} | {len(offered)} | {won} | {lost} | {p} |")
     return [*lines, ""]
 
 
@@ -275,6 +335,7 @@ def forced_choices(answers, condition_of) -> list[tuple[tuple[str, str], str]]:
 
 
 def plot(cells: dict, conditions: list[str], kitchens: list[str], path: Path) -> None:
+    """Mean deliveries over participants per condition and kitchen, with the intervals resampling participants."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -286,9 +347,7 @@ def plot(cells: dict, conditions: list[str], kitchens: list[str], path: Path) ->
     for c, condition in enumerate(conditions):
         means, lows, highs = [], [], []
         for group in groups:
-            values = cells.get((condition, group), [])
-            mean = float(np.mean(values)) if values else float("nan")
-            low, high = interval(values) if values else (float("nan"), float("nan"))
+            mean, low, high, _ = cells.get((condition, group), (float("nan"),) * 3 + (0,))
             means.append(mean)
             lows.append(mean - low if low == low else 0)
             highs.append(high - mean if high == high else 0)

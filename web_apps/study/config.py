@@ -67,6 +67,10 @@ DEFAULT_TEXTS = {
 }
 
 
+# Keys added after studies were first run: at their defaults they leave a running study's assignment key as it was.
+LATER_KEYS = ("link_params", "allow_without_id", "abandon_after")
+
+
 @dataclass
 class StudyConfig:
     """A study: who plays with whom, where, for how long, and what they are asked."""
@@ -95,12 +99,20 @@ class StudyConfig:
     completion_code: str = "random"  # the code shown at the end: one for all, or "random" (one per participant)
     completion_url: str = ""  # where the last page links to, "{code}" replaced (e.g. the platform's return link)
     target_participants: int = 0  # shown on the operator page (0: none set); whole blocks of the design
+    primary: list[str] = field(default_factory=list)  # the contrast the study asks first, [a, b]: a - b (default: the
+    # first two conditions); the report gives it first, uncorrected, and Holm-corrects the other pairs
     accept_unbalanced: bool = False  # a target_participants that fills no whole number of blocks is then taken
     out_dir: str = ""  # the study's folder ("" : studies/<name>)
     device: str = "cpu"
     texts: dict[str, str] = field(default_factory=dict)  # consent, instructions, practice, questions, complete
     likert: Likert = field(default_factory=Likert)
     forced_choice: str = "Which of your last two partners would you rather cook with again?"  # "": not asked
+
+    @property
+    def primary_contrast(self) -> tuple[str, str]:
+        """(a, b) of the primary contrast a - b: `primary`, or the first two conditions."""
+        names = self.primary or list(self.conditions)[:2]
+        return (names[0], names[1]) if len(names) > 1 else (names[0], names[0])
 
     @property
     def folder(self) -> Path:
@@ -119,8 +131,11 @@ class StudyConfig:
     def assignment_key(self) -> str:
         """What a running study's assignment, games and questions depend on (all but its texts and where it
         runs): a study restarted with another is refused."""
+        defaults = StudyConfig(name="", conditions={}, kitchens=[]).to_dict()
         kept = {key: value for key, value in self.to_dict().items()
-                if key not in ("texts", "out_dir", "device", "completion_url", "target_participants")}
+                if key not in ("texts", "out_dir", "device", "completion_url", "target_participants", "primary",
+                               "accept_unbalanced")
+                and not (key in LATER_KEYS and value == defaults[key])}  # a study of before them restarts
         return json.dumps(kept, sort_keys=True)
 
 
@@ -209,6 +224,9 @@ def check_values(config: StudyConfig, where: str) -> None:
         fail(f"link_params must be a list of query parameters' names, got {config.link_params!r}")
     if not isinstance(config.allow_without_id, bool):
         fail(f"allow_without_id must be true or false, got {config.allow_without_id!r}")
+    if config.primary and (not isinstance(config.primary, list) or len(config.primary) != 2
+                           or len(set(config.primary)) != 2 or not set(config.primary) <= set(config.conditions)):
+        fail(f"primary must name two of the conditions ({', '.join(config.conditions)}), got {config.primary!r}")
     check_balance(config, fail)
 
 

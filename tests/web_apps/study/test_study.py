@@ -350,8 +350,13 @@ def test_six_participants_through_a_server_killed_mid_study_and_the_report_trace
     answers = len(database.rows("SELECT * FROM answers a JOIN stages s USING (participant, stage) "
                                 "WHERE s.kind = 'questions'"))
     assert f"| answers counted | {answers} |" in report and answers == 6 * (2 * 2 + 1)
-    assert "| team | helpful | 6 | 4.00 |" in report and "| cook | helpful | 6 | 2.00 |" in report
-    assert "| team | 6 | 6 | 1.00 |" in report  # the forced choice: the team chosen each time it was offered
+    assert "| team | helpful | 6 | 4 | 4.00 |" in report and "| cook | helpful | 6 | 2 | 2.00 |" in report  # by person
+    assert "| helpful | 6 | -2.00 |" in report  # each participant's answers beside cook minus beside team
+    assert "| cook | team | 6 | 0 | 6 | 0.031 |" in report  # the forced choice: the team each time, sign test 2 / 2**6
+    assert "| cook - team (primary) |" in report  # the headline: the mixed model's primary contrast
+    with open(config.folder / "analysis" / "answers.csv") as handle:
+        choices = [row for row in csv.DictReader(handle) if row["item"] == "forced_choice"]
+    assert len(choices) == 6 and all((row["chosen"], row["not_chosen"]) == ("team", "cook") for row in choices)
     database.close()
 
     # A record changed after its game is listed and left out with the reason; the counts follow.
