@@ -111,15 +111,27 @@ def span(low: float, high: float) -> str:
     return "n/a (n < 2)" if low != low else f"[{low:.2f}, {high:.2f}]"
 
 
-def analyse(folder: str | Path) -> Path:
-    """Writes the report of the study in `folder` (see the module docstring); returns the report's path."""
-    folder = Path(folder)
+def study_config_of(folder: str | Path) -> StudyConfig:
+    """The config a study in `folder` started with; a StudyError if the folder holds no study."""
     try:
-        database = StudyDatabase(folder / DATABASE, create=False)
-        config = config_from_dict(database.config())
+        database = StudyDatabase(Path(folder) / DATABASE, create=False)
     except FileNotFoundError:
         raise StudyError(f"{folder} holds no study (no {DATABASE} with a config): give the study's folder, "
                          "e.g. studies/<name>") from None
+    try:
+        return config_from_dict(database.config())
+    except FileNotFoundError:
+        raise StudyError(f"{folder} holds no study (no {DATABASE} with a config): give the study's folder, "
+                         "e.g. studies/<name>") from None
+    finally:
+        database.close()
+
+
+def analyse(folder: str | Path) -> Path:
+    """Writes the report of the study in `folder` (see the module docstring); returns the report's path."""
+    folder = Path(folder)
+    config = study_config_of(folder)
+    database = StudyDatabase(folder / DATABASE, create=False)
     try:
         return write_report(config, database, folder)
     finally:

@@ -3,6 +3,7 @@
     kitchen-study check configs/study/example.yaml     # the config checked, the first participants' orders shown
     kitchen-study run configs/study/example.yaml       # serves the study; prints the participants' and operator's links
     kitchen-study analyse studies/example              # the report: STUDY_DIR/analysis/report.md
+    kitchen-study power studies/example                # participants needed: STUDY_DIR/analysis/power.md
 """
 
 from __future__ import annotations
@@ -10,10 +11,12 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from pathlib import Path
 
 from web_apps.play.server import port_in_use, served_hosts
 from web_apps.study.assignment import assign, block_size, design_counts
 from web_apps.study.config import StudyError, load_study, study_partners
+from web_apps.study.power import SIZES
 
 PROG = "kitchen-study"
 
@@ -76,6 +79,17 @@ def run(args) -> int:
     return 0
 
 
+def power(args) -> int:
+    from web_apps.study.analysis import study_config_of
+    from web_apps.study.power import write_power
+
+    folder = Path(args.study_dir)
+    path, _ = write_power(study_config_of(folder), folder, args.studies, args.alpha, tuple(args.sizes))
+    print(path.read_text())
+    print(f"wrote {path} and {path.with_suffix('.png')}")
+    return 0
+
+
 def analyse(args) -> int:
     from web_apps.study.analysis import analyse as write
 
@@ -104,6 +118,12 @@ def main(argv: list[str] | None = None) -> int:
     analysing = commands.add_parser("analyse", help="write a study's report from its database and records")
     analysing.add_argument("study_dir")
     analysing.set_defaults(handle=analyse)
+    sizing = commands.add_parser("power", help="how many participants: power by simulation from a study's games")
+    sizing.add_argument("study_dir")
+    sizing.add_argument("--studies", type=int, default=200, help="simulated studies per number of participants")
+    sizing.add_argument("--alpha", type=float, default=0.05)
+    sizing.add_argument("--sizes", type=int, nargs="+", default=list(SIZES), help="numbers of participants simulated")
+    sizing.set_defaults(handle=power)
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     try:
         return args.handle(args)

@@ -357,6 +357,10 @@ def test_six_participants_through_a_server_killed_mid_study_and_the_report_trace
     with open(config.folder / "analysis" / "answers.csv") as handle:
         choices = [row for row in csv.DictReader(handle) if row["item"] == "forced_choice"]
     assert len(choices) == 6 and all((row["chosen"], row["not_chosen"]) == ("team", "cook") for row in choices)
+    assert main(["power", str(config.folder), "--studies", "4", "--sizes", "8", "16"]) == 0  # the N a study needs
+    sized = (config.folder / "analysis" / "power.md").read_text()
+    assert "| 8 |" in sized and "| 16 |" in sized and "The smallest N with 80% power" in sized
+    assert (config.folder / "analysis" / "power.png").is_file()
     database.close()
 
     # A record changed after its game is listed and left out with the reason; the counts follow.
