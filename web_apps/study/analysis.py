@@ -113,18 +113,16 @@ def span(low: float, high: float) -> str:
 
 def study_config_of(folder: str | Path) -> StudyConfig:
     """The config a study in `folder` started with; a StudyError if the folder holds no study."""
+    database = None
     try:
         database = StudyDatabase(Path(folder) / DATABASE, create=False)
-    except FileNotFoundError:
-        raise StudyError(f"{folder} holds no study (no {DATABASE} with a config): give the study's folder, "
-                         "e.g. studies/<name>") from None
-    try:
         return config_from_dict(database.config())
     except FileNotFoundError:
         raise StudyError(f"{folder} holds no study (no {DATABASE} with a config): give the study's folder, "
                          "e.g. studies/<name>") from None
     finally:
-        database.close()
+        if database is not None:
+            database.close()
 
 
 def analyse(folder: str | Path) -> Path:

@@ -89,33 +89,49 @@ def holm(p_values: Sequence[float]) -> list[float]:
     return adjusted.tolist()
 
 
+def fit_games(observations: Sequence[Observation], conditions: Sequence[str], kitchens: Sequence[str] | None = None,
+              positions: bool = True):
+    """statsmodels' MixedLM of deliveries on the condition (levels `conditions`, the first the reference), the
+    kitchen (levels `kitchens`, else as found) and the position (with `positions`), each where it varies, with a
+    random intercept per participant, fitted by REML; None where it cannot be fitted (fewer than two participants,
+    or conditions confounded with kitchens or positions)."""
+    import pandas as pd
+    from statsmodels.regression.mixed_linear_model import MixedLM
+
+    frame = pd.DataFrame([vars(observation) for observation in observations])
+    if frame.empty or frame["participant"].nunique() < 2:
+        return None
+    frame["condition"] = pd.Categorical(frame["condition"], categories=list(conditions))
+    if kitchens is not None:
+        frame["kitchen"] = pd.Categorical(frame["kitchen"], categories=list(kitchens))
+    terms = ["C(condition)"]
+    if frame["kitchen"].nunique() > 1:
+        terms.append("C(kitchen)")
+    if positions and frame["position"].nunique() > 1:
+        terms.append("C(position)")
+    model = MixedLM.from_formula(f"deliveries ~ {' + '.join(terms)}", frame, groups=frame["participant"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # convergence notes on tiny studies; the intervals say how sure it is
+        try:
+            return model.fit(reml=True)
+        except (np.linalg.LinAlgError, ValueError):  # conditions confounded with kitchens or positions
+            return None
+
+
 def fit_mixed_model(observations: Sequence[Observation], conditions: Sequence[str],
                     primary: tuple[str, str]) -> list[Contrast]:
     """The mixed model of the module docstring, fitted by restricted maximum likelihood, as contrasts: the primary
     one first (not corrected), then every other pair of conditions, Holm-corrected among themselves. Empty where the
     model cannot be fitted (fewer than two participants, a single condition, or conditions confounded with kitchens
     or positions)."""
-    import pandas as pd
-    from statsmodels.regression.mixed_linear_model import MixedLM
-
-    frame = pd.DataFrame([vars(observation) for observation in observations])
-    if frame.empty or frame["participant"].nunique() < 2 or frame["condition"].nunique() < 2:
-        return []
     reference = primary[1]
-    levels = [reference, *(c for c in conditions if c != reference and c in set(frame["condition"]))]
-    frame["condition"] = pd.Categorical(frame["condition"], categories=levels)
-    terms = ["C(condition)"]
-    if frame["kitchen"].nunique() > 1:
-        terms.append("C(kitchen)")
-    if frame["position"].nunique() > 1:
-        terms.append("C(position)")
-    model = MixedLM.from_formula(f"deliveries ~ {' + '.join(terms)}", frame, groups=frame["participant"])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # convergence notes on tiny studies; the intervals say how sure it is
-        try:
-            result = model.fit(reml=True)
-        except (np.linalg.LinAlgError, ValueError):  # conditions confounded with kitchens or positions
-            return []
+    present = {observation.condition for observation in observations}
+    if len(present) < 2:
+        return []
+    levels = [reference, *(c for c in conditions if c != reference and c in present)]
+    result = fit_games(observations, levels)
+    if result is None:
+        return []
     names = list(result.fe_params.index)
 
     def contrast(first: str, second: str) -> Contrast:

@@ -11,7 +11,6 @@ interval. Written into STUDY_DIR/analysis/: power.md (the table and the smallest
 from __future__ import annotations
 
 import csv
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,7 +18,7 @@ import numpy as np
 
 from web_apps.study.assignment import design_row
 from web_apps.study.config import StudyConfig, StudyError
-from web_apps.study.inference import Observation, fit_mixed_model
+from web_apps.study.inference import Observation, fit_games, fit_mixed_model
 
 SIZES = (8, 12, 16, 24, 32, 48, 64, 96, 128, 200)  # participants per simulated study
 TARGET = 0.8  # the power a study is sized for
@@ -51,20 +50,13 @@ class Model:
 def fit_model(observations: list[Observation], config: StudyConfig) -> Model:
     """The model of a study's games: MixedLM with the conditions and kitchens as fixed effects, a random intercept
     per participant."""
-    import pandas as pd
-    from statsmodels.regression.mixed_linear_model import MixedLM
-
-    frame = pd.DataFrame([vars(observation) for observation in observations])
-    if frame.empty or frame["participant"].nunique() < 2:
-        raise StudyError("the power needs a study with games of two participants at least: analyse a pilot first")
-    conditions = [c for c in config.conditions if c in set(frame["condition"])]
-    kitchens = [k for k in config.kitchens if k in set(frame["kitchen"])]
-    frame["condition"] = pd.Categorical(frame["condition"], categories=conditions)
-    frame["kitchen"] = pd.Categorical(frame["kitchen"], categories=kitchens)
-    terms = ["C(condition)"] + (["C(kitchen)"] if len(kitchens) > 1 else [])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        result = MixedLM.from_formula(f"deliveries ~ {' + '.join(terms)}", frame, groups=frame["participant"]).fit()
+    present = {observation.condition for observation in observations}
+    kitchens = {observation.kitchen for observation in observations}
+    result = fit_games(observations, [c for c in config.conditions if c in present],
+                       [k for k in config.kitchens if k in kitchens], positions=False)
+    if result is None:
+        raise StudyError("the power needs a study with games of two participants at least, its conditions not "
+                         "confounded with its kitchens: analyse a pilot first")
     effects = result.fe_params
     return Model(
         intercept=float(effects["Intercept"]),
