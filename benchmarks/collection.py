@@ -11,6 +11,8 @@ each over the same kitchens:
                        same batch, written in place, the JAX step called directly
     xla rollout step   a whole batch of `XlaCollector` (`torch_kitchen.xla_rollout`, `runtime.collector=xla`), per
                        step: the kitchens and the team's network in one XLA program, the batch copied out once
+    xla, dense first   the same with the networks' first layers as dense products over the observations (a GPU's
+                       way) rather than from their cell tables (a CPU's, `torch_kitchen.xla_layers.cell_table`)
 
 The difference between a whole step and "env.step" plus "acting policy" is TorchRL's bookkeeping around them
 (`step_mdp`, resets, the collector's carrier and its stacked batch); for the rollout step, the difference from
@@ -28,12 +30,15 @@ from __future__ import annotations
 
 import argparse
 import tempfile
+from unittest import mock
 
 import jax
 import numpy as np
 import torch
 from timing import seconds_per_call
 
+import torch_kitchen.xla_rollout as xla_rollout
+from torch_kitchen.env import ProgramCache
 from torch_kitchen.teams import TeamPolicy
 from trainers.config.compose import load_config
 from trainers.machine import machine_name
@@ -73,13 +78,20 @@ def main(argv=None) -> None:
         rows["env.step"] = 1e6 * seconds_per_call(lambda: env.step(tensordict), args.steps, warmup=20)
         rows["acting policy"] = 1e6 * seconds_per_call(lambda: policy(tensordict), args.steps, warmup=20)
     steps = SETTINGS[args.setting]["rollout_steps"]
-    count = max(1, args.steps // steps)
-    for row, kind in (("collector step", "torchrl"), ("rollout step", "kitchen"), ("xla rollout step", "xla")):
+
+    def collector_step(kind: str) -> float:
         collector = make_collector(env, policy, config.frames_per_batch, kind=kind)
         batches = iter(collector)
         next(batches)
-        rows[row] = 1e6 * seconds_per_call(lambda: next(batches), count) / steps
+        seconds = seconds_per_call(lambda: next(batches), max(1, args.steps // steps))
         collector.shutdown(close_env=False)
+        return 1e6 * seconds / steps
+
+    for row, kind in (("collector step", "torchrl"), ("rollout step", "kitchen"), ("xla rollout step", "xla")):
+        rows[row] = collector_step(kind)
+    with mock.patch.object(xla_rollout, "_chains_here", lambda _, chains: list(chains)), \
+            mock.patch.object(xla_rollout, "_PROGRAMS", ProgramCache(kept=1)):  # programs of their own
+        rows["xla, dense first"] = collector_step("xla")
 
     print(f"setting {args.setting}: {config.num_envs} kitchens, {config.architecture}, hidden {config.hidden}; "
           f"{args.device}, {machine_name()}, torch 1 thread")

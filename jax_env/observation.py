@@ -76,6 +76,44 @@ CELL_TABLE = _cell_table()
 AGENT_TABLE = _agent_table()
 
 
+def _cell_views() -> np.ndarray:
+    """uint8 (D, 26): every distinct view one cell can give, bar urgency: each (kind, value) row of the cell table,
+    and on a floor cell (where agents stand) each with every agent code added; row 0 the empty floor."""
+    views = {tuple(np.zeros(NUM_CHANNELS, np.uint8)): None}
+    for kind in range(NUM_CELL_KINDS):
+        for value in range(_NUM_VALUES):
+            row = CELL_TABLE[kind * _NUM_VALUES + value]
+            for agent in AGENT_TABLE if kind == FLOOR else AGENT_TABLE[:1]:
+                views.setdefault(tuple(row + agent), None)
+    return np.array(list(views), dtype=np.uint8)
+
+
+def _view_hash(views: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A hash of a cell's view (its channels' dot product with int multipliers, modulo the lookup's size) that tells
+    every view of `views` apart, and the lookup from hash to view index: the smallest size and first seed that do."""
+    for size in 2 ** np.arange(7, 14):
+        for seed in range(64):
+            multipliers = np.random.default_rng(seed).integers(1, size, NUM_CHANNELS).astype(np.int32)
+            multipliers[Channel.URGENCY] = 0
+            keys = (views.astype(np.int64) @ multipliers) % size
+            if len(set(keys.tolist())) == len(views):
+                lookup = np.zeros(size, np.int32)
+                lookup[keys] = np.arange(len(views))
+                return multipliers, lookup
+    raise AssertionError("no hash tells the cell views apart")
+
+
+CELL_VIEWS = _cell_views()
+_VIEW_MULTIPLIERS, _VIEW_LOOKUP = _view_hash(CELL_VIEWS)
+
+
+def cell_view_index(obs: jax.Array) -> jax.Array:
+    """int32 [..., H, W]: each cell's view among `CELL_VIEWS` (its channels bar urgency), for observations
+    [..., H, W, 26] as `get_obs` makes them."""
+    keys = jnp.sum(obs.astype(jnp.int32) * jnp.asarray(_VIEW_MULTIPLIERS), -1) % len(_VIEW_LOOKUP)
+    return jnp.asarray(_VIEW_LOOKUP)[keys]
+
+
 def get_obs(state: State, max_steps: int) -> jax.Array:
     """uint8 (2, H, W, 26): agent i's full view at index i (its own layers first)."""
     height, width = state.grid.shape

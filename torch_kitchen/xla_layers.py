@@ -5,6 +5,8 @@ float32 with full-precision products, and jits with static shapes:
 
     dense          `nn.Linear`
     agent_window   `EgocentricLinear.window`, the agent-centred view (then `dense`)
+    cell_table     the first layer over observations (`ObservationLinear` after `Flatten`, `EgocentricLinear`) as
+                   a table of its products with every view a cell can give, per place (`cell_table_weights`)
     layer_norm     `nn.LayerNorm` over the last dim
     lstm_cell      one step of a one-layer `nn.LSTM`
     graph_scene    `GraphEncoder`: the kitchen graph (`torch_kitchen.graph`) -> GATConv -> ReLU -> scene linear ->
@@ -21,9 +23,10 @@ from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import torch
 
-from jax_env.observation import Channel
+from jax_env.observation import CELL_VIEWS, Channel, cell_view_index
 from torch_kitchen.models.networks import GraphEncoder
 
 HIGHEST = jax.lax.Precision.HIGHEST  # a GPU's TF32 products would stray from torch's float32
@@ -35,29 +38,84 @@ def dense(x: jax.Array, weight: jax.Array, bias: jax.Array) -> jax.Array:
     return jnp.matmul(x.astype(weight.dtype), weight.T, precision=HIGHEST) + bias
 
 
-def agent_window(obs: jax.Array, one_gather: bool = False) -> jax.Array:
+def agent_window(obs: jax.Array) -> jax.Array:
     """`EgocentricLinear.window` in JAX: observations [..., H, W, C] -> their agent-centred windows [..., (2H - 1) *
-    (2W - 1) * C], flat. The kitchen padded by H - 1 rows and W - 1 columns of zeros on every side holds the
-    agent's window at the agent's own cell: a slice where the layer scatters. On a CPU the slices are taken one
-    kitchen after another (`lax.map`): as one gather they are 7x slower there. On a GPU (`one_gather`) they are one
-    gather of every kitchen's window, where a loop over kitchens would launch kernels for each (4,205 us per step of
-    192 kitchens on an H200, BENCHMARKS.md)."""
+    (2W - 1) * C], flat, as one gather of every view's window out of the kitchen padded by H - 1 rows and W - 1
+    columns of zeros on every side (a GPU's way: on a CPU the layer reads a cell table, `cell_table`)."""
     *batch, height, width, channels = obs.shape
     flat = obs.reshape(-1, height, width, channels)
     agent_cell = flat[..., Channel.SELF].reshape(len(flat), -1).argmax(-1)  # an all-zero row: cell 0, as torch's
     padded = jnp.pad(flat, ((0, 0), (height - 1, height - 1), (width - 1, width - 1), (0, 0)))
-    size = (2 * height - 1, 2 * width - 1, channels)
-    if one_gather:
-        rows = (agent_cell // width)[:, None] + jnp.arange(size[0])  # [K, 2H - 1]
-        columns = (agent_cell % width)[:, None] + jnp.arange(size[1])  # [K, 2W - 1]
-        kitchens = jnp.arange(len(flat))[:, None, None]
-        return padded[kitchens, rows[:, :, None], columns[:, None, :]].reshape(*batch, -1)
+    rows = (agent_cell // width)[:, None] + jnp.arange(2 * height - 1)  # [K, 2H - 1]
+    columns = (agent_cell % width)[:, None] + jnp.arange(2 * width - 1)  # [K, 2W - 1]
+    kitchens = jnp.arange(len(flat))[:, None, None]
+    return padded[kitchens, rows[:, :, None], columns[:, None, :]].reshape(*batch, -1)
 
-    def window(kitchen_and_cell):
-        kitchen, cell = kitchen_and_cell
-        return jax.lax.dynamic_slice(kitchen, (cell // width, cell % width, 0), size)
 
-    return jax.lax.map(window, (padded, agent_cell)).reshape(*batch, -1)
+def cell_offsets(obs_shape: tuple[int, int, int], agent_centred: bool) -> np.ndarray:
+    """int32 [A, H * W]: where each cell of the kitchen lands among the first layer's places with the agent on cell a:
+    its place in the agent-centred window (A = H * W agent cells), or the cell itself (A = 1)."""
+    height, width, _ = obs_shape
+    cells = np.arange(height * width)
+    if not agent_centred:
+        return cells[None].astype(np.int32)
+    agents = cells[:, None]
+    rows = cells // width - agents // width + height - 1
+    columns = cells % width - agents % width + width - 1
+    return (rows * (2 * width - 1) + columns).astype(np.int32)
+
+
+def _view_entries() -> tuple[np.ndarray, np.ndarray]:
+    """`CELL_VIEWS` by their set channels: (channel int [K, D], value uint8 [K, D]), the k-th set channel of each view
+    (a view with fewer reads channel 0 at value 0)."""
+    count = int((CELL_VIEWS != 0).sum(-1).max())
+    channels = np.zeros((count, len(CELL_VIEWS)), np.int64)
+    values = np.zeros((count, len(CELL_VIEWS)), np.uint8)
+    for view, row in enumerate(CELL_VIEWS):
+        (set_channels,) = row.nonzero()
+        channels[:len(set_channels), view], values[:len(set_channels), view] = set_channels, row[set_channels]
+    return channels, values
+
+
+VIEW_ENTRIES = _view_entries()
+
+
+def cell_table_weights(weight: jax.Array, obs_shape: tuple[int, int, int], agent_centred: bool
+                       ) -> tuple[jax.Array, jax.Array]:
+    """A first layer's weight [out, places * C] over observations [..., H, W, C] as `cell_table` reads it: (the
+    products of the weight at each place with each of the `CELL_VIEWS` [places * D, out], the urgency layer's
+    product over the whole kitchen for each agent cell [A, out]). Made once per batch of steps: a step then sums one
+    row per cell, not a product over the (mostly zero) inputs."""
+    out_features = weight.shape[0]
+    channels = obs_shape[-1]
+    per_place = weight.reshape(out_features, -1, channels).transpose(1, 2, 0)  # [places, C, out]
+    table = jnp.zeros((per_place.shape[0], len(CELL_VIEWS), out_features), weight.dtype)
+    for channel, value in zip(*VIEW_ENTRIES):  # each view's channels one after another: sums in a fixed order
+        table = table + jnp.asarray(value, weight.dtype)[:, None] * per_place[:, channel]
+    urgency = _in_order(per_place[cell_offsets(obs_shape, agent_centred), Channel.URGENCY])
+    return table.reshape(-1, out_features), urgency
+
+
+def _in_order(rows: jax.Array) -> jax.Array:
+    """rows [N, K, out] summed over K one row after another: the same bits whatever the batch around it (a reduction
+    may be split otherwise for another shape, as for teams stacked by vmap and a team alone)."""
+    total = rows[:, 0]
+    for index in range(1, rows.shape[1]):
+        total = total + rows[:, index]
+    return total
+
+
+def cell_table(obs: jax.Array, table: jax.Array, urgency: jax.Array, bias: jax.Array, agent_centred: bool
+               ) -> jax.Array:
+    """The first layer (`cell_table_weights`' table and urgency, and its bias) on observations [..., H, W, C]
+    -> [..., out]: per cell, the table's row for its place and its view; the urgency layer's row where it is on."""
+    *batch, height, width, channels = obs.shape
+    flat = obs.reshape(-1, height * width, channels)
+    agent_cell = flat[..., Channel.SELF].argmax(-1) if agent_centred else jnp.zeros(len(flat), jnp.int32)
+    places = jnp.asarray(cell_offsets((height, width, channels), agent_centred))[agent_cell]  # [N, H * W]
+    rows = places * len(CELL_VIEWS) + cell_view_index(flat)
+    summed = _in_order(table[rows]) + flat[:, 0, Channel.URGENCY, None].astype(table.dtype) * urgency[agent_cell]
+    return (summed + bias).reshape(*batch, -1)
 
 
 def layer_norm(x: jax.Array, weight: jax.Array, bias: jax.Array, eps: float) -> jax.Array:

@@ -11,7 +11,9 @@ beside the kitchens, and a whole batch of steps is one program: the host launche
                    and a head (LayerNorm, Linear, ReLU), on a `KitchenEnv` with the model's transforms alone
                    (`ActorCritic.env_transforms()`: InitTracker and the primer of the LSTM states)
 
-Each layer's JAX twin is in `torch_kitchen.xla_layers`.
+Each layer's JAX twin is in `torch_kitchen.xla_layers`. On a CPU a network's first layer over the observations
+reads a cell table (`tabled`; its products with every view a cell can give, made once per batch by `table_weights`),
+on a GPU the dense product.
 
 The chains read the teams' own weights, taken again at every batch; their outputs agree with torch's to float32
 rounding (the sums run in another order). A recurrent team's states are carried from step to step and from batch
@@ -64,6 +66,8 @@ from torch_kitchen.teams import ACTING_KEYS, TeamPolicy, acting_pass_of, layers_
 from torch_kitchen.torchrl_internals import TEMPLATE, MultiAgentNet
 from torch_kitchen.xla_layers import (
     agent_window,
+    cell_table,
+    cell_table_weights,
     dense,
     graph_runs,
     graph_scene,
@@ -73,7 +77,8 @@ from torch_kitchen.xla_layers import (
 )
 
 # A network's layers as JAX runs them: ("flatten", start, end), ("linear",), ("relu",), ("egocentric", (H, W, C)),
-# ("layer_norm", eps), ("lstm",), ("graph",) (`torch_kitchen.xla_layers` computes each), or a network per agent:
+# ("layer_norm", eps), ("lstm",), ("graph",), ("cell_table", (H, W, C), agent-centred) (`torch_kitchen.xla_layers`
+# computes each; the last is `tabled`'s first layer on a CPU), or a network per agent:
 # (("per_agent", chain),), one agent's chain run on each agent's observation (and LSTM state) with its own weights.
 Chain = tuple[tuple, ...]
 IS_INIT = "is_init"  # InitTracker's key: the kitchens whose episode starts at this step
@@ -159,12 +164,10 @@ def chain_weights(network: nn.Module) -> list[torch.Tensor]:
     return weights
 
 
-def run_chain(chain: Chain, weights: Sequence[jax.Array], x: jax.Array, state: tuple = (), on_gpu: bool = False
-              ) -> tuple[jax.Array, tuple]:
+def run_chain(chain: Chain, weights: Sequence[jax.Array], x: jax.Array, state: tuple = ()) -> tuple[jax.Array, tuple]:
     """What the torch chain computes on x (uint8 observations are cast to float32 at the first linear layer), in
     float32 at full precision, and its LSTM's next state: state (h, c) float32 [..., 1, hidden] each, as the env
-    carries them, () for a chain without an LSTM. -> (output, next state). `on_gpu`: the program runs on a GPU, and
-    takes the layers' ways that suit it (`agent_window`'s one gather); the same numbers either way."""
+    carries them, () for a chain without an LSTM. -> (output, next state)."""
     weights = iter(weights)
     for op, *args in chain:
         if op == "flatten":
@@ -178,17 +181,44 @@ def run_chain(chain: Chain, weights: Sequence[jax.Array], x: jax.Array, state: t
             x, state = lstm_cell([next(weights) for _ in range(4)], x, state)
         elif op == "graph":
             x = graph_scene(x, [next(weights) for _ in range(6)])
+        elif op == "cell_table":
+            x = cell_table(x, next(weights), next(weights), next(weights), args[1])
         elif op == "per_agent":  # x [..., n_agents, H, W, C], state [..., n_agents, 1, h]: each agent's own
             (agent_chain,) = args
             agents = x.ndim - 4  # the agent dim, after as many leading dims in every input and output
             x, state = jax.vmap(lambda agent_weights, view, agent_state: run_chain(agent_chain, agent_weights, view,
-                                                                                   agent_state, on_gpu),
+                                                                                   agent_state),
                                 in_axes=(0, agents, agents), out_axes=agents)(list(weights), x, state)
         else:
             if op == "egocentric":
-                x = agent_window(x, one_gather=on_gpu)
+                x = agent_window(x)
             x = dense(x, next(weights), next(weights))
     return x, state
+
+
+def tabled(chain: Chain, obs_shape: tuple[int, int, int]) -> Chain:
+    """The chain with its first layer over the observations run from a cell table (`cell_table`, one row summed per
+    cell where the product reads mostly zeros): an agent-centred layer, or a Flatten of the observation then a linear
+    layer; a network per agent's likewise. Its weights then go through `table_weights` once per batch."""
+    if chain[0][0] == "per_agent":
+        return (("per_agent", tabled(chain[0][1], obs_shape)),)
+    if chain[0][0] == "egocentric":
+        return (("cell_table", chain[0][1], True), *chain[1:])
+    if chain[:2] == (("flatten", -3, -1), ("linear",)):
+        return (("cell_table", tuple(obs_shape), False), *chain[2:])
+    return chain
+
+
+def table_weights(chain: Chain, weights: Sequence[jax.Array]) -> list[jax.Array]:
+    """A chain's weights as `run_chain` reads them: a "cell_table" layer's weight made its table and urgency rows
+    (`cell_table_weights`), every other weight as it is; a network per agent's, agent by agent."""
+    op, *args = chain[0]
+    if op == "per_agent":
+        return jax.vmap(lambda agent_weights: table_weights(args[0], agent_weights))(list(weights))
+    if op != "cell_table":
+        return list(weights)
+    weight, *rest = weights
+    return [*cell_table_weights(weight, *args), *rest]
 
 
 def restarted(is_init: jax.Array, state: tuple) -> tuple:
@@ -386,32 +416,51 @@ def seated_program(env: KitchenEnv, teams: tuple[Chain | str, ...], slots: tuple
     return _PROGRAMS.get(key, lambda: _build_rollout(env, _seated_act(env, teams), steps, None))
 
 
-def _team_act(env: KitchenEnv, chains: tuple[Chain, Chain]) -> Callable:
+class Acting(NamedTuple):
+    """A rollout's acting pass: `act` (weights, keys, observation, states) -> (outputs, next states), once per step,
+    on the weights as `prepare` makes them from the program's, once per batch."""
+
+    prepare: Callable
+    act: Callable
+
+
+def _chains_here(env: KitchenEnv, chains: Sequence[Chain]) -> list[Chain]:
+    """The chains as the env's device runs them best: on a CPU, first layers from cell tables (`tabled`); on a GPU,
+    whose dense products are cheap, as they are."""
+    if env.jax_device.platform != "cpu":
+        return list(chains)
+    return [tabled(chain, env.jax_env.obs_shape) for chain in chains]
+
+
+def _team_act(env: KitchenEnv, chains: tuple[Chain, Chain]) -> Acting:
     """The acting pass of the rollout's teams, each in its own kitchens: (weights, keys [teams, 2], observation,
     (policy state, value state)) -> ((logits, action, log-prob, value), next states)."""
-    policy_chain, value_chain = chains
+    policy_chain, value_chain = _chains_here(env, chains)
     teams, team_size = env.teams, env.team_size
-    on_gpu = env.jax_device.platform != "cpu"
+
+    def prepare(weights):
+        return jax.vmap(lambda policy, value: (table_weights(policy_chain, policy),
+                                               table_weights(value_chain, value)))(*weights)
 
     def act(weights, keys, observation, states):
         def team(policy_weights, value_weights, key, observation, policy_state, value_state):
-            logits, policy_state = run_chain(policy_chain, policy_weights, observation, policy_state, on_gpu)
+            logits, policy_state = run_chain(policy_chain, policy_weights, observation, policy_state)
             action = jax.random.categorical(key, logits)
             log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), action[..., None], -1)[..., 0]
-            value, value_state = run_chain(value_chain, value_weights, observation, value_state, on_gpu)
+            value, value_state = run_chain(value_chain, value_weights, observation, value_state)
             return (logits, action, log_prob, value), (policy_state, value_state)
 
         by_team = jax.tree.map(lambda value: value.reshape(teams, team_size, *value.shape[1:]), (observation, *states))
         outputs = jax.vmap(team)(*weights, keys, *by_team)
         return jax.tree.map(lambda value: value.reshape(teams * team_size, *value.shape[2:]), outputs)
 
-    return act
+    return Acting(prepare, act)
 
 
 COOK = "cook"  # a seated team that is the scripted cook of a convention (`jax_env.cook`), not a network
 
 
-def _seated_act(env: KitchenEnv, teams: tuple[Chain | str, ...]) -> Callable:
+def _seated_act(env: KitchenEnv, teams: tuple[Chain | str, ...]) -> Acting:
     """The acting pass of kitchens whose seats different teams play: weights = (each network team's weights, in
     order, the cooks' conventions [C, ...] and floors (None without a cook), and each team's seats: (kitchens int32
     [R], seats int32 [R]) per network team, then the cooks' (kitchens, seats, which convention) together; a kitchen
@@ -421,8 +470,12 @@ def _seated_act(env: KitchenEnv, teams: tuple[Chain | str, ...]) -> Callable:
     A network shared by the agents runs on the views of the seats its team plays, one with a network per agent on
     both views of their kitchens (its seat's logits kept, as `SeatedPolicy` keeps them); the cooks plan in their seats
     in one call. One draw per seat from keys[0]. -> ((logits, action, log-prob, zero values), no states)."""
-    networks = [chain for chain in teams if chain != COOK]
+    networks = _chains_here(env, [chain for chain in teams if chain != COOK])
     on_gpu = env.jax_device.platform != "cpu"
+
+    def prepare(weights):
+        network_weights, *rest = weights
+        return ([table_weights(chain, own) for chain, own in zip(networks, network_weights)], *rest)
 
     def act(weights, keys, observation, states):
         network_weights, conventions, floors, slots = weights
@@ -431,10 +484,10 @@ def _seated_act(env: KitchenEnv, teams: tuple[Chain | str, ...]) -> Callable:
         for chain, own, (kitchens, seats) in zip(networks, network_weights, slots):
             safe = jnp.minimum(kitchens, count - 1)
             if chain[0][0] == "per_agent":  # each seat its own network: both run, the team's seat kept
-                out, _ = run_chain(chain, own, observation[safe], (), on_gpu)
+                out, _ = run_chain(chain, own, observation[safe])
                 picked = jnp.take_along_axis(out, seats[:, None, None], axis=1)[:, 0]
             else:  # one network for both seats: on the seated agent's view alone
-                picked, _ = run_chain(chain, own, observation[safe, seats], (), on_gpu)
+                picked, _ = run_chain(chain, own, observation[safe, seats])
             logits = logits.at[kitchens, seats].set(picked, mode="drop")
         if conventions is not None:
             kitchens, seats, which = slots[-1]
@@ -448,7 +501,7 @@ def _seated_act(env: KitchenEnv, teams: tuple[Chain | str, ...]) -> Callable:
         log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), action[..., None], -1)[..., 0]
         return (logits, action, log_prob, jnp.zeros((count, N_AGENTS, 1), jnp.float32)), ((), ())
 
-    return act
+    return Acting(prepare, act)
 
 
 def _with_zoo_cooks(conventions, zoo, observation, acted, zoo_share: float, on_gpu: bool):
@@ -476,7 +529,7 @@ def _next_zoo(conventions, zoo, ended, observation, zoo_share: float):
     return jax.lax.cond(ended.any(), started, lambda key: (draws, key, tables), key)
 
 
-def _build_rollout(env: KitchenEnv, act: Callable, steps: int, zoo_share: float | None) -> Callable:
+def _build_rollout(env: KitchenEnv, acting: Acting, steps: int, zoo_share: float | None) -> Callable:
     programs = kitchen_programs(env.jax_env, env.num_envs, env.teams, env.pinned_levels is not None, packed=False)
     on_gpu = env.jax_device.platform != "cpu"
 
@@ -484,7 +537,7 @@ def _build_rollout(env: KitchenEnv, act: Callable, steps: int, zoo_share: float 
         states, deliveries, env_key, act_keys, carrier, zoo = carry
         observed, (is_init, *network_states) = carrier
         act_keys, used = jax.vmap(jax.random.split, out_axes=1)(act_keys)
-        acted, next_network_states = act(weights, used, observed[0], restarted(is_init, network_states))
+        acted, next_network_states = acting.act(weights, used, observed[0], restarted(is_init, network_states))
         seated = ()
         if zoo_share is not None:
             acted, seated, zoo_key = _with_zoo_cooks(conventions, zoo, observed[0], acted, zoo_share, on_gpu)
@@ -517,6 +570,7 @@ def _build_rollout(env: KitchenEnv, act: Callable, steps: int, zoo_share: float 
         if zoo:  # the floor tables of the kitchens' episodes, made again at each batch's start
             zoo = (*zoo, kitchen_floors(carrier[0][0]))
         carry = (states, deliveries, env_key, act_keys, carrier, tuple(zoo))
+        weights = acting.prepare(weights)
         carry, records = jax.lax.scan(lambda c, x: step(start_states, weights, conventions, c, x), carry, None,
                                       length=steps)
         states, deliveries, env_key, _, carrier, zoo = carry

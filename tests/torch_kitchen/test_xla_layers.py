@@ -7,13 +7,15 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from jax_env.observation import CELL_VIEWS, Channel, cell_view_index
 from torch_kitchen.egocentric import EgocentricLinear
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.graph import build_graph
 from torch_kitchen.keys import LOGITS, OBSERVATION
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.models.networks import GraphEncoder
-from torch_kitchen.xla_layers import agent_window, graph_scene, graph_weights
+from torch_kitchen.partners.scripted_cook import ScriptedCook
+from torch_kitchen.xla_layers import agent_window, cell_table, cell_table_weights, dense, graph_scene, graph_weights
 
 HIDDEN = 16
 TOLERANCE = dict(atol=1e-5, rtol=1e-5)
@@ -98,11 +100,52 @@ def test_gnn_policy_runs_on_the_jax_encoder(observations, size):
 
 
 @pytest.mark.parametrize("size", ["7x7", "4x5"])
-def test_the_agent_window_is_the_layers_by_a_loop_over_kitchens_or_one_gather(observations, size):
-    """The CPU's way (`lax.map`) and the GPU's (one gather) give `EgocentricLinear.window`'s windows exactly."""
+def test_the_agent_window_is_the_layers(observations, size):
+    """One gather gives `EgocentricLinear.window`'s windows exactly."""
     views = observations[size]  # [B, 2, H, W, C]
     layer = EgocentricLinear(tuple(views.shape[-3:]), HIDDEN)
-    expected = layer.window(views).numpy()  # [B, 2, (2H - 1) * (2W - 1) * C]
-    for one_gather in (False, True):
-        windows = jax.jit(agent_window, static_argnums=1)(jnp.asarray(views.numpy()), one_gather)
-        np.testing.assert_array_equal(np.asarray(windows), expected, err_msg=f"one_gather={one_gather}")
+    windows = jax.jit(agent_window)(jnp.asarray(views.numpy()))
+    np.testing.assert_array_equal(np.asarray(windows), layer.window(views).numpy())
+
+
+@pytest.fixture(scope="module")
+def cooked():
+    """uint8 [N, 2, H, W, C] views of two scripted cooks at work for 90 steps of 100-step episodes (pots filling,
+    cooking and ready, soups carried and delivered, the urgency layer on for the last 40) on the expanded classic
+    layouts and generated levels."""
+    cook, by_levels = ScriptedCook(), []
+    for levels in (["cramped_room_7x7", "coord_ring_7x7", "counter_circuit_7x7"], "infinite"):
+        env = KitchenEnv(num_envs=3, levels=levels, max_steps=100, seed=2)
+        tensordict, views = env.reset(), []
+        for _ in range(90):
+            views.append(tensordict[OBSERVATION].clone())
+            tensordict["agents", "action"] = cook(tensordict[OBSERVATION]).argmax(-1)
+            tensordict = env.step(tensordict)["next"]
+        by_levels.append(torch.cat(views))
+    return torch.cat(by_levels).numpy()
+
+
+def test_every_cell_of_a_view_is_one_of_the_cell_views(cooked):
+    """The cell table's premise: a cell's channels, bar urgency, are one of `CELL_VIEWS`, found by its index."""
+    for channel in (Channel.COOK_TIME, Channel.SOUP, Channel.URGENCY):  # the views hold every state they should
+        assert cooked[..., channel].any() and not cooked[..., channel].all(), channel
+    without_urgency = cooked.copy()
+    without_urgency[..., Channel.URGENCY] = 0
+    found = CELL_VIEWS[np.asarray(jax.jit(cell_view_index)(jnp.asarray(cooked)))]
+    np.testing.assert_array_equal(found, without_urgency)
+    assert len({tuple(row) for row in CELL_VIEWS}) == len(CELL_VIEWS)
+
+
+@pytest.mark.parametrize("agent_centred", [True, False], ids=["agent-centred", "flat"])
+def test_the_cell_table_is_the_first_layers_product(cooked, agent_centred):
+    """The first layer from its cell table gives the dense product over the agent-centred window (or the flattened
+    view), with and without urgency, to float rounding."""
+    views = jnp.asarray(cooked)
+    obs_shape = tuple(views.shape[-3:])
+    inputs = agent_window(views) if agent_centred else views.reshape(*views.shape[:-3], -1)
+    generator = np.random.default_rng(0)
+    weight = jnp.asarray(generator.normal(0, 0.1, (HIDDEN, inputs.shape[-1])), jnp.float32)
+    bias = jnp.asarray(generator.normal(0, 0.1, HIDDEN), jnp.float32)
+    table, urgency = cell_table_weights(weight, obs_shape, agent_centred)
+    tabled = jax.jit(cell_table, static_argnums=4)(views, table, urgency, bias, agent_centred)
+    np.testing.assert_allclose(np.asarray(tabled), np.asarray(dense(inputs, weight, bias)), **TOLERANCE)
