@@ -53,6 +53,8 @@ SHRINK = {
                          "--table-heldout", "1", "--table-rollouts", "1", "--clash-heldout", "0", "--workers", "1",
                          "--max-steps", "16", "--out", "outputs/zoo"],
     "kitchen-zoo clash": ["--heldout", "0", "--max-steps", "2", "--out", "outputs/clash"],
+    "kitchen-study simulate": ["--participants", "2", "--parallel", "2", "--max-steps", "8"],
+    "kitchen-study power": ["--studies", "4", "--sizes", "8", "16"],
     "scripts/reproduce.py": ["--teams", "1", "--rollouts", "1", "--heldout", "1", "--max-steps", "16", "--jobs", "1",
                              "--no-human-proxies", "--collector", "kitchen", *TRAIN_SHRINK],
 }

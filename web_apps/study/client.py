@@ -1,7 +1,8 @@
 """Simulated participants: a client that speaks the study pages' protocol (`web_apps.study.server`: HTTP for the
 stages, a WebSocket for the games), through FastAPI's TestClient in this process or against a real server (httpx
 and websockets), and a `kitchen-study run` server in a subprocess to run them against. The tests drive studies with
-it, and `benchmarks/study_load.py` loads a server with it."""
+it, `benchmarks/study_load.py` loads a server with it, and `kitchen-study simulate` (`web_apps.study.simulate`) runs a
+pilot by proxies with it."""
 
 from __future__ import annotations
 
@@ -168,13 +169,14 @@ def free_port() -> int:
 
 
 def start_server(config_path: str | Path, port: int, token: str, log: str | Path,
-                 env: dict[str, str] | None = None) -> subprocess.Popen:
+                 env: dict[str, str] | None = None, cwd: str | Path | None = None) -> subprocess.Popen:
     """`kitchen-study run CONFIG` on 127.0.0.1:`port` with the participants' `token`, in a subprocess whose output
-    goes to the end of `log` (`env`: more environment variables)."""
+    goes to the end of `log` (`env`: more environment variables; `cwd`: where the config's relative paths start,
+    by default the repository's root)."""
     command = [sys.executable, "-m", "web_apps.study.command", "run", str(config_path), "--port", str(port),
                "--token", token]
     with open(log, "a") as output:
-        return subprocess.Popen(command, cwd=Path(__file__).resolve().parents[2], stdout=output,
+        return subprocess.Popen(command, cwd=cwd or Path(__file__).resolve().parents[2], stdout=output,
                                 stderr=subprocess.STDOUT, text=True, env={**os.environ, **(env or {})})
 
 

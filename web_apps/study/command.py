@@ -4,6 +4,7 @@
     kitchen-study run configs/study/example.yaml       # serves the study; prints the participants' and operator's links
     kitchen-study analyse studies/example              # the report: STUDY_DIR/analysis/report.md
     kitchen-study power studies/example                # participants needed: STUDY_DIR/analysis/power.md
+    kitchen-study simulate configs/study/example.yaml --participants 8   # a pilot by proxies: studies/example-simulated
 """
 
 from __future__ import annotations
@@ -90,6 +91,20 @@ def power(args) -> int:
     return 0
 
 
+def simulate(args) -> int:
+    for option, value in (("--participants", args.participants), ("--parallel", args.parallel),
+                          ("--max-steps", args.max_steps or 1)):
+        if value < 1:
+            return error(f"{option} must be 1 or more, got {value}")
+    from web_apps.study.simulate import SimulationError, run_pilot
+
+    try:
+        return run_pilot(args.config, args.participants, args.out, args.seed, args.proxy, args.stand_in,
+                         args.parallel, args.keep_pace, args.max_steps)
+    except SimulationError as failure:
+        return error(str(failure), 1)
+
+
 def analyse(args) -> int:
     from web_apps.study.analysis import analyse as write
 
@@ -124,6 +139,27 @@ def main(argv: list[str] | None = None) -> int:
     sizing.add_argument("--alpha", type=float, default=0.05)
     sizing.add_argument("--sizes", type=int, nargs="+", default=list(SIZES), help="numbers of participants simulated")
     sizing.set_defaults(handle=power)
+    simulating = commands.add_parser("simulate", help="a pilot by proxies: simulated participants through the "
+                                                      "study's server, into a study folder")
+    simulating.add_argument("config")
+    simulating.add_argument("--participants", type=int, required=True, metavar="N",
+                            help="simulated participants, 1 or more")
+    simulating.add_argument("--out", metavar="STUDY_DIR",
+                            help="the simulated study's folder (default: the study's folder's name with -simulated)")
+    simulating.add_argument("--seed", type=int, default=0,
+                            help="draws each participant's noise, leaning, stand-in, keys and answers")
+    simulating.add_argument("--proxy", metavar="RUN",
+                            help="the human proxy of each kitchen ({kitchen}: its name; default: "
+                                 "runs/bc_{kitchen}/seed0 where it exists); a stand-in elsewhere")
+    simulating.add_argument("--stand-in", metavar="CONVENTION",
+                            help="the zoo convention every stand-in plays (default: each participant draws one of the "
+                                 "zoo's training conventions); scripted_cook: the default convention")
+    simulating.add_argument("--parallel", type=int, default=4, help="participants visiting at once")
+    simulating.add_argument("--keep-pace", action="store_true",
+                            help="the config's own pace (default: turns, a step as soon as a key arrives)")
+    simulating.add_argument("--max-steps", type=int, metavar="STEPS",
+                            help="games (and practice games) of at most STEPS steps: a quick try of the machinery")
+    simulating.set_defaults(handle=simulate)
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     try:
         return args.handle(args)
