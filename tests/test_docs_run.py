@@ -34,12 +34,12 @@ SHELLS = ("bash", "sh", "shell", "console")
 AFTER = re.compile(r"^<!--\s*docs-run:\s*after\s+(.+?)\s*-->$", re.MULTILINE)  # a line of its own
 REFUSED = "refused"  # a comment that begins so marks a command meant to fail
 # Appended to a command of that name (a later `key=value` or option wins): one update of 4 kitchens x 16 steps,
-# 16-step episodes, narrow networks, one distillation round, 1-2 test levels, no progress bars; evaluations by the
-# kitchens' collector, since a tiny one compiles longer inside XLA than it plays (that path has tests of its own:
-# tests/torch_kitchen/test_xla_rollout.py, the stranger benchmark's).
+# 16-step episodes, narrow networks, one distillation round, 1-2 test levels, no progress bars; training and
+# evaluation by the kitchens' collector, since a tiny run compiles longer inside XLA than it plays (6 s of a 16 s
+# training run; that path has tests of its own: tests/torch_kitchen/test_xla_rollout.py, the stranger benchmark's).
 TRAIN_SHRINK = ["num_envs=4", "rollout_steps=16", "max_steps=16", "hidden=16", "ppo.minibatches=2", "ppo.epochs=2",
                 "total_steps=64", "runtime.threads=1", "progress=false", "eval_episodes=0", "distill.kitchens=4",
-                "distill.rounds=1", "distill.epochs=1"]
+                "distill.rounds=1", "distill.epochs=1", "runtime.collector=kitchen"]
 EVAL_SHRINK = ["rollouts=1", "heldout=1", "max_steps=16", "progress=false", "runtime.threads=1", "workers=1",
                "collector=kitchen"]
 SHRINK = {

@@ -27,15 +27,16 @@ EPISODE_ENDS = {"__bool__ at torch_kitchen/env.py:KitchenEnv._reset": 1 / 16}
 LOOPS = {
     # name: (config, overrides, host reads per step, tensors made without a device per step)
     "xla": ("configs/ippo/mlp_ik.yaml", ["runtime.collector=xla"], {}, {}),
-    "main job's IPPO (xla)": ("configs/main.yaml", [], {}, {}),
+    "main job's IPPO (xla)": ("configs/main.yaml", ["runtime.collector=xla"], {}, {}),
     "kitchen": ("configs/ippo/mlp_ik.yaml", ["runtime.collector=kitchen"],
                 {**CPU_KERNEL, **ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at torch_kitchen/rollout.py:advance": 0.25},
                 CPU_KERNEL_MADE),
     "torchrl": ("configs/ippo/mlp_ik.yaml", ["runtime.collector=torchrl"],
                 {**CPU_KERNEL, **ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at trainers/ppo/loop.py:train_teams": 0.25},
                 CPU_KERNEL_MADE),
-    "gnn (xla)": ("configs/ippo/gnn_ik.yaml", [], {}, {}),
-    "an SK LSTM, a network per agent (xla)": ("configs/ippo/mlp_lstm_sk_cramped_room.yaml", [], {}, {}),
+    "gnn (xla)": ("configs/ippo/gnn_ik.yaml", ["runtime.collector=xla"], {}, {}),
+    "an SK LSTM, a network per agent (xla)": ("configs/ippo/mlp_lstm_sk_cramped_room.yaml", ["runtime.collector=xla"],
+                                              {}, {}),
     "gnn (kitchen)": ("configs/ippo/gnn_ik.yaml", ["runtime.collector=kitchen"],
                       {**ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at torch_kitchen/rollout.py:advance": 0.25}, {}),
     # E3T's partner model has a sparse first layer of its own, and its partner draws are made on the CPU (their own

@@ -34,8 +34,10 @@ def assert_same_run(team_run, single_run):
 
 
 @pytest.mark.parametrize("overrides", [
-    ["levels=infinite"],  # levels drawn per episode from each team's key
-    ["architecture=mlp_lstm", "share_params=false"],  # recurrent state and stacked per-agent networks
+    # levels drawn per episode from each team's key; the teams stacked inside one XLA program (the default collector)
+    ["levels=infinite", "runtime.collector=xla"],
+    # recurrent state and stacked per-agent networks
+    ["architecture=mlp_lstm", "share_params=false", "runtime.collector=xla"],
     ["algorithm=e3t", "architecture=e3t_mlp", "algorithm_config.partner_policy=copy"],  # partner seats drawn per team
     # Alone, a team's minibatch shards run on threads at once; beside other teams, one after the other.
     ["architecture=mlp_lstm", "share_params=false", "runtime.minibatch_shards=2"],
