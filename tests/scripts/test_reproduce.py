@@ -14,7 +14,8 @@ ROOT = Path(__file__).resolve().parents[2]
 reproduce = script_module("reproduce")
 
 TINY = ["hidden=8", "num_envs=4", "rollout_steps=16", "max_steps=16", "total_steps=128", "ppo.epochs=1",
-        "ppo.minibatches=2", "checkpoint_every=1", "eval_episodes=0", "progress=false", "loggers=[csv]"]
+        "ppo.minibatches=2", "checkpoint_every=1", "eval_episodes=0", "progress=false", "loggers=[csv]",
+        "runtime.collector=kitchen"]  # a tiny run compiles the XLA rollout for longer than it trains
 
 
 @pytest.mark.slow
