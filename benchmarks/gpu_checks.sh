@@ -26,7 +26,7 @@ if [[ ${SIZE:-full} == tiny ]]; then
     protocol=tiny jaxmarl=tiny ik=tiny updates=2 repeats=1 envs=4 steps=8 cook_envs=4
     strangers_args="--heldout 1 --rollouts 1"
     main_args="num_envs=4 rollout_steps=16 max_steps=16 hidden=16 total_steps=64 distill.kitchens=4 distill.rounds=1
-        distill.epochs=1 eval_episodes=0 runtime.threads=1"
+        distill.epochs=1 eval_episodes=0 runtime.threads=1 runtime.collector=kitchen"
 else
     protocol=protocol jaxmarl=jaxmarl ik=ik updates=3 repeats=3 envs=192 steps=300 cook_envs=4096 main_args=""
     strangers_args="--heldout 100 --rollouts 4"
@@ -43,13 +43,15 @@ export PYTHONPATH=${PYTHONPATH:-$PWD}
 # Pure-Python packages a bare machine may lack (the config loader's OmegaConf, the reference's Flax and Optax):
 # copies of the set-up's, last on the path (`make gpu-offline`).
 [[ -d .whl/site ]] && export PYTHONPATH=$PYTHONPATH:$PWD/.whl/site
-# A missing package stops the call here, before any device time goes on rows that cannot start.
-if ! python -W ignore -c "import torchrl, flax, optax, trainers.ppo.loop, torch_kitchen.env"; then
-    echo "gpu_checks: the imports above fail (make gpu-offline, then carry .whl)"; exit 1
+# The device, and a missing package stops the call here, before any device time goes on rows that cannot start
+# (one interpreter for both: each start imports torch and JAX anew).
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$raw/device.txt" 2>/dev/null
+if ! python -W ignore -c "import torchrl, flax, optax, trainers.ppo.loop, torch_kitchen.env, torch, jax
+print('torch', torch.__version__, torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no CUDA',
+      '| jax', jax.__version__, jax.devices())" >> "$raw/device.txt" 2>&1; then
+    cat "$raw/device.txt"; echo "gpu_checks: the imports above fail (make gpu-offline, then carry .whl)"; exit 1
 fi
-{ nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>/dev/null
-  python -c "import torch, jax; print('torch', torch.__version__, torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no CUDA', '| jax', jax.__version__, jax.devices())"
-} 2>&1 | tee "$raw/device.txt"
+cat "$raw/device.txt"
 
 # row NAME TIMEOUT COMMAND...: runs COMMAND with TIMEOUT seconds, its output into NAME.txt (shown less warnings), and
 # its status into the record; its figures, where it has any, it writes itself (`--record`).
