@@ -5,11 +5,12 @@ stages and a WebSocket for the games; a thread each, in this process) that enter
 reads the instructions, plays the practice game and its assigned games, sending a random key on every state it
 gets, and answers the questions after each game. The study: an MLP team of the paper's width (hidden 256, as
 `play_load.py`) and the scripted cook, one game with each on 7x7 kitchens after a practice game with the scripted
-cook. The server is a subprocess (torch on `--torch-threads`, as `play_load.py` runs kitchen-play's); one warm-up
-participant plays a practice game first (the kitchen compiled), then all N start at once. Reported, measured as
-`play_load.py` measures kitchen-play's 40 games: the gaps between a game's states across all games (p50, p90, p99,
-max), how late games ended against their schedule, the server's resident memory idle and at its peak; and whether
-every participant finished with the answers it posted stored in the database, each game finished once, none cut.
+cook. The server is a subprocess (torch on `--torch-threads`, as `play_load.py` runs kitchen-play's), which warms its
+kitchens and partners up before it serves; then all N start at once. Reported, measured as `play_load.py` measures
+kitchen-play's 40 games: the gaps between a game's states across all games (p50, p90, p99, max), how long a game's
+first state took from the opening of its page's socket (p50, p99, max), how late games ended against their
+schedule, the server's start (to its first answer) and resident memory idle and at its peak; and whether every
+participant finished with the answers it posted stored in the database, each game finished once, none cut.
 
     python benchmarks/study_load.py [--participants 40] [--tick-ms 150] [--game-steps 200] [--practice-steps 200]
 """
@@ -110,11 +111,9 @@ def main(argv=None) -> int:
         server = start_server(config, int(base.rsplit(":", 1)[1]), TOKEN, log,
                               env={"OMP_NUM_THREADS": str(args.torch_threads)})
         try:
+            started = time.perf_counter()
             wait_until_serving(server, ServerTransport(base), TOKEN, log, timeout_s=180)
-            warm_up = Participant(ServerTransport(base), "warm-up", TOKEN)
-            warm_up.enter()
-            while warm_up.take_stage() != "practice":
-                pass
+            serving_s = time.perf_counter() - started
             idle = resident_mb(server.pid)
             start = threading.Barrier(args.participants)
             visits = [Visit(base, f"P{number}", start) for number in range(args.participants)]
@@ -137,12 +136,18 @@ def main(argv=None) -> int:
     gaps = sorted(gap for visit in visits for arrivals in visit.arrivals.values() for gap in state_gaps(arrivals))
     lags = sorted(schedule_lag(arrivals, visit.steps[stage], tick) for visit in visits
                   for stage, arrivals in visit.arrivals.items() if len(arrivals) > 1)
+    firsts = sorted(arrivals[0] - visit.person.opened[stage] for visit in visits
+                    for stage, arrivals in visit.arrivals.items())
     print(f"\n{args.participants} participants at once: a practice game of {args.practice_steps} steps, then 2 games "
           f"of {args.game_steps} (the team's, the scripted cook's), a key on every state, questions after each")
     print(f"{'games':>6s} {GAPS_HEADER} {'lag median s':>12s} {'lag max s':>9s} {'idle MB':>8s} {'peak MB':>8s}")
     if gaps:
         print(f"{len(lags):6d} {gaps_row(gaps)} {statistics.median(lags):12.2f} {lags[-1]:9.2f} {idle:8.0f} "
               f"{peak:8.0f}")
+    if firsts:
+        print(f"a game's first state after its socket opened: p50 {statistics.median(firsts):.3f} s, p99 "
+              f"{firsts[min(len(firsts) - 1, int(0.99 * len(firsts)))]:.3f} s, max {firsts[-1]:.3f} s "
+              f"({len(firsts)} games); the server answered {serving_s:.1f} s after its start")
     finished = args.participants - len(problems)
     print(f"every participant finished, its answers stored as posted, each game finished once: "
           f"{'yes' if not problems and not cut else 'no'} ({finished} of {args.participants}; {cut} games cut)")

@@ -93,6 +93,7 @@ class Participant:
         self.preferred, self.on_view = preferred, on_view
         self.key = None
         self.socket = None
+        self.opened: dict[int, float] = {}  # stage -> when its game's socket was opened (perf_counter)
         self.actions = random.Random(external_id)
         self.answered: dict[int, dict[str, int]] = {}  # stage -> the answers posted and taken
 
@@ -108,6 +109,7 @@ class Participant:
         return self.transport.post(f"/api/p/{self.key}/stages/{stage}?token={self.token}", body)
 
     def open_game(self, stage: int) -> tuple[Socket, dict]:
+        self.opened[stage] = time.perf_counter()
         socket = self.transport.socket(f"/ws/p/{self.key}/stages/{stage}?token={self.token}")
         return socket, socket.receive()
 

@@ -51,7 +51,7 @@ def check(args) -> int:
 
 
 def run(args) -> int:
-    from web_apps.study.server import create_study_app, open_study
+    from web_apps.study.server import create_study_app, open_study, warm_up
 
     config = load_study(args.config, check=False)
     try:
@@ -65,6 +65,10 @@ def run(args) -> int:
     except ImportError:
         return error("kitchen-study needs the play extra: pip install .[play]")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")  # before the restart's line
+    print(f"{PROG}: warming every kitchen and partner up, so that no participant waits for a compilation ...",
+          flush=True)
+    games, seconds = warm_up(config, partners)
+    print(f"{PROG}: {games} kitchen and partner pairs warmed up in {seconds:.1f} s", flush=True)
     database, token, operator = open_study(config, args.token)
     app = create_study_app(config, database, token, operator, served_hosts(args.host, args.port, args.allow_host),
                            partners)

@@ -26,6 +26,8 @@ import asyncio
 import json
 import logging
 import secrets
+import tempfile
+import time
 from pathlib import Path
 from urllib.parse import quote
 
@@ -96,6 +98,26 @@ def open_study(config: StudyConfig, token: str | None = None) -> tuple[StudyData
     if cut := database.cut_playing("the server stopped mid-game"):
         log.info("%d game(s) cut by the last stop are marked and will be played again", cut)
     return database, token, operator
+
+
+def warm_up(config: StudyConfig, partners: dict[str, Partner]) -> tuple[int, float]:
+    """One step of a game with every partner in every kitchen a participant can meet, at its game's length, into a
+    throwaway record: the kitchens' programs compiled and the partners' first passes run before the first participant
+    comes, whose first state then waits for neither (3 to 5 s otherwise). -> (games played, seconds)."""
+    games = {(partner_key(spec, kitchen), kitchen, config.max_steps)
+             for spec in config.conditions.values() for kitchen in config.kitchens}
+    if config.practice_games:
+        games.add((partner_key(config.practice_partner, config.practice_kitchen), config.practice_kitchen,
+                   config.practice_steps))
+    start = time.monotonic()
+    with tempfile.TemporaryDirectory(prefix="kitchen-study-warm-up-") as folder:
+        for index, (partner, kitchen, steps) in enumerate(sorted(games)):
+            game = Game(kitchen_of(kitchen, config.seed), partners[partner], config.seat,
+                        Path(folder) / f"{index}.jsonl", seed=config.seed, max_steps=steps, tick_ms=config.tick_ms,
+                        mode=config.pace, device=config.device)
+            game.step(0)
+            game.end("warm-up")
+    return len(games), time.monotonic() - start
 
 
 def create_study_app(config: StudyConfig, database: StudyDatabase, token: str, operator: str,

@@ -16,8 +16,9 @@ from fastapi import WebSocketDisconnect  # noqa: E402
 from fastapi.testclient import TestClient  # noqa: E402
 from tiny_study import TOKEN, study_config  # noqa: E402
 
+from torch_kitchen import env as kitchen_env  # noqa: E402
 from torch_kitchen.records import read_record  # noqa: E402
-from web_apps.play.game import file_sha256, replay  # noqa: E402
+from web_apps.play.game import Game, file_sha256, replay  # noqa: E402
 from web_apps.study.analysis import analyse  # noqa: E402
 from web_apps.study.assignment import assign, block_size, design_counts, latin_square  # noqa: E402
 from web_apps.study.client import (  # noqa: E402
@@ -29,9 +30,9 @@ from web_apps.study.client import (  # noqa: E402
     wait_until_serving,
 )
 from web_apps.study.command import main  # noqa: E402
-from web_apps.study.config import StudyError, load_study  # noqa: E402
+from web_apps.study.config import StudyError, kitchen_of, load_study, partner_key, study_partners  # noqa: E402
 from web_apps.study.database import StudyDatabase  # noqa: E402
-from web_apps.study.server import create_study_app, open_study  # noqa: E402
+from web_apps.study.server import create_study_app, open_study, warm_up  # noqa: E402
 
 
 def conditions_of(database, participant: Participant) -> list[str]:
@@ -392,3 +393,20 @@ def test_each_stage_page_holds_what_its_participant_needs(study):
     assert "My partner was helpful." in seen["questions 1"] and "forced_choice" not in seen["questions 1"]
     assert 'name="forced_choice" value="0"' in seen["questions 2"] and 'value="1"' in seen["questions 2"]
     assert person.where()["code"] in seen["complete"]
+
+
+def test_the_warm_up_plays_every_partner_in_every_kitchen_so_that_a_first_game_compiles_nothing(tmp_path):
+    """`kitchen-study run` warms up before it serves: every kitchen's programs at each game length exist when the
+    first participant's game starts (its first state came 3 to 5 s late without), and nothing of it is recorded."""
+    config = load_study(study_config(tmp_path, max_steps=7, practice_steps=6), check=False)
+    partners = study_partners(config)
+    games, _ = warm_up(config, partners)
+    assert games == len(config.conditions) * len(config.kitchens) + 1  # and the practice game
+    assert not config.folder.exists() or not any(config.folder.rglob("*.jsonl"))
+    compiled = set(kitchen_env._PROGRAMS._programs)
+    for steps, kitchen, spec in ((7, "coord_ring_7x7", config.conditions["cook"]),
+                                 (6, config.practice_kitchen, config.practice_partner)):
+        game = Game(kitchen_of(kitchen, 5), partners[partner_key(spec, kitchen)], config.seat,
+                    tmp_path / f"{steps}.jsonl", seed=5, max_steps=steps)
+        game.step(0)
+    assert set(kitchen_env._PROGRAMS._programs) == compiled  # no kitchen program built anew
