@@ -37,19 +37,25 @@ def window_shape(obs_shape: tuple[int, int, int]) -> tuple[int, int, int]:
     return 2 * height - 1, 2 * width - 1, channels
 
 
+def window_places(obs_shape: tuple[int, int, int]) -> torch.Tensor:
+    """int64 [H * W, H * W]: for the agent on cell s (row-major), the place of each cell among the window's
+    (2H - 1) x (2W - 1) cells, row-major."""
+    height, width, _ = obs_shape
+    _, window_width, _ = window_shape(obs_shape)
+    cell = torch.arange(height * width)
+    agent = cell[:, None]
+    row = cell // width - agent // width + height - 1
+    col = cell % width - agent % width + width - 1
+    return row * window_width + col
+
+
 @functools.cache
 def window_columns(obs_shape: tuple[int, int, int], device: torch.device) -> torch.Tensor:
     """int64 [H * W, H * W * C] on `device`: for the agent on cell s (row-major), where the observation's flat
     column j (cell, channel) lands in the flat window."""
-    height, width, channels = obs_shape
-    _, window_width, _ = window_shape(obs_shape)
-    agent_cell = torch.arange(height * width, device=device)
-    agent_row, agent_col = agent_cell // width, agent_cell % width
-    column = torch.arange(height * width * channels, device=device)
-    cell, channel = column // channels, column % channels
-    row = cell // width - agent_row[:, None] + height - 1
-    col = cell % width - agent_col[:, None] + width - 1
-    return (row * window_width + col) * channels + channel
+    channels = obs_shape[-1]
+    columns = window_places(obs_shape)[:, :, None] * channels + torch.arange(channels)
+    return columns.reshape(len(columns), -1).to(device)
 
 
 class EgocentricLinear(nn.Linear):

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from jax_env.observation import CELL_VIEWS, Channel, cell_view_index
+from torch_kitchen.egocentric import window_places
 from torch_kitchen.models.networks import GraphEncoder
 
 HIGHEST = jax.lax.Precision.HIGHEST  # a GPU's TF32 products would stray from torch's float32
@@ -54,15 +55,10 @@ def agent_window(obs: jax.Array) -> jax.Array:
 
 def cell_offsets(obs_shape: tuple[int, int, int], agent_centred: bool) -> np.ndarray:
     """int32 [A, H * W]: where each cell of the kitchen lands among the first layer's places with the agent on cell a:
-    its place in the agent-centred window (A = H * W agent cells), or the cell itself (A = 1)."""
-    height, width, _ = obs_shape
-    cells = np.arange(height * width)
-    if not agent_centred:
-        return cells[None].astype(np.int32)
-    agents = cells[:, None]
-    rows = cells // width - agents // width + height - 1
-    columns = cells % width - agents % width + width - 1
-    return (rows * (2 * width - 1) + columns).astype(np.int32)
+    its place in the agent-centred window (`window_places`, A = H * W agent cells), or the cell itself (A = 1)."""
+    if agent_centred:
+        return window_places(obs_shape).numpy().astype(np.int32)
+    return np.arange(obs_shape[0] * obs_shape[1], dtype=np.int32)[None]
 
 
 def _view_entries() -> tuple[np.ndarray, np.ndarray]:
