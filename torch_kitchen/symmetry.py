@@ -9,6 +9,8 @@ bit 2 (square grids only) swaps the axes, applied in that order.
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 from jax_env import NUM_ACTIONS, Channel
@@ -36,18 +38,32 @@ def symmetries_of(height: int, width: int) -> int:
 
 def transform_observation(observation: torch.Tensor, symmetry: int) -> torch.Tensor:
     """[..., H, W, 26] -> the observation of the kitchen under `symmetry` (facing channels re-labelled)."""
+    height, width, channels = observation.shape[-3:]
+    source = _source_entries(height, width, channels, symmetry).to(observation.device)
+    # One gather of every entry from where it was: a tenth of the time of two flips, a transpose and a gather of
+    # channels, each of which copies the whole batch (and a quarter of an `index_select` along the last dimension).
+    out_height, out_width = (width, height) if symmetry & 4 else (height, width)
+    flat = observation.reshape(-1, height * width * channels)
+    moved = torch.gather(flat, 1, source.expand(flat.shape[0], -1))
+    return moved.reshape(*observation.shape[:-3], out_height, out_width, channels)
+
+
+@functools.cache
+def _source_entries(height: int, width: int, channels: int, symmetry: int) -> torch.Tensor:
+    """int64 [H' * W' * C]: for each entry of the transformed observation, row-major, the flat index of the entry of
+    the original it shows."""
+    where = torch.arange(height * width * channels).reshape(height, width, channels)
     if symmetry & 1:
-        observation = observation.flip(-2)
+        where = where.flip(-2)
     if symmetry & 2:
-        observation = observation.flip(-3)
+        where = where.flip(-3)
     if symmetry & 4:
-        observation = observation.transpose(-2, -3)
-    channels = list(range(observation.shape[-1]))
+        where = where.transpose(-2, -3)
+    order = list(range(channels))
     for facing in (Channel.SELF_FACING, Channel.PARTNER_FACING):
         for direction, mapped in enumerate(direction_map(symmetry)):
-            channels[facing + mapped] = facing + direction
-    # index_select: a third of the time of indexing with a list, which gathers element by element.
-    return observation.index_select(-1, torch.tensor(channels, device=observation.device))
+            order[facing + mapped] = facing + direction
+    return where[..., order].reshape(-1).contiguous()
 
 
 def transform_action_probs(probs: torch.Tensor, symmetry: int) -> torch.Tensor:

@@ -10,7 +10,7 @@ from torch_kitchen.keys import VALUE_TARGET
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.partners.scripted_cook import ScriptedCook
 from trainers.checkpoint import load_checkpoint
-from trainers.ppo.distill import DATA, TEACHER_PROBS, distill, fit, main
+from trainers.ppo.distill import DATA, TEACHER_PROBS, distill, fit, main, minibatches
 from trainers.ppo.loop import train
 from trainers.train_command import main as train_main
 
@@ -33,18 +33,35 @@ def test_dagger_labels_every_visited_state_with_the_cooks_distribution_and_keeps
     state = load_checkpoint(run)
     assert (state["update"], state["env_steps"]) == (3, 192)
 
-    # Each pass fits the actor on every round's kitchens and the critic on the last round's batch, once.
+    # Each pass fits the actor on every round's kitchens and the critic on the last round's batch, once: a
+    # feed-forward learner's minibatches of one kitchen's worth of steps (16) drawn from every kitchen.
     config = tiny_config(tmp_path, "distill.epochs=2", "distill.minibatch=1")
     actor_critic = make_actor_critic(config.architecture, (7, 7, 26), config.hidden, config.share_params)
     calls = {"actor": 0, "critic": 0}
-    for name in calls:
-        getattr(actor_critic, name).register_forward_hook(lambda *_, name=name: calls.update({name: calls[name] + 1}))
+    logits_body = actor_critic.actor.module[0]  # what the fitting runs of the actor: its logits, no action drawn
+    for name, module in (("actor", logits_body), ("critic", actor_critic.critic)):
+        module.register_forward_hook(lambda *_, name=name: calls.update({name: calls[name] + 1}))
     batch = rounds[2].select(("agents", "observation")).clone()
     batch[VALUE_TARGET] = torch.zeros(4, 16, 2, 1)
     optimizer = torch.optim.Adam([*actor_critic.actor.parameters(), *actor_critic.critic.parameters()])
     metrics = fit(actor_critic, optimizer, torch.cat(rounds), batch, config)
     assert calls == {"actor": 2 * 12, "critic": 2 * 4}
     assert metrics["distill/value_error"] > 0
+
+
+def test_a_feed_forward_learner_fits_steps_drawn_from_every_kitchen_and_a_recurrent_one_whole_sequences():
+    torch.manual_seed(0)
+    data = TensorDict({"x": torch.arange(6 * 4).reshape(6, 4)}, [6, 4])  # kitchen k's step t holds 4k + t
+    steps = minibatches(data, 2, "cpu", sequences=False)
+    assert [tuple(minibatch.shape) for minibatch in steps] == [(8,)] * 3  # two kitchens' worth of steps each
+    assert sorted(torch.cat([minibatch["x"] for minibatch in steps]).tolist()) == list(range(24))  # each step once
+    assert all(len({step // 4 for step in minibatch["x"].tolist()}) > 2 for minibatch in steps)  # drawn apart
+    sequences = minibatches(data, 2, "cpu", sequences=True)
+    assert [tuple(minibatch.shape) for minibatch in sequences] == [(2, 4)] * 3
+    kitchens = torch.cat([minibatch["x"][:, 0] // 4 for minibatch in sequences])
+    assert sorted(kitchens.tolist()) == list(range(6))
+    for minibatch in sequences:  # whole kitchens, their steps in order
+        assert torch.equal(minibatch["x"], minibatch["x"][:, :1] + torch.arange(4))
 
 
 def test_a_distillation_resumed_after_a_round_ends_as_one_run_straight_through(tmp_path, capsys):

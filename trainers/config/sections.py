@@ -129,8 +129,11 @@ class DistillConfig:
     teacher_decay: float = option(
         0.5, "a seat takes the scripted cook's action with probability teacher_decay**round (round 0: always)"
     )
-    epochs: int = option(8, "passes over all the rounds' data after each round")
-    minibatch: int = option(4, "kitchens (whole sequences) per fitting step")
+    epochs: int = option(3, "passes over all the rounds' data after each round")
+    minibatch: int = option(
+        1, "kitchens' steps per fitting step: whole sequences for a recurrent learner, else as many steps drawn "
+           "from every kitchen"
+    )
     lr: float = option(3e-3, "Adam's rate, annealed linearly over the rounds")
     move_order: str = option(
         "NSEW", "the scripted cook's choice among equally short moves, the first in this order (a permutation of NSEW; "

@@ -110,11 +110,16 @@ def under_random_symmetry(data: TensorDictBase) -> TensorDictBase:
     return mirrored
 
 
-def minibatches(data: TensorDictBase, size: int, device: str | torch.device) -> list[TensorDictBase]:
-    """`data` [K, T] (on `device`, the run's) in a random order of its kitchens, in minibatches of `size` kitchens
-    (whole sequences)."""
+def minibatches(data: TensorDictBase, size: int, device: str | torch.device, sequences: bool
+                ) -> list[TensorDictBase]:
+    """`data` [K, T] (on `device`, the run's) in a random order, in minibatches of `size` kitchens' steps: with
+    `sequences` (a recurrent learner's), whole sequences of `size` kitchens [size, T]; else `size` x T steps drawn
+    from every kitchen and step [size * T]. A kitchen's steps in a row are much alike, so a feed-forward learner
+    fits far more per step from steps drawn apart (BENCHMARKS.md, "Distillation's fitting")."""
+    if not sequences:
+        data, size = data.reshape(-1), size * data.shape[1]
     order = torch.randperm(data.shape[0], device=device)
-    return [select_kitchens(data, kitchens) for kitchens in order.split(size)]
+    return [select_kitchens(data, rows) for rows in order.split(size)]
 
 
 def fit(actor_critic: ActorCritic, optimizer: torch.optim.Optimizer, data: TensorDictBase,
@@ -122,18 +127,20 @@ def fit(actor_critic: ActorCritic, optimizer: torch.optim.Optimizer, data: Tenso
     """`distill.epochs` passes of the actor's cross-entropy to the teacher over all the `data` [K, T], each with
     one pass of the critic's squared error to the value targets of this round's `batch` [distill.kitchens, T]
     (in its first steps); returns their means and the actor's agreement with the teacher's most likely action."""
-    size, device = config.distill.minibatch, config.runtime.device
+    size, device, sequences = config.distill.minibatch, config.runtime.device, actor_critic.recurrent
     parameters = [parameter for group in optimizer.param_groups for parameter in group["params"]]
     imitations, value_errors = [], []  # on the device, read once at the end
     with set_recurrent_mode(True):
         for _ in range(config.distill.epochs):
             # One pass over the round's batch per pass over all the data: the critic learns the current policy's
             # values, and the later rounds' fitting does not revisit one batch for every earlier round's data.
-            pairs = itertools.zip_longest(minibatches(data, size, device), minibatches(batch, size, device))
+            pairs = itertools.zip_longest(minibatches(data, size, device, sequences),
+                                          minibatches(batch, size, device, sequences))
             for own, current in pairs:
                 if config.distill.symmetries:
                     own = under_random_symmetry(own)
-                logits = actor_critic.actor(own.clone(False)).get(LOGITS)
+                # The logits alone: no action drawn.
+                logits = actor_critic.actor.get_dist_params(own.clone(False)).get(LOGITS)
                 probs = own.get(TEACHER_PROBS)
                 imitation = cross_entropy(logits, probs)
                 loss = imitation
