@@ -183,9 +183,9 @@ def test_a_distilled_sections_budget_is_set_beside_the_main_jobs():
                          ["init_from=scripted_cook", "num_envs=32", "rollout_steps=256", "total_steps=393216"])
     line = reproduce.budget(config, teams=3)
     assert "393,216 env steps per team (48 updates of 32 kitchens x 256 steps)" in line
-    assert "the main job, `configs/main.yaml`, trains 1,572,864 steps after 6 rounds of 8 passes, 4x this" in line
+    assert "the main job, `configs/main.yaml`, trains 1,572,864 steps after 6 rounds of 3 passes, 4x this" in line
     main_jobs = load_config(ROOT / "configs/ippo/ego_mlp_ik.yaml", ["init_from=scripted_cook", "total_steps=1572864"])
-    assert "trains 1,572,864 steps after 6 rounds of 8 passes, the same budget)" in reproduce.budget(main_jobs, teams=3)
+    assert "trains 1,572,864 steps after 6 rounds of 3 passes, the same budget)" in reproduce.budget(main_jobs, teams=3)
     assert "main job" not in reproduce.budget(load_config(ROOT / "configs/ippo/mlp_ik.yaml"), teams=3)
 
 

@@ -178,7 +178,7 @@ def test_bad_runs_and_checkpoints_get_a_clear_message(tmp_path, capsys):
     saved = (run / "config.yaml").read_text()
     assert main(["--resume", str(run), "ppo.lr=0.1", "distill.epochs=16"]) == 2
     err = capsys.readouterr().err
-    assert (f"{run} was trained with ppo.lr={config.ppo.lr!r}, distill.epochs=8, not ppo.lr=0.1, distill.epochs=16"
+    assert (f"{run} was trained with ppo.lr={config.ppo.lr!r}, distill.epochs=3, not ppo.lr=0.1, distill.epochs=16"
             in err)
     assert err.count("\n") == 1 and (run / "config.yaml").read_text() == saved
 
