@@ -27,7 +27,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import yaml
-from play_load import GAPS_HEADER, gaps_row, resident_mb, save_team, schedule_lag, state_gaps
+from play_load import GAPS_HEADER, gaps_row, quantile, resident_mb, save_team, schedule_lag, state_gaps
 
 from trainers.machine import machine_name
 from web_apps.study.client import Participant, ServerTransport, free_port, start_server, wait_until_serving
@@ -146,7 +146,7 @@ def main(argv=None) -> int:
               f"{peak:8.0f}")
     if firsts:
         print(f"a game's first state after its socket opened: p50 {statistics.median(firsts):.3f} s, p99 "
-              f"{firsts[min(len(firsts) - 1, int(0.99 * len(firsts)))]:.3f} s, max {firsts[-1]:.3f} s "
+              f"{quantile(firsts, 0.99):.3f} s, max {firsts[-1]:.3f} s "
               f"({len(firsts)} games); the server answered {serving_s:.1f} s after its start")
     finished = args.participants - len(problems)
     print(f"every participant finished, its answers stored as posted, each game finished once: "

@@ -100,6 +100,14 @@ def open_study(config: StudyConfig, token: str | None = None) -> tuple[StudyData
     return database, token, operator
 
 
+def study_game(config: StudyConfig, kitchen: str, seed: int, partner: Partner, record: Path, steps: int,
+               kind: type[Game] = Game, **extra) -> Game:
+    """A game of the study's in `kitchen` beside `partner`, recorded into `record`: a participant's (`StudyGame`)
+    and the warm-up's are built alike, so that the warm-up compiles what the participants' games run."""
+    return kind(kitchen_of(kitchen, seed), partner, config.seat, record, seed=seed, max_steps=steps,
+                tick_ms=config.tick_ms, mode=config.pace, device=config.device, **extra)
+
+
 def warm_up(config: StudyConfig, partners: dict[str, Partner]) -> tuple[int, float]:
     """One step of a game with every partner in every kitchen a participant can meet, at its game's length, into a
     throwaway record: the kitchens' programs compiled and the partners' first passes run before the first participant
@@ -112,9 +120,8 @@ def warm_up(config: StudyConfig, partners: dict[str, Partner]) -> tuple[int, flo
     start = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="kitchen-study-warm-up-") as folder:
         for index, (partner, kitchen, steps) in enumerate(sorted(games)):
-            game = Game(kitchen_of(kitchen, config.seed), partners[partner], config.seat,
-                        Path(folder) / f"{index}.jsonl", seed=config.seed, max_steps=steps, tick_ms=config.tick_ms,
-                        mode=config.pace, device=config.device)
+            game = study_game(config, kitchen, config.seed, partners[partner], Path(folder) / f"{index}.jsonl",
+                              steps)
             game.step(0)
             game.end("warm-up")
     return len(games), time.monotonic() - start
@@ -288,9 +295,8 @@ class Visits:
         try:
             partner = self.partners[partner_key(config.practice_partner if slot.practice
                                                 else config.conditions[slot.condition], slot.kitchen)]
-            return StudyGame(kitchen_of(slot.kitchen, slot.seed), partner, config.seat, config.folder / record,
-                             seed=slot.seed, max_steps=config.practice_steps if slot.practice else config.max_steps,
-                             tick_ms=config.tick_ms, mode=config.pace, device=config.device, on_end=ended)
+            return study_game(config, slot.kitchen, slot.seed, partner, config.folder / record,
+                              config.practice_steps if slot.practice else config.max_steps, StudyGame, on_end=ended)
         except (StudyError, ValueError, OSError) as error:
             database.end_game(game_id, f"could not start: {error}", 0, 0, None, stage.kind, after)
             raise StudyError(f"the game could not start: {error}") from None
