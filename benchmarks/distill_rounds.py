@@ -2,14 +2,17 @@
 rest: rollout, labels, value targets, checkpoint), the last round's agreement with the teacher, and the distilled
 team's self-play on held-out levels.
 
-    before   minibatches of 4 kitchens' whole sequences (`trainers.ppo.distill.minibatches` held to `sequences=True`),
-             8 passes over every round's data: the fitting as it was (`--before` overrides)
-    now      the config's own: minibatches of steps drawn from every kitchen
+    before   the rollout by the kitchens' collector (the cook planning step by step on the host), minibatches of 4
+             kitchens' whole sequences (`trainers.ppo.distill.minibatches` held to `sequences=True`), 8 passes over
+             every round's data: distillation as it was (`--before` overrides)
+    now      the config's own: the round inside the kitchens' XLA program, minibatches of steps drawn from every
+             kitchen (and with `--also "distill.replay=1"`, say, each pass over the newest round's kitchens and as
+             many drawn from the earlier rounds')
 
 Both distil the same config (default: the main job's, `configs/main.yaml`) from the same seed, one after the other,
-in this process, after one untimed round that compiles what they share; then `kitchen-eval` plays each team with
-itself on the first `--heldout` held-out levels. The goal: the rounds at least 3x faster than before, with the same
-agreement and held-out score.
+in this process, after one untimed round per collector that compiles what they share; then `kitchen-eval` plays each
+team with itself on the first `--heldout` held-out levels. The goal: the rounds at least 3x faster than before, with
+the same agreement and held-out score.
 
     python benchmarks/distill_rounds.py [--heldout 20] [--rollouts 4] [--also "k=v k=v"]... [--out FILE] [k=v ...]
 """
@@ -82,13 +85,16 @@ def table(results: dict, scores: dict, configs: dict, args) -> str:
              f"of {config.distill.kitchens} kitchens x {config.rollout_steps} steps, seed {config.seed}); self-play on "
              f"{args.heldout} held-out levels x "
              f"{args.rollouts} episodes.", "",
-             "| fitting | passes | minibatch | seconds per round | of which fitting | in all | x before | "
-             "last agreement | held-out SP |", "|---|---:|---|---|---|---:|---:|---:|---:|"]
+             "| fitting | rollout | passes | of | minibatch | seconds per round | of which fitting | in all | "
+             "x before | last agreement | held-out SP |", "|---|---|---:|---|---|---|---|---:|---:|---:|---:|"]
     for name, result in results.items():
         settings = configs[name].distill
         minibatch = f"{settings.minibatch} kitchens' sequences" if name == "before" else \
             f"{settings.minibatch * config.rollout_steps} steps"
-        lines.append(f"| {name} | {settings.epochs} | {minibatch} | {' '.join(f'{s:.1f}' for s in result['round'])} | "
+        of = "every round" if settings.replay == 0 or settings.replay >= settings.rounds - 1 else \
+            f"the newest round and {settings.replay:g}x as many earlier kitchens"
+        lines.append(f"| {name} | {configs[name].runtime.collector} | {settings.epochs} | {of} | {minibatch} | "
+                     f"{' '.join(f'{s:.1f}' for s in result['round'])} | "
                      f"{' '.join(f'{s:.1f}' for s in result['fitting'])} | {result['total']:.1f} | "
                      f"{results['before']['total'] / result['total']:.2f} | {result['agreement']:.3f} | "
                      f"{scores[name]:.2f} |")
@@ -100,7 +106,8 @@ def table(results: dict, scores: dict, configs: dict, args) -> str:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", type=Path, default=ROOT / "configs" / "main.yaml")
-    parser.add_argument("--before", default="distill.epochs=8 distill.minibatch=4",
+    parser.add_argument("--before",
+                        default="distill.epochs=8 distill.minibatch=4 distill.replay=0 runtime.collector=kitchen",
                         help="overrides of the fitting as it was, in one string")
     parser.add_argument("--also", action="append", default=[], metavar="OVERRIDES",
                         help="another fitting to time beside the config's, its overrides in one string (repeatable)")
@@ -115,9 +122,11 @@ def main(argv=None) -> None:
     configs = {name: load_config(args.config, ["progress=false", *args.overrides, *overrides])
                for name, overrides in variants.items()}
     runs = {name: args.runs / f"variant{number}" for number, name in enumerate(variants)}
-    # One round first, untimed: the kitchens' and the cook's programs compiled for every variant alike.
-    timed_distillation(load_config(args.config, ["progress=false", *args.overrides, "distill.rounds=1"]),
-                       args.runs / "warm_up", sequences=False)
+    # One round first per collector, untimed: the kitchens' and the cook's programs compiled for every variant alike.
+    for collector in sorted({config.runtime.collector for config in configs.values()}):
+        timed_distillation(load_config(args.config, ["progress=false", *args.overrides, "distill.rounds=1",
+                                                     f"runtime.collector={collector}"]),
+                           args.runs / f"warm_up_{collector}", sequences=False)
     results = {name: timed_distillation(configs[name], runs[name], sequences=name == "before") for name in variants}
     scores = held_out_self_play(runs, args.heldout, args.rollouts, configs["now"].max_steps, args.runs / "eval")
     text = table(results, scores, configs, args)

@@ -32,10 +32,16 @@ kitchens, or beside one stranger in all of them for its best response) play insi
 team trains: the env's `ZooSeats` draws each episode's seats in the program (from a key its generator hands out per
 batch, its draws kept up to date for its checkpoint), and the cooks plan with `jax_env.cook` in their seats
 (`torch_kitchen.partners.zoo_seats.cook_actions`), as `ZooPartners` does outside.
+
+A teacher's guidance (`GuidedPolicy`, distillation's DAgger rounds) plays inside the program too: the teacher plans for
+every seat with `jax_env.cook`, each seat takes its drawn action instead of the learner's with the guide's share, and
+the batch holds its action distribution (`TEACHER_PROBS`); the teacher and the share are the program's inputs, so one
+program serves every round.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
@@ -58,6 +64,7 @@ from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, N_AGENTS, OBSERVATION, 
 from torch_kitchen.models.acting import ActingPass, ActionDistribution, plain_network
 from torch_kitchen.models.networks import GraphEncoder
 from torch_kitchen.models.recurrence import MultiAgentLSTM
+from torch_kitchen.partners.guide import TEACHER_PROBS, GuidedPolicy
 from torch_kitchen.partners.pairing import SeatedPolicy
 from torch_kitchen.partners.scripted_cook import ScriptedCook, stacked_conventions
 from torch_kitchen.partners.zoo_seats import ZOO_COOK, ZooPartners, ZooSeats, cook_actions, draw_seats, seating
@@ -300,12 +307,16 @@ def without_zoo(policy: TensorDictModuleBase) -> tuple[TensorDictModuleBase, Zoo
 
 
 def team_networks(policy) -> list[tuple[ActingNetwork, ActingNetwork]] | None:
-    """Each team's (policy, value) networks, where every team of the `TeamPolicy` acts by an acting pass
-    (`feed_forward_acting`) or by a recurrent model's policy with shared networks (`recurrent_acting`), zoo cooks
-    after it or not; else None. Whether JAX runs their layers is `network_chain`'s to say."""
-    if not isinstance(policy, TeamPolicy):
+    """Each team's (policy, value) networks, where every team of the `TeamPolicy` (or the learner a `GuidedPolicy`
+    guides, one team) acts by an acting pass (`feed_forward_acting`) or by a recurrent model's policy with shared
+    networks (`recurrent_acting`), zoo cooks after it or not; else None. Whether JAX runs their layers is
+    `network_chain`'s to say."""
+    if isinstance(policy, GuidedPolicy):
+        teams = [policy.learner]
+    elif isinstance(policy, TeamPolicy):
+        teams = [without_zoo(team)[0] for team in policy.policies]
+    else:
         return None
-    teams = [without_zoo(team)[0] for team in policy.policies]
     if all(acting_pass_of(team) is not None for team in teams):
         pairs = [feed_forward_acting(acting_pass_of(team)) for team in teams]
     else:
@@ -388,8 +399,8 @@ def kitchen_floors(observation: jax.Array) -> jax.Array:
     return floor_tables(walkable_floor(observation[:, 0]))
 
 
-def rollout_program(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int, zoo_share: float | None = None
-                    ) -> Callable:
+def rollout_program(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int, zoo_share: float | None = None,
+                    guided: bool = False) -> Callable:
     """The jitted rollout of `steps` steps of every kitchen of `env` with the teams acting by `chains` (built once
     per kitchen settings, shape and chains, and shared, as the env's own programs are):
     (weights, (start states, states, deliveries, env key), act keys [teams, 2], carrier) -> ((states, deliveries,
@@ -400,10 +411,13 @@ def rollout_program(env: KitchenEnv, chains: tuple[Chain, Chain], steps: int, zo
 
     zoo_share: zoo cooks play in that share of the kitchens (None: none). The program then takes zoo = (conventions
     [C, ...], draws [B], key) (() without a zoo), carries the draws, returns them last in its first output and
-    records each step's seating [B, steps, 2] (`ZOO_COOK`)."""
+    records each step's seating [B, steps, 2] (`ZOO_COOK`).
+
+    guided: a teacher guides the one team (`GuidedPolicy`): the program then takes guide = (the teacher's convention,
+    its share float32, key) (() unguided) and records each step's teacher probabilities [B, steps, 2, 6] last."""
     key = (env.jax_env.settings, env.num_envs, env.teams, env.pinned_levels is not None, chains, steps,
-           env.jax_device.platform, zoo_share)
-    return _PROGRAMS.get(key, lambda: _build_rollout(env, _team_act(env, chains), steps, zoo_share))
+           env.jax_device.platform, zoo_share, guided)
+    return _PROGRAMS.get(key, lambda: _build_rollout(env, _team_act(env, chains), steps, zoo_share, guided))
 
 
 def seated_program(env: KitchenEnv, teams: tuple[Chain | str, ...], slots: tuple[int, ...], steps: int) -> Callable:
@@ -412,7 +426,7 @@ def seated_program(env: KitchenEnv, teams: tuple[Chain | str, ...], slots: tuple
     (each network's weights, the cooks' conventions [C, ...], the kitchens' floor tables, each team's seats)
     (`_seated_act`). No value network runs (the values are zeros), and no zoo."""
     key = (env.jax_env.settings, env.num_envs, env.teams, env.pinned_levels is not None, ("seated", teams, slots),
-           steps, env.jax_device.platform, None)
+           steps, env.jax_device.platform, None, False)
     return _PROGRAMS.get(key, lambda: _build_rollout(env, _seated_act(env, teams), steps, None))
 
 
@@ -517,31 +531,55 @@ def _with_zoo_cooks(conventions, zoo, observation, acted, zoo_share: float, on_g
 
 def _next_zoo(conventions, zoo, ended, observation, zoo_share: float):
     """The zoo after a step: where an episode ended, its seats drawn anew (as ZooSeats does at a reset) and its
-    new floor's tables (walls and counters never move within an episode)."""
+    new floor's tables."""
     draws, key, tables = zoo
 
     def started(key):
         key, drawn = jax.random.split(key)
         fresh = draw_seats(drawn, len(ended), conventions.scores.shape[0], zoo_share)
-        return (jnp.where(ended, fresh, draws), key,
-                jnp.where(ended[:, None, None], kitchen_floors(observation), tables))
+        return jnp.where(ended, fresh, draws), key, _new_floors(tables, ended, observation)
 
     return jax.lax.cond(ended.any(), started, lambda key: (draws, key, tables), key)
 
 
-def _build_rollout(env: KitchenEnv, acting: Acting, steps: int, zoo_share: float | None) -> Callable:
+def _new_floors(tables, ended, observation):
+    """The kitchens' floor tables with those of the episodes that `ended` made from their next `observation`
+    (walls and counters never move within an episode)."""
+    return jnp.where(ended[:, None, None], kitchen_floors(observation), tables)
+
+
+def _with_teacher(guide, tables, observation, acted, on_gpu: bool):
+    """The actions with each seat's taken from the teacher with the guide's share, and the teacher's action
+    probabilities [B, 2, 6] in every seat: guide = (convention, share, key), tables the kitchens' floor tables."""
+    convention, share, key = guide
+    drawn, taken = jax.random.split(key)
+    logits, action, log_prob, value = acted
+    views = observation.reshape(-1, *observation.shape[2:])
+    plan = jnp.repeat(jnp.arange(observation.shape[0]), N_AGENTS)  # both seats of a kitchen read its table
+    taught = cook_logits(views, convention, tables, plan, detour_rows=None if on_gpu else max(1, len(views) // 4))
+    taught = taught.reshape(*action.shape, NUM_ACTIONS)
+    takes = jax.random.uniform(taken, action.shape) < share
+    action = jnp.where(takes, jax.random.categorical(drawn, taught).astype(action.dtype), action)
+    return (logits, action, log_prob, value), jax.nn.softmax(taught)
+
+
+def _build_rollout(env: KitchenEnv, acting: Acting, steps: int, zoo_share: float | None, guided: bool = False
+                   ) -> Callable:
     programs = kitchen_programs(env.jax_env, env.num_envs, env.teams, env.pinned_levels is not None, packed=False)
     on_gpu = env.jax_device.platform != "cpu"
 
-    def step(start_states, weights, conventions, carry, _):
-        states, deliveries, env_key, act_keys, carrier, zoo = carry
+    def step(start_states, weights, conventions, teacher, carry, _):
+        states, deliveries, env_key, act_keys, carrier, zoo, guide = carry
         observed, (is_init, *network_states) = carrier
         act_keys, used = jax.vmap(jax.random.split, out_axes=1)(act_keys)
         acted, next_network_states = acting.act(weights, used, observed[0], restarted(is_init, network_states))
-        seated = ()
+        seated = labels = ()
         if zoo_share is not None:
             acted, seated, zoo_key = _with_zoo_cooks(conventions, zoo, observed[0], acted, zoo_share, on_gpu)
             zoo = (zoo[0], zoo_key, zoo[2])
+        if guided:
+            guide_key, used_key = jax.random.split(guide[0])
+            acted, labels = _with_teacher((*teacher, used_key), guide[1], observed[0], acted, on_gpu)
         states, deliveries, stepped = programs.step(states, deliveries, acted[1].astype(jnp.int32))
         ended = stepped[2][:, 0]
 
@@ -558,22 +596,26 @@ def _build_rollout(env: KitchenEnv, acting: Acting, steps: int, zoo_share: float
             ended.any(), reset, lambda _: (states, deliveries, env_key, tuple(stepped)), None)
         if zoo_share is not None:
             zoo = _next_zoo(conventions, zoo, ended, next_observed[0], zoo_share)
+        if guided:
+            guide = (guide_key, jax.lax.cond(ended.any(), _new_floors, lambda tables, *_: tables, guide[1], ended,
+                                             next_observed[0]))
         # The transforms' next input: episodes that ended start again (InitTracker), their states zero (the primer).
         next_memory = (stepped[2], *restarted(stepped[2], next_network_states))
-        record = (carrier, acted, next_network_states, tuple(stepped), seated)
-        return (next_states, next_deliveries, env_key, act_keys, (next_observed, next_memory), zoo), record
+        record = (carrier, acted, next_network_states, tuple(stepped), seated, labels)
+        return (next_states, next_deliveries, env_key, act_keys, (next_observed, next_memory), zoo, guide), record
 
     @jax.jit
-    def rollout(weights, kitchens, act_keys, carrier, zoo=()):
+    def rollout(weights, kitchens, act_keys, carrier, zoo=(), guide=()):
         start_states, states, deliveries, env_key = kitchens
         conventions, *zoo = zoo or (None,)
         if zoo:  # the floor tables of the kitchens' episodes, made again at each batch's start
             zoo = (*zoo, kitchen_floors(carrier[0][0]))
-        carry = (states, deliveries, env_key, act_keys, carrier, tuple(zoo))
+        teacher, guide = (guide[:2], (guide[2], kitchen_floors(carrier[0][0]))) if guide else ((), ())
+        carry = (states, deliveries, env_key, act_keys, carrier, tuple(zoo), guide)
         weights = acting.prepare(weights)
-        carry, records = jax.lax.scan(lambda c, x: step(start_states, weights, conventions, c, x), carry, None,
-                                      length=steps)
-        states, deliveries, env_key, _, carrier, zoo = carry
+        carry, records = jax.lax.scan(lambda c, x: step(start_states, weights, conventions, teacher, c, x), carry,
+                                      None, length=steps)
+        states, deliveries, env_key, _, carrier, zoo, _ = carry
         return (states, deliveries, env_key, carrier, *zoo[:1]), jax.tree.map(
             lambda record: jnp.swapaxes(record, 0, 1), records)
 
@@ -603,8 +645,9 @@ class XlaCollector(InPlaceCollector):
         self._seats = None if zoo is None else zoo[0]
         self._conventions = None if zoo is None else jax.tree.map(
             lambda leaf: jax.device_put(leaf, self.kitchen_env.jax_device), zoo[1].conventions)
+        self._guide = policy if isinstance(policy, GuidedPolicy) else None
         self._program = rollout_program(self.kitchen_env, chains, self.steps,
-                                        None if zoo is None else zoo[0].share)
+                                        None if zoo is None else zoo[0].share, guided=self._guide is not None)
         networks = team_networks(policy)
         self._networks = [list(pair) for pair in networks]
         self._state_keys = [network.state_keys for network in networks[0]]
@@ -640,12 +683,24 @@ class XlaCollector(InPlaceCollector):
                          for nets in zip(*self._networks))
 
     def _act_keys(self) -> jax.Array:
-        """uint32 [teams, 2]: each team's key for this batch's draws, from its torch stream."""
+        """uint32 [teams, 2]: each team's key for this batch's draws, from its torch stream (a guided learner's: torch's
+        current one)."""
         seeds = []
-        for stream in self.policy.streams:
-            with stream.active():
+        for stream in getattr(self.policy, "streams", [None]):
+            with stream.active() if stream is not None else contextlib.nullcontext():
                 seeds.append(torch.randint(0, 2**31 - 1, (2,), dtype=torch.int64))
         return self._to_jax(torch.stack(seeds).to(torch.int32)).view(jnp.uint32)
+
+    def _guidance(self) -> tuple:
+        """The program's guide input: (the teacher's convention, its share, this batch's key from torch's current
+        stream), () unguided. Read at every batch: a distillation changes both between rounds."""
+        if self._guide is None:
+            return ()
+        seed = torch.randint(0, 2**31 - 1, (2,), dtype=torch.int64)
+        convention = jax.tree.map(lambda leaf: jax.device_put(leaf, self.kitchen_env.jax_device),
+                                  self._guide.teacher.arrays)
+        return (convention, jnp.float32(self._guide.teacher_share),
+                self._to_jax(seed.to(torch.int32)).view(jnp.uint32))
 
     def _zoo(self) -> tuple:
         """The program's zoo input: (conventions, the seats' current draws, this batch's key from their generator),
@@ -669,17 +724,20 @@ class XlaCollector(InPlaceCollector):
         """The next batch: `steps` steps of every kitchen, written into the storage; the env left where they end."""
         env = self.kitchen_env
         (states, deliveries, key, self._carrier, *draws), records = self._program(
-            self._weights(), env.kitchens(), self._act_keys(), self._carrier, self._zoo())
+            self._weights(), env.kitchens(), self._act_keys(), self._carrier, self._zoo(), self._guidance())
         env.continue_from(states, deliveries, key, self._carrier[0][0])
         if draws:  # the seats where the batch left them: the next batch's, and the checkpoint's
             self._seats.draws = torch.from_dlpack(draws[0]).long().cpu()
-        (observed, (is_init, *states)), acted, next_states, stepped, seated = jax.tree.map(torch.from_dlpack, records)
+        (observed, (is_init, *states)), acted, next_states, stepped, seated, labels = jax.tree.map(torch.from_dlpack,
+                                                                                                   records)
         values = {**output_entries(*observed, with_reward=False), **dict(zip(ACTING_KEYS, acted)),
                   **{(NEXT, *as_path(key)): tensor for key, tensor in output_entries(*stepped, True).items()}}
         if self._recurrent:
             values.update(self._state_entries(is_init, states, next_states))
         if self._seats is not None:  # a seating lasts its episode: the same after the step
             values.update({ZOO_COOK: seated, (NEXT, *ZOO_COOK): seated})
+        if self._guide is not None:
+            values[TEACHER_PROBS] = labels
         if self._storage is None:
             self._storage = as_tensordict({key: value.clone() for key, value in values.items()},
                                           torch.Size([env.num_envs, self.steps]), env.device)
@@ -744,7 +802,7 @@ class SeatedCollector(XlaCollector):
                              "scripted cooks on a bare KitchenEnv; play the others with KitchenCollector")
         seated, teams = found
         self.policy, self.kitchen_env = policy, env
-        self._seats, self._recurrent, self._state_keys = None, False, [(), ()]
+        self._seats, self._guide, self._recurrent, self._state_keys = None, None, False, [(), ()]
         device, seating = env.jax_device, seated.seating.cpu()
         network_teams = [team for team in teams if isinstance(team, ActingNetwork)]
         slots = [_padded((seating == index).nonzero(as_tuple=True), (env.num_envs, 0), device)

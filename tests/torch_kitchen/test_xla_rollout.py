@@ -16,6 +16,7 @@ from torch_kitchen.env import KitchenEnv, team_rows, with_transforms
 from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, OBSERVATION, VALUE
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.partners.conventions import Convention
+from torch_kitchen.partners.guide import TEACHER_PROBS, GuidedPolicy
 from torch_kitchen.partners.pairing import make_seated_actor
 from torch_kitchen.partners.scripted_cook import ScriptedCook, scripted_actor_critic
 from torch_kitchen.rollout import NEXT, KitchenCollector
@@ -259,3 +260,33 @@ def test_seated_teams_play_the_same_episodes_inside_xla_where_their_actions_are_
     assert isinstance(make_collector(env, recurrent, 8, 8, kind="xla"), KitchenCollector)
     drawn = KitchenEnv(12, levels=grids, max_steps=4, seed=1)
     assert isinstance(make_collector(drawn, actor, 48, 48, kind="xla"), KitchenCollector)
+
+
+def test_a_guided_learner_takes_the_teachers_draws_by_its_share_inside_xla():
+    """DAgger's rollout inside XLA: every state labelled with the teacher's distribution as the cook gives it outside,
+    on kitchens whose levels change per episode; a seat acts as the teacher with the guide's share (none: every
+    action the learner's own draw; all: every action one the teacher may take), and the learner's log-probability
+    stays that of its own draw. The share is the program's input, set before each batch."""
+    torch.manual_seed(3)
+    env = KitchenEnv(8, levels="infinite", max_steps=10, seed=2)
+    learner = make_actor_critic("ego_mlp", env.obs_shape, 16, True)
+    guided = GuidedPolicy(learner.acting_policy(), ScriptedCook(Convention(role="server")))
+    collector = make_collector(env, guided, 8 * 16, kind="xla")
+    assert isinstance(collector, XlaCollector)
+    batches = iter(collector)
+    for taking in (0.0, 1.0, 0.5):
+        guided.teacher_share = taking
+        batch = next(batches)
+        assert batch[NEXT, "done"].any()  # episodes end inside the batches: new floors for the teacher
+        labels = torch.softmax(ScriptedCook(Convention(role="server"))(batch[OBSERVATION]), -1)
+        torch.testing.assert_close(batch[TEACHER_PROBS], labels)
+        own = batch[LOGITS].log_softmax(-1).gather(-1, batch[ACTION].unsqueeze(-1)).squeeze(-1)
+        taught = labels.gather(-1, batch[ACTION].unsqueeze(-1)).squeeze(-1)
+        if taking == 0.0:
+            torch.testing.assert_close(batch[LOG_PROB], own)
+        elif taking == 1.0:
+            assert (taught > 0).all()
+            certain = labels.max(-1).values == 1
+            assert certain.any() and torch.equal(batch[ACTION][certain], labels.argmax(-1)[certain])
+        else:
+            assert (batch[LOG_PROB] != own).any() and (taught == 0).any()  # some seats the teacher's, some not

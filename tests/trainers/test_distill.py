@@ -10,21 +10,25 @@ from torch_kitchen.keys import VALUE_TARGET
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.partners.scripted_cook import ScriptedCook
 from trainers.checkpoint import load_checkpoint
-from trainers.ppo.distill import DATA, TEACHER_PROBS, distill, fit, main, minibatches
+from trainers.ppo.distill import DATA, TEACHER_PROBS, distill, fit, main, minibatches, replayed
 from trainers.ppo.loop import train
 from trainers.train_command import main as train_main
 
 ROUNDS = ["distill.rounds=3", "distill.epochs=1"]
 
 
-def test_dagger_labels_every_visited_state_with_the_cooks_distribution_and_keeps_every_round(tmp_path):
-    run = distill(tiny_config(tmp_path, *ROUNDS))
+@pytest.mark.parametrize("collector", ["kitchen", "xla"])
+def test_dagger_labels_every_visited_state_with_the_cooks_distribution_and_keeps_every_round(tmp_path, collector):
+    """Either collector labels as the cook outside does: the kitchens' in torch, XLA's inside its program (to float
+    rounding, its sums fused otherwise)."""
+    run = distill(tiny_config(tmp_path, *ROUNDS, f"runtime.collector={collector}"))
     rounds = [TensorDict.load_memmap(run / DATA / f"round{r}") for r in range(3)]
     cook = ScriptedCook()
+    exact = {"rtol": 0, "atol": 0} if collector == "kitchen" else {}
     for data in rounds:
         assert data.shape == (4, 16)  # every kitchen's every step, both seats
         observation = data["agents", "observation"]
-        torch.testing.assert_close(data[TEACHER_PROBS], torch.softmax(cook(observation), -1), rtol=0, atol=0)
+        torch.testing.assert_close(data[TEACHER_PROBS], torch.softmax(cook(observation), -1), **exact)
     assert not torch.equal(rounds[0]["agents", "observation"], rounds[1]["agents", "observation"])
     metrics = read_metrics(run)
     assert [share for _, share in metrics["distill/teacher_share"]] == [1.0, 0.5, 0.25]
@@ -33,20 +37,36 @@ def test_dagger_labels_every_visited_state_with_the_cooks_distribution_and_keeps
     state = load_checkpoint(run)
     assert (state["update"], state["env_steps"]) == (3, 192)
 
-    # Each pass fits the actor on every round's kitchens and the critic on the last round's batch, once: a
-    # feed-forward learner's minibatches of one kitchen's worth of steps (16) drawn from every kitchen.
-    config = tiny_config(tmp_path, "distill.epochs=2", "distill.minibatch=1")
-    actor_critic = make_actor_critic(config.architecture, (7, 7, 26), config.hidden, config.share_params)
-    calls = {"actor": 0, "critic": 0}
-    logits_body = actor_critic.actor.module[0]  # what the fitting runs of the actor: its logits, no action drawn
-    for name, module in (("actor", logits_body), ("critic", actor_critic.critic)):
-        module.register_forward_hook(lambda *_, name=name: calls.update({name: calls[name] + 1}))
-    batch = rounds[2].select(("agents", "observation")).clone()
-    batch[VALUE_TARGET] = torch.zeros(4, 16, 2, 1)
-    optimizer = torch.optim.Adam([*actor_critic.actor.parameters(), *actor_critic.critic.parameters()])
-    metrics = fit(actor_critic, optimizer, torch.cat(rounds), batch, config)
-    assert calls == {"actor": 2 * 12, "critic": 2 * 4}
-    assert metrics["distill/value_error"] > 0
+    # Each pass fits the actor on every round's kitchens, or the newest round's and `replay` times as many of the
+    # earlier rounds' (all of them at most), and the critic on the last round's batch, once: a feed-forward
+    # learner's minibatches of one kitchen's worth of steps (16) drawn from every kitchen.
+    for replay, kitchens in ((0, 3 * 4), (1, 4 + 4), (0.5, 4 + 2), (1e9, 3 * 4)):
+        config = tiny_config(tmp_path, "distill.epochs=2", "distill.minibatch=1", f"distill.replay={replay}")
+        actor_critic = make_actor_critic(config.architecture, (7, 7, 26), config.hidden, config.share_params)
+        calls = {"actor": 0, "critic": 0}
+        logits_body = actor_critic.actor.module[0]  # what the fitting runs of the actor: its logits, no action drawn
+        for name, module in (("actor", logits_body), ("critic", actor_critic.critic)):
+            module.register_forward_hook(lambda *_, name=name: calls.update({name: calls[name] + 1}))
+        batch = rounds[2].select(("agents", "observation")).clone()
+        batch[VALUE_TARGET] = torch.zeros(4, 16, 2, 1)
+        optimizer = torch.optim.Adam([*actor_critic.actor.parameters(), *actor_critic.critic.parameters()])
+        metrics = fit(actor_critic, optimizer, rounds, batch, config)
+        assert calls == {"actor": 2 * kitchens, "critic": 2 * 4}, replay
+        assert metrics["distill/value_error"] > 0
+
+
+def test_a_fitting_pass_reads_the_newest_round_and_a_fresh_draw_of_the_earlier_ones():
+    torch.manual_seed(0)
+    rounds = [TensorDict({"x": torch.arange(r * 100, r * 100 + 4).reshape(4, 1)}, [4, 1]) for r in range(3)]
+    passes = [replayed(rounds, 1.5, "cpu")["x"].flatten().tolist() for _ in range(20)]
+    for kitchens in passes:
+        assert kitchens[:4] == [200, 201, 202, 203] and len(kitchens) == 4 + 6  # the newest round, then 6 drawn
+        assert len(set(kitchens)) == 10 and all(k // 100 in (0, 1) for k in kitchens[4:])  # earlier, none twice
+    assert len({tuple(kitchens) for kitchens in passes}) > 1  # a fresh draw each pass
+    assert {k for kitchens in passes for k in kitchens[4:]} == {0, 1, 2, 3, 100, 101, 102, 103}  # every one in time
+    assert replayed(rounds[:1], 1.0, "cpu")["x"].flatten().tolist() == [0, 1, 2, 3]  # the first round alone
+    everything = [0, 1, 2, 3, 100, 101, 102, 103, 200, 201, 202, 203]
+    assert replayed(rounds, 0, "cpu")["x"].flatten().tolist() == everything  # replay 0: every round, in order
 
 
 def test_a_feed_forward_learner_fits_steps_drawn_from_every_kitchen_and_a_recurrent_one_whole_sequences():
@@ -64,9 +84,12 @@ def test_a_feed_forward_learner_fits_steps_drawn_from_every_kitchen_and_a_recurr
         assert torch.equal(minibatch["x"], minibatch["x"][:, :1] + torch.arange(4))
 
 
+@pytest.mark.bitwise
 def test_a_distillation_resumed_after_a_round_ends_as_one_run_straight_through(tmp_path, capsys):
-    straight = distill(tiny_config(tmp_path / "straight", *ROUNDS))
-    stopped = distill(tiny_config(tmp_path / "stopped", *ROUNDS), on_round=lambda round_, metrics: round_ == 2)
+    """Inside XLA (the default collector), whose draws come from torch's stream as the checkpoint left it."""
+    rounds = [*ROUNDS, "runtime.collector=xla"]
+    straight = distill(tiny_config(tmp_path / "straight", *rounds))
+    stopped = distill(tiny_config(tmp_path / "stopped", *rounds), on_round=lambda round_, metrics: round_ == 2)
     assert load_checkpoint(stopped)["update"] == 2
     assert main(["--resume", str(stopped), "distill.lr=0.1"]) == 2  # another lesson: refused, nothing changed
     error = capsys.readouterr().err

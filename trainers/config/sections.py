@@ -129,7 +129,12 @@ class DistillConfig:
     teacher_decay: float = option(
         0.5, "a seat takes the scripted cook's action with probability teacher_decay**round (round 0: always)"
     )
-    epochs: int = option(3, "passes over all the rounds' data after each round")
+    epochs: int = option(3, "fitting passes after each round")
+    replay: float = option(
+        0.0, "0: each fitting pass reads every round's data; r > 0: the newest round's kitchens and r times as many "
+             "drawn at random from the earlier rounds' (all of them where they hold fewer), a round's cost whatever "
+             "the rounds before it (fewer gradient steps: a worse start at the main job's budget, BENCHMARKS.md)"
+    )
     minibatch: int = option(
         1, "kitchens' steps per fitting step: whole sequences for a recurrent learner, else as many steps drawn "
            "from every kitchen"
@@ -152,6 +157,7 @@ class DistillConfig:
     def check(self) -> None:
         """Refuses values no distillation can use (the teachers' names are the zoo's to check)."""
         at_least(self, ["rounds", "kitchens", "epochs", "minibatch"], 1, "distill.")
+        at_least(self, ["replay"], 0, "distill.")
         if sorted(self.move_order) != sorted("NSEW"):
             raise ConfigError(f"distill.move_order must be a permutation of NSEW, got {self.move_order!r}")
         if self.teacher_mix not in TEACHER_MIXES:

@@ -30,7 +30,8 @@ def make_collector(env: EnvBase, policy, frames_per_batch: int, total_frames: in
     own. XLA runs acting passes (MLP, ego_mlp, GNN; shared by the agents or one network per agent) on a bare
     `KitchenEnv`, and their recurrent variants ("mlp_lstm", "gnn_lstm") on a `KitchenEnv` with the model's
     transforms alone (`with_model_transforms`), with zoo cooks beside one team or not (`zoo_ippo`: its seats and
-    cooks play inside the program too), and evaluation's seated teams (`make_seated_actor`: feed-forward teams and
+    cooks play inside the program too) or a teacher guiding one (`GuidedPolicy`, distillation's), and evaluation's
+    seated teams (`make_seated_actor`: feed-forward teams and
     scripted cooks, `SeatedCollector`) on a bare `KitchenEnv`; E3T and other transforms, and other acting modules,
     take the kitchens' own.
 

@@ -6,11 +6,14 @@
 
 Round r rolls out the learner in `distill.kitchens` kitchens for `rollout_steps` steps, both seats, where each
 seat takes the scripted cook's action instead of its own with probability `distill.teacher_decay ** r` (round 0:
-the cook alone, behaviour cloning). Every visited state is labelled with the cook's action distribution and kept: the
-data of every round, none dropped. Then the actor is fitted to all the labels by cross-entropy
-(`distill.epochs` passes, each minibatch under a random mirror image or quarter turn of its kitchens with
-`distill.symmetries`), and the critic to the value targets of the round's own batch (GAE, as PPO's), so
-that self-play starts with values for the policy it starts from.
+the cook alone, behaviour cloning). With `runtime.collector=xla` (the default) the whole round, the learner's and the
+cook's draws and the labels, is one XLA program (`torch_kitchen.xla_rollout`); else the cook plans step by step
+(`GuidedPolicy`). Every visited state is labelled with the cook's action distribution and kept: the data of every
+round, none dropped. Then the actor is fitted to the labels by cross-entropy (`distill.epochs` passes over every
+round's data, or with `distill.replay` r > 0 over the newest round's kitchens and r times as many drawn from the
+earlier rounds', a round's cost whatever the rounds before it; each minibatch under a random mirror image or quarter
+turn of its kitchens with `distill.symmetries`), and the critic to the value targets of the round's own batch (GAE,
+as PPO's), so that self-play starts with values for the policy it starts from.
 
 Logged (TensorBoard, CSV), checkpointed after every round and resumed (`--resume RUN_DIR`) as training is. A
 checkpoint holds the networks in the trainer's format: `kitchen-eval` and `kitchen-play` read it as a trained
@@ -27,15 +30,14 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.modules import set_recurrent_mode
 from tqdm import tqdm
 
-from jax_env import NUM_ACTIONS
-from torch_kitchen.keys import ACTION, LOGITS, OBSERVATION, VALUE, VALUE_TARGET
+from torch_kitchen.keys import LOGITS, OBSERVATION, VALUE, VALUE_TARGET
 from torch_kitchen.models import ActorCritic, make_actor_critic
 from torch_kitchen.partners.conventions import fingerprints
+from torch_kitchen.partners.guide import TEACHER_PROBS, GuidedPolicy
 from torch_kitchen.partners.scripted_cook import ScriptedCook
 from torch_kitchen.symmetry import symmetries_of, transform_action_probs, transform_observation
 from trainers.algorithms import algorithm_settings, check_algorithm
@@ -59,29 +61,7 @@ from trainers.ppo.placement import make_optimizer, place_networks, set_learning_
 from trainers.ppo.resume import check_same_learning, start_fresh
 from trainers.ppo.team import TeamKitchens, make_env, with_model_transforms
 
-TEACHER_PROBS = ("agents", "teacher_probs")  # the scripted cook's action distribution in the visited state
 DATA = "dagger"  # the run's folder of every round's labelled batch
-
-
-class GuidedPolicy(TensorDictModuleBase):
-    """The learner's acting policy (actor and critic), where each seat takes the teacher's sampled action instead of
-    its own with probability `teacher_share`; writes the teacher's action distribution (`TEACHER_PROBS`)."""
-
-    def __init__(self, learner: TensorDictModuleBase, teacher: nn.Module):
-        super().__init__()
-        self.learner, self.teacher = learner, teacher
-        self.in_keys = list(learner.in_keys)
-        self.out_keys = [*learner.out_keys, TEACHER_PROBS]
-        self.teacher_share = 1.0
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        tensordict = self.learner(tensordict)
-        probs = torch.softmax(self.teacher(tensordict.get(OBSERVATION)), dim=-1)
-        teacher_action = torch.multinomial(probs.reshape(-1, NUM_ACTIONS), 1).reshape(probs.shape[:-1])
-        takes = torch.rand(teacher_action.shape, device=probs.device) < self.teacher_share
-        tensordict.set(ACTION, torch.where(takes, teacher_action, tensordict.get(ACTION)))
-        tensordict.set(TEACHER_PROBS, probs)
-        return tensordict
 
 
 def teacher_share(config: TrainConfig, round_: int) -> float:
@@ -122,18 +102,38 @@ def minibatches(data: TensorDictBase, size: int, device: str | torch.device, seq
     return [select_kitchens(data, rows) for rows in order.split(size)]
 
 
-def fit(actor_critic: ActorCritic, optimizer: torch.optim.Optimizer, data: TensorDictBase,
+def replayed(rounds: Sequence[TensorDictBase], replay: float, device: str | torch.device) -> TensorDictBase:
+    """What one fitting pass reads, on `device`: every one of the `rounds` [K, T] (`replay` 0), or the newest and
+    `replay` x K kitchens drawn at random from the earlier ones (all of them where they hold fewer). Only the drawn
+    kitchens are read from the memory-mapped files."""
+    *earlier, newest = rounds
+    sizes = torch.tensor([len(part) for part in earlier], dtype=torch.long)
+    if replay == 0 or round(replay * len(newest)) >= sizes.sum():
+        return torch.cat(list(rounds)).to(device)
+    drawn = torch.randperm(int(sizes.sum()))[:round(replay * len(newest))].sort().values
+    starts = torch.cumsum(sizes, 0) - sizes
+    parts = [newest]
+    for part, start, size in zip(earlier, starts.tolist(), sizes.tolist()):
+        rows = drawn[(drawn >= start) & (drawn < start + size)] - start
+        if len(rows):
+            parts.append(select_kitchens(part, rows))
+    return torch.cat([part.to(device) for part in parts])
+
+
+def fit(actor_critic: ActorCritic, optimizer: torch.optim.Optimizer, rounds: Sequence[TensorDictBase],
         batch: TensorDictBase, config: TrainConfig) -> dict[str, float]:
-    """`distill.epochs` passes of the actor's cross-entropy to the teacher over all the `data` [K, T], each with
-    one pass of the critic's squared error to the value targets of this round's `batch` [distill.kitchens, T]
-    (in its first steps); returns their means and the actor's agreement with the teacher's most likely action."""
+    """`distill.epochs` passes of the actor's cross-entropy to the teacher over the `rounds`' data [K, T] (each
+    pass the newest round's and a fresh draw of the earlier ones', `replayed`), each with one pass of the critic's
+    squared error to the value targets of this round's `batch` [distill.kitchens, T] (in its first steps); returns
+    their means and the actor's agreement with the teacher's most likely action."""
     size, device, sequences = config.distill.minibatch, config.runtime.device, actor_critic.recurrent
     parameters = [parameter for group in optimizer.param_groups for parameter in group["params"]]
     imitations, value_errors = [], []  # on the device, read once at the end
+    every_round = replayed(rounds, 0, device) if config.distill.replay == 0 else None  # read once, not per pass
     with set_recurrent_mode(True):
         for _ in range(config.distill.epochs):
-            # One pass over the round's batch per pass over all the data: the critic learns the current policy's
-            # values, and the later rounds' fitting does not revisit one batch for every earlier round's data.
+            data = every_round if every_round is not None else replayed(rounds, config.distill.replay, device)
+            # One pass over the round's batch per pass over the data: the critic learns the current policy's values.
             pairs = itertools.zip_longest(minibatches(data, size, device, sequences),
                                           minibatches(batch, size, device, sequences))
             for own, current in pairs:
@@ -292,14 +292,12 @@ def learn_round(config: TrainConfig, round_: int, batch: TensorDictBase, env_ste
                 actor_critic: ActorCritic, optimizer: torch.optim.Optimizer, run: Path) -> dict[str, float]:
     """Round `round_` of distillation on its `batch` (the guided policy's, `env_steps` in all so far): the batch's
     value targets, its kept steps added to `data` (memory-mapped into the run's folder), and the networks fitted
-    to every round's data (`fit`) at the round's learning rate. Returns the round's metrics."""
+    to the rounds' data (`fit`) at the round's learning rate. Returns the round's metrics."""
     deliveries = finished_episode_deliveries(batch)
     compute_advantages(batch, actor_critic.critic, config, shaping_weight_at(config, env_steps))
     data.append(kept(batch, actor_critic).memmap_(round_path(run, round_)))
     set_learning_rate(config, optimizer, learning_rate(config, round_))
-    # Every round's data, from the memory-mapped files to the networks' device.
-    every_round = torch.cat(data).to(config.runtime.device)
-    metrics = fit(actor_critic, optimizer, every_round,
+    metrics = fit(actor_critic, optimizer, data,
                   batch.select(*actor_critic.critic.in_keys, VALUE_TARGET, strict=False), config)
     metrics["distill/kitchen_steps"] = sum(part.numel() for part in data)
     metrics["charts/learning_rate"] = learning_rate(config, round_)
