@@ -64,7 +64,7 @@ from trainers.evaluation.claims import (
 from trainers.humans.behaviour_cloning import ProxySettings
 from trainers.humans.command import fetch
 from trainers.humans.command import train as train_proxies
-from trainers.machine import machine_name
+from trainers.machine import code_version, machine_name
 from trainers.ppo.resume import RunStopped
 from trainers.ppo.team import team_configs
 from trainers.train_command import train_config_file
@@ -356,6 +356,7 @@ class RunFacts:
 
     command: str
     protocol: str
+    code: str  # the commit the command ran (`code_version`), read when it started
     date: str
     machine: str
     teams: int
@@ -376,9 +377,11 @@ def budget(config: TrainConfig, teams: int) -> str:
     if config.init_from == PLANNER_START:
         main_job = load_config(MAIN_JOB, [])
         same, multiple = "the same budget", f"{main_job.total_steps / config.total_steps:.2g}x this"
+        fitted = "the rounds' data" if config.distill.replay == 0 else \
+            f"the newest round and {config.distill.replay:g}x as many earlier kitchens"
         distilled = (f", after the scripted cook is distilled into it ({config.distill.rounds} DAgger rounds of "
                      f"{config.distill.kitchens} kitchens x {config.rollout_steps} steps, {config.distill.epochs} "
-                     f"passes over the rounds' data after each; the main job, `{MAIN_JOB.relative_to(ROOT)}`, trains "
+                     f"passes over {fitted} after each; the main job, `{MAIN_JOB.relative_to(ROOT)}`, trains "
                      f"{main_job.total_steps:,} steps after {main_job.distill.rounds} rounds of "
                      f"{main_job.distill.epochs} passes, "
                      f"{same if main_job.total_steps == config.total_steps else multiple})")
@@ -428,7 +431,8 @@ def section_markdown(section: Section, facts: RunFacts, config: TrainConfig, eva
         SECTION_START.format(section.name),
         f"## {section.title}",
         "",
-        f"Written by `{facts.command}` on {facts.date} (protocol `{facts.protocol}`). Every number in this section "
+        f"Written by `{facts.command}` on {facts.date} (protocol `{facts.protocol}`, code at `{facts.code}`). Every "
+        "number in this section "
         "was measured by that run's evaluation, of teams it trained or, where the time line says so, reused.",
         "",
         budget(config, facts.teams),
@@ -566,14 +570,14 @@ def reproduce_parser() -> argparse.ArgumentParser:
 
 
 def run_facts(args, argv, entries: dict, device: str, overrides: list[str], teams: int, started: float,
-              seconds: dict, reused: list[str], evaluation: dict, proxies, out: Path) -> RunFacts:
+              seconds: dict, reused: list[str], evaluation: dict, proxies, out: Path, code: str) -> RunFacts:
     """What the report says of the run: its command, protocol, date, machine, budget and times."""
     machine = f"{machine_name()}, device {device}"
     if device.startswith("cuda") and torch.cuda.is_available():
         machine += f" ({torch.cuda.get_device_name()})"
     return RunFacts(
         command=" ".join(["python scripts/reproduce.py", *(argv if argv is not None else sys.argv[1:])]),
-        protocol=args.protocol, date=datetime.date.today().isoformat(), machine=machine, teams=teams,
+        protocol=args.protocol, code=code, date=datetime.date.today().isoformat(), machine=machine, teams=teams,
         overrides=overrides, own_overrides={name: own for name, (_, own) in entries.items()}, jobs=args.jobs,
         eval_workers=min(args.jobs, os.cpu_count() or 1) if device == "cpu" else 1,
         training_seconds=time.perf_counter() - started, condition_seconds=seconds, reused=reused, evaluation=evaluation,
@@ -601,7 +605,7 @@ def main(argv=None) -> int:
     # the shared overrides, the condition's own, then the command line's
     trained = {name: (path, [*protocol.get("overrides", []), *own, *args.overrides])
                for name, (path, own) in entries.items()}
-    started = time.perf_counter()
+    started, code = time.perf_counter(), code_version()
     try:
         reused = [name for name, (path, own) in trained.items() if trained_before(name, path, own, teams, out / "runs")]
         seconds = train_conditions(trained, teams, out / "runs", args.jobs)
@@ -616,7 +620,7 @@ def main(argv=None) -> int:
                      if getattr(args, key) is not None}}
     device = load_config(next(iter(entries.values()))[0], overrides).runtime.device  # shared by every condition
     facts = run_facts(args, argv, entries, device, overrides, teams, started, seconds, reused, evaluation, proxies,
-                      out)
+                      out, code)
     written = {}
     for section in sections_run(full, protocol, entries):
         if args.sections and section.name not in args.sections:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import platform
+import subprocess
 from pathlib import Path
 
 
@@ -28,6 +29,17 @@ def usable_cores() -> int:
 def machine_name() -> str:
     """The CPU's model name and the cores this process may use, e.g. "AMD EPYC, 2 cores"."""
     return f"{processor_name()}, {usable_cores()} cores"
+
+
+def code_version(root: Path = Path(__file__).resolve().parents[1]) -> str:
+    """The commit of the code in `root` (this project's checkout), "-dirty" where files differ from it; "unknown"
+    outside a git checkout (an installed copy)."""
+    try:
+        described = subprocess.run(["git", "describe", "--always", "--dirty", "--abbrev=10"], cwd=root,
+                                   capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired):
+        return "unknown"
+    return described.stdout.strip() if described.returncode == 0 and described.stdout.strip() else "unknown"
 
 
 # The benchmarks' --threads help: why their default is one torch thread, as the trainer's is.

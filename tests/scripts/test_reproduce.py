@@ -9,6 +9,7 @@ from tiny import script_module
 
 from torch_kitchen.partners.conventions import STRANGER, Convention, Zoo, ZooMember, generator_settings, save_zoo
 from trainers.config.compose import load_config
+from trainers.machine import code_version
 
 ROOT = Path(__file__).resolve().parents[2]
 reproduce = script_module("reproduce")
@@ -63,6 +64,7 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     assert "SK scores 0 on generated levels" in report and "with the scripted cook" in report
     assert "| with the human proxy |" in report and "| ik | cramped_room_in_7x7 |" in report
     assert "128 env steps per team (2 updates of 4 kitchens x 16 steps), 2 teams" in report
+    assert f"code at `{code_version()}`)" in report and code_version() != "unknown"  # the commit that ran it
     assert (tmp_path / "docs" / "results" / "all").is_dir() and "](docs/results/all/" in report
     summary = reproduce.read_summary(out / "eval" / "all" / "summary.csv")
     assert ("ik x sk_cramped", "cramped_room_7x7") in summary and ("guided_sk x ik", "cramped_room_7x7") in summary
@@ -187,6 +189,8 @@ def test_a_distilled_sections_budget_is_set_beside_the_main_jobs():
     main_jobs = load_config(ROOT / "configs/ippo/ego_mlp_ik.yaml", ["init_from=scripted_cook", "total_steps=1572864"])
     assert "trains 1,572,864 steps after 6 rounds of 3 passes, the same budget)" in reproduce.budget(main_jobs, teams=3)
     assert "main job" not in reproduce.budget(load_config(ROOT / "configs/ippo/mlp_ik.yaml"), teams=3)
+    replayed = load_config(ROOT / "configs/ippo/ego_mlp_ik.yaml", ["init_from=scripted_cook", "distill.replay=1"])
+    assert "3 passes over the newest round and 1x as many earlier kitchens after each" in reproduce.budget(replayed, 3)
 
 
 def test_a_strangers_section_trains_its_instruments_per_stranger_and_never_evaluates_them(tmp_path, monkeypatch):
