@@ -17,18 +17,21 @@ from trainers.train_command import main as train_main
 ROUNDS = ["distill.rounds=3", "distill.epochs=1"]
 
 
-@pytest.mark.parametrize("collector", ["kitchen", "xla"])
-def test_dagger_labels_every_visited_state_with_the_cooks_distribution_and_keeps_every_round(tmp_path, collector):
-    """Either collector labels as the cook outside does: the kitchens' in torch, XLA's inside its program (to float
-    rounding, its sums fused otherwise)."""
-    run = distill(tiny_config(tmp_path, *ROUNDS, f"runtime.collector={collector}"))
+def assert_labelled_by_the_cook(run, **tolerance):
+    """Every kept state of the run's 3 rounds [4 kitchens, 16 steps], both seats, labelled with the cook's
+    distribution as the cook outside gives it; returns the rounds."""
     rounds = [TensorDict.load_memmap(run / DATA / f"round{r}") for r in range(3)]
-    cook = ScriptedCook()
-    exact = {"rtol": 0, "atol": 0} if collector == "kitchen" else {}
     for data in rounds:
-        assert data.shape == (4, 16)  # every kitchen's every step, both seats
+        assert data.shape == (4, 16)
         observation = data["agents", "observation"]
-        torch.testing.assert_close(data[TEACHER_PROBS], torch.softmax(cook(observation), -1), **exact)
+        torch.testing.assert_close(data[TEACHER_PROBS], torch.softmax(ScriptedCook()(observation), -1), **tolerance)
+    return rounds
+
+
+def test_dagger_labels_every_visited_state_with_the_cooks_distribution_and_keeps_every_round(tmp_path):
+    """The kitchens' collector labels with the cook's torch module, bit for bit (XLA's: the resume test below)."""
+    run = distill(tiny_config(tmp_path, *ROUNDS))
+    rounds = assert_labelled_by_the_cook(run, rtol=0, atol=0)
     assert not torch.equal(rounds[0]["agents", "observation"], rounds[1]["agents", "observation"])
     metrics = read_metrics(run)
     assert [share for _, share in metrics["distill/teacher_share"]] == [1.0, 0.5, 0.25]
@@ -86,9 +89,11 @@ def test_a_feed_forward_learner_fits_steps_drawn_from_every_kitchen_and_a_recurr
 
 @pytest.mark.bitwise
 def test_a_distillation_resumed_after_a_round_ends_as_one_run_straight_through(tmp_path, capsys):
-    """Inside XLA (the default collector), whose draws come from torch's stream as the checkpoint left it."""
+    """Inside XLA (the default collector), whose draws come from torch's stream as the checkpoint left it, and whose
+    labels are the cook's outside to float rounding (its sums fused otherwise)."""
     rounds = [*ROUNDS, "runtime.collector=xla"]
     straight = distill(tiny_config(tmp_path / "straight", *rounds))
+    assert_labelled_by_the_cook(straight)
     stopped = distill(tiny_config(tmp_path / "stopped", *rounds), on_round=lambda round_, metrics: round_ == 2)
     assert load_checkpoint(stopped)["update"] == 2
     assert main(["--resume", str(stopped), "distill.lr=0.1"]) == 2  # another lesson: refused, nothing changed
