@@ -1,16 +1,19 @@
 """The planner-guided start: DAgger from the scripted cook (`kitchen-distill`), then IPPO from it (`init_from`)."""
 
+import dataclasses
+
 import pytest
 import torch
 from tensordict import TensorDict
 from test_ppo import MAIN_CONFIG, read_metrics, tiny_config
 from tiny import TINY
 
+import trainers.ppo.distill as distillation
 from torch_kitchen.keys import VALUE_TARGET
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.partners.scripted_cook import ScriptedCook
 from trainers.checkpoint import load_checkpoint
-from trainers.ppo.distill import DATA, TEACHER_PROBS, distill, fit, main, minibatches, replayed
+from trainers.ppo.distill import DATA, TEACHER_PROBS, distill, distill_start, fit, main, minibatches, replayed
 from trainers.ppo.loop import train
 from trainers.train_command import main as train_main
 
@@ -135,6 +138,32 @@ def test_a_run_from_the_scripted_cook_distils_its_start_into_its_own_folder_firs
     for part in ("actor", "critic"):
         torch.testing.assert_close(load_checkpoint(run)[part], load_checkpoint(distilled)[part], rtol=0, atol=1e-9)
     assert read_metrics(distilled)["distill/teacher_share"][0][1] == 1.0
+
+
+def test_runs_whose_distillations_are_the_same_share_one_start(tmp_path, monkeypatch, capsys):
+    """Two conditions that differ in what follows the distillation (an algorithm, a budget) distil once, and each
+    run's folder holds the start bit for bit, without the rounds' data; another seed distils its own."""
+    rounds = []
+    plain = distillation.learn_round
+    monkeypatch.setattr(distillation, "learn_round", lambda *args: rounds.append(args[1]) or plain(*args))
+    planned = {"ippo": ["name=ippo"], "zoo": ["name=zoo", "algorithm=zoo_ippo", "total_steps=512"],
+               "seed1": ["name=seed1", "seed=1"]}
+    configs = {name: tiny_config(tmp_path, *ROUNDS, "init_from=scripted_cook", *own) for name, own in planned.items()}
+    starts = {name: distill_start(config, config.run_path / "distilled") for name, config in configs.items()}
+    assert rounds == [0, 1, 2, 0, 1, 2]  # two distillations for three runs
+    assert "its start was distilled with the same settings in" in capsys.readouterr().err  # said where it is reused
+    assert distillation.start_key(configs["ippo"]) == distillation.start_key(configs["zoo"])
+    assert distillation.start_key(configs["ippo"]) != distillation.start_key(configs["seed1"])
+    for part in ("actor", "critic", "optimizer"):
+        torch.testing.assert_close(load_checkpoint(starts["zoo"])[part], load_checkpoint(starts["ippo"])[part],
+                                   rtol=0, atol=0)
+    assert load_checkpoint(starts["zoo"])["met"] == load_checkpoint(starts["ippo"])["met"] != {}  # the cook met
+    assert not (starts["zoo"] / DATA).exists() and load_checkpoint(starts["zoo"])["update"] == 3
+    assert "name: zoo" in (starts["zoo"] / "config.yaml").read_text()
+    assert len(list((tmp_path / distillation.SHARED_STARTS).glob("*/checkpoints"))) == 2
+    taught = tiny_config(tmp_path, *ROUNDS, "distill.teachers=[cook_0_202]", "zoo=configs/zoo/zoo.yaml")
+    assert distillation.start_key(taught) != distillation.start_key(
+        dataclasses.replace(taught, zoo="elsewhere.yaml"))  # a teacher's zoo is part of the distillation
 
 
 @pytest.mark.parametrize("architecture", ["mlp_lstm", "gnn", "ego_mlp"])

@@ -23,7 +23,11 @@ team, and `init_from` starts IPPO from it. Any architecture distils (recurrent o
 from __future__ import annotations
 
 import dataclasses
+import fcntl
+import hashlib
 import itertools
+import json
+import shutil
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -200,13 +204,13 @@ def distill(config: TrainConfig, resume: bool = False, run: Path | None = None,
     policy = GuidedPolicy(actor_critic.acting_policy(), teacher)
 
     done_rounds, env_steps, rng = rounds_done(config, run, parts, identity, resume)
+    if done_rounds >= config.distill.rounds:
+        print(f"{run}: already distilled for {done_rounds} rounds; raise distill.rounds to go on")
+        return run
     data = load_rounds(run, done_rounds)
     run.mkdir(parents=True, exist_ok=True)
     save_config(config, run / "config.yaml")
     loggers = make_loggers(config, run, purge_step=env_steps + 1 if resume else None)
-    if done_rounds >= config.distill.rounds:
-        print(f"{run}: already distilled for {done_rounds} rounds; raise distill.rounds to go on")
-        return run
 
     collector = make_collector(with_model_transforms(kitchen, actor_critic), policy,
                                config.distill.kitchens * config.rollout_steps, kind=config.runtime.collector)
@@ -306,11 +310,47 @@ def learn_round(config: TrainConfig, round_: int, batch: TensorDictBase, env_ste
     return metrics
 
 
+# Where the planner-guided starts are kept, under a run's run_dir, each in a folder named by `start_key`.
+SHARED_STARTS = ".distilled"
+# The settings distillation never reads: runs that differ in these alone start from the same distilled team.
+NOT_DISTILLED = ("name", "run_dir", "algorithm", "algorithm_config", "total_steps", "init_from", "learned_stranger",
+                 "checkpoint_every", "snapshots", "loggers", "progress", "eval_episodes", "eval_heldout", "gif")
+
+
+def start_key(config: TrainConfig) -> str:
+    """A name for the distillation `config` asks for: a hash of every setting but `NOT_DISTILLED` (and the zoo file
+    where no teacher of it is named), so two runs share a start only where their distillations are the same."""
+    settings = {key: value for key, value in config.to_dict().items() if key not in NOT_DISTILLED}
+    if not config.distill.teachers:
+        settings.pop("zoo")
+    return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
 def distill_start(config: TrainConfig, run: Path) -> Path:
-    """The planner-guided start of a training run (`init_from: scripted_cook`): distils the scripted cook with
-    the run's config into `run`, or finishes a distillation stopped there."""
-    resume = (run / "checkpoints" / LATEST).exists()
-    return distill(dataclasses.replace(config, init_from=""), resume=resume, run=run)
+    """The planner-guided start of a training run (`init_from: scripted_cook`) in `run`: distilled once per
+    distillation's settings into `run_dir/.distilled/<start_key>` (runs that differ only in what they do after it,
+    an algorithm or a budget, share it; two processes asking for one wait for each other), then copied into `run`
+    without its rounds' data. A distillation stopped in `run` itself (before starts were shared) finishes there."""
+    if (run / "checkpoints" / LATEST).exists():
+        return distill(dataclasses.replace(config, init_from=""), resume=True, run=run)
+    shared = Path(config.run_dir) / SHARED_STARTS / start_key(config)
+    shared.parent.mkdir(parents=True, exist_ok=True)
+    with open(shared.with_suffix(".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        checkpoint = shared / "checkpoints" / LATEST
+        if checkpoint.exists() and load_checkpoint(checkpoint)["update"] >= config.distill.rounds:
+            print(f"{run}: its start was distilled with the same settings in {shared}, reused (remove that folder to "
+                  "distil it again)", file=sys.stderr)
+        else:
+            own = dataclasses.replace(config, init_from="")
+            if (shared / "config.yaml").exists():  # begun by another run: carried on with its settings of what follows
+                begun = load_config(shared / "config.yaml")
+                own = dataclasses.replace(own, **{key: getattr(begun, key) for key in NOT_DISTILLED})
+            distill(own, resume=checkpoint.exists(), run=shared)
+    shutil.rmtree(run, ignore_errors=True)
+    shutil.copytree(shared, run, ignore=shutil.ignore_patterns(DATA))
+    save_config(dataclasses.replace(config, init_from=""), run / "config.yaml")  # the run's own name and settings
+    return run
 
 
 def main(argv: Sequence[str] | None = None) -> int:
