@@ -126,10 +126,10 @@ def replayed(rounds: Sequence[TensorDictBase], replay: float, device: str | torc
 
 def fit(actor_critic: ActorCritic, optimizer: torch.optim.Optimizer, rounds: Sequence[TensorDictBase],
         batch: TensorDictBase, config: TrainConfig) -> dict[str, float]:
-    """`distill.epochs` passes of the actor's cross-entropy to the teacher over the `rounds`' data [K, T] (each
-    pass the newest round's and a fresh draw of the earlier ones', `replayed`), each with one pass of the critic's
-    squared error to the value targets of this round's `batch` [distill.kitchens, T] (in its first steps); returns
-    their means and the actor's agreement with the teacher's most likely action."""
+    """`distill.epochs` passes of the actor's cross-entropy to the teacher over the `rounds`' data [K, T] (every
+    round's, or with `distill.replay` the newest round's and a fresh draw of the earlier ones': `replayed`), each
+    with one pass of the critic's squared error to the value targets of this round's `batch` [distill.kitchens, T]
+    (in its first steps); returns their means and the actor's agreement with the teacher's most likely action."""
     size, device, sequences = config.distill.minibatch, config.runtime.device, actor_critic.recurrent
     parameters = [parameter for group in optimizer.param_groups for parameter in group["params"]]
     imitations, value_errors = [], []  # on the device, read once at the end
