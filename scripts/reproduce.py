@@ -208,8 +208,7 @@ def train_conditions(entries: dict[str, tuple[str, list[str]]], teams: int, runs
     own (1: here, one after another); returns each one's wall seconds. RunStopped, naming the condition, as soon as
     one is stopped."""
     for name, (path, overrides) in entries.items():
-        count = next((value for key, _, value in (item.partition("=") for item in reversed(overrides))
-                      if key == "runtime.teams"), teams)  # an instrument's own count wins, as in its config
+        count = load_config(path, condition_overrides(name, overrides, teams, runs)).runtime.teams  # as it trains
         print(f"== {name}: {count} teams, {path} {' '.join(overrides)}", flush=True)
     if jobs == 1:
         trainings = {name: functools.partial(train_condition, name, path, overrides, teams, runs)
