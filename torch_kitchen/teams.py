@@ -40,7 +40,8 @@ from torch_kitchen.models.acting import ActingPass, draw_categorical, sample_act
 
 class RandomStream:
     """A torch random stream of its own, seeded like `torch.manual_seed(seed)`: `with stream.active():` makes it
-    torch's global stream (CPU, and `device` if that is a GPU) and keeps where it got to for the next time."""
+    torch's global stream (CPU, and `device` if that is a GPU) and keeps where it got to for the next time. Inside
+    its own `active()` a second one changes nothing: the stream goes on where it is."""
 
     def __init__(self, seed: int, device: str | torch.device = "cpu"):
         device = torch.device(device)
@@ -48,6 +49,7 @@ class RandomStream:
         with torch.random.fork_rng(devices=[] if self._cuda is None else [self._cuda]):
             torch.manual_seed(seed)
             self._state = self._capture()
+        self._active = False
 
     def _capture(self) -> tuple[torch.Tensor, torch.Tensor | None]:
         cuda = torch.cuda.get_rng_state(self._cuda) if self._cuda is not None else None
@@ -60,11 +62,16 @@ class RandomStream:
 
     @contextlib.contextmanager
     def active(self) -> Iterator[None]:
+        if self._active:  # already torch's stream: switching in its saved state would replay its draws
+            yield
+            return
         outer = self._capture()
         self._restore(self._state)
+        self._active = True
         try:
             yield
         finally:
+            self._active = False
             self._state = self._capture()
             self._restore(outer)
 

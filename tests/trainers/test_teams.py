@@ -118,8 +118,11 @@ def test_a_random_stream_is_its_own_and_leaves_the_global_one_alone():
     outside = torch.rand(3)
     with stream.active():
         second = torch.rand(2)
+        with stream.active():  # nested: the stream goes on, its draws are not replayed
+            third = torch.rand(2)
+        fourth = torch.rand(2)
     torch.manual_seed(7)
-    assert torch.equal(torch.cat([first, second]), torch.rand(4))
+    assert torch.equal(torch.cat([first, second, third, fourth]), torch.rand(8))
     assert torch.equal(outside, expected_global)
 
 

@@ -49,7 +49,6 @@ from trainers.checkpoint import (
     LATEST,
     CheckpointError,
     capture_rng_states,
-    check_identity,
     load_checkpoint,
     model_identity,
     restore_rng_states,
@@ -62,7 +61,7 @@ from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.ppo.advantages import compute_advantages, shaping_weight_at
 from trainers.ppo.collection import finished_episode_deliveries, make_collector, select_kitchens
 from trainers.ppo.placement import make_optimizer, place_networks, set_learning_rate
-from trainers.ppo.resume import check_same_learning, start_fresh
+from trainers.ppo.resume import load_to_resume, start_fresh
 from trainers.ppo.team import TeamKitchens, make_env, with_model_transforms
 
 DATA = "dagger"  # the run's folder of every round's labelled batch
@@ -274,9 +273,7 @@ def rounds_done(config: TrainConfig, run: Path, parts: dict, identity: dict, res
     if not resume:
         start_fresh(run)
         return 0, 0, None
-    state = load_checkpoint(run / "checkpoints" / LATEST, map_location=config.runtime.device)
-    check_identity(state, identity)
-    check_same_learning(run, config, state["config"], (*RESUMABLE, "distill.rounds"))
+    state = load_to_resume(run, run / "checkpoints" / LATEST, config, identity, (*RESUMABLE, "distill.rounds"))
     for name, part in parts.items():
         part.load_state_dict(state[name])
     return state["update"], state["env_steps"], state["rng"]
@@ -330,9 +327,7 @@ def distill_start(config: TrainConfig, run: Path) -> Path:
     """The planner-guided start of a training run (`init_from: scripted_cook`) in `run`: distilled once per
     distillation's settings into `run_dir/.distilled/<start_key>` (runs that differ only in what they do after it,
     an algorithm or a budget, share it; two processes asking for one wait for each other), then copied into `run`
-    without its rounds' data. A distillation stopped in `run` itself (before starts were shared) finishes there."""
-    if (run / "checkpoints" / LATEST).exists():
-        return distill(dataclasses.replace(config, init_from=""), resume=True, run=run)
+    without its rounds' data."""
     shared = Path(config.run_dir) / SHARED_STARTS / start_key(config)
     shared.parent.mkdir(parents=True, exist_ok=True)
     with open(shared.with_suffix(".lock"), "w") as lock:

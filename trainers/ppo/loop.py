@@ -5,8 +5,8 @@ orders), its PPO epochs over minibatches of whole kitchen sequences, how it ends
 metrics), then `train_teams()`: build the env and the teams, resume or start fresh, and for every batch of
 `num_envs x rollout_steps` steps per team update, log and checkpoint. The algorithm (`trainers.algorithms`: IPPO,
 E3T, or one you register) changes the loop only through its named hooks; how the teams share the machine (threads,
-shards, compilation, stacking on a GPU) is `trainers.ppo.runtime`'s; stopping and resuming are `trainers.ppo.resume`'s;
-the command line is `trainers.train_command`'s.
+shards, compilation, stacking on a GPU) is `trainers.ppo.runtime`'s; a run's start, checkpoints, logs, stop and resume
+are `trainers.ppo.resume`'s; the command line is `trainers.train_command`'s.
 
     kitchen-train configs/ippo/mlp_ik.yaml seed=3 total_steps=1e6
     kitchen-train --resume runs/ippo_mlp_ik/seed3
@@ -14,8 +14,6 @@ the command line is `trainers.train_command`'s.
 
 from __future__ import annotations
 
-import math
-import signal
 import sys
 import time
 from collections import deque
@@ -31,15 +29,22 @@ from tqdm import tqdm
 from torch_kitchen.env import team_rows
 from torch_kitchen.keys import REWARD, SHAPED_REWARD, VALUE, VALUE_TARGET
 from torch_kitchen.models import ActorCritic
-from trainers.checkpoint import LATEST, check_identity, load_checkpoint, restore_rng_states
+from trainers.checkpoint import LATEST
 from trainers.config import PLANNER_START, ConfigError, TrainConfig
-from trainers.config.compose import save_config
-from trainers.loggers import hyperparameters, make_loggers
 from trainers.ppo.advantages import compute_advantages, shaping_weight_at
 from trainers.ppo.collection import make_collector
 from trainers.ppo.distill import distill_start
 from trainers.ppo.placement import set_learning_rate
-from trainers.ppo.resume import RunStopped, StopRequest, TrainingDiverged, drop_csv_rows_after, restore, start_fresh
+from trainers.ppo.resume import (
+    StopRequest,
+    TrainingDiverged,
+    already_trained,
+    checkpoint_or_stop,
+    close_logs,
+    open_logs,
+    restore_streams,
+    resume_or_start,
+)
 from trainers.ppo.runtime import Learner, UpdateRunner, team_policy, use_threads
 from trainers.ppo.step import Losses, total_loss
 from trainers.ppo.team import (
@@ -195,37 +200,6 @@ def distill_planner_starts(configs: Sequence[TrainConfig], runs: Sequence[Path])
             distill_start(config, config.init_path(run))
 
 
-def start_from(team: TrainingTeam) -> None:
-    """Loads into `team` the actor's and critic's weights that its `init_from` names (nothing to load from scratch):
-    a run's latest checkpoint, or its planner-guided start. CheckpointError if that model is not the team's."""
-    start = team.config.init_path(team.run)
-    if start is None:
-        return
-    state = load_checkpoint(start, map_location=team.config.runtime.device)
-    check_identity(state, team.identity)
-    team.parts["actor"].load_state_dict(state["actor"])
-    team.parts["critic"].load_state_dict(state["critic"])
-    team.met.update(state.get("met", {}))  # what the start met, the team met
-
-
-def resume_or_start(teams: Sequence[TrainingTeam], resume: bool) -> list[dict | None]:
-    """`resume`: every team restored from its latest checkpoint (all at one update), the CSV rows logged after it
-    dropped; else every team's old logs removed and its `init_from` weights loaded. Returns the checkpoints (their
-    RNG states are put back once the collector is built), None for a fresh start."""
-    if not resume:
-        for team in teams:
-            start_fresh(team.run)
-            start_from(team)
-        return [None] * len(teams)
-    saved = [restore(team) for team in teams]
-    if len({team.update for team in teams}) > 1:
-        at = ", ".join(f"{team.run} at update {team.update}" for team in teams)
-        raise ConfigError(f"teams resumed together must be at the same update ({at}): resume them one by one")
-    for team in teams:
-        drop_csv_rows_after(team.run / "csv", team.env_steps)
-    return saved
-
-
 def log_update(teams: Sequence[TrainingTeam], learned: list[tuple[dict, float]], prepare_seconds: list[float],
                collect_seconds: float, steps_per_second: float,
                on_update: Callable[[int, dict], bool | None] | None) -> bool:
@@ -330,40 +304,6 @@ def train_teams(
     return runs
 
 
-def already_trained(teams: list[TrainingTeam], remaining: int) -> bool:
-    """Saves every team's config into its run directory; says so and returns True where no update remains."""
-    for team in teams:
-        team.run.mkdir(parents=True, exist_ok=True)
-        save_config(team.config, team.run / "config.yaml")
-        if remaining <= 0:
-            print(f"{team.run}: already trained for {team.update} updates ({team.env_steps:,} steps); raise "
-                  "total_steps to go on")
-    return remaining <= 0
-
-
-def restore_streams(teams: list[TrainingTeam], saved: list[dict | None]) -> None:
-    """Each resumed team's random streams as its checkpoint left them."""
-    for team, state in zip(teams, saved):
-        if state is not None:
-            with team.stream.active():
-                restore_rng_states(state["rng"])
-
-
-def close_logs(teams: list[TrainingTeam]) -> None:
-    for team in teams:
-        for logger in team.loggers:
-            logger.close()
-
-
-def open_logs(teams: list[TrainingTeam], resume: bool) -> None:
-    """Every team's loggers (a resumed run's logs cut at its checkpoint's step), with its hyperparameters once."""
-    for team in teams:
-        team.loggers = make_loggers(team.config, team.run, purge_step=team.env_steps + 1 if resume else None)
-        if not resume:
-            for logger in team.loggers:
-                logger.log_hparams(hyperparameters(team.config))
-
-
 def learn_from_batch(teams: list[TrainingTeam], batch: TensorDictBase, runner: UpdateRunner
                      ) -> tuple[list, list[float]]:
     """One update of every team on its rows of the collected `batch`: each team's advantages and minibatch order
@@ -433,26 +373,3 @@ class Progress:
         self.bar.close()
 
 
-def snapshot_index(config: TrainConfig, update: int) -> int:
-    """k where `update` is the k-th of the run's `snapshots` (at k/snapshots of its updates, rounded up); else 0."""
-    points = [math.ceil(k * config.num_updates / config.snapshots) for k in range(1, config.snapshots + 1)]
-    return points.index(update) + 1 if update in points else 0
-
-
-def checkpoint_or_stop(teams: Sequence[TrainingTeam], asked: bool, signum: int | None, total_steps: int) -> bool:
-    """After an update: every team checkpointed every `checkpoint_every` updates and at the last (the run's, or
-    one `on_update` asked for); returns whether that was the last. RunStopped after a checkpoint where a signal
-    came (`signum`)."""
-    lead, update = teams[0].config, teams[0].update
-    last = update == lead.num_updates or asked or signum is not None
-    snapshot = snapshot_index(lead, update)
-    if last or update % lead.checkpoint_every == 0 or snapshot:
-        for team in teams:
-            team.checkpoint()
-            if snapshot:
-                team.snapshot(snapshot)
-    if signum is not None:
-        steps = sum(team.env_steps for team in teams)
-        raise RunStopped(signum, f"stopped by {signal.Signals(signum).name} at update {update} "
-                                 f"({steps:,} of {total_steps:,} env steps), checkpoint written")
-    return last

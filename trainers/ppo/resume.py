@@ -1,16 +1,21 @@
-"""How a run stops and starts again: the signals that stop it after a checkpoint, the errors that end it, a fresh
-start's clean logs, and a resumed run's state and logs put back as they were at its latest checkpoint."""
+"""How a run starts, stops and starts again: a fresh start's clean logs and its `init_from` weights, a resumed run's
+state, random streams and logs put back as they were at its latest checkpoint, the checkpoints after updates, the
+signals that stop a run after one, and the errors that end it."""
 
 from __future__ import annotations
 
+import math
 import shutil
 import signal
+from collections.abc import Sequence
 from pathlib import Path
 
 from tqdm import tqdm
 
-from trainers.checkpoint import check_identity, load_checkpoint
+from trainers.checkpoint import check_identity, load_checkpoint, restore_rng_states
 from trainers.config import RESUMABLE, ConfigError, TrainConfig
+from trainers.config.compose import save_config
+from trainers.loggers import hyperparameters, make_loggers
 from trainers.ppo.team import TrainingTeam
 
 
@@ -47,12 +52,20 @@ def check_same_learning(run: Path, config: TrainConfig, trained: dict, resumable
                           "another name= or run_dir=")
 
 
+def load_to_resume(run: Path, checkpoint: Path, config: TrainConfig, identity: dict,
+                   resumable: tuple[str, ...] = RESUMABLE) -> dict:
+    """The `checkpoint` of `run`, to go on with `config`: refused where its model is not `identity` or where `config`
+    would change what it learns (`check_same_learning`)."""
+    state = load_checkpoint(checkpoint, map_location=config.runtime.device)
+    check_identity(state, identity)
+    check_same_learning(run, config, state["config"], resumable)
+    return state
+
+
 def restore(team: TrainingTeam) -> dict:
     """Loads `team`'s latest checkpoint into its parts (networks, optimizer, its kitchens) and its algorithm, and
     sets its counters; returns the checkpoint (for its RNG states)."""
-    state = load_checkpoint(team.checkpoint_path, map_location=team.config.runtime.device)
-    check_identity(state, team.identity)
-    check_same_learning(team.run, team.config, state["config"])
+    state = load_to_resume(team.run, team.checkpoint_path, team.config, team.identity)
     for name, part in team.parts.items():
         part.load_state_dict(state[name])
     team.algorithm.load_state_dict(state["algorithm"])
@@ -94,3 +107,93 @@ class StopRequest:
         for signum, handler in self._previous.items():
             signal.signal(signum, handler)
 
+
+def start_from(team: TrainingTeam) -> None:
+    """Loads into `team` the actor's and critic's weights that its `init_from` names (nothing to load from scratch):
+    a run's latest checkpoint, or its planner-guided start. CheckpointError if that model is not the team's."""
+    start = team.config.init_path(team.run)
+    if start is None:
+        return
+    state = load_checkpoint(start, map_location=team.config.runtime.device)
+    check_identity(state, team.identity)
+    team.parts["actor"].load_state_dict(state["actor"])
+    team.parts["critic"].load_state_dict(state["critic"])
+    team.met.update(state.get("met", {}))  # what the start met, the team met
+
+
+def resume_or_start(teams: Sequence[TrainingTeam], resume: bool) -> list[dict | None]:
+    """`resume`: every team restored from its latest checkpoint (all at one update), the CSV rows logged after it
+    dropped; else every team's old logs removed and its `init_from` weights loaded. Returns the checkpoints (their
+    RNG states are put back once the collector is built), None for a fresh start."""
+    if not resume:
+        for team in teams:
+            start_fresh(team.run)
+            start_from(team)
+        return [None] * len(teams)
+    saved = [restore(team) for team in teams]
+    if len({team.update for team in teams}) > 1:
+        at = ", ".join(f"{team.run} at update {team.update}" for team in teams)
+        raise ConfigError(f"teams resumed together must be at the same update ({at}): resume them one by one")
+    for team in teams:
+        drop_csv_rows_after(team.run / "csv", team.env_steps)
+    return saved
+
+
+def already_trained(teams: list[TrainingTeam], remaining: int) -> bool:
+    """Saves every team's config into its run directory; says so and returns True where no update remains."""
+    for team in teams:
+        team.run.mkdir(parents=True, exist_ok=True)
+        save_config(team.config, team.run / "config.yaml")
+        if remaining <= 0:
+            print(f"{team.run}: already trained for {team.update} updates ({team.env_steps:,} steps); raise "
+                  "total_steps to go on")
+    return remaining <= 0
+
+
+def restore_streams(teams: list[TrainingTeam], saved: list[dict | None]) -> None:
+    """Each resumed team's random streams as its checkpoint left them."""
+    for team, state in zip(teams, saved):
+        if state is not None:
+            with team.stream.active():
+                restore_rng_states(state["rng"])
+
+
+def close_logs(teams: list[TrainingTeam]) -> None:
+    """Every team's loggers closed (their last rows written)."""
+    for team in teams:
+        for logger in team.loggers:
+            logger.close()
+
+
+def open_logs(teams: list[TrainingTeam], resume: bool) -> None:
+    """Every team's loggers (a resumed run's logs cut at its checkpoint's step), with its hyperparameters once."""
+    for team in teams:
+        team.loggers = make_loggers(team.config, team.run, purge_step=team.env_steps + 1 if resume else None)
+        if not resume:
+            for logger in team.loggers:
+                logger.log_hparams(hyperparameters(team.config))
+
+
+def snapshot_index(config: TrainConfig, update: int) -> int:
+    """k where `update` is the k-th of the run's `snapshots` (at k/snapshots of its updates, rounded up); else 0."""
+    points = [math.ceil(k * config.num_updates / config.snapshots) for k in range(1, config.snapshots + 1)]
+    return points.index(update) + 1 if update in points else 0
+
+
+def checkpoint_or_stop(teams: Sequence[TrainingTeam], asked: bool, signum: int | None, total_steps: int) -> bool:
+    """After an update: every team checkpointed every `checkpoint_every` updates and at the last (the run's, or
+    one `on_update` asked for); returns whether that was the last. RunStopped after a checkpoint where a signal
+    came (`signum`)."""
+    lead, update = teams[0].config, teams[0].update
+    last = update == lead.num_updates or asked or signum is not None
+    snapshot = snapshot_index(lead, update)
+    if last or update % lead.checkpoint_every == 0 or snapshot:
+        for team in teams:
+            team.checkpoint()
+            if snapshot:
+                team.snapshot(snapshot)
+    if signum is not None:
+        steps = sum(team.env_steps for team in teams)
+        raise RunStopped(signum, f"stopped by {signal.Signals(signum).name} at update {update} "
+                                 f"({steps:,} of {total_steps:,} env steps), checkpoint written")
+    return last
