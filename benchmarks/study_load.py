@@ -92,6 +92,33 @@ def stored_as_posted(database: StudyDatabase, visit: Visit, games_each: int) -> 
     return None
 
 
+def report(args, visits: list, serving_s: float, idle: float, peak: float, problems: dict, cut: int) -> int:
+    """Prints the run's state gaps, schedule lags, first states and memory, and whether every participant finished
+    with its answers stored as posted; returns the exit status (1 where not)."""
+    tick = args.tick_ms / 1000
+    gaps = sorted(gap for visit in visits for arrivals in visit.arrivals.values() for gap in state_gaps(arrivals))
+    lags = sorted(schedule_lag(arrivals, visit.steps[stage], tick) for visit in visits
+                  for stage, arrivals in visit.arrivals.items() if len(arrivals) > 1)
+    firsts = sorted(arrivals[0] - visit.person.opened[stage] for visit in visits
+                    for stage, arrivals in visit.arrivals.items())
+    print(f"\n{args.participants} participants at once: a practice game of {args.practice_steps} steps, then 2 games "
+          f"of {args.game_steps} (the team's, the scripted cook's), a key on every state, questions after each")
+    print(f"{'games':>6s} {GAPS_HEADER} {'lag median s':>12s} {'lag max s':>9s} {'idle MB':>8s} {'peak MB':>8s}")
+    if gaps:
+        print(f"{len(lags):6d} {gaps_row(gaps)} {statistics.median(lags):12.2f} {lags[-1]:9.2f} {idle:8.0f} "
+              f"{peak:8.0f}")
+    if firsts:
+        print(f"a game's first state after its socket opened: p50 {statistics.median(firsts):.3f} s, p99 "
+              f"{quantile(firsts, 0.99):.3f} s, max {firsts[-1]:.3f} s "
+              f"({len(firsts)} games); the server answered {serving_s:.1f} s after its start")
+    finished = args.participants - len(problems)
+    print(f"every participant finished, its answers stored as posted, each game finished once: "
+          f"{'yes' if not problems and not cut else 'no'} ({finished} of {args.participants}; {cut} games cut)")
+    for external_id, why in list(problems.items())[:5]:
+        print(f"  {external_id}: {why[:300]}")
+    return 0 if not problems and not cut else 1
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--participants", type=int, default=40)
@@ -100,7 +127,6 @@ def main(argv=None) -> int:
     parser.add_argument("--practice-steps", type=int, default=200)
     parser.add_argument("--torch-threads", type=int, default=1, help="the server's (OMP_NUM_THREADS)")
     args = parser.parse_args(argv)
-    tick = args.tick_ms / 1000
     print(f"{machine_name()}, server torch threads {args.torch_threads}, tick {args.tick_ms} ms, kitchens "
           f"{', '.join(KITCHENS)}")
     with tempfile.TemporaryDirectory() as scratch:
@@ -133,27 +159,7 @@ def main(argv=None) -> int:
                     if (why := stored_as_posted(database, visit, games_each)) is not None}
         cut = len(database.rows("SELECT 1 FROM games WHERE status = ?", CUT))
         database.close()
-    gaps = sorted(gap for visit in visits for arrivals in visit.arrivals.values() for gap in state_gaps(arrivals))
-    lags = sorted(schedule_lag(arrivals, visit.steps[stage], tick) for visit in visits
-                  for stage, arrivals in visit.arrivals.items() if len(arrivals) > 1)
-    firsts = sorted(arrivals[0] - visit.person.opened[stage] for visit in visits
-                    for stage, arrivals in visit.arrivals.items())
-    print(f"\n{args.participants} participants at once: a practice game of {args.practice_steps} steps, then 2 games "
-          f"of {args.game_steps} (the team's, the scripted cook's), a key on every state, questions after each")
-    print(f"{'games':>6s} {GAPS_HEADER} {'lag median s':>12s} {'lag max s':>9s} {'idle MB':>8s} {'peak MB':>8s}")
-    if gaps:
-        print(f"{len(lags):6d} {gaps_row(gaps)} {statistics.median(lags):12.2f} {lags[-1]:9.2f} {idle:8.0f} "
-              f"{peak:8.0f}")
-    if firsts:
-        print(f"a game's first state after its socket opened: p50 {statistics.median(firsts):.3f} s, p99 "
-              f"{quantile(firsts, 0.99):.3f} s, max {firsts[-1]:.3f} s "
-              f"({len(firsts)} games); the server answered {serving_s:.1f} s after its start")
-    finished = args.participants - len(problems)
-    print(f"every participant finished, its answers stored as posted, each game finished once: "
-          f"{'yes' if not problems and not cut else 'no'} ({finished} of {args.participants}; {cut} games cut)")
-    for external_id, why in list(problems.items())[:5]:
-        print(f"  {external_id}: {why[:300]}")
-    return 0 if not problems and not cut else 1
+    return report(args, visits, serving_s, idle, peak, problems, cut)
 
 
 if __name__ == "__main__":
