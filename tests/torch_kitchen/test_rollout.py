@@ -9,16 +9,14 @@ from torchrl.envs.utils import ExplorationType
 from torch_kitchen.rollout import KitchenCollector
 from trainers.config.compose import load_config
 from trainers.ppo.runtime import team_policy
-from trainers.ppo.team import algorithm_transforms, build_team, make_env, team_configs, with_model_transforms
+from trainers.ppo.team import build_teams, team_configs
 
 
 def env_and_policy(tmp_path, overrides):
     """The env and acting policy `trainers.ppo.loop.train_teams` builds for a tiny config's teams."""
     config = load_config(None, [*TINY, f"run_dir={tmp_path}", "total_steps=1e4", *overrides])
     configs = team_configs(config)
-    kitchen = make_env(config, num_envs=len(configs) * config.num_envs, seed=[team.seed for team in configs])
-    teams = [build_team(team, team.run_path, kitchen, index) for index, team in enumerate(configs)]
-    env = with_model_transforms(kitchen, teams[0].actor_critic, *algorithm_transforms(teams))
+    teams, env = build_teams(configs, [team.run_path for team in configs])
     return env, team_policy(config, teams), config
 
 

@@ -54,7 +54,7 @@ from trainers.checkpoint import (
     restore_rng_states,
     save_checkpoint,
 )
-from trainers.config import RESUMABLE, ConfigError, TrainConfig
+from trainers.config import PLANNER_START, RESUMABLE, ConfigError, TrainConfig
 from trainers.config.compose import load_config, save_config, train_config_parser
 from trainers.loggers import make_loggers
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
@@ -346,6 +346,14 @@ def distill_start(config: TrainConfig, run: Path) -> Path:
     shutil.copytree(shared, run, ignore=shutil.ignore_patterns(DATA))
     save_config(dataclasses.replace(config, init_from=""), run / "config.yaml")  # the run's own name and settings
     return run
+
+
+def distill_planner_starts(configs: Sequence[TrainConfig], runs: Sequence[Path]) -> None:
+    """The planner-guided start of every team whose `init_from` asks for it, a step before its training: distilled
+    into the team's run folder, or copied there from a distillation of the same settings (`distill_start`)."""
+    for config, run in zip(configs, runs):
+        if config.init_from == PLANNER_START:
+            distill_start(config, config.init_path(run))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

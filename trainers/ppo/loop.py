@@ -30,10 +30,10 @@ from torch_kitchen.env import team_rows
 from torch_kitchen.keys import REWARD, SHAPED_REWARD, VALUE, VALUE_TARGET
 from torch_kitchen.models import ActorCritic
 from trainers.checkpoint import LATEST
-from trainers.config import PLANNER_START, ConfigError, TrainConfig
+from trainers.config import ConfigError, TrainConfig
 from trainers.ppo.advantages import compute_advantages, shaping_weight_at
 from trainers.ppo.collection import make_collector
-from trainers.ppo.distill import distill_start
+from trainers.ppo.distill import distill_planner_starts
 from trainers.ppo.placement import set_learning_rate
 from trainers.ppo.resume import (
     StopRequest,
@@ -47,15 +47,7 @@ from trainers.ppo.resume import (
 )
 from trainers.ppo.runtime import Learner, UpdateRunner, team_policy, use_threads
 from trainers.ppo.step import Losses, total_loss
-from trainers.ppo.team import (
-    RestorePoint,
-    TrainingTeam,
-    algorithm_transforms,
-    build_team,
-    check_teams,
-    make_env,
-    with_model_transforms,
-)
+from trainers.ppo.team import RestorePoint, TrainingTeam, build_teams, check_teams
 
 # ClipPPOLoss's outputs as logged (None: not logged); other entries (an algorithm's) go to losses/<name> for
 # "loss_<name>" and to charts/<name> otherwise.
@@ -192,14 +184,6 @@ def finish_update(team: TrainingTeam, batch: TensorDictBase, stats: list[dict[st
     return metrics
 
 
-def distill_planner_starts(configs: Sequence[TrainConfig], runs: Sequence[Path]) -> None:
-    """The planner-guided start of every team whose `init_from` asks for it, a step before its training: the
-    scripted cook distilled into the team's run folder (a distillation stopped there is finished)."""
-    for config, run in zip(configs, runs):
-        if config.init_from == PLANNER_START:
-            distill_start(config, config.init_path(run))
-
-
 def log_update(teams: Sequence[TrainingTeam], learned: list[tuple[dict, float]], prepare_seconds: list[float],
                collect_seconds: float, steps_per_second: float,
                on_update: Callable[[int, dict], bool | None] | None) -> bool:
@@ -264,10 +248,7 @@ def train_teams(
         distill_planner_starts(configs, runs)
 
     # ---------------------------------------------------------------- environment and teams
-    kitchen = make_env(lead, num_envs=num_teams * lead.num_envs, seed=[config.seed for config in configs])
-    teams = [build_team(config, run, kitchen, index, actor_critic)
-             for index, (config, run) in enumerate(zip(configs, runs))]
-    env = with_model_transforms(kitchen, teams[0].actor_critic, *algorithm_transforms(teams))
+    teams, env = build_teams(configs, runs, actor_critic)
     policy = team_policy(lead, teams)
     runner = UpdateRunner(lead, teams)
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import torch
 from tensordict.nn import TensorDictSequential
-from torchrl.envs import Transform
+from torchrl.envs import EnvBase, Transform
 from torchrl.objectives import ClipPPOLoss
 from torchrl.record.loggers import Logger
 
@@ -170,6 +170,17 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
         met=fingerprints(algorithm.met_conventions()),
     )  # fmt: skip
     return team
+
+
+def build_teams(configs: Sequence[TrainConfig], runs: Sequence[Path], actor_critic: ActorCritic | None = None
+                ) -> tuple[list[TrainingTeam], EnvBase]:
+    """The teams of `configs` (`build_team`, one after another) in one batch of kitchens, and that batch with the
+    transforms their model and algorithms need: each team's rows are `team_rows(index, num_envs)`."""
+    lead = configs[0]
+    kitchen = make_env(lead, num_envs=len(configs) * lead.num_envs, seed=[config.seed for config in configs])
+    teams = [build_team(config, run, kitchen, index, actor_critic)
+             for index, (config, run) in enumerate(zip(configs, runs))]
+    return teams, with_model_transforms(kitchen, teams[0].actor_critic, *algorithm_transforms(teams))
 
 
 def algorithm_transforms(teams: list[TrainingTeam]) -> list[Transform]:
