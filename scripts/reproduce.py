@@ -504,13 +504,21 @@ def read_sections(text: str) -> dict[str, str]:
     return {match.group(1): match.group(0) for match in pattern.finditer(text)}
 
 
+# How the top table marks the verdicts of a section written before claims were decided by intervals over seeds.
+BY_MEANS = " (by means of seeds, no interval: re-run this section)"
+
+
 def claims_rows(section: str) -> list[str]:
-    """The rows of a section's claims table."""
+    """The rows of a section's claims table, without its header. A table under another header was written before
+    verdicts came from intervals: its rows compared means, and their verdicts say so (`BY_MEANS`)."""
     start, end = section.find(CLAIMS_START), section.find(CLAIMS_END)
     if start < 0 or end < 0:
         return []
-    rows = section[start + len(CLAIMS_START):end].strip().splitlines()
-    return [row for row in rows if row.startswith("| ") and row not in CLAIMS_HEADER]
+    header, _, *rows = [row for row in section[start + len(CLAIMS_START):end].strip().splitlines()
+                        if row.startswith("|")]
+    if header == CLAIMS_HEADER[0]:
+        return rows
+    return [row.removesuffix(" |") + BY_MEANS + " |" for row in rows]
 
 
 def write_results(path: Path, written: dict[str, str], order: list[str]) -> None:
@@ -525,7 +533,9 @@ def write_results(path: Path, written: dict[str, str], order: list[str]) -> None
         "Each section below was written by the command it names (`python scripts/reproduce.py PROTOCOL --sections "
         "NAME`), which rewrites its own section and keeps the others as they were written. Each section says its "
         "budget, machine, time and date; the claims table gathers every section's claims, and its family and learner "
-        "columns say which teams each row measures.",
+        "columns say which teams each row measures. A verdict is read from a 95% interval over seeds "
+        "(docs/evaluation.md); one that a section written before such intervals decided by comparing means says so "
+        f"({BY_MEANS.strip()}).",
         "",
         "## The paper's claims, here",
         "",

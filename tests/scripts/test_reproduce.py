@@ -160,6 +160,26 @@ def test_a_section_written_again_keeps_the_others_as_they_were_and_the_claims_of
     assert "| scratch | learner | A |" in claims and "| planner | learner | C |" in claims and "| B |" not in text
 
 
+def test_the_claims_of_a_section_written_before_intervals_are_marked_as_decided_by_means(tmp_path):
+    results = tmp_path / "RESULTS.md"
+    old = "\n".join([reproduce.SECTION_START.format("scratch"), reproduce.CLAIMS_START,
+                     "| family | learner | claim | here | at this budget |", "|---|---|---|---|---|",
+                     "| MLP | IPPO | IK beats SK | 1.00 vs 0.50 | 3 of 5 layouts |", reproduce.CLAIMS_END,
+                     reproduce.SECTION_END.format("scratch")])
+    results.write_text(old)
+    new = "\n".join([reproduce.SECTION_START.format("planner"), reproduce.CLAIMS_START, *reproduce.CLAIMS_HEADER,
+                     "| MLP | planner | IK beats SK | +0.5 [0.1, 0.9] | holds |", reproduce.CLAIMS_END,
+                     reproduce.SECTION_END.format("planner")])
+    reproduce.write_results(results, {"planner": new}, ["scratch", "planner"])
+    text = results.read_text()
+    claims = text[text.index("## The paper's claims, here"):text.index(reproduce.SECTION_START.format("scratch"))]
+    rows = [row for row in claims.splitlines() if row.startswith("| ")]
+    assert rows == [reproduce.CLAIMS_HEADER[0],
+                    f"| MLP | IPPO | IK beats SK | 1.00 vs 0.50 | 3 of 5 layouts{reproduce.BY_MEANS} |",
+                    "| MLP | planner | IK beats SK | +0.5 [0.1, 0.9] | holds |"]
+    assert reproduce.read_sections(text)["scratch"] == old  # the section itself is kept as it was written
+
+
 def test_sections_name_their_conditions_and_an_unknown_one_is_one_line(tmp_path, capsys):
     protocol = {"conditions": {"ik": "a.yaml", "sk": "b.yaml", "guided": "c.yaml"},
                 "sections": {"scratch": {"title": "S", "conditions": ["ik", "sk"]},
