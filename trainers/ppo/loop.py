@@ -352,5 +352,3 @@ class Progress:
 
     def close(self) -> None:
         self.bar.close()
-
-
