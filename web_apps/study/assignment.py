@@ -1,16 +1,16 @@
 """Who plays what, in which order: a design balanced by construction over conditions, kitchens and positions.
 
-A block of the design has `block_size` rows: every row of Williams' balanced Latin square over the conditions
-(`latin_square`), each with every shift of the kitchens. Row r plays the square's row r mod R (R rows), repeated until
-it fills the participant's games, and at position p the kitchen (p + r // R) mod K of the study's kitchens (K of
-them, in an order drawn once from the study's seed). Over each block every condition is played equally often at each
-position and (Williams) follows every other equally often, every condition meets every kitchen equally often, and
-every kitchen appears equally often at each position; each participant plays each kitchen once before any twice
-(`design_counts` counts them). A new arrival takes the row of the block with the fewest participants finished or in
-progress (`StudyDatabase.register`), so that the block balances over those who finish; the games' seeds are drawn
-from the study's seed and the participant's number, so an assignment is the same whenever it is made again. A visit
-is a list of stages: consent, instructions, the practice games, then each assigned game followed by its questions,
-then the completion code.
+A block of the design has `StudyConfig.block_size` rows: every row of Williams' balanced Latin square over the
+conditions (`web_apps.study.design.latin_square`), each with every shift of the kitchens. Row r plays the square's
+row r mod R (R rows), repeated until it fills the participant's games, and at position p the kitchen (p + r // R) mod K
+of the study's kitchens (K of them, in an order drawn once from the study's seed). Over each block every condition is
+played equally often at each position and (Williams) follows every other equally often, every condition meets every
+kitchen equally often, and every kitchen appears equally often at each position; each participant plays each kitchen
+once before any twice (`design_counts` counts them). A new arrival takes the row of the block with the fewest
+participants finished or in progress (`StudyDatabase.register`), so that the block balances over those who finish;
+the games' seeds are drawn from the study's seed and the participant's number, so an assignment is the same whenever
+it is made again. A visit is a list of stages: consent, instructions, the practice games, then each assigned game
+followed by its questions, then the completion code.
 """
 
 from __future__ import annotations
@@ -19,24 +19,11 @@ import random
 from dataclasses import dataclass
 
 from web_apps.study.config import StudyConfig
+from web_apps.study.design import latin_square
 
 CONSENT, INSTRUCTIONS, PRACTICE, GAME, QUESTIONS, COMPLETE = ("consent", "instructions", "practice", "game",
                                                               "questions", "complete")
 PLAYED = (PRACTICE, GAME)  # the stages done by playing a game through
-
-
-def latin_square(n: int) -> list[list[int]]:
-    """Williams' balanced Latin square over conditions 0..n-1: n rows for an even n, 2n (each row and its reverse)
-    for an odd one. Each condition appears once per row and equally often at each position."""
-    first, low, high = [0], 1, n - 1
-    while len(first) < n:  # 0, 1, n-1, 2, n-2, ...
-        first.append(low)
-        low += 1
-        if len(first) < n:
-            first.append(high)
-            high -= 1
-    rows = [[(condition + shift) % n for condition in first] for shift in range(n)]
-    return rows if n % 2 == 0 else rows + [row[::-1] for row in rows]
 
 
 @dataclass(frozen=True)
@@ -48,11 +35,6 @@ class Slot:
     condition: str
     kitchen: str
     seed: int
-
-
-def block_size(config: StudyConfig) -> int:
-    """Rows (participants) in one block of the design: the conditions' square's rows times the kitchens."""
-    return len(latin_square(len(config.conditions))) * len(config.kitchens)
 
 
 def design_row(config: StudyConfig, row: int) -> list[tuple[str, str]]:

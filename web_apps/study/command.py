@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 from web_apps.play.server import port_in_use, served_hosts
-from web_apps.study.assignment import assign, block_size, design_counts
+from web_apps.study.assignment import assign, design_counts
 from web_apps.study.config import StudyError, load_study, study_partners
 from web_apps.study.power import SIZES
 
@@ -29,7 +29,7 @@ def error(message: str, status: int = 2) -> int:
 
 def check(args) -> int:
     config = load_study(args.config)
-    block = block_size(config)
+    block = config.block_size
     participants = args.participants or block
     print(f"{args.config}: {len(config.conditions)} conditions ({', '.join(config.conditions)}), "
           f"{len(config.kitchens)} kitchens, {config.practice_games} practice + {config.games} games per participant; "

@@ -28,6 +28,7 @@ from torch_kitchen.partners.conventions import ZOO_FILE, ConventionError, load_z
 from torch_kitchen.partners.scripted_cook import scripted_actor_critic
 from trainers.checkpoint import CheckpointError
 from web_apps.play.game import RANDOM, SCRIPTED, Partner, check_fits, load_partner
+from web_apps.study.design import latin_square
 
 SCRIPTED_COOK = "scripted_cook"  # the partner names a config gives for kitchen-play's own partners
 RANDOM_AGENT = "random_agent"
@@ -121,6 +122,11 @@ class StudyConfig:
     @property
     def games(self) -> int:
         return self.games_per_participant or len(self.conditions)
+
+    @property
+    def block_size(self) -> int:
+        """Rows (participants) in one block of the design: the conditions' square's rows times the kitchens."""
+        return len(latin_square(len(self.conditions))) * len(self.kitchens)
 
     def text(self, name: str) -> str:
         return self.texts.get(name, DEFAULT_TEXTS[name])
@@ -233,9 +239,7 @@ def check_values(config: StudyConfig, where: str) -> None:
 def check_balance(config: StudyConfig, fail) -> None:
     """Refuses a target of participants that fills no whole number of the design's blocks (its counts would not
     balance), naming the nearest targets that do, unless the config accepts an unbalanced design."""
-    from web_apps.study.assignment import block_size  # it reads a config: imported here, not at the top
-
-    block = block_size(config)
+    block = config.block_size
     target = config.target_participants
     if not isinstance(config.accept_unbalanced, bool):
         fail(f"accept_unbalanced must be true or false, got {config.accept_unbalanced!r}")

@@ -33,7 +33,7 @@ from urllib.parse import quote
 
 from web_apps.play.game import Game, Partner, file_sha256
 from web_apps.play.server import guard, play_game
-from web_apps.study.assignment import COMPLETE, CONSENT, PLAYED, QUESTIONS, Stage, assign, block_size, stages_of
+from web_apps.study.assignment import COMPLETE, CONSENT, PLAYED, QUESTIONS, Stage, assign, stages_of
 from web_apps.study.config import FORCED_CHOICE, StudyConfig, StudyError, kitchen_of, partner_key, study_partners
 from web_apps.study.database import DATABASE, Refused, StillPlaying, StudyDatabase
 from web_apps.study.pages import allowed_answers, progress_page, stage_page, without_id_page
@@ -150,7 +150,7 @@ def create_study_app(config: StudyConfig, database: StudyDatabase, token: str, o
                 raise HTTPException(400, f"the link's parameters must be 1 to {MAX_ID} characters")
         code = (secrets.token_hex(4).upper() if config.completion_code == "random" else config.completion_code)
         participant = database.register(external_id, secrets.token_urlsafe(12), code,
-                                        lambda number, row: assign(config, number, row), link, block_size(config),
+                                        lambda number, row: assign(config, number, row), link, config.block_size,
                                         config.abandon_after)
         return RedirectResponse(f"/p/{participant['key']}?token={quote(token, safe='')}", status_code=303)
 

@@ -74,7 +74,7 @@ from torch_kitchen.partners.conventions import STRANGER, TRAIN, ZOO_FILE, Conven
 from torch_kitchen.partners.scripted_cook import scripted_actor_critic
 from trainers.checkpoint import CheckpointError
 from web_apps.play.game import ACTIONS, Partner, check_fits, load_partner
-from web_apps.study.assignment import GAME, PLAYED, PRACTICE, block_size
+from web_apps.study.assignment import GAME, PLAYED, PRACTICE
 from web_apps.study.client import (
     Participant,
     ProtocolError,
@@ -466,9 +466,9 @@ def plan_lines(config: StudyConfig, served: StudyConfig, folder: Path, participa
              f"  keys: {'; '.join(keys)}; each participant's noise (its skill: the probability of a key drawn "
              f"uniformly) from U(0, {MAX_NOISE:g})",
              "  answers: the response model of web_apps/study/simulate.py (docs/study.md, \"A pilot by proxies\")"]
-    if participants % block_size(config):
+    if participants % config.block_size:
         lines.append(f"  {participants} participants fill no whole number of the design's blocks of "
-                     f"{block_size(config)}: its counts will be unequal")
+                     f"{config.block_size}: its counts will be unequal")
     return lines
 
 

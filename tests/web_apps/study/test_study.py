@@ -20,7 +20,7 @@ from torch_kitchen import env as kitchen_env  # noqa: E402
 from torch_kitchen.records import read_record  # noqa: E402
 from web_apps.play.game import Game, file_sha256, replay  # noqa: E402
 from web_apps.study.analysis import analyse  # noqa: E402
-from web_apps.study.assignment import assign, block_size, design_counts, latin_square  # noqa: E402
+from web_apps.study.assignment import assign, design_counts  # noqa: E402
 from web_apps.study.client import (  # noqa: E402
     InProcessTransport,
     Participant,
@@ -32,6 +32,7 @@ from web_apps.study.client import (  # noqa: E402
 from web_apps.study.command import main  # noqa: E402
 from web_apps.study.config import StudyError, kitchen_of, load_study, partner_key, study_partners  # noqa: E402
 from web_apps.study.database import StudyDatabase  # noqa: E402
+from web_apps.study.design import latin_square  # noqa: E402
 from web_apps.study.server import create_study_app, open_study, warm_up  # noqa: E402
 
 
@@ -87,7 +88,7 @@ def test_the_design_balances_conditions_kitchens_and_positions_over_every_block(
         conditions = {f"c{i}": "scripted_cook" for i in range(n)}
         config = load_study(study_config(tmp_path / f"{n}{k}{per_condition}", conditions=conditions,
                                          kitchens=kitchens[:k], games_per_participant=n * per_condition), check=False)
-        block = block_size(config)
+        block = config.block_size
         assert block == len(latin_square(n)) * k
         counts = design_counts(config, 2 * block)  # two blocks: every cell of every table the same
         names, positions = list(conditions), [str(p) for p in range(1, n * per_condition + 1)]
