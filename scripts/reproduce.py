@@ -534,8 +534,8 @@ def write_results(path: Path, written: dict[str, str], order: list[str]) -> None
         "NAME`), which rewrites its own section and keeps the others as they were written. Each section says its "
         "budget, machine, time and date; the claims table gathers every section's claims, and its family and learner "
         "columns say which teams each row measures. A verdict is read from a 95% interval over seeds "
-        "(docs/evaluation.md); one that a section written before such intervals decided by comparing means says so "
-        f"({BY_MEANS.strip()}).",
+        "(docs/evaluation.md); one that a section written before such intervals decided by comparing means says so: "
+        f"{BY_MEANS.strip()}.",
         "",
         "## The paper's claims, here",
         "",
