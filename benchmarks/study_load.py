@@ -30,7 +30,14 @@ import yaml
 from play_load import GAPS_HEADER, gaps_row, quantile, resident_mb, save_team, schedule_lag, state_gaps
 
 from trainers.machine import machine_name
-from web_apps.study.client import Participant, ServerTransport, free_port, start_server, wait_until_serving
+from web_apps.study.client import (
+    Participant,
+    ServerTransport,
+    base_url,
+    loopback_listener,
+    start_server,
+    wait_until_serving,
+)
 from web_apps.study.config import load_study
 from web_apps.study.database import CUT, DATABASE, FINISHED, StudyDatabase
 
@@ -133,8 +140,9 @@ def main(argv=None) -> int:
         scratch = Path(scratch)
         team = save_team(scratch / "runs" / "mlp" / "seed0", "mlp")
         config = write_study(scratch, team, args.tick_ms, args.game_steps, args.practice_steps)
-        base, log = f"http://127.0.0.1:{free_port()}", scratch / "server.log"
-        server = start_server(config, int(base.rsplit(":", 1)[1]), TOKEN, log,
+        listener, log = loopback_listener(), scratch / "server.log"
+        base = base_url(listener)
+        server = start_server(config, listener, TOKEN, log,
                               env={"OMP_NUM_THREADS": str(args.torch_threads)})
         try:
             started = time.perf_counter()

@@ -320,17 +320,32 @@ def guard(app: FastAPI, hosts: list[str] | None, token: str | None):
     return admits
 
 
-def port_in_use(host: str, port: int) -> str | None:
-    """Why nothing could serve on host:port (None: it is free), said before an address nothing will answer at is
-    printed. Bound as uvicorn binds: a server started again at once after a kill finds its port's old connections
-    in TIME_WAIT, which do not keep it."""
-    with socket.socket() as probe:
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            probe.bind((host, port))
-        except OSError as failure:
-            return f"cannot serve on {host}:{port}: {failure.strerror} (another server there? choose another --port)"
-    return None
+class AddressError(RuntimeError):
+    """No server can serve on the address asked for; its message is the one line the command prints."""
+
+
+def listening_socket(host: str, port: int) -> socket.socket:
+    """A socket listening on host:port (port 0: a free port, `getsockname()` says which), taken before a server's
+    slow start so that no other process can take the address meanwhile (a connection made during the start waits
+    to be answered) and a busy one is said before any address is printed. Bound as uvicorn binds: a server started
+    again at once after a kill finds its port's old connections in TIME_WAIT, which do not keep it."""
+    listener = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
+    listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        listener.bind((host, port))
+        listener.listen(2048)
+    except OSError as failure:
+        listener.close()
+        raise AddressError(f"cannot serve on {host}:{port}: {failure.strerror} "
+                           "(another server there? choose another --port)") from None
+    return listener
+
+
+def serve(app, listener: socket.socket) -> None:
+    """uvicorn serving `app` on `listener` until SIGTERM or SIGINT; a handler still running 5 s after is cancelled."""
+    import uvicorn
+
+    uvicorn.Server(uvicorn.Config(app, log_level="warning", timeout_graceful_shutdown=5)).run(sockets=[listener])
 
 
 def served_hosts(host: str, port: int, allowed: list[str]) -> list[str]:
@@ -480,7 +495,7 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("runs", nargs="*", help="run directories or checkpoints to offer as partners")
     parser.add_argument("--host", default="127.0.0.1")
-    parser.add_argument("--port", type=int, default=8000)
+    parser.add_argument("--port", type=int, default=8000, help="0: any free port (the link says which)")
     parser.add_argument("--records", default="games", help="folder of the games' JSON Lines records")
     parser.add_argument("--tick-ms", type=int, default=150, help="milliseconds per step in real time")
     parser.add_argument("--max-steps", type=int, default=400, help="steps per game")
@@ -497,24 +512,26 @@ def main(argv: list[str] | None = None) -> int:
     for flag, value in (("--tick-ms", args.tick_ms), ("--max-steps", args.max_steps), ("--idle-s", args.idle_s)):
         if value <= 0:
             parser.error(f"{flag} must be positive, got {value:g}")
-    if (busy := port_in_use(args.host, args.port)) is not None:
+    try:
+        listener = listening_socket(args.host, args.port)
+    except AddressError as busy:
         print(f"kitchen-play: error: {busy}", file=sys.stderr)
         return 2
+    port = listener.getsockname()[1]
     token = secrets.token_urlsafe(16) if args.token == "random" else args.token
     try:
         app = create_app(args.runs, args.records, args.tick_ms, args.device, args.levels, args.max_steps,
-                         idle_s=args.idle_s, hosts=served_hosts(args.host, args.port, args.allow_host), token=token)
+                         idle_s=args.idle_s, hosts=served_hosts(args.host, port, args.allow_host), token=token)
     except ImportError as error:
+        listener.close()
         print(f"kitchen-play: error: {error}", file=sys.stderr)
         return 2
-    import uvicorn
-
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    link = f"http://{args.host}:{args.port}/" + (f"?token={token}" if token else "")
+    link = f"http://{args.host}:{port}/" + (f"?token={token}" if token else "")
     print(f"kitchen-play: open {link} (records in {args.records}/)", flush=True)
     # On SIGTERM or SIGINT every game's socket is closed, which ends its game with the record complete; a handler
     # still running after 5 s is cancelled, which ends its game too.
-    uvicorn.run(app, host=args.host, port=args.port, log_level="warning", timeout_graceful_shutdown=5)
+    serve(app, listener)
     return 0
 
 

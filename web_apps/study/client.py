@@ -17,6 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from web_apps.play.game import ACTIONS
+from web_apps.play.server import listening_socket
 from web_apps.study.config import FORCED_CHOICE
 
 
@@ -163,23 +164,30 @@ class Participant:
         return kind
 
 
-def free_port() -> int:
-    """A loopback port nothing listens on now."""
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
+def loopback_listener() -> socket.socket:
+    """A socket listening on a free loopback port, for a server started here to serve on (`start_server`): the port
+    is held from now on, so no other process can take it before the server starts."""
+    return listening_socket("127.0.0.1", 0)
 
 
-def start_server(config_path: str | Path, port: int, token: str, log: str | Path,
+def base_url(listener: socket.socket) -> str:
+    host, port = listener.getsockname()[:2]
+    return f"http://{host}:{port}"
+
+
+def start_server(config_path: str | Path, listener: socket.socket, token: str, log: str | Path,
                  env: dict[str, str] | None = None, cwd: str | Path | None = None) -> subprocess.Popen:
-    """`kitchen-study run CONFIG` on 127.0.0.1:`port` with the participants' `token`, in a subprocess whose output
-    goes to the end of `log` (`env`: more environment variables; `cwd`: where the config's relative paths start,
-    by default the repository's root)."""
-    command = [sys.executable, "-m", "web_apps.study.command", "run", str(config_path), "--port", str(port),
-               "--token", token]
+    """`kitchen-study run CONFIG` on `listener` (handed to it, and closed here) with the participants' `token`, in a
+    subprocess whose output goes to the end of `log` (`env`: more environment variables; `cwd`: where the config's
+    relative paths start, by default the repository's root)."""
+    command = [sys.executable, "-m", "web_apps.study.command", "run", str(config_path), "--fd",
+               str(listener.fileno()), "--token", token]
     with open(log, "a") as output:
-        return subprocess.Popen(command, cwd=cwd or Path(__file__).resolve().parents[2], stdout=output,
-                                stderr=subprocess.STDOUT, text=True, env={**os.environ, **(env or {})})
+        server = subprocess.Popen(command, cwd=cwd or Path(__file__).resolve().parents[2], stdout=output,
+                                  stderr=subprocess.STDOUT, text=True, env={**os.environ, **(env or {})},
+                                  pass_fds=(listener.fileno(),))
+    listener.close()  # the server's own copy is the only one: if it exits, a connection is refused, not kept waiting
+    return server
 
 
 def wait_until_serving(server: subprocess.Popen, transport: ServerTransport, token: str, log: str | Path,
@@ -190,8 +198,9 @@ def wait_until_serving(server: subprocess.Popen, transport: ServerTransport, tok
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if server.poll() is not None:
-            raise ProtocolError(f"the study's server exited ({server.returncode}):\n"
-                                f"{Path(log).read_text()[-3000:]}")
+            said = Path(log).read_text()
+            last = ([line for line in said.splitlines() if line.strip()] or ["its log is empty"])[-1]
+            raise ProtocolError(f"the study's server exited ({server.returncode}): {last}\n{said[-3000:]}")
         try:
             if transport.get(f"/api/p/nobody?token={token}").status_code == 404:
                 return

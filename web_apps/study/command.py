@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+import socket
 import sys
 from pathlib import Path
 
-from web_apps.play.server import port_in_use, served_hosts
+from web_apps.play.server import AddressError, listening_socket, serve, served_hosts
 from web_apps.study.assignment import assign, design_counts
 from web_apps.study.config import StudyError, load_study, study_partners
 from web_apps.study.power import SIZES
@@ -50,6 +51,16 @@ def check(args) -> int:
     return 0
 
 
+def study_listener(args) -> socket.socket:
+    """The socket a study serves on: the inherited one of --fd, or one listening on --host and --port."""
+    if args.fd is None:
+        return listening_socket(args.host, args.port)
+    try:
+        return socket.socket(fileno=args.fd)
+    except OSError as failure:
+        raise AddressError(f"--fd {args.fd}: {failure.strerror}") from None
+
+
 def run(args) -> int:
     from web_apps.study.server import create_study_app, open_study, warm_up
 
@@ -58,28 +69,28 @@ def run(args) -> int:
         partners = study_partners(config)  # the check, and the partners the server's games share
     except StudyError as failure:
         raise StudyError(f"{args.config}: {failure}") from None
-    if (busy := port_in_use(args.host, args.port)) is not None:
-        return error(busy)
     try:
         import uvicorn  # noqa: F401
     except ImportError:
         return error("kitchen-study needs the play extra: pip install .[play]")
+    try:  # the address is taken before the warm-up, so that nothing else takes it meanwhile
+        listener = study_listener(args)
+    except AddressError as busy:
+        return error(str(busy))
+    host, port = listener.getsockname()[:2]
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")  # before the restart's line
     print(f"{PROG}: warming every kitchen and partner up, so that no participant waits for a compilation ...",
           flush=True)
     games, seconds = warm_up(config, partners)
     print(f"{PROG}: {games} kitchen and partner pairs warmed up in {seconds:.1f} s", flush=True)
     database, token, operator = open_study(config, args.token)
-    app = create_study_app(config, database, token, operator, served_hosts(args.host, args.port, args.allow_host),
-                           partners)
-    base = f"http://{args.host}:{args.port}"
+    app = create_study_app(config, database, token, operator, served_hosts(host, port, args.allow_host), partners)
+    base = f"http://{host}:{port}"
     print(f"{PROG}: study {config.name} in {config.folder}/\n"
           f"  participants: {base}/?token={token}&{config.participant_param}=<their id>\n"
           f"  operator:     {base}/operator?token={token}&key={operator}", flush=True)
-    import uvicorn
-
     # On SIGTERM or SIGINT every game's socket is closed, which ends its game as cut (played again on return).
-    uvicorn.run(app, host=args.host, port=args.port, log_level="warning", timeout_graceful_shutdown=5)
+    serve(app, listener)
     database.close()
     return 0
 
@@ -129,7 +140,10 @@ def main(argv: list[str] | None = None) -> int:
     serving = commands.add_parser("run", help="serve a study (resumes it where it stopped)")
     serving.add_argument("config")
     serving.add_argument("--host", default="127.0.0.1")
-    serving.add_argument("--port", type=int, default=8000)
+    serving.add_argument("--port", type=int, default=8000, help="0: any free port (the links say which)")
+    serving.add_argument("--fd", type=int, metavar="FD",
+                         help="serve on this inherited listening socket instead of --host and --port (a process "
+                              "that starts the server, e.g. kitchen-study simulate, owns the address)")
     serving.add_argument("--token", help="the participants' key in the link (default: the study's own, made once)")
     serving.add_argument("--allow-host", action="append", default=[], metavar="HOST[:PORT]",
                          help="another Host header to answer to (the study behind a proxy or a public name)")

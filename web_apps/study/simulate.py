@@ -4,9 +4,9 @@ study's own server, from its link to its completion code, into a study folder th
 
 The server is `kitchen-study run` of a copy of the config (STUDY_DIR/study.yaml: its `out_dir` the simulation's
 folder and, unless `--keep-pace`, its pace `turns`, so that the kitchen steps as soon as a participant's key arrives,
-the fastest the server allows), in a subprocess on a free port, its log in STUDY_DIR/server.log. Each participant
-(`ProxyParticipant`, on a thread of its own, `--parallel` at once) speaks the pages' protocol
-(`web_apps.study.client.Participant`: HTTP for the stages, a WebSocket for the games).
+the fastest the server allows), in a subprocess on a free port held from before its start (`--fd`), its log in
+STUDY_DIR/server.log. Each participant (`ProxyParticipant`, on a thread of its own, `--parallel` at once) speaks the
+pages' protocol (`web_apps.study.client.Participant`: HTTP for the stages, a WebSocket for the games).
 
 Its keys. Each state the server sends (the cells' kinds and contents, the cooks' cells, facings and hands, the step
 and the steps left) is rebuilt as the kitchen's `State` and read through the env's own observation function
@@ -80,7 +80,8 @@ from web_apps.study.client import (
     ProtocolError,
     ServerTransport,
     Socket,
-    free_port,
+    base_url,
+    loopback_listener,
     start_server,
     wait_until_serving,
 )
@@ -382,9 +383,9 @@ def write_simulated_config(config: StudyConfig, folder: Path, keep_pace: bool, m
 def study_server(config_path: Path, folder: Path) -> Iterator[tuple[str, str]]:
     """`kitchen-study run` of `config_path` in a subprocess started here (where the config's relative paths start),
     its log in `folder`, stopped on the way out: yields its base URL and its participants' token."""
-    token, port, log = secrets.token_urlsafe(16), free_port(), folder / SERVER_LOG
-    server = start_server(config_path.resolve(), port, token, log, cwd=Path.cwd())
-    base = f"http://127.0.0.1:{port}"
+    token, listener, log = secrets.token_urlsafe(16), loopback_listener(), folder / SERVER_LOG
+    base = base_url(listener)
+    server = start_server(config_path.resolve(), listener, token, log, cwd=Path.cwd())
     try:
         try:
             wait_until_serving(server, ServerTransport(base), token, log, timeout_s=300)

@@ -19,13 +19,16 @@ from tiny_study import TOKEN, study_config  # noqa: E402
 from torch_kitchen import env as kitchen_env  # noqa: E402
 from torch_kitchen.records import read_record  # noqa: E402
 from web_apps.play.game import Game, file_sha256, replay  # noqa: E402
+from web_apps.play.server import AddressError, listening_socket  # noqa: E402
 from web_apps.study.analysis import analyse  # noqa: E402
 from web_apps.study.assignment import assign, design_counts  # noqa: E402
 from web_apps.study.client import (  # noqa: E402
     InProcessTransport,
     Participant,
+    ProtocolError,
     ServerTransport,
-    free_port,
+    base_url,
+    loopback_listener,
     start_server,
     wait_until_serving,
 )
@@ -284,14 +287,28 @@ def test_a_restarted_study_refuses_another_config(study, tmp_path):
         open_study(changed)
 
 
+def test_a_server_started_here_owns_its_port_from_the_start_and_its_exit_is_said_in_the_errors_first_line(tmp_path):
+    listener = loopback_listener()
+    host, port = listener.getsockname()[:2]
+    with pytest.raises(AddressError, match=f"cannot serve on {host}:{port}"):  # no other server can take it
+        listening_socket(host, port)
+    config_path = study_config(tmp_path, kitchens=["no_such_kitchen"])
+    log = tmp_path / "server.log"
+    server = start_server(config_path, listener, TOKEN, log)
+    with pytest.raises(ProtocolError) as exited:
+        wait_until_serving(server, ServerTransport(f"http://{host}:{port}"), TOKEN, log)
+    first = str(exited.value).splitlines()[0]
+    assert first.startswith("the study's server exited (2): kitchen-study: error:") and "no_such_kitchen" in first
+
+
 def test_six_participants_through_a_server_killed_mid_study_and_the_report_traces_to_records(tmp_path):
     config_path = study_config(tmp_path)
     config = load_study(config_path, check=False)
     database_path = config.folder / "study.sqlite"
-    port = free_port()
-    transport = ServerTransport(f"http://127.0.0.1:{port}")
+    listener = loopback_listener()
+    transport = ServerTransport(base_url(listener))
     log = tmp_path / "server.log"
-    server = start_server(config_path, port, TOKEN, log)
+    server = start_server(config_path, listener, TOKEN, log)
     try:
         wait_until_serving(server, transport, TOKEN, log)
         people = [Participant(transport, f"P{i}", TOKEN) for i in range(6)]

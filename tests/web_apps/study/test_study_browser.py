@@ -19,7 +19,7 @@ from tiny_study import TOKEN, study_config  # noqa: E402
 
 from torch_kitchen.records import read_record  # noqa: E402
 from web_apps.play.game import ACTIONS  # noqa: E402
-from web_apps.study.client import free_port  # noqa: E402
+from web_apps.study.client import base_url, loopback_listener  # noqa: E402
 from web_apps.study.config import FORCED_CHOICE, load_study  # noqa: E402
 from web_apps.study.server import create_study_app, open_study  # noqa: E402
 
@@ -35,14 +35,13 @@ def study(tmp_path):
     """A two-condition study in real time with short, fast games, served by uvicorn on a thread."""
     config = load_study(study_config(tmp_path, pace="realtime", tick_ms=40, max_steps=20, practice_steps=12))
     database, token, operator = open_study(config, TOKEN)
-    port = free_port()
-    server = uvicorn.Server(uvicorn.Config(create_study_app(config, database, token, operator), host="127.0.0.1",
-                                           port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
+    listener = loopback_listener()
+    server = uvicorn.Server(uvicorn.Config(create_study_app(config, database, token, operator), log_level="warning"))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [listener]}, daemon=True)
     thread.start()
     while not server.started:
         time.sleep(0.05)
-    yield f"http://127.0.0.1:{port}", config, database
+    yield base_url(listener), config, database
     server.should_exit = True
     thread.join(timeout=10)
     database.close()
