@@ -26,10 +26,12 @@ HANDOVER, IDLE = 4, 10
 
 
 class CookConvention(NamedTuple):
-    """A convention as arrays, each with any leading batch shape of the observations' rows: goal scores [K] and what
-    a goal off the cook's role loses while its own work waits [K]; the goals that are its own work (bool [K]); the
-    move order (int [4], indices of NORTH, SOUTH, EAST, WEST); the goal and move temperatures, noise and whether it
-    prefers hand-overs (scalars)."""
+    """A convention as arrays, each with any leading batch shape of the observations' rows: goal scores [K]; what a
+    goal off the cook's role loses while its own work waits [2, K] and the goals that are its own work (bool [2, K]),
+    each as the first cook of the two by position (west of its partner, north where they share a column) and as the
+    second, which differ for a convention that splits the work by side; the move order (int [4], indices of NORTH,
+    SOUTH, EAST, WEST); the goal and move temperatures, noise, whether it prefers hand-overs and whether it keeps to
+    its role when none of its own work can be done (scalars)."""
 
     scores: jax.Array
     off_role: jax.Array
@@ -39,6 +41,7 @@ class CookConvention(NamedTuple):
     move_temperature: jax.Array
     noise: jax.Array
     prefer_handover: jax.Array
+    strict_role: jax.Array
 
 
 def _shift(grid: jax.Array, dx: int, dy: int, fill) -> jax.Array:
@@ -85,13 +88,30 @@ def distance_from(sources: jax.Array, walkable: jax.Array) -> jax.Array:
     return distance
 
 
-PER_GOAL = ("scores", "off_role", "own_work", "move_order")  # the fields that are vectors (the others scalars)
+RANKS = {"scores": 1, "off_role": 2, "own_work": 2, "move_order": 1}  # a field's dims beyond the rows' (else 0)
 
 
 def per_row(convention: CookConvention, n: int) -> CookConvention:
     """The convention's arrays with a leading dim of n rows: one convention for every row, or one per row."""
-    return CookConvention(*(jnp.broadcast_to(jnp.asarray(leaf), (n, jnp.shape(leaf)[-1]) if name in PER_GOAL else (n,))
-                            for name, leaf in zip(CookConvention._fields, convention)))
+    def rows(name, leaf):
+        rank = RANKS.get(name, 0)
+        return jnp.broadcast_to(jnp.asarray(leaf), (n, *jnp.shape(leaf)[jnp.ndim(leaf) - rank:]))
+
+    return CookConvention(*(rows(name, leaf) for name, leaf in zip(CookConvention._fields, convention)))
+
+
+def by_side(convention: CookConvention, me: jax.Array, partner: jax.Array) -> CookConvention:
+    """Rows [N] of a convention with its role arrays [N, K] as each cook's side makes them: the first of the two by
+    position (west of its partner, north where they share a column; bool [N, H, W] cells) plays the first row."""
+    height, width = me.shape[-2:]
+
+    def place(cells):  # column-major order: west before east, then north before south
+        index = cells.reshape(cells.shape[0], -1).argmax(-1)
+        return (index % width) * height + index // width
+
+    second = (place(me) > place(partner))[:, None]
+    return convention._replace(off_role=jnp.where(second, convention.off_role[:, 1], convention.off_role[:, 0]),
+                               own_work=jnp.where(second, convention.own_work[:, 1], convention.own_work[:, 0]))
 
 
 def walkable_floor(observation: jax.Array) -> jax.Array:
@@ -135,10 +155,10 @@ def cook_logits(observation: jax.Array, convention: CookConvention, tables: jax.
     waves around a partner in the way run for that many rows at most, those that meet their partner, where no more
     of them do (a CPU's saving: the choice is a branch the host reads, so None, every row's, on a GPU)."""
     n = observation.shape[0]
-    conv = per_row(convention, n)
     obs = observation.astype(jnp.float32)
     present = obs > 0
     me, partner = present[..., Channel.SELF], present[..., Channel.PARTNER]
+    conv = by_side(per_row(convention, n), me, partner)
     walkable = walkable_floor(observation)
 
     def distances(cells):  # [N, ..., H, W] of one cell each -> steps from it to every cell [N, ..., H * W]
@@ -248,7 +268,7 @@ def _goal_weights(conv: CookConvention, steps: jax.Array, ends: jax.Array, partn
     n, k = steps.shape[:2]
     here = steps[..., 0]
     reachable = (here < UNREACHABLE).at[:, IDLE].set(True)
-    busy = (reachable & conv.own_work).any(1, keepdims=True)
+    busy = (reachable & conv.own_work).any(1, keepdims=True) | conv.strict_role[:, None]
     scores = jnp.where(reachable, conv.scores - busy * conv.off_role, -jnp.inf)
     hot = conv.goal_temperature[:, None] > 0
     tempered = jax.nn.softmax(scores / jnp.where(hot, conv.goal_temperature[:, None], 1.0), axis=1)

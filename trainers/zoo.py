@@ -41,6 +41,7 @@ from jax_env.generator import SIZES as GENERATOR_SIZES
 from jax_env.layouts import padded_layouts
 from torch_kitchen.events import EVENTS
 from torch_kitchen.partners.conventions import (
+    ROLES,
     STRANGER,
     TRAIN,
     ZOO_FILE,
@@ -147,11 +148,11 @@ def self_play(conventions: Sequence[Convention], grids: list, rollouts: int, see
 
 def draw_zoo(seed: int = 0, candidates: int = 96, keep: int = 32, strangers: int = 8, levels: int = 64,
              kitchen_size: int = 7, min_cooked: float = 0.6, max_envs: int = 4096, workers: int = 1,
-             progress: bool = True, max_steps: int = 256) -> Zoo:
-    """Draws, plays (`max_steps`-step episodes), filters and selects a zoo (see the module docstring).
-    Deterministic for its arguments."""
+             progress: bool = True, max_steps: int = 256, roles: Sequence[str] = ROLES) -> Zoo:
+    """Draws (each convention's role among `roles`), plays (`max_steps`-step episodes), filters and selects a zoo
+    (see the module docstring). Deterministic for its arguments."""
     rng = random.Random(seed)
-    drawn = [draw_convention(rng, f"cook_{seed}_{i:03d}") for i in range(candidates)]
+    drawn = [draw_convention(rng, f"cook_{seed}_{i:03d}", roles) for i in range(candidates)]
     deliveries, events = self_play(drawn, zoo_levels(seed, levels, kitchen_size), 1, seed, max_envs, workers,
                                    progress, max_steps)
     cooked = (deliveries > 0).mean((1, 2))
@@ -326,6 +327,9 @@ def zoo_parser() -> argparse.ArgumentParser:
     drawing.add_argument("--workers", type=int, default=1, help="processes that play at once")
     drawing.add_argument("--max-steps", type=int, default=256,
                       help="steps of an episode, in the draw, the table and the clash alike")
+    drawing.add_argument("--roles", nargs="+", choices=ROLES, default=list(ROLES),
+                         help="the roles a convention may draw (both loader server: the zoo as drawn before the work "
+                              "could be split by side)")
     drawing.add_argument("--out", default=str(Path(ZOO_FILE).parent), help="folder of zoo.yaml and zoo.md")
     clashes = verbs.add_parser("clash", help="convention x convention cross-play of a zoo: clash.md, .csv and heat map")
     clashes.add_argument("zoo", nargs="?", default=ZOO_FILE)
@@ -371,7 +375,7 @@ def draw(args: argparse.Namespace) -> None:
         raise ConfigError(f"need 0 <= strangers <= keep <= candidates, got {args.strangers}, {args.keep}, "
                           f"{args.candidates}")
     zoo = draw_zoo(args.seed, args.candidates, args.keep, args.strangers, args.levels, args.kitchen_size,
-                   args.min_cooked, workers=args.workers, max_steps=args.max_steps)
+                   args.min_cooked, workers=args.workers, max_steps=args.max_steps, roles=args.roles)
     table = zoo_table(zoo, args.table_heldout, args.table_rollouts, args.seed, 4096, args.workers, True,
                       args.max_steps)
     out = Path(args.out)
@@ -383,6 +387,7 @@ def draw(args: argparse.Namespace) -> None:
                                 f"{args.candidates} --keep {args.keep} --strangers {args.strangers} --levels "
                                 f"{args.levels} --clash-heldout {args.clash_heldout}"
                                 + (f" --max-steps {args.max_steps}" if args.max_steps != 256 else "")
+                                + (f" --roles {' '.join(args.roles)}" if list(args.roles) != list(ROLES) else "")
                                 + "`\n\n" + table)
     print(table)
     print(f"wrote {out / 'zoo.md'}")

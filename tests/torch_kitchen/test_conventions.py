@@ -1,3 +1,4 @@
+import dataclasses
 import random
 
 import pytest
@@ -7,8 +8,18 @@ from jax_env import STAY, Channel
 from jax_env.layouts import parse_layout
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.events import EVENTS, kitchen_events
-from torch_kitchen.partners.conventions import Convention, ConventionError, draw_convention
+from torch_kitchen.partners.conventions import (
+    ROLES,
+    SIDES,
+    STRANGER,
+    ZOO_FILE,
+    Convention,
+    ConventionError,
+    draw_convention,
+    load_zoo,
+)
 from torch_kitchen.partners.scripted_cook import ScriptedCook
+from trainers.zoo import stranger_by_content
 
 # Two pots at the top, onions on the left, plates on the right of cook 0's row; cook 1 below it.
 TWO_POTS = """
@@ -33,8 +44,8 @@ def _kitchen(cooking_pot: bool) -> torch.Tensor:
     return observation
 
 
-def _planned(convention: Convention, observation: torch.Tensor) -> int:
-    logits = ScriptedCook(convention)(observation)[0, 0]
+def _planned(convention: Convention, observation: torch.Tensor, seat: int = 0) -> int:
+    logits = ScriptedCook(convention)(observation)[0, seat]
     assert (logits == 0).sum() == 1, logits  # a certain plan
     return int(logits.argmax())
 
@@ -56,6 +67,23 @@ def test_a_server_fetches_the_plate_whatever_it_prefers_and_preferences_reorder_
     assert _planned(server, kitchen) == EAST  # its role keeps it on the plate while one is wanted
     idler = Convention(name="idler", preferences={"idle": 1.0})
     assert _planned(idler, kitchen) == STAY
+
+
+def test_a_split_by_side_plays_each_seat_the_role_of_its_place_and_a_strict_one_keeps_to_it():
+    kitchen = _kitchen(cooking_pot=True)  # the cooks share a column: cook 0, the northern, is the first
+    loader, server = Convention(name="l", role="loader"), Convention(name="s", role="server")
+    assert _planned(loader, kitchen) != _planned(server, kitchen)
+    swapped = kitchen[:, [1, 0]]  # the seats' views swapped: seat 0 sees as the southern cook, the second
+    for split, first, second in [("west_loads", loader, server), ("west_serves", server, loader)]:
+        by_side = ScriptedCook(Convention(name=split, role=split))
+        for view, roles in [(kitchen, (first, second)), (swapped, (second, first))]:
+            assert torch.equal(by_side(view), torch.stack([ScriptedCook(role)(view)[:, seat] for seat, role in
+                                                           enumerate(roles)], 1))
+    # With no pot cooking no plate is wanted: a server fills pots meanwhile, a strict one fetches a plate for later.
+    idle_kitchen = _kitchen(cooking_pot=False)
+    first_serves = Convention(name="first_serves", role="west_serves")
+    assert _planned(first_serves, idle_kitchen) == WEST
+    assert _planned(dataclasses.replace(first_serves, strict_role=True), idle_kitchen) == EAST
 
 
 def test_temperatures_and_noise_spread_the_actions_and_the_default_is_the_scripted_cook():
@@ -80,8 +108,19 @@ def test_conventions_refuse_unknown_names_in_one_line_and_draws_are_deterministi
     assert first == [draw_convention(random.Random(3), f"c{i}") for i in range(5)]
     drawn = [draw_convention(random.Random(seed), "c") for seed in range(40)]
     assert all(1 <= sum(w != 0 for w in c.preferences.values()) <= 3 for c in drawn)
-    assert {c.role for c in drawn} == {"both", "loader", "server"} and len({c.move_order for c in drawn}) > 5
+    assert {c.role for c in drawn} == set(ROLES) and len({c.move_order for c in drawn}) > 5
+    assert any(c.strict_role for c in drawn) and all(c.role in SIDES for c in drawn if c.strict_role)
     assert Convention.from_dict(first[0].as_dict()) == first[0]
+
+
+def test_the_shipped_zoo_is_drawn_again_with_the_roles_of_its_day_and_keeps_its_fingerprints():
+    zoo = load_zoo(ZOO_FILE)
+    rng = random.Random(zoo.seed)
+    drawn = [draw_convention(rng, f"cook_{zoo.seed}_{i:03d}", ("both", "loader", "server")) for i in range(zoo.drawn)]
+    by_name = {convention.name: convention for convention in drawn}
+    assert all(by_name[member.name] == member.convention for member in zoo.members)
+    # The knobs added since count in a fingerprint only where set, so the split by content still holds.
+    assert all(stranger_by_content(member.convention) == (member.split == STRANGER) for member in zoo.members)
 
 
 def test_events_are_read_off_the_observations_before_and_after_a_step():

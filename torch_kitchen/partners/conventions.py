@@ -4,7 +4,12 @@
     preferences       event -> weight in [-1, 1]: goals that lead to the event are taken earlier (> 0) or later
                       (< 0); ZSC-Eval's evaluation partners are such weight vectors, with at most three non-zero
     role              "both"; "loader": takes plates and soups only where no onion can go in a pot; "server": takes
-                      onions only where no plate or soup can be taken
+                      onions only where no plate or soup can be taken; "west_loads": the work split by side, the cook
+                      west of its partner (north where they share a column) a loader and the other a server, so two
+                      cooks of the convention always split it while beside "west_serves", the mirror, both take the
+                      same part
+    strict_role       False: a loader or server does the other part of the work while none of its own can be done;
+                      True: it waits for its own instead
     handover          "when_needed": puts an item on a counter the partner can reach where it cannot carry it to its
                       goal itself; "prefer": also where the partner is nearer that goal; "avoid": never
     move_order        the move taken among equally short ones (a permutation of "NSEW")
@@ -32,7 +37,9 @@ import yaml
 from jax_env import GeneratorConfig
 from torch_kitchen.events import EVENTS
 
-ROLES = ("both", "loader", "server")
+ROLES = ("both", "loader", "server", "west_loads", "west_serves")
+# The roles a convention plays as the first cook of the two by position (west, or north in one column) and the second.
+SIDES = {"west_loads": ("loader", "server"), "west_serves": ("server", "loader")}
 HANDOVERS = ("when_needed", "prefer", "avoid")
 MOVE_ORDER = "NSEW"  # the move a cook takes where several are equally short: the first of them in this order
 MAX_PREFERENCES = 3  # ZSC-Eval's partners: at most three events with a non-zero weight
@@ -49,6 +56,7 @@ class Convention:
     name: str = "scripted_cook"
     preferences: dict[str, float] = field(default_factory=dict)
     role: str = "both"
+    strict_role: bool = False
     handover: str = "when_needed"
     move_order: str = MOVE_ORDER
     goal_temperature: float = 0.0
@@ -80,6 +88,11 @@ class Convention:
     def weight(self, event: str) -> float:
         return float(self.preferences.get(event, 0.0))
 
+    @property
+    def roles_by_side(self) -> tuple[str, str]:
+        """Its role as the first cook of the two by position and as the second (the same but for a split by side)."""
+        return SIDES.get(self.role, (self.role, self.role))
+
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
 
@@ -89,6 +102,8 @@ class Convention:
         into another zoo file, has the same fingerprint."""
         values = {key: value for key, value in self.as_dict().items() if key != "name"}
         values["preferences"] = {event: weight for event, weight in sorted(self.preferences.items()) if weight}
+        if not self.strict_role:  # a knob added later counts only where it is set: older fingerprints stand
+            del values["strict_role"]
         text = json.dumps(values, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -121,18 +136,29 @@ def fingerprints(conventions: Iterable[Convention]) -> dict[str, str]:
     return {convention.fingerprint: convention.name for convention in conventions}
 
 
-def draw_convention(rng: random.Random, name: str) -> Convention:
-    """A convention drawn from `rng`: one to three preferred or avoided events, a role, a hand-over habit, a move
-    order, and a little irrationality (a third of them plan without temperatures, as the scripted cook)."""
+# How often a drawn convention takes each role, among those a draw allows: the work split by side is the convention
+# of a pair (a cook of it beside its own kind splits the work; beside the mirror both take one part), so it is drawn
+# most, and strict (`strict_role`) with probability STRICT_SIDES, where it makes a mismatched split cost deliveries.
+ROLE_WEIGHTS = {"both": 2, "loader": 1, "server": 1, "west_loads": 3, "west_serves": 3}
+STRICT_SIDES = 0.75
+
+
+def draw_convention(rng: random.Random, name: str, roles: Sequence[str] = ROLES) -> Convention:
+    """A convention drawn from `rng`: one to three preferred or avoided events, a role among `roles` (by
+    `ROLE_WEIGHTS`; a split by side strict or not), a hand-over habit, a move order, and a little irrationality (a
+    third of them plan without temperatures, as the scripted cook). With roles ("both", "loader", "server") it draws
+    what it drew before the split by side existed, convention for convention."""
     events = rng.sample(EVENTS, rng.randint(1, MAX_PREFERENCES))
     preferences = {event: round(rng.choice((-1, 1)) * rng.uniform(0.3, 1.0), 2) for event in events}
-    role = rng.choices(ROLES, weights=(2, 1, 1))[0]
+    role = rng.choices(list(roles), weights=[ROLE_WEIGHTS[role] for role in roles])[0]
+    strict = role in SIDES and rng.random() < STRICT_SIDES
     handover = rng.choices(HANDOVERS, weights=(2, 1, 1))[0]
     order = list(MOVE_ORDER)
     rng.shuffle(order)
     rational = rng.random() < 1 / 3
     return Convention(
-        name=name, preferences=preferences, role=role, handover=handover, move_order="".join(order),
+        name=name, preferences=preferences, role=role, strict_role=strict, handover=handover,
+        move_order="".join(order),
         goal_temperature=0.0 if rational else round(rng.choice((0.0, 0.5, 1.0, 2.0)), 2),
         move_temperature=0.0 if rational else round(rng.choice((0.0, 0.5, 1.0)), 2),
         noise=0.0 if rational else round(rng.choice((0.0, 0.02, 0.05, 0.1)), 2),

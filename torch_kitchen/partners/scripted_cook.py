@@ -132,20 +132,26 @@ GOALS = (
     Goal("onion_pickup", "loader"),  # empty: an onion
     Goal("idle", None),  # stay where it is: only for a convention with a weight on idling
 )
+CARRYING = (0, 1, 2, 3)  # the goals of a cook that holds an item: a strict role still finishes what it holds
 PRODUCTIVE = (0, 1, 2, 3, 5, 6, 7)  # the goals that bring a soup nearer (not a plate or an onion for later)
 
 
-def goal_scores(convention: Convention) -> tuple[torch.Tensor, torch.Tensor]:
-    """float [K], [K]: each goal's score under `convention`, and what its role takes off the score while the cook's
-    own part of the work waits for it; a cook takes the best goal it can reach (or draws one by the scores)."""
+def goal_scores(convention: Convention, role: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """float [K], [K]: each goal's score under `convention`, and what `role` (by default the convention's) takes off
+    the score while the cook's own part of the work waits for it; a cook takes the best goal it can reach (or draws
+    one by the scores)."""
+    role = convention.role if role is None else role
     scores, off_role = [], []
     for rank, goal in enumerate(GOALS):
         score = -rank + PREFERENCE_SCALE * convention.weight(goal.event)
-        if (goal.event == "idle" and not convention.weight("idle")) or (
+        if goal.event == "idle" and convention.strict_role and role != "both" and not convention.weight("idle"):
+            score = -ROLE_PENALTY / 2  # waiting, rather than the other role's work
+        elif (goal.event == "idle" and not convention.weight("idle")) or (
                 goal.event == "counter_place" and convention.handover == "avoid"):
             score = -math.inf  # never taken
         scores.append(score)
-        off_role.append(ROLE_PENALTY if convention.role != "both" and goal.role not in (None, convention.role) else 0)
+        keeps_to = goal.role not in (None, role) and not (convention.strict_role and rank in CARRYING)
+        off_role.append(ROLE_PENALTY if role != "both" and keeps_to else 0)
     return torch.tensor(scores), torch.tensor(off_role, dtype=torch.float32)
 
 
@@ -154,16 +160,19 @@ _COOK = jax.jit(cook_logits, static_argnames="detour_rows")
 
 
 def cook_convention(convention: Convention = Convention()) -> CookConvention:
-    """The arrays the cook (`jax_env.cook`) plays a convention by: its goals' scores, what a goal off its role loses,
-    its own work, its move order, temperatures, noise and hand-over habit."""
-    scores, off_role = goal_scores(convention)
-    own = [goal.role == convention.role and i in PRODUCTIVE for i, goal in enumerate(GOALS)]
+    """The arrays the cook (`jax_env.cook`) plays a convention by: its goals' scores, what a goal off its role loses
+    and its own work (as the first cook by position and as the second), its move order, temperatures, noise and
+    hand-over habit."""
+    sides = convention.roles_by_side
+    scores = goal_scores(convention)[0]
+    off_role = torch.stack([goal_scores(convention, role)[1] for role in sides])
+    own = [[goal.role == role and i in PRODUCTIVE for i, goal in enumerate(GOALS)] for role in sides]
     return CookConvention(
         scores=scores.numpy(), off_role=off_role.numpy(), own_work=np.array(own),
         move_order=np.array([MOVE_ORDER.index(direction) for direction in convention.move_order], dtype=np.int32),
         goal_temperature=np.float32(convention.goal_temperature),
         move_temperature=np.float32(convention.move_temperature), noise=np.float32(convention.noise),
-        prefer_handover=np.bool_(convention.handover == "prefer"),
+        prefer_handover=np.bool_(convention.handover == "prefer"), strict_role=np.bool_(convention.strict_role),
     )  # fmt: skip
 
 
