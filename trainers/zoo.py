@@ -27,6 +27,7 @@ the same command.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import random
 import sys
 from collections import Counter
@@ -339,6 +340,8 @@ def zoo_parser() -> argparse.ArgumentParser:
     clashes.add_argument("--seed", type=int, default=0)
     clashes.add_argument("--workers", type=int, default=1, help="processes that play at once")
     clashes.add_argument("--out", default="results/clash", help="folder of clash.md, clash.csv, heatmap_clash.png")
+    clashes.add_argument("--conventions", nargs="+", metavar="NAME",
+                         help="these conventions of the zoo only, in this order (default: every one)")
     showing = verbs.add_parser("show", help="print a zoo file's conventions")
     showing.add_argument("zoo", nargs="?", default=ZOO_FILE)
     saving = verbs.add_parser("save", help="save cooks of a zoo as runs that kitchen-eval and kitchen-play read")
@@ -361,8 +364,15 @@ def save(args: argparse.Namespace) -> None:
 
 
 def clash_command(args: argparse.Namespace) -> None:
-    out = Path(args.out)
-    table = clash(load_zoo(args.zoo), out, args.heldout, args.rollouts, args.seed, args.workers, True, args.max_steps)
+    out, zoo = Path(args.out), load_zoo(args.zoo)
+    if args.conventions:
+        members = {member.name: member for member in zoo.members}
+        unknown = [name for name in args.conventions if name not in members]
+        if unknown or len(set(args.conventions)) < 2:
+            wanted = f"no {', '.join(unknown)} in" if unknown else "two or more of"
+            raise ConventionError(f"--conventions: {wanted} {args.zoo}; its conventions: {', '.join(members)}")
+        zoo = dataclasses.replace(zoo, members=[members[name] for name in dict.fromkeys(args.conventions)])
+    table = clash(zoo, out, args.heldout, args.rollouts, args.seed, args.workers, True, args.max_steps)
     (out / "clash.md").write_text(f"# Convention x convention: {args.zoo}\n\n" + table
                                   + "\n![convention x convention](heatmap_clash.png)\n")
     print(table)

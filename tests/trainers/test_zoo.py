@@ -310,3 +310,18 @@ def test_a_cook_of_the_zoo_is_saved_and_loaded_as_a_team_with_its_convention(tmp
     assert zoo_main(["save", "nobody", "--zoo", zoo_file, "--run-dir", str(tmp_path)]) == 2
     error = capsys.readouterr().err
     assert "no convention 'nobody'" in error and error.count("\n") == 1
+
+
+def test_a_clash_of_named_conventions_plays_those_alone_and_an_unknown_name_is_refused_in_one_line(
+        tmp_path, zoo_file, capsys):
+    out = tmp_path / "clash"
+    assert zoo_main(["clash", zoo_file, "--conventions", "stranger", "loader", "--heldout", "0", "--max-steps", "4",
+                     "--out", str(out)]) == 0
+    pairs = {(row["seat0"], row["seat1"]) for row in csv.DictReader((out / "clash.csv").open())}
+    assert pairs == {(a, b) for a in ("stranger", "loader") for b in ("stranger", "loader")}
+    capsys.readouterr()
+    for names, words in [(["loader", "nobody"], "no nobody in"), (["loader", "loader"], "two or more of")]:
+        assert zoo_main(["clash", zoo_file, "--conventions", *names, "--out", str(tmp_path / "refused")]) == 2
+        error = capsys.readouterr().err
+        assert words in error and "loader" in error and error.count("\n") == 1
+    assert not (tmp_path / "refused").exists()
