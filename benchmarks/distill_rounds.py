@@ -107,7 +107,8 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", type=Path, default=ROOT / "configs" / "main.yaml")
     parser.add_argument("--before",
-                        default="distill.epochs=8 distill.minibatch=4 distill.replay=0 runtime.collector=kitchen",
+                        default="distill.epochs=8 distill.minibatch=4 distill.lr=3e-3 distill.replay=0 "
+                                "runtime.collector=kitchen",
                         help="overrides of the fitting as it was, in one string")
     parser.add_argument("--also", action="append", default=[], metavar="OVERRIDES",
                         help="another fitting to time beside the config's, its overrides in one string (repeatable)")

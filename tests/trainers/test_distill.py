@@ -101,7 +101,7 @@ def test_a_distillation_resumed_after_a_round_ends_as_one_run_straight_through(t
     assert load_checkpoint(stopped)["update"] == 2
     assert main(["--resume", str(stopped), "distill.lr=0.1"]) == 2  # another lesson: refused, nothing changed
     error = capsys.readouterr().err
-    assert error.count("\n") == 1 and "was trained with distill.lr=0.003, not distill.lr=0.1" in error
+    assert error.count("\n") == 1 and "was trained with distill.lr=0.006, not distill.lr=0.1" in error
     assert load_checkpoint(stopped)["update"] == 2
     assert main(["--resume", str(stopped)]) == 0
     for part in ("actor", "critic", "optimizer", "env"):

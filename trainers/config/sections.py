@@ -136,10 +136,10 @@ class DistillConfig:
              "the rounds before it (fewer gradient steps: a worse start at the main job's budget, BENCHMARKS.md)"
     )
     minibatch: int = option(
-        1, "kitchens' steps per fitting step: whole sequences for a recurrent learner, else as many steps drawn "
+        4, "kitchens' steps per fitting step: whole sequences for a recurrent learner, else as many steps drawn "
            "from every kitchen"
     )
-    lr: float = option(3e-3, "Adam's rate, annealed linearly over the rounds")
+    lr: float = option(6e-3, "Adam's rate, annealed linearly over the rounds")
     move_order: str = option(
         "NSEW", "the scripted cook's choice among equally short moves, the first in this order (a permutation of NSEW; "
                 "cooks with other orders keep other conventions)"
