@@ -126,7 +126,8 @@ class Convention:
     def describe(self) -> str:
         """One line: role (strict or not), hand-overs, non-zero preferences, move order, temperatures, noise."""
         preferences = ", ".join(f"{event} {weight:+.1f}" for event, weight in self.preferences.items() if weight)
-        return (f"{self.role}{' (strict)' if self.strict_role else ''}, hand-overs {self.handover}, {preferences or 'no preferences'}, moves "
+        role = f"{self.role} (strict)" if self.strict_role else self.role
+        return (f"{role}, hand-overs {self.handover}, {preferences or 'no preferences'}, moves "
                 f"{self.move_order}, T goal {self.goal_temperature:g} move {self.move_temperature:g}, "
                 f"noise {self.noise:g}")
 
