@@ -23,6 +23,7 @@ from torch_kitchen.partners.conventions import (
     STRANGER,
     TRAIN,
     ZOO_FILE,
+    ZOO_HEADER,
     Convention,
     Zoo,
     ZooMember,
@@ -123,6 +124,8 @@ def test_the_shipped_zoo_holds_diverse_cooks_and_no_shipped_config_trains_with_a
     assert len(shipped) > 40
     for path in shipped:
         text = path.read_text()
+        if text.startswith(ZOO_HEADER):  # another zoo, whose names are its own (a stranger is one by its content)
+            continue
         assert not [name for name in names if name in text], path
 
 
@@ -232,8 +235,10 @@ def test_distillation_from_several_teachers_labels_each_round_with_its_teacher_a
     for round_, name in enumerate(teachers):
         data = TensorDict.load_memmap(straight / DATA / f"round{round_}")
         cook = ScriptedCook(next(c for c in TEACHERS if c.name == name))
-        torch.testing.assert_close(data[TEACHER_PROBS], torch.softmax(cook(data["agents", "observation"]), -1),
-                                   rtol=0, atol=0)
+        # The cook step by step, as the collector called it (XLA may round a batch of another shape otherwise).
+        views = data["agents", "observation"]
+        labels = torch.stack([cook(views[:, step]) for step in range(views.shape[1])], 1)
+        torch.testing.assert_close(data[TEACHER_PROBS], torch.softmax(labels, -1), rtol=0, atol=0)
     stopped = distill(tiny_config(tmp_path / "stopped", *common), on_round=lambda round_, metrics: round_ == 2)
     assert distill_main(["--resume", str(stopped)]) == 0
     for part in ("actor", "critic", "optimizer", "env"):

@@ -169,6 +169,7 @@ def draw_convention(rng: random.Random, name: str, roles: Sequence[str] = ROLES)
 # ------------------------------------------------------------------------------------------------------ zoo
 ZOO_FILE = "configs/zoo/zoo.yaml"  # the zoo the project ships: its strangers are held out of every shipped config
 TRAIN, STRANGER = "train", "stranger"
+ZOO_HEADER = "# Written by `kitchen-zoo draw` (trainers/zoo.py): the conventions, their split and what they did.\n"
 
 
 @dataclass
@@ -243,8 +244,7 @@ def save_zoo(zoo: Zoo, path: str | Path) -> Path:
                      "events": {k: round(v, 2) for k, v in m.events.items()}, "convention": m.convention.as_dict()}
                     for m in zoo.members],
     }  # fmt: skip
-    header = "# Written by `kitchen-zoo draw` (trainers/zoo.py): the conventions, their split and what they did.\n"
-    path.write_text(header + yaml.safe_dump(document, sort_keys=False, width=120))
+    path.write_text(ZOO_HEADER + yaml.safe_dump(document, sort_keys=False, width=120))
     return path
 
 
