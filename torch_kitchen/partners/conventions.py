@@ -45,6 +45,10 @@ MOVE_ORDER = "NSEW"  # the move a cook takes where several are equally short: th
 MAX_PREFERENCES = 3  # ZSC-Eval's partners: at most three events with a non-zero weight
 
 
+# The knobs added after the first zoos were drawn: a fingerprint counts them only where they differ from their default.
+LATER_KNOBS = ("strict_role",)
+
+
 class ConventionError(ValueError):
     """A convention that no cook can play; the message says what is allowed."""
 
@@ -102,8 +106,9 @@ class Convention:
         into another zoo file, has the same fingerprint."""
         values = {key: value for key, value in self.as_dict().items() if key != "name"}
         values["preferences"] = {event: weight for event, weight in sorted(self.preferences.items()) if weight}
-        if not self.strict_role:  # a knob added later counts only where it is set: older fingerprints stand
-            del values["strict_role"]
+        for knob in LATER_KNOBS:  # counted only where set, so that the fingerprints of older zoos stand
+            if values[knob] == _DEFAULTS[knob]:
+                del values[knob]
         text = json.dumps(values, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -130,6 +135,9 @@ class Convention:
         return (f"{role}, hand-overs {self.handover}, {preferences or 'no preferences'}, moves "
                 f"{self.move_order}, T goal {self.goal_temperature:g} move {self.move_temperature:g}, "
                 f"noise {self.noise:g}")
+
+
+_DEFAULTS = Convention().as_dict()
 
 
 def fingerprints(conventions: Iterable[Convention]) -> dict[str, str]:

@@ -136,23 +136,28 @@ CARRYING = (0, 1, 2, 3)  # the goals of a cook that holds an item: a strict role
 PRODUCTIVE = (0, 1, 2, 3, 5, 6, 7)  # the goals that bring a soup nearer (not a plate or an onion for later)
 
 
-def goal_scores(convention: Convention, role: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """float [K], [K]: each goal's score under `convention`, and what `role` (by default the convention's) takes off
-    the score while the cook's own part of the work waits for it; a cook takes the best goal it can reach (or draws
-    one by the scores)."""
-    role = convention.role if role is None else role
-    scores, off_role = [], []
+def goal_scores(convention: Convention) -> torch.Tensor:
+    """float [K]: each goal's score under `convention`; a cook takes the best goal it can reach (or draws one by the
+    scores)."""
+    scores = []
     for rank, goal in enumerate(GOALS):
         score = -rank + PREFERENCE_SCALE * convention.weight(goal.event)
-        if goal.event == "idle" and convention.strict_role and role != "both" and not convention.weight("idle"):
+        strict_wait = convention.strict_role and convention.role != "both" and not convention.weight("idle")
+        if goal.event == "idle" and strict_wait:
             score = -ROLE_PENALTY / 2  # waiting, rather than the other role's work
         elif (goal.event == "idle" and not convention.weight("idle")) or (
                 goal.event == "counter_place" and convention.handover == "avoid"):
             score = -math.inf  # never taken
         scores.append(score)
-        keeps_to = goal.role not in (None, role) and not (convention.strict_role and rank in CARRYING)
-        off_role.append(ROLE_PENALTY if role != "both" and keeps_to else 0)
-    return torch.tensor(scores), torch.tensor(off_role, dtype=torch.float32)
+    return torch.tensor(scores)
+
+
+def off_role_penalties(convention: Convention, role: str) -> torch.Tensor:
+    """float [K]: what a cook playing `role` takes off each goal's score while its own part of the work waits for it
+    (a strict role never off what the cook already holds)."""
+    return torch.tensor([ROLE_PENALTY if role != "both" and goal.role not in (None, role)
+                         and not (convention.strict_role and rank in CARRYING) else 0.0
+                         for rank, goal in enumerate(GOALS)], dtype=torch.float32)
 
 
 _WALKABLE = jax.jit(walkable_floor)
@@ -164,11 +169,10 @@ def cook_convention(convention: Convention = Convention()) -> CookConvention:
     and its own work (as the first cook by position and as the second), its move order, temperatures, noise and
     hand-over habit."""
     sides = convention.roles_by_side
-    scores = goal_scores(convention)[0]
-    off_role = torch.stack([goal_scores(convention, role)[1] for role in sides])
+    off_role = torch.stack([off_role_penalties(convention, role) for role in sides])
     own = [[goal.role == role and i in PRODUCTIVE for i, goal in enumerate(GOALS)] for role in sides]
     return CookConvention(
-        scores=scores.numpy(), off_role=off_role.numpy(), own_work=np.array(own),
+        scores=goal_scores(convention).numpy(), off_role=off_role.numpy(), own_work=np.array(own),
         move_order=np.array([MOVE_ORDER.index(direction) for direction in convention.move_order], dtype=np.int32),
         goal_temperature=np.float32(convention.goal_temperature),
         move_temperature=np.float32(convention.move_temperature), noise=np.float32(convention.noise),
