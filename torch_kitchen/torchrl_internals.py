@@ -15,13 +15,15 @@ there, with the hook named, rather than somewhere deep in training.
 - `ClipPPOLoss._get_entropy` checks the closed-form entropy for non-finite entries on the host (eager) or mixes in
   a sampled estimate (compiled). `entropy_without_host_check` takes the closed form as it is, eager and compiled.
 - `TensorboardLogger` opens its `SummaryWriter` in `_create_experiment()`. `PurgingTensorboardLogger` opens it
-  with `purge_step`, so that a resumed run drops the events a killed run wrote after its last checkpoint.
+  with `purge_step`, so that a resumed run drops the events a killed run wrote after its last checkpoint, and
+  names its event file so that it is read after the killed run's.
 """
 
 from __future__ import annotations
 
 import copy
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -174,4 +176,18 @@ class PurgingTensorboardLogger(TensorboardLogger):
         super().__init__(exp_name=exp_name, log_dir=log_dir)
 
     def _create_experiment(self) -> SummaryWriter:
-        return SummaryWriter(log_dir=str(Path(self.log_dir) / self.exp_name), purge_step=self.purge_step)
+        directory = Path(self.log_dir) / self.exp_name
+        if self.purge_step is not None:
+            wait_past_last_event_file(directory)
+        return SummaryWriter(log_dir=str(directory), purge_step=self.purge_step)
+
+
+def wait_past_last_event_file(directory: Path) -> None:
+    """Sleeps until the clock's second is past the newest event file's in `directory`.
+
+    TensorBoard reads a run's event files in name order, and a name is the second it was opened then a
+    per-process counter (so `.10` sorts before `.9`): a file opened in the same second as the last one may be read
+    first, and its purge then drops nothing. A later second always sorts last."""
+    seconds = [int(path.name.split(".")[3]) for path in directory.glob("events.out.tfevents.*")]
+    while seconds and time.time() < max(seconds) + 1:
+        time.sleep(max(seconds) + 1 - time.time())

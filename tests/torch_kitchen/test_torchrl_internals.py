@@ -7,6 +7,7 @@ import pytest
 import torch
 from op_audit import OpAudit
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+from tensorboard.summary.writer import event_file_writer
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
@@ -129,7 +130,10 @@ def test_the_template_network_stays_out_of_state_dicts(share_params):
     torch.testing.assert_close(other(observation), net(observation))
 
 
-def test_the_tensorboard_logger_purges_events_at_and_after_the_purge_step(tmp_path):
+def test_the_tensorboard_logger_purges_events_at_and_after_the_purge_step(tmp_path, monkeypatch):
+    # The two event files as a long test session names them when opened in one second: `.9` then `.10`, which
+    # sort the other way round.
+    monkeypatch.setattr(event_file_writer, "_global_uid", event_file_writer.AtomicCounter(9))
     first = PurgingTensorboardLogger("tensorboard", str(tmp_path))
     for step in range(1, 6):
         first.log_scalar("x", float(step), step=step)
