@@ -161,6 +161,7 @@ def off_role_penalties(convention: Convention, role: str) -> torch.Tensor:
 
 
 _WALKABLE = jax.jit(walkable_floor)
+FEWEST_PLANS = 8
 _COOK = jax.jit(cook_logits, static_argnames="detour_rows")
 
 
@@ -212,9 +213,10 @@ class ScriptedCook(nn.Module):
 
         kitchens = to_jax(views.contiguous())
         tables, plan = FLOOR_DISTANCES(torch.from_dlpack(_WALKABLE(kitchens)).to(views.device))
-        # The floor plans padded to a power of two: one compilation serves batches of any number of plans.
-        tables = nn.functional.pad(tables, (0, 0, 0, 0, 0, (1 << (len(tables) - 1).bit_length()) - len(tables)),
-                                   value=UNREACHABLE)
+        # The floor plans padded to a power of two, at least `FEWEST_PLANS`: one compilation serves batches of any
+        # number of plans up to it (the few kitchens of a study's games stepped together).
+        plans = max(FEWEST_PLANS, 1 << (len(tables) - 1).bit_length())
+        tables = nn.functional.pad(tables, (0, 0, 0, 0, 0, plans - len(tables)), value=UNREACHABLE)
         # On a CPU the waves around a partner in the way run for the quarter of the rows that meet theirs at most (a
         # branch the host reads, which a GPU would wait on: there every row's).
         logits = _COOK(kitchens, self.arrays if conventions is None else conventions, to_jax(tables),

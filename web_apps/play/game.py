@@ -194,10 +194,10 @@ class Game:
 
 
 def step_games(games: Sequence[Game], actions: Sequence[int]) -> list[dict | Exception]:
-    """One tick of each of `games`, the person's `actions[i]` in game i: the partner's forward pass once for all
-    the games that share it and a kitchen size (their tensordicts as one batch; each row acts as it would alone),
-    then each game's `advance`. Returns each game's new view, or the exception its tick raised (a game over, a
-    record that cannot be written), so that one game's fault stays its own."""
+    """One tick of each of `games`, the person's `actions[i]` in game i: the partner's forward passes for all the
+    games that share it and a kitchen size (`acting_rows`; each row acts as it would alone), then each game's
+    `advance`. Returns each game's new view, or the exception its tick raised (a game over, a record that cannot be
+    written), so that one game's fault stays its own."""
     results: list[dict | Exception | None] = [None] * len(games)
     sharing: dict[tuple, list[int]] = defaultdict(list)
     for index, game in enumerate(games):
@@ -207,19 +207,32 @@ def step_games(games: Sequence[Game], actions: Sequence[int]) -> list[dict | Exc
             sharing[id(game.partner.actor_critic), game.layout.shape].append(index)
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
         for indices in sharing.values():
-            actor = games[indices[0]].partner.actor_critic.actor
-            if len(indices) == 1:
-                rows = [actor(games[indices[0]].tensordict)]
-            else:  # what the actor reads (a game's first tick holds fewer entries than its later ones)
-                acted = actor(torch.cat([games[index].tensordict.select(*actor.in_keys, strict=False)
-                                         for index in indices]))
-                rows = [games[index].tensordict.update(acted[row:row + 1]) for row, index in enumerate(indices)]
+            rows = acting_rows([games[index] for index in indices])
             for index, row in zip(indices, rows):
                 try:
                     results[index] = games[index].advance(row, actions[index])
                 except Exception as error:  # noqa: BLE001 - handed to that game's caller
                     results[index] = error
     return results
+
+
+ROUND_BATCH = 8  # games in one forward pass of their partner
+
+
+def acting_rows(games: Sequence[Game]) -> list[TensorDictBase]:
+    """Each game's tensordict with its partner's action (the partner and kitchen size of all of them): forward
+    passes of `ROUND_BATCH` games each, the last padded with copies of its last game. A pass of one batch size, so
+    that a jitted partner (the scripted cook) compiles once at the server's warm-up rather than for each number of
+    games a round happens to hold (a second or more each, while every game waits)."""
+    actor = games[0].partner.actor_critic.actor
+    rows = []
+    for first in range(0, len(games), ROUND_BATCH):
+        chunk = games[first:first + ROUND_BATCH]
+        # What the actor reads (a game's first tick holds fewer entries than its later ones).
+        inputs = [game.tensordict.select(*actor.in_keys, strict=False) for game in chunk]
+        acted = actor(torch.cat(inputs + inputs[-1:] * (ROUND_BATCH - len(chunk))))
+        rows += [game.tensordict.update(acted[row:row + 1]) for row, game in enumerate(chunk)]
+    return rows
 
 
 # --------------------------------------------------------------------------------------------- records

@@ -3,13 +3,14 @@ games sharing a partner act in one forward pass."""
 
 import torch
 
+import torch_kitchen.partners.scripted_cook as scripted_cook
 from jax_env import load_layout
 from jax_env.render import AGENT_COLOURS
 from torch_kitchen.models import make_actor_critic
 from torch_kitchen.models.e3t_partner import CONTEXT_ACTION
 from torch_kitchen.models.recurrence import recurrent_states
 from torch_kitchen.records import read_record
-from web_apps.play.game import SCRIPTED, Game, Partner, load_partner, replay, step_games
+from web_apps.play.game import ROUND_BATCH, SCRIPTED, Game, Partner, load_partner, replay, step_games
 from web_apps.play.server import GameStepper, page_html
 
 PERSON = [1, 2, 3, 4, 5, 0, 1, 2, 4, 4]  # the person's keys, seat 0
@@ -93,7 +94,7 @@ def test_games_sharing_a_partner_act_in_one_forward_pass_each_row_as_it_would_al
         passes.clear()
         with torch.no_grad():
             views = step_games([*games, over], [tick, 5 - tick, 4, 1, 0])
-        assert len(passes) == 1 and passes[0].batch_size == (3,)  # the team's three games, once
+        assert len(passes) == 1 and passes[0].batch_size == (ROUND_BATCH,)  # the team's three games, once
         for row, index in enumerate((0, 1, 3)):
             torch.testing.assert_close(passes[0]["agents", "logits"][row], alone[index]["agents", "logits"][0])
             for name in states:
@@ -106,6 +107,20 @@ def test_games_sharing_a_partner_act_in_one_forward_pass_each_row_as_it_would_al
         _, steps, _ = read_record(tmp_path / f"{index}.jsonl")
         assert [line["actions"][0] for line in steps] == [[3, 0, 1, 2], [5, 4, 3], [4, 4, 4], [1, 1, 1]][index]
         assert replay(tmp_path / f"{index}.jsonl")["steps"] == len(steps)
+
+
+def test_rounds_of_any_number_of_games_run_the_scripted_cook_as_it_was_compiled_for_the_first(tmp_path):
+    """A round's games act in passes of one batch size, and the cook's floor plans are padded to one count: rounds
+    of 1 to 11 games on two kitchens run the cook's program compiled for the first round, not one per size."""
+    cook = load_partner(SCRIPTED)
+    games = [Game(load_layout(name), cook, index % 2, tmp_path / f"{index}.jsonl", seed=index, max_steps=20)
+             for index, name in enumerate(["cramped_room_7x7", "coord_ring_7x7"] * 6)]
+    step_games(games[:1], [4])
+    compiled = scripted_cook._COOK._cache_size()
+    for count in (2, 3, 5, 8, 9, 11, 1):
+        views = step_games(games[:count], [4] * count)
+        assert all(isinstance(view, dict) for view in views)
+    assert scripted_cook._COOK._cache_size() == compiled
 
 
 class Settled:
