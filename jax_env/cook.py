@@ -28,10 +28,11 @@ HANDOVER, IDLE = 4, 10
 class CookConvention(NamedTuple):
     """A convention as arrays, each with any leading batch shape of the observations' rows: goal scores [K]; what a
     goal off the cook's role loses while its own work waits [2, K] and the goals that are its own work (bool [2, K]),
-    each as the first cook of the two by position (west of its partner, north where they share a column) and as the
-    second, which differ for a convention that splits the work by side; the move order (int [4], indices of NORTH,
-    SOUTH, EAST, WEST); the goal and move temperatures, noise, whether it prefers hand-overs and whether it keeps to
-    its role when none of its own work can be done (scalars)."""
+    each as the first cook of the two and as the second, which differ for a convention that splits the work (the
+    first by position, west of its partner or north where they share a column; or, with `by_seat`, the cook in seat
+    0); the move order (int [4], indices of NORTH, SOUTH, EAST, WEST); the goal and move temperatures, noise,
+    whether it prefers hand-overs, whether it keeps to its role when none of its own work can be done and whether
+    its split goes by seat (scalars)."""
 
     scores: jax.Array
     off_role: jax.Array
@@ -42,6 +43,7 @@ class CookConvention(NamedTuple):
     noise: jax.Array
     prefer_handover: jax.Array
     strict_role: jax.Array
+    by_seat: jax.Array
 
 
 def _shift(grid: jax.Array, dx: int, dy: int, fill) -> jax.Array:
@@ -100,16 +102,17 @@ def per_row(convention: CookConvention, n: int) -> CookConvention:
     return CookConvention(*(rows(name, leaf) for name, leaf in zip(CookConvention._fields, convention)))
 
 
-def by_side(convention: CookConvention, me: jax.Array, partner: jax.Array) -> CookConvention:
+def by_side(convention: CookConvention, me: jax.Array, partner: jax.Array, seats: jax.Array) -> CookConvention:
     """Rows [N] of a convention with its role arrays [N, K] as each cook's side makes them: the first of the two by
-    position (west of its partner, north where they share a column; bool [N, H, W] cells) plays the first row."""
+    position (west of its partner, north where they share a column; bool [N, H, W] cells), or by seat (int [N]) for
+    a convention whose split goes `by_seat`, plays the first row."""
     height, width = me.shape[-2:]
 
     def place(cells):  # column-major order: west before east, then north before south
         index = cells.reshape(cells.shape[0], -1).argmax(-1)
         return (index % width) * height + index // width
 
-    second = (place(me) > place(partner))[:, None]
+    second = jnp.where(convention.by_seat, seats == 1, place(me) > place(partner))[:, None]
     return convention._replace(off_role=jnp.where(second, convention.off_role[:, 1], convention.off_role[:, 0]),
                                own_work=jnp.where(second, convention.own_work[:, 1], convention.own_work[:, 0]))
 
@@ -147,18 +150,22 @@ def _rows(tables: jax.Array, plan: jax.Array | None, cells: jax.Array) -> jax.Ar
 
 
 def cook_logits(observation: jax.Array, convention: CookConvention, tables: jax.Array | None = None,
-                plan: jax.Array | None = None, detour_rows: int | None = None) -> jax.Array:
+                plan: jax.Array | None = None, detour_rows: int | None = None,
+                seats: jax.Array | None = None) -> jax.Array:
     """uint8 observations [N, H, W, 26] (one seat's view a row) -> logits [N, 6] of the scripted cook of each row's
     `convention` (arrays with leading dim N, or unbatched for one convention); the likeliest action's logit is 0.
     `tables`: the rows' `floor_tables` [N, ...], where the caller keeps them through the episode, or with `plan`
     (int [N]) tables [P, ...] of the floor plans the rows index (else the waves run here). `detour_rows` (static): the
     waves around a partner in the way run for that many rows at most, those that meet their partner, where no more
-    of them do (a CPU's saving: the choice is a branch the host reads, so None, every row's, on a GPU)."""
+    of them do (a CPU's saving: the choice is a branch the host reads, so None, every row's, on a GPU). `seats`
+    (int [N]): the seat each row's cook plays, for a convention whose split goes by seat (None: the rows alternate
+    seats 0 and 1, as [..., 2] seats' views flattened)."""
     n = observation.shape[0]
     obs = observation.astype(jnp.float32)
     present = obs > 0
     me, partner = present[..., Channel.SELF], present[..., Channel.PARTNER]
-    conv = by_side(per_row(convention, n), me, partner)
+    seats = jnp.arange(n) % 2 if seats is None else seats
+    conv = by_side(per_row(convention, n), me, partner, seats)
     walkable = walkable_floor(observation)
 
     def distances(cells):  # [N, ..., H, W] of one cell each -> steps from it to every cell [N, ..., H * W]

@@ -509,7 +509,7 @@ def _seated_act(env: KitchenEnv, teams: tuple[Chain | str, ...]) -> Acting:
             rows = jax.tree.map(lambda leaf: leaf[which], conventions)
             tables, plan = floors
             planned = cook_logits(observation[safe, seats], rows, tables, plan[safe],
-                                  detour_rows=None if on_gpu else max(1, len(kitchens) // 4))
+                                  detour_rows=None if on_gpu else max(1, len(kitchens) // 4), seats=seats)
             logits = logits.at[kitchens, seats].set(planned, mode="drop")
         action = jax.random.categorical(keys[0], logits)
         log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), action[..., None], -1)[..., 0]

@@ -82,7 +82,8 @@ def test_one_program_holds_a_convention_per_row(views):
     stacked = jax.tree_util.tree_map(lambda *leaves: np.stack(leaves), *rows)
     logits = COOK(jnp.asarray(observation.numpy()), per_row(stacked, len(rows)))
     for i, convention in enumerate(conventions):
-        alone = COOK(jnp.asarray(observation[i::4].numpy()), cook_convention(convention))
+        seats = jnp.full(len(observation[i::4]), i % 2)  # each row's seat as in the whole batch (a split by seat)
+        alone = COOK(jnp.asarray(observation[i::4].numpy()), cook_convention(convention), seats=seats)
         assert_same_distributions(logits[i::4], np.asarray(jax.nn.softmax(alone, -1)))
 
 

@@ -10,6 +10,7 @@ from torch_kitchen.env import KitchenEnv
 from torch_kitchen.events import EVENTS, kitchen_events
 from torch_kitchen.partners.conventions import (
     ROLES,
+    SEATS,
     SIDES,
     STRANGER,
     ZOO_FILE,
@@ -86,6 +87,17 @@ def test_a_split_by_side_plays_each_seat_the_role_of_its_place_and_a_strict_one_
     assert _planned(dataclasses.replace(first_serves, strict_role=True), idle_kitchen) == EAST
 
 
+def test_a_split_by_seat_plays_seat_0_its_role_wherever_the_cooks_stand():
+    kitchen = _kitchen(cooking_pot=True)
+    loader, server = Convention(name="l", role="loader"), Convention(name="s", role="server")
+    swapped = kitchen[:, [1, 0]]  # seat 0 now stands where seat 1 stood: a split by side would swap the roles
+    for split, roles in [("seat0_loads", (loader, server)), ("seat0_serves", (server, loader))]:
+        by_seat = ScriptedCook(Convention(name=split, role=split))
+        for view in (kitchen, swapped):
+            assert torch.equal(by_seat(view), torch.stack([ScriptedCook(role)(view)[:, seat] for seat, role in
+                                                           enumerate(roles)], 1))
+
+
 def test_temperatures_and_noise_spread_the_actions_and_the_default_is_the_scripted_cook():
     kitchen = _kitchen(cooking_pot=True)
     assert torch.equal(ScriptedCook(Convention())(kitchen), ScriptedCook()(kitchen))
@@ -109,7 +121,7 @@ def test_conventions_refuse_unknown_names_in_one_line_and_draws_are_deterministi
     drawn = [draw_convention(random.Random(seed), "c") for seed in range(40)]
     assert all(1 <= sum(w != 0 for w in c.preferences.values()) <= 3 for c in drawn)
     assert {c.role for c in drawn} == set(ROLES) and len({c.move_order for c in drawn}) > 5
-    assert any(c.strict_role for c in drawn) and all(c.role in SIDES for c in drawn if c.strict_role)
+    assert any(c.strict_role for c in drawn) and all(c.role in {**SIDES, **SEATS} for c in drawn if c.strict_role)
     assert Convention.from_dict(first[0].as_dict()) == first[0]
 
 

@@ -7,7 +7,8 @@
                       onions only where no plate or soup can be taken; "west_loads": the work split by side, the cook
                       west of its partner (north where they share a column) a loader and the other a server, so two
                       cooks of the convention always split it while beside "west_serves", the mirror, both take the
-                      same part
+                      same part; "seat0_loads" and its mirror "seat0_serves": the split by seat, the cook in seat
+                      0 a loader wherever the two stand (a split by side changes hands as the cooks pass each other)
     strict_role       False: a loader or server does the other part of the work while none of its own can be done;
                       True: it waits for its own instead
     handover          "when_needed": puts an item on a counter the partner can reach where it cannot carry it to its
@@ -37,9 +38,11 @@ import yaml
 from jax_env import GeneratorConfig
 from torch_kitchen.events import EVENTS
 
-ROLES = ("both", "loader", "server", "west_loads", "west_serves")
-# The roles a convention plays as the first cook of the two by position (west, or north in one column) and the second.
+ROLES = ("both", "loader", "server", "west_loads", "west_serves", "seat0_loads", "seat0_serves")
+# The roles a convention plays as the first cook of the two and as the second: the first by position (west, or north
+# in one column) for a split by side, the cook in seat 0 for a split by seat.
 SIDES = {"west_loads": ("loader", "server"), "west_serves": ("server", "loader")}
+SEATS = {"seat0_loads": ("loader", "server"), "seat0_serves": ("server", "loader")}
 HANDOVERS = ("when_needed", "prefer", "avoid")
 MOVE_ORDER = "NSEW"  # the move a cook takes where several are equally short: the first of them in this order
 MAX_PREFERENCES = 3  # ZSC-Eval's partners: at most three events with a non-zero weight
@@ -94,8 +97,13 @@ class Convention:
 
     @property
     def roles_by_side(self) -> tuple[str, str]:
-        """Its role as the first cook of the two by position and as the second (the same but for a split by side)."""
-        return SIDES.get(self.role, (self.role, self.role))
+        """Its role as the first cook of the two and as the second (the same but for a split by side or seat)."""
+        return {**SIDES, **SEATS}.get(self.role, (self.role, self.role))
+
+    @property
+    def by_seat(self) -> bool:
+        """Whether its split goes by seat (`SEATS`) rather than by position."""
+        return self.role in SEATS
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -148,7 +156,8 @@ def fingerprints(conventions: Iterable[Convention]) -> dict[str, str]:
 # How often a drawn convention takes each role, among those a draw allows: the work split by side is the convention
 # of a pair (a cook of it beside its own kind splits the work; beside the mirror both take one part), so it is drawn
 # most, and strict (`strict_role`) with probability STRICT_SIDES, where it makes a mismatched split cost deliveries.
-ROLE_WEIGHTS = {"both": 2, "loader": 1, "server": 1, "west_loads": 3, "west_serves": 3}
+ROLE_WEIGHTS = {"both": 2, "loader": 1, "server": 1, "west_loads": 3, "west_serves": 3, "seat0_loads": 3,
+                "seat0_serves": 3}
 STRICT_SIDES = 0.75
 
 
@@ -160,7 +169,7 @@ def draw_convention(rng: random.Random, name: str, roles: Sequence[str] = ROLES)
     events = rng.sample(EVENTS, rng.randint(1, MAX_PREFERENCES))
     preferences = {event: round(rng.choice((-1, 1)) * rng.uniform(0.3, 1.0), 2) for event in events}
     role = rng.choices(list(roles), weights=[ROLE_WEIGHTS[role] for role in roles])[0]
-    strict = role in SIDES and rng.random() < STRICT_SIDES
+    strict = role in {**SIDES, **SEATS} and rng.random() < STRICT_SIDES
     handover = rng.choices(HANDOVERS, weights=(2, 1, 1))[0]
     order = list(MOVE_ORDER)
     rng.shuffle(order)

@@ -178,6 +178,7 @@ def cook_convention(convention: Convention = Convention()) -> CookConvention:
         goal_temperature=np.float32(convention.goal_temperature),
         move_temperature=np.float32(convention.move_temperature), noise=np.float32(convention.noise),
         prefer_handover=np.bool_(convention.handover == "prefer"), strict_role=np.bool_(convention.strict_role),
+        by_seat=np.bool_(convention.by_seat),
     )  # fmt: skip
 
 

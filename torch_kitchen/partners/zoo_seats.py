@@ -63,7 +63,8 @@ def cook_actions(key: jax.Array, observation: jax.Array, action: jax.Array, draw
     def planned(kitchens):  # the cooks' draws in these kitchens (int [K], `count` where none: dropped)
         rows = jax.tree.map(lambda leaf: jnp.asarray(leaf)[jnp.maximum(draws[kitchens], 0) // 2], conventions)
         floor = None if tables is None else tables[kitchens]
-        logits = cook_logits(views[kitchens], rows, floor, detour_rows=max(1, len(kitchens) // 4))
+        logits = cook_logits(views[kitchens], rows, floor, detour_rows=max(1, len(kitchens) // 4),
+                             seats=seat[kitchens])
         return jnp.zeros(count, action.dtype).at[kitchens].set(
             jax.random.categorical(key, logits).astype(action.dtype), mode="drop")
 
