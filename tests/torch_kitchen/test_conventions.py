@@ -10,8 +10,7 @@ from torch_kitchen.env import KitchenEnv
 from torch_kitchen.events import EVENTS, kitchen_events
 from torch_kitchen.partners.conventions import (
     ROLES,
-    SEATS,
-    SIDES,
+    SPLITS,
     STRANGER,
     ZOO_FILE,
     Convention,
@@ -121,7 +120,7 @@ def test_conventions_refuse_unknown_names_in_one_line_and_draws_are_deterministi
     drawn = [draw_convention(random.Random(seed), "c") for seed in range(40)]
     assert all(1 <= sum(w != 0 for w in c.preferences.values()) <= 3 for c in drawn)
     assert {c.role for c in drawn} == set(ROLES) and len({c.move_order for c in drawn}) > 5
-    assert any(c.strict_role for c in drawn) and all(c.role in {**SIDES, **SEATS} for c in drawn if c.strict_role)
+    assert any(c.strict_role for c in drawn) and all(c.role in SPLITS for c in drawn if c.strict_role)
     assert Convention.from_dict(first[0].as_dict()) == first[0]
 
 

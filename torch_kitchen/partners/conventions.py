@@ -43,6 +43,7 @@ ROLES = ("both", "loader", "server", "west_loads", "west_serves", "seat0_loads",
 # in one column) for a split by side, the cook in seat 0 for a split by seat.
 SIDES = {"west_loads": ("loader", "server"), "west_serves": ("server", "loader")}
 SEATS = {"seat0_loads": ("loader", "server"), "seat0_serves": ("server", "loader")}
+SPLITS = {**SIDES, **SEATS}
 HANDOVERS = ("when_needed", "prefer", "avoid")
 MOVE_ORDER = "NSEW"  # the move a cook takes where several are equally short: the first of them in this order
 MAX_PREFERENCES = 3  # ZSC-Eval's partners: at most three events with a non-zero weight
@@ -98,7 +99,7 @@ class Convention:
     @property
     def roles_by_side(self) -> tuple[str, str]:
         """Its role as the first cook of the two and as the second (the same but for a split by side or seat)."""
-        return {**SIDES, **SEATS}.get(self.role, (self.role, self.role))
+        return SPLITS.get(self.role, (self.role, self.role))
 
     @property
     def by_seat(self) -> bool:
@@ -153,9 +154,9 @@ def fingerprints(conventions: Iterable[Convention]) -> dict[str, str]:
     return {convention.fingerprint: convention.name for convention in conventions}
 
 
-# How often a drawn convention takes each role, among those a draw allows: the work split by side is the convention
-# of a pair (a cook of it beside its own kind splits the work; beside the mirror both take one part), so it is drawn
-# most, and strict (`strict_role`) with probability STRICT_SIDES, where it makes a mismatched split cost deliveries.
+# How often a drawn convention takes each role, among those a draw allows: the work split by side or seat is the
+# convention of a pair (a cook of it beside its own kind splits the work; beside the mirror both take one part), so it
+# is drawn most, and strict (`strict_role`) with probability STRICT_SIDES, where a mismatched split costs deliveries.
 ROLE_WEIGHTS = {"both": 2, "loader": 1, "server": 1, "west_loads": 3, "west_serves": 3, "seat0_loads": 3,
                 "seat0_serves": 3}
 STRICT_SIDES = 0.75
@@ -169,7 +170,7 @@ def draw_convention(rng: random.Random, name: str, roles: Sequence[str] = ROLES)
     events = rng.sample(EVENTS, rng.randint(1, MAX_PREFERENCES))
     preferences = {event: round(rng.choice((-1, 1)) * rng.uniform(0.3, 1.0), 2) for event in events}
     role = rng.choices(list(roles), weights=[ROLE_WEIGHTS[role] for role in roles])[0]
-    strict = role in {**SIDES, **SEATS} and rng.random() < STRICT_SIDES
+    strict = role in SPLITS and rng.random() < STRICT_SIDES
     handover = rng.choices(HANDOVERS, weights=(2, 1, 1))[0]
     order = list(MOVE_ORDER)
     rng.shuffle(order)

@@ -161,7 +161,7 @@ def off_role_penalties(convention: Convention, role: str) -> torch.Tensor:
 
 
 _WALKABLE = jax.jit(walkable_floor)
-FEWEST_PLANS = 8
+FEWEST_PLANS = 8  # floor plans the cook's program takes at least (`ScriptedCook.forward`)
 _COOK = jax.jit(cook_logits, static_argnames="detour_rows")
 
 
