@@ -227,8 +227,12 @@ def test_seated_teams_act_inside_xla_as_their_networks_and_cooks_do():
                 own = network.module(observation)  # the torch cook, planned from its own floor tables
                 torch.testing.assert_close(logits[seats], own[seats], rtol=0, atol=0)
             else:
-                own = network(batch.select(OBSERVATION).clone()).get(LOGITS)
-                torch.testing.assert_close(logits[seats], own[seats], rtol=1e-4, atol=1e-3)
+                own = network(batch.select(OBSERVATION).clone()).get(LOGITS)[seats]
+                # To float32 rounding of the sums behind each row, as large as its largest logit (the weights x40
+                # make them thousands; a small logit of such a row is what is left of them): the same bound on an
+                # AVX2 machine, whose kernels sum in another order, as on an AVX-512 one.
+                rounding = 1e-5 * own.abs().amax(-1, keepdim=True)
+                assert ((logits[seats] - own).abs() <= rounding).all(), (logits[seats] - own).abs().max()
         drawn = logits.gather(-1, batch[ACTION].unsqueeze(-1))
         assert torch.isfinite(drawn).all() and (drawn > logits.max(-1, keepdim=True).values - 30).all()
         torch.testing.assert_close(batch[LOG_PROB], torch.log_softmax(logits, -1).gather(

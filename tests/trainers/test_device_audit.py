@@ -9,6 +9,7 @@ import torch
 from device_audit import DeviceAudit, per_step
 from tiny import TINY
 
+from torch_kitchen.graph import batched_edges
 from torch_kitchen.keys import OBSERVATION
 from torch_kitchen.symmetry import transform_observation
 from trainers.config.compose import load_config
@@ -70,6 +71,9 @@ EVALUATION = {  # partner: (host reads, tensors made without a device) per step;
 def audited_run(tmp_path, config: str, overrides: list[str], steps: int) -> DeviceAudit:
     config = load_config(config, [*TINY, f"rollout_steps={steps}", f"total_steps={4 * steps * UPDATES}",
                                   f"run_dir={tmp_path / str(steps)}", "loggers=[csv]", *overrides])
+    # The GNN's edges are made once per number of graphs: each run makes its own, whichever the suite's earlier tests
+    # left cached (a shape cached for one run and not the other counted as the longer run's per-step work).
+    batched_edges.cache_clear()
     with DeviceAudit() as audit:
         train_teams(team_configs(config))
     return audit
