@@ -93,11 +93,11 @@ def _malloc_trim():
 
 class GameStepper:
     """Every game's steps, on one thread, in rounds: the steps waiting when the thread comes free are taken
-    together (`step_games`), so that games sharing a partner run its forward pass once a round. A step is hundreds
-    of small torch and JAX calls, each giving the GIL up and taking it back: steps on several threads at once hand
-    it to one another at every call (40 games on two cores: p99 189 ms between states with one thread against 345
-    with a thread per step), and a round of 20 games with the scripted cook costs 0.79 ms a game against 2.16 one
-    game after another (BENCHMARKS.md, "A study under load")."""
+    together (`step_games`), so that games sharing a partner run its forward passes together, 8 games a pass. A step
+    is hundreds of small torch and JAX calls, each giving the GIL up and taking it back: steps on several threads at
+    once hand it to one another at every call (40 games on two cores: p99 189 ms between states with one thread
+    against 345 with a thread per step), and a round of 20 games with the scripted cook costs 0.79 ms a game against
+    2.16 one game after another (BENCHMARKS.md, "kitchen-play under load")."""
 
     def __init__(self):
         self.requests: queue.SimpleQueue = queue.SimpleQueue()
