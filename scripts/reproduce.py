@@ -49,7 +49,7 @@ import yaml
 
 from jax_env import EXPANDED_LAYOUTS, PADDED_LAYOUTS
 from torch_kitchen.partners.conventions import load_zoo
-from trainers.checkpoint import LATEST, load_checkpoint
+from trainers.checkpoint import LATEST, CheckpointError, load_checkpoint
 from trainers.config import EVAL_COLLECTORS, PLANNER_START, ConfigError, DeviceConfig, EvalConfig, TrainConfig
 from trainers.config.compose import load_config
 from trainers.evaluation import HUMAN_PROXY_RUN, SCRIPTED_CONDITION, cross_condition, evaluate
@@ -325,8 +325,15 @@ def human_proxies(out: Path, settings: ProxySettings) -> Path:
     return runs
 
 
+def best_response_runs(section: Section, runs: Path, first_seed: int) -> dict[str, str]:
+    """Each stranger's best response: the run of its condition's one team, trained with the protocol's first seed
+    (`seed=` on the command line moves it)."""
+    return {stranger: str(runs / condition / f"seed{first_seed}")
+            for stranger, condition in (section.best_responses or {}).items()}
+
+
 def evaluate_section(section: Section, out: Path, evaluation: dict, device: str, proxies: Path | None,
-                     workers: int) -> Path:
+                     workers: int, first_seed: int) -> Path:
     """Plays the section's teams (`kitchen-eval`'s code, in `workers` processes): self-play, cross-play between
     each condition's seeds, each family's IK against its SK conditions and the section's cross pairs, beside the
     scripted cook and the human proxies; returns the folder of its tables and figures."""
@@ -335,8 +342,7 @@ def evaluate_section(section: Section, out: Path, evaluation: dict, device: str,
         cross=[*([ik, name] for ik, sk, _, _ in section.families.values() for name in sk.values()), *section.cross],
         layouts=[*EXPANDED_LAYOUTS, *(PADDED_LAYOUTS if proxies else [])], heldout=evaluation["heldout"],
         human_proxies=str(proxies or ""), strangers=section.strangers,
-        best_responses={stranger: str(out / "runs" / condition / "seed0")
-                        for stranger, condition in (section.best_responses or {}).items()},
+        best_responses=best_response_runs(section, out / "runs", first_seed),
         learned_strangers={name: str(out / "runs" / condition / "seed*")
                            for name, condition in (section.learned_strangers or {}).items()
                            if any((out / "runs" / condition).glob("seed*/checkpoints/latest.pt"))},
@@ -627,7 +633,8 @@ def main(argv=None) -> int:
     evaluation = {**protocol.get("evaluation", {}),
                   **{key: getattr(args, key) for key in ("rollouts", "heldout", "max_steps", "collector")
                      if getattr(args, key) is not None}}
-    device = load_config(next(iter(entries.values()))[0], overrides).runtime.device  # shared by every condition
+    shared = load_config(next(iter(entries.values()))[0], overrides)  # its device and first seed: every condition's
+    device = shared.runtime.device
     facts = run_facts(args, argv, entries, device, overrides, teams, started, seconds, reused, evaluation, proxies,
                       out, code)
     written = {}
@@ -635,7 +642,12 @@ def main(argv=None) -> int:
         if args.sections and section.name not in args.sections:
             continue  # a section of a condition another one compares with: it stays as it was written
         evaluated = time.perf_counter()
-        eval_dir = evaluate_section(section, out, evaluation, device, facts.proxies, facts.eval_workers)
+        try:
+            eval_dir = evaluate_section(section, out, evaluation, device, facts.proxies, facts.eval_workers,
+                                        shared.seed)
+        except (ConfigError, CheckpointError) as error:  # e.g. a run the section reads that is missing
+            print(f"reproduce: error: {error}", file=sys.stderr)
+            return 2
         config = load_config(*trained[section.conditions[0]])
         written[section.name] = section_markdown(section, facts, config, eval_dir,
                                                  time.perf_counter() - evaluated,

@@ -247,9 +247,12 @@ def test_a_strangers_section_trains_its_instruments_per_stranger_and_never_evalu
         (tmp_path / "runs" / trained / "seed0" / "checkpoints" / "latest.pt").touch()
     seen = {}
     monkeypatch.setattr(reproduce, "evaluate", lambda config: seen.setdefault("config", config))
-    reproduce.evaluate_section(section, tmp_path, {"heldout": 1, "rollouts": 1}, "cpu", None, 1)
+    reproduce.evaluate_section(section, tmp_path, {"heldout": 1, "rollouts": 1}, "cpu", None, 1, 0)
     assert seen["config"].best_responses == {name: str(tmp_path / "runs" / f"best_response_{name}" / "seed0")
                                              for name in ("server", "loader")}
+    # A protocol run from seed=5 trained each best response as seed5.
+    assert reproduce.best_response_runs(section, tmp_path, 5)["loader"] == str(tmp_path / "best_response_loader" /
+                                                                                "seed5")
     assert seen["config"].learned_strangers == {name: str(tmp_path / "runs" / condition / "seed*") for name, condition
                                                 in (("loader", "learned_loader"), ("other", "other"))}
     assert set(seen["config"].conditions) == {"ik", "sk"}
