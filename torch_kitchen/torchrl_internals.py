@@ -188,6 +188,6 @@ def wait_past_last_event_file(directory: Path) -> None:
     TensorBoard reads a run's event files in name order, and a name is the second it was opened then a
     per-process counter (so `.10` sorts before `.9`): a file opened in the same second as the last one may be read
     first, and its purge then drops nothing. A later second always sorts last."""
-    seconds = [int(path.name.split(".")[3]) for path in directory.glob("events.out.tfevents.*")]
-    while seconds and time.time() < max(seconds) + 1:
-        time.sleep(max(seconds) + 1 - time.time())
+    last = max((int(path.name.split(".")[3]) for path in directory.glob("events.out.tfevents.*")), default=None)
+    while last is not None and time.time() < last + 1:
+        time.sleep(last + 1 - time.time())

@@ -97,7 +97,7 @@ class Convention:
         return float(self.preferences.get(event, 0.0))
 
     @property
-    def roles_by_side(self) -> tuple[str, str]:
+    def roles_of_pair(self) -> tuple[str, str]:
         """Its role as the first cook of the two and as the second (the same but for a split by side or seat)."""
         return SPLITS.get(self.role, (self.role, self.role))
 

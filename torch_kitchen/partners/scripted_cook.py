@@ -140,9 +140,9 @@ def goal_scores(convention: Convention) -> torch.Tensor:
     """float [K]: each goal's score under `convention`; a cook takes the best goal it can reach (or draws one by the
     scores)."""
     scores = []
+    strict_wait = convention.strict_role and convention.role != "both" and not convention.weight("idle")
     for rank, goal in enumerate(GOALS):
         score = -rank + PREFERENCE_SCALE * convention.weight(goal.event)
-        strict_wait = convention.strict_role and convention.role != "both" and not convention.weight("idle")
         if goal.event == "idle" and strict_wait:
             score = -ROLE_PENALTY / 2  # waiting, rather than the other role's work
         elif (goal.event == "idle" and not convention.weight("idle")) or (
@@ -167,11 +167,11 @@ _COOK = jax.jit(cook_logits, static_argnames="detour_rows")
 
 def cook_convention(convention: Convention = Convention()) -> CookConvention:
     """The arrays the cook (`jax_env.cook`) plays a convention by: its goals' scores, what a goal off its role loses
-    and its own work (as the first cook by position and as the second), its move order, temperatures, noise and
-    hand-over habit."""
-    sides = convention.roles_by_side
-    off_role = torch.stack([off_role_penalties(convention, role) for role in sides])
-    own = [[goal.role == role and i in PRODUCTIVE for i, goal in enumerate(GOALS)] for role in sides]
+    and its own work (as the first cook of the pair, by position or seat, and as the second), its move order,
+    temperatures, noise and hand-over habit."""
+    roles = convention.roles_of_pair
+    off_role = torch.stack([off_role_penalties(convention, role) for role in roles])
+    own = [[goal.role == role and i in PRODUCTIVE for i, goal in enumerate(GOALS)] for role in roles]
     return CookConvention(
         scores=goal_scores(convention).numpy(), off_role=off_role.numpy(), own_work=np.array(own),
         move_order=np.array([MOVE_ORDER.index(direction) for direction in convention.move_order], dtype=np.int32),
