@@ -142,7 +142,8 @@ def test_a_run_from_the_scripted_cook_distils_its_start_into_its_own_folder_firs
 
 def test_runs_whose_distillations_are_the_same_share_one_start(tmp_path, monkeypatch, capsys):
     """Two conditions that differ in what follows the distillation (an algorithm, a budget) distil once, and each
-    run's folder holds the start bit for bit, without the rounds' data; another seed distils its own."""
+    run's folder holds the start bit for bit, without the rounds' data (dropped from the shared start once it is done);
+    another seed distils its own."""
     rounds = []
     plain = distillation.learn_round
     monkeypatch.setattr(distillation, "learn_round", lambda *args: rounds.append(args[1]) or plain(*args))
@@ -161,6 +162,7 @@ def test_runs_whose_distillations_are_the_same_share_one_start(tmp_path, monkeyp
     assert not (starts["zoo"] / DATA).exists() and load_checkpoint(starts["zoo"])["update"] == 3
     assert "name: zoo" in (starts["zoo"] / "config.yaml").read_text()
     assert len(list((tmp_path / distillation.SHARED_STARTS).glob("*/checkpoints"))) == 2
+    assert not list((tmp_path / distillation.SHARED_STARTS).glob(f"*/{DATA}"))  # a finished start keeps no rounds
     taught = tiny_config(tmp_path, *ROUNDS, "distill.teachers=[cook_0_202]", "zoo=configs/zoo/zoo.yaml")
     assert distillation.start_key(taught) != distillation.start_key(
         dataclasses.replace(taught, zoo="elsewhere.yaml"))  # a teacher's zoo is part of the distillation

@@ -326,8 +326,8 @@ def start_key(config: TrainConfig) -> str:
 def distill_start(config: TrainConfig, run: Path) -> Path:
     """The planner-guided start of a training run (`init_from: scripted_cook`) in `run`: distilled once per
     distillation's settings into `run_dir/.distilled/<start_key>` (runs that differ only in what they do after it,
-    an algorithm or a budget, share it; two processes asking for one wait for each other), then copied into `run`
-    without its rounds' data."""
+    an algorithm or a budget, share it; two processes asking for one wait for each other), its rounds' data dropped
+    once it is done, then copied into `run`."""
     shared = Path(config.run_dir) / SHARED_STARTS / start_key(config)
     shared.parent.mkdir(parents=True, exist_ok=True)
     with open(shared.with_suffix(".lock"), "w") as lock:
@@ -342,6 +342,8 @@ def distill_start(config: TrainConfig, run: Path) -> Path:
                 begun = load_config(shared / "config.yaml")
                 own = dataclasses.replace(own, **{key: getattr(begun, key) for key in NOT_DISTILLED})
             distill(own, resume=checkpoint.exists(), run=shared)
+        # Its rounds' data (hundreds of MB) only served a distillation stopped part way: more rounds are another key.
+        shutil.rmtree(shared / DATA, ignore_errors=True)
     shutil.rmtree(run, ignore_errors=True)
     shutil.copytree(shared, run, ignore=shutil.ignore_patterns(DATA))
     save_config(dataclasses.replace(config, init_from=""), run / "config.yaml")  # the run's own name and settings
