@@ -31,8 +31,8 @@ from pathlib import Path
 import torch
 
 from jax_env import load_layout
-from torch_kitchen.models import make_actor_critic
-from trainers.checkpoint import model_identity, save_checkpoint
+from torch_kitchen.models import make_actor_critic, model_identity
+from trainers.checkpoint import save_checkpoint
 from trainers.config import TrainConfig
 from trainers.machine import machine_name
 from web_apps.play.game import SCRIPTED, Game, Partner, load_partner, step_games

@@ -14,9 +14,9 @@ from torch import nn
 
 from jax_env import INTERACT, STAY, Channel, parse_layout
 from jax_env.state import DIR_VECTORS
-from torch_kitchen.models import ActorCritic, register_architecture
+from torch_kitchen.models import ActorCritic, model_identity, register_architecture
 from torch_kitchen.models.acting import sampling_actor
-from trainers.checkpoint import model_identity, save_checkpoint
+from trainers.checkpoint import save_checkpoint
 from trainers.config import TrainConfig
 
 TWO_BOOTHS = parse_layout("WPWPW\nO0B1O\nWXWXW", name="two_booths")

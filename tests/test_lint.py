@@ -27,8 +27,8 @@ def imported_modules(path: Path) -> set[str]:
 
 
 def test_the_training_step_imports_run_one_way():
-    """runtime -> ppo_step -> training_team -> placement: a team is built below the options that step it."""
-    order = ["trainers.ppo.runtime", "trainers.ppo.step", "trainers.ppo.team", "trainers.ppo.placement"]
+    """runtime -> step -> team: a team is built and placed below the options that step it."""
+    order = ["trainers.ppo.runtime", "trainers.ppo.step", "trainers.ppo.team"]
     for index, module in enumerate(order):
         imported = imported_modules(ROOT / (module.replace(".", "/") + ".py"))
         above = [name for name in order[:index] if name in imported]

@@ -35,7 +35,7 @@ from torchrl.envs import Transform
 from torch_kitchen.egocentric import EgocentricLinear
 from torch_kitchen.env import team_rows
 from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, OBSERVATION, VALUE
-from torch_kitchen.models.acting import ActingPass, draw_categorical, sample_actions
+from torch_kitchen.models.acting import ActingPass, draw_categorical, layers_of, sample_actions
 
 
 class RandomStream:
@@ -74,13 +74,6 @@ class RandomStream:
             self._active = False
             self._state = self._capture()
             self._restore(outer)
-
-
-def layers_of(network: nn.Module) -> list[nn.Module]:
-    """The layers of a chain of (nested) `nn.Sequential`s, in order."""
-    if isinstance(network, nn.Sequential):
-        return [layer for part in network for layer in layers_of(part)]
-    return [network]
 
 
 class StackedNetworks:

@@ -61,7 +61,7 @@ from jax_env.cook import cook_logits, floor_tables, walkable_floor
 from torch_kitchen.egocentric import EgocentricLinear
 from torch_kitchen.env import KitchenEnv, ProgramCache, kitchen_programs, output_entries
 from torch_kitchen.keys import ACTION, LOG_PROB, LOGITS, N_AGENTS, OBSERVATION, SHAPED_REWARD, VALUE
-from torch_kitchen.models.acting import ActingPass, ActionDistribution, plain_network
+from torch_kitchen.models.acting import ActingPass, ActionDistribution, layers_of, plain_network
 from torch_kitchen.models.networks import GraphEncoder
 from torch_kitchen.models.recurrence import MultiAgentLSTM
 from torch_kitchen.partners.guide import TEACHER_PROBS, GuidedPolicy
@@ -69,7 +69,7 @@ from torch_kitchen.partners.pairing import SeatedPolicy
 from torch_kitchen.partners.scripted_cook import ScriptedCook, stacked_conventions
 from torch_kitchen.partners.zoo_seats import ZOO_COOK, ZooPartners, ZooSeats, cook_actions, draw_seats, seating
 from torch_kitchen.rollout import NEXT, InPlaceCollector, as_path, as_tensordict
-from torch_kitchen.teams import ACTING_KEYS, TeamPolicy, acting_pass_of, layers_of
+from torch_kitchen.teams import ACTING_KEYS, TeamPolicy, acting_pass_of
 from torch_kitchen.torchrl_internals import TEMPLATE, MultiAgentNet
 from torch_kitchen.xla_layers import (
     agent_window,

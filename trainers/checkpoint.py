@@ -37,16 +37,6 @@ class CheckpointError(RuntimeError):
     """A checkpoint that cannot be used here; the message says why and what to do instead."""
 
 
-def model_identity(architecture: str, obs_shape, hidden: int, share_params: bool) -> dict:
-    """What must match for weights to load: compared before any tensor is touched."""
-    return {
-        "architecture": architecture,
-        "obs_shape": list(obs_shape),
-        "hidden": hidden,
-        "share_params": share_params,
-    }
-
-
 def check_plain(value, path: str = "payload") -> None:
     """Raises a `TypeError` naming the first entry of `value` that is not a tensor or a plain Python value."""
     kind = type(value)

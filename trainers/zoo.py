@@ -41,6 +41,7 @@ from jax_env import EXPANDED_LAYOUTS, GeneratorConfig, layout_from_state
 from jax_env.generator import SIZES as GENERATOR_SIZES
 from jax_env.layouts import padded_layouts
 from torch_kitchen.events import EVENTS
+from torch_kitchen.models import model_identity
 from torch_kitchen.partners.conventions import (
     ROLES,
     STRANGER,
@@ -57,7 +58,7 @@ from torch_kitchen.partners.conventions import (
     save_zoo,
 )
 from torch_kitchen.partners.scripted_cook import SCRIPTED_COOK
-from trainers.checkpoint import LATEST, model_identity, save_checkpoint
+from trainers.checkpoint import LATEST, save_checkpoint
 from trainers.config import ConfigError, TrainConfig
 from trainers.config.compose import save_config
 from trainers.evaluation.figures import draw_clash_heatmap

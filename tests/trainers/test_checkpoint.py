@@ -11,13 +11,13 @@ import pytest
 import torch
 from tiny import TINY
 
+from torch_kitchen.models import model_identity
 from trainers.checkpoint import (
     FORMAT,
     CheckpointError,
     capture_rng_states,
     check_identity,
     load_checkpoint,
-    model_identity,
     restore_rng_states,
     save_checkpoint,
 )

@@ -12,8 +12,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from jax_env import get_layout, parse_layout, save_layout
 from torch_kitchen.env import KitchenEnv
-from torch_kitchen.models import make_actor_critic
-from trainers.checkpoint import CheckpointError, model_identity, save_checkpoint
+from torch_kitchen.models import make_actor_critic, model_identity
+from trainers.checkpoint import CheckpointError, save_checkpoint
 from trainers.config import ConfigError, EvalConfig, TrainConfig
 from trainers.config.compose import load_config
 from trainers.evaluation import (

@@ -184,3 +184,14 @@ def make_actor_critic(architecture: str, obs_shape: tuple[int, int, int] = (7, 7
     if architecture not in _REGISTRY:
         raise ValueError(f"unknown architecture {architecture!r}; registered: {', '.join(_REGISTRY)}")
     return _REGISTRY[architecture](obs_shape=tuple(obs_shape), hidden=hidden, share_params=share_params, **options)
+
+
+def model_identity(architecture: str, obs_shape, hidden: int, share_params: bool) -> dict:
+    """The recipe `make_actor_critic` builds a model from: what must match for saved weights to load into it,
+    compared before any tensor is touched (`trainers.checkpoint.check_identity`)."""
+    return {
+        "architecture": architecture,
+        "obs_shape": list(obs_shape),
+        "hidden": hidden,
+        "share_params": share_params,
+    }

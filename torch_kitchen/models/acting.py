@@ -43,6 +43,13 @@ def sampling_actor(policy: TensorDictModuleBase) -> ProbabilisticActor:
     )
 
 
+def layers_of(network: nn.Module) -> list[nn.Module]:
+    """The layers of a chain of (nested) `nn.Sequential`s, in order."""
+    if isinstance(network, nn.Sequential):
+        return [layer for part in network for layer in layers_of(part)]
+    return [network]
+
+
 class ActingPass(TensorDictModuleBase):
     """A feed-forward actor and critic in one pass over plain tensors: what `TensorDictSequential(actor, critic)`
     writes (logits, sampled action, its log-prob, value), bit for bit, without the TensorDict plumbing around

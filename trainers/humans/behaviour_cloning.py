@@ -40,8 +40,8 @@ from jax_env.human_games import HumanGame
 from jax_env.observation import get_obs
 from torch_kitchen.env import KitchenEnv
 from torch_kitchen.keys import LOGITS, OBSERVATION
-from torch_kitchen.models import ActorCritic, make_actor_critic
-from trainers.checkpoint import LATEST, model_identity, save_checkpoint
+from torch_kitchen.models import ActorCritic, make_actor_critic, model_identity
+from trainers.checkpoint import LATEST, save_checkpoint
 from trainers.config import TrainConfig
 
 HUMAN_ACTION = ("agents", "human_action")  # the label, kept apart from the actor's own sampled action

@@ -39,7 +39,7 @@ from torchrl.modules import set_recurrent_mode
 from tqdm import tqdm
 
 from torch_kitchen.keys import LOGITS, OBSERVATION, VALUE, VALUE_TARGET
-from torch_kitchen.models import ActorCritic, make_actor_critic
+from torch_kitchen.models import ActorCritic, make_actor_critic, model_identity
 from torch_kitchen.partners.conventions import fingerprints
 from torch_kitchen.partners.guide import TEACHER_PROBS, GuidedPolicy
 from torch_kitchen.partners.scripted_cook import ScriptedCook
@@ -50,19 +50,23 @@ from trainers.checkpoint import (
     CheckpointError,
     capture_rng_states,
     load_checkpoint,
-    model_identity,
     restore_rng_states,
     save_checkpoint,
 )
 from trainers.config import PLANNER_START, RESUMABLE, ConfigError, TrainConfig
 from trainers.config.compose import load_config, save_config, train_config_parser
-from trainers.loggers import make_loggers
 from trainers.plugins import PluginError, add_plugin_option, import_plugins
 from trainers.ppo.advantages import compute_advantages, shaping_weight_at
 from trainers.ppo.collection import finished_episode_deliveries, make_collector, select_kitchens
-from trainers.ppo.placement import make_optimizer, place_networks, set_learning_rate
-from trainers.ppo.resume import load_to_resume, start_fresh
-from trainers.ppo.team import TeamKitchens, make_env, with_model_transforms
+from trainers.ppo.resume import load_to_resume, make_loggers, start_fresh
+from trainers.ppo.team import (
+    TeamKitchens,
+    make_env,
+    make_optimizer,
+    place_networks,
+    set_learning_rate,
+    with_model_transforms,
+)
 
 DATA = "dagger"  # the run's folder of every round's labelled batch
 

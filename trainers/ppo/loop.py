@@ -29,12 +29,12 @@ from tqdm import tqdm
 from torch_kitchen.env import team_rows
 from torch_kitchen.keys import REWARD, SHAPED_REWARD, VALUE, VALUE_TARGET
 from torch_kitchen.models import ActorCritic
+from trainers.algorithms import check_algorithm
 from trainers.checkpoint import LATEST
-from trainers.config import ConfigError, TrainConfig
+from trainers.config import ConfigError, TrainConfig, learning_keys
 from trainers.ppo.advantages import compute_advantages, shaping_weight_at
 from trainers.ppo.collection import make_collector
 from trainers.ppo.distill import distill_planner_starts
-from trainers.ppo.placement import set_learning_rate
 from trainers.ppo.resume import (
     StopRequest,
     TrainingDiverged,
@@ -47,7 +47,7 @@ from trainers.ppo.resume import (
 )
 from trainers.ppo.runtime import Learner, UpdateRunner, team_policy, use_threads
 from trainers.ppo.step import Losses, total_loss
-from trainers.ppo.team import RestorePoint, TrainingTeam, build_teams, check_teams
+from trainers.ppo.team import RestorePoint, TrainingTeam, build_teams, set_learning_rate
 
 # ClipPPOLoss's outputs as logged (None: not logged); other entries (an algorithm's) go to losses/<name> for
 # "loss_<name>" and to charts/<name> otherwise.
@@ -299,6 +299,30 @@ def learn_from_batch(teams: list[TrainingTeam], batch: TensorDictBase, runner: U
             orders.append(start_update(team, team_batch))
         prepare_seconds.append(time.perf_counter() - preparing)
     return update_teams(teams, batches, orders, runner), prepare_seconds
+
+
+def check_teams(configs: Sequence[TrainConfig]) -> list[TrainConfig]:
+    """Teams trained in one batch share every setting but the seed; each is checked as a run of its own. Returns
+    their configs with the algorithm's settings spelled out (`check_algorithm`)."""
+    configs = [check_algorithm(config.check()) for config in configs]
+    for config in configs:
+        config.check_run_location()
+        if config.runtime.teams != 1:
+            raise ConfigError(f"runtime.teams={config.runtime.teams}: a team's own config has runtime.teams=1 "
+                              "(see `team_configs`)")
+    for config in configs[1:]:
+        first = learning_keys(configs[0].to_dict())
+        differ = [key for key, value in learning_keys(config.to_dict()).items()
+                  if key != "seed" and value != first[key]]
+        if differ:
+            raise ConfigError(
+                f"teams trained together share every setting but the seed; seed {config.seed} differs from seed "
+                f"{configs[0].seed} in {', '.join(differ)}"
+            )
+    seeds = [config.seed for config in configs]
+    if len(set(seeds)) < len(seeds):
+        raise ConfigError(f"teams trained together need different seeds, got {seeds}")
+    return configs
 
 
 def run_directories(configs: Sequence[TrainConfig], runs: Sequence[Path] | None, resume: bool,

@@ -1,5 +1,6 @@
 """How a run starts, stops and starts again: a fresh start's clean logs and its `init_from` weights, a resumed run's
-state, random streams and logs put back as they were at its latest checkpoint, the checkpoints after updates, the
+state, random streams and logs put back as they were at its latest checkpoint, its loggers (TorchRL's, by the names in
+`config.loggers`), the checkpoints after updates, the
 signals that stop a run after one, and the errors that end it."""
 
 from __future__ import annotations
@@ -10,12 +11,13 @@ import signal
 from collections.abc import Sequence
 from pathlib import Path
 
+from torchrl.record.loggers import Logger, get_logger
 from tqdm import tqdm
 
+from torch_kitchen.torchrl_internals import PurgingTensorboardLogger
 from trainers.checkpoint import check_identity, load_checkpoint, restore_rng_states
 from trainers.config import RESUMABLE, ConfigError, TrainConfig
 from trainers.config.compose import save_config
-from trainers.loggers import hyperparameters, make_loggers
 from trainers.ppo.team import TrainingTeam
 
 
@@ -158,6 +160,25 @@ def restore_streams(teams: list[TrainingTeam], saved: list[dict | None]) -> None
                 restore_rng_states(state["rng"])
 
 
+def make_loggers(config: TrainConfig, run: Path, purge_step: int | None) -> list[Logger]:
+    """TorchRL loggers named by `config.loggers`, writing under `run/<name>`. TensorBoard drops the events a killed
+    run wrote at steps >= `purge_step` (a resume); other backends (wandb, mlflow, ...) come from `get_logger`."""
+    loggers = []
+    for name in config.loggers:
+        if name == "tensorboard":
+            loggers.append(PurgingTensorboardLogger("tensorboard", str(run), purge_step=purge_step))
+        else:  # the CSV files go to run/csv; a tracking service names the experiment after the run
+            experiment = "csv" if name == "csv" else f"{config.name}-seed{config.seed}"
+            loggers.append(get_logger(name, logger_name=str(run), experiment_name=experiment))
+    return loggers
+
+
+def hyperparameters(config: TrainConfig) -> dict[str, int | float | str | bool]:
+    """The config as TensorBoard's hparams accept it (lists as text)."""
+    return {key: value if isinstance(value, int | float | str | bool) else str(value)
+            for key, value in config.to_dict().items()}
+
+
 def close_logs(teams: list[TrainingTeam]) -> None:
     """Every team's loggers closed (their last rows written)."""
     for team in teams:
@@ -189,9 +210,7 @@ def checkpoint_or_stop(teams: Sequence[TrainingTeam], asked: bool, signum: int |
     snapshot = snapshot_index(lead, update)
     if last or update % lead.checkpoint_every == 0 or snapshot:
         for team in teams:
-            team.checkpoint()
-            if snapshot:
-                team.snapshot(snapshot)
+            team.checkpoint(snapshot)
     if signum is not None:
         steps = sum(team.env_steps for team in teams)
         raise RunStopped(signum, f"stopped by {signal.Signals(signum).name} at update {update} "

@@ -1,6 +1,6 @@
 """How the teams of one batch act and learn on this machine: the run options (`threads`, `parallel_teams`,
 `minibatch_shards`, `compile_policy`, `compile_update`, the device), which change how fast a run goes and never what it
-learns. Here are the run's speed choices (where a team's networks run and its optimizer: `trainers.ppo.placement`), the
+learns. Here are the run's speed choices (where a team's networks run and its optimizer: `trainers.ppo.team`), the
 teams acting together (`team_policy`), and how the teams take their PPO steps (`UpdateRunner`, `Learner`): the step of
 `trainers.ppo.step`, written once, with its gradients on a whole minibatch, on shards on threads, or for several teams
 stacked (on a GPU), compiled or not.

@@ -1,7 +1,8 @@
 """A seed's team as it trains (`TrainingTeam`): its kitchens, networks, algorithm, TorchRL loss and optimizer,
-built in the team's own random stream, its checkpoint, and the restore point an update that diverged goes back to. The
-PPO loop (`trainers.ppo.loop`) drives the runs; their step is `trainers.ppo.step`'s; `trainers.ppo.runtime`
-places them on the machine and decides how several of them share it."""
+built in the team's own random stream, its checkpoint, and the restore point an update that diverged goes back to;
+and where its networks run and how its optimizer is set up for the run's options, below the runtime that steps them
+(`trainers.ppo.runtime`, which decides how several teams share the machine), so imports run one way. The PPO loop
+(`trainers.ppo.loop`) drives the runs; their step is `trainers.ppo.step`'s."""
 
 from __future__ import annotations
 
@@ -17,16 +18,16 @@ from torchrl.envs import EnvBase, Transform
 from torchrl.objectives import ClipPPOLoss
 from torchrl.record.loggers import Logger
 
+from torch_kitchen.cpu_kernels import accelerate_cpu
 from torch_kitchen.env import KitchenEnv, with_transforms
 from torch_kitchen.keys import ACTION, ADVANTAGE, LOG_PROB, VALUE, VALUE_TARGET
-from torch_kitchen.models import ActorCritic, make_actor_critic
+from torch_kitchen.models import ActorCritic, make_actor_critic, model_identity
 from torch_kitchen.partners.conventions import fingerprints
 from torch_kitchen.teams import RandomStream, TeamTransform
 from torch_kitchen.torchrl_internals import entropy_without_host_check, hold_value_clip_on_host
-from trainers.algorithms import ALGORITHMS, Algorithm, check_algorithm
-from trainers.checkpoint import LATEST, capture_rng_states, model_identity, save_checkpoint
-from trainers.config import ConfigError, TrainConfig, learning_keys
-from trainers.ppo.placement import make_optimizer, place_networks
+from trainers.algorithms import ALGORITHMS, Algorithm
+from trainers.checkpoint import LATEST, capture_rng_states, save_checkpoint
+from trainers.config import TrainConfig
 
 
 def make_env(config: TrainConfig, num_envs: int | None = None, levels=None,
@@ -46,6 +47,37 @@ def with_model_transforms(env: KitchenEnv, actor_critic: ActorCritic, *extra: Tr
     """`env` plus the transforms the model needs (episode-start flags and recurrent state for LSTMs, the partner
     context for E3T models), then `extra` ones (an algorithm's)."""
     return with_transforms(env, [*actor_critic.env_transforms(), *extra])
+
+
+def place_networks(config: TrainConfig, actor_critic: ActorCritic, own_kernels: bool) -> None:
+    """The team's networks on the run's device; on a CPU with `own_kernels` (networks built from the config, not a
+    user's own) their layers swapped for this project's faster CPU kernels (`accelerate_cpu`)."""
+    if own_kernels and torch.device(config.runtime.device).type == "cpu":
+        accelerate_cpu(actor_critic.actor, actor_critic.critic)
+    actor_critic.actor.to(config.runtime.device)
+    actor_critic.critic.to(config.runtime.device)
+
+
+def make_optimizer(config: TrainConfig, parameters: list[torch.nn.Parameter]) -> torch.optim.Adam:
+    """The team's Adam: with `compile_update` its learning rate a tensor, so that annealing it changes a value
+    rather than the compiled graph, and on a GPU its step counts on the device, as a CUDA graph needs; else fused,
+    one kernel for all parameters instead of a few per tensor (3x faster on a CPU at hidden 256)."""
+    if config.runtime.compile_update:
+        lr = torch.tensor(config.ppo.lr, device=config.runtime.device)
+        return torch.optim.Adam(parameters, lr=lr, eps=config.ppo.adam_eps, capturable=config.runtime.on_gpu)
+    return torch.optim.Adam(parameters, lr=config.ppo.lr, eps=config.ppo.adam_eps, fused=True)
+
+
+def set_learning_rate(config: TrainConfig, optimizer: torch.optim.Optimizer, lr: float) -> None:
+    """The optimizer's learning rate for the next update: with `compile_update` written into the tensor the
+    compiled step reads (made again after resuming a run saved without it)."""
+    for group in optimizer.param_groups:
+        if config.runtime.compile_update:
+            if not isinstance(group["lr"], torch.Tensor):
+                group["lr"] = torch.tensor(lr, device=config.runtime.device)
+            group["lr"].fill_(lr)
+        else:
+            group["lr"] = lr
 
 
 def make_algorithm(config: TrainConfig, actor_critic: ActorCritic) -> Algorithm:
@@ -118,7 +150,9 @@ class TrainingTeam:
     def checkpoint_path(self) -> Path:
         return self.run / "checkpoints" / LATEST
 
-    def checkpoint(self) -> None:
+    def checkpoint(self, snapshot: int = 0) -> None:
+        """Its checkpoint (`checkpoint_path`), and with `snapshot` k a copy kept as checkpoints/snapshot_<k>.pt
+        (`snapshots`)."""
         with self.stream.active():
             rng = capture_rng_states()
         save_checkpoint(self.checkpoint_path, {
@@ -131,10 +165,8 @@ class TrainingTeam:
             "rng": rng,
             "met": dict(sorted(self.met.items())),
         })  # fmt: skip
-
-    def snapshot(self, k: int) -> Path:
-        """A copy of the checkpoint just written, kept as checkpoints/snapshot_<k>.pt (`snapshots`)."""
-        return Path(shutil.copyfile(self.checkpoint_path, self.checkpoint_path.with_name(f"snapshot_{k}.pt")))
+        if snapshot:
+            shutil.copyfile(self.checkpoint_path, self.checkpoint_path.with_name(f"snapshot_{snapshot}.pt"))
 
 
 def team_configs(config: TrainConfig) -> list[TrainConfig]:
@@ -148,11 +180,13 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
     """Team `index` of the batch: networks (from `config.architecture` unless given), algorithm, loss and
     optimizer, all built in the team's own random stream, seeded with its seed."""
     stream = RandomStream(config.seed, config.runtime.device)
-    obs_shape = kitchen.obs_shape
+    recipe = (config.architecture, kitchen.obs_shape, config.hidden, config.share_params)
+    own_networks = actor_critic is None
+    # Networks passed from Python are not rebuilt by name: their identity says so.
+    identity = {**model_identity(*recipe), **({} if own_networks else {"given": True})}
     with stream.active():
-        own_networks = actor_critic is None
         if own_networks:
-            actor_critic = make_actor_critic(config.architecture, obs_shape, config.hidden, config.share_params)
+            actor_critic = make_actor_critic(*recipe)
         place_networks(config, actor_critic, own_kernels=own_networks)
         algorithm = make_algorithm(config, actor_critic)
         # The critic runs while acting: its values feed GAE.
@@ -163,8 +197,7 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
     team = TrainingTeam(
         config=config, run=run, stream=stream, actor_critic=actor_critic, algorithm=algorithm, policy=policy,
         loss_module=loss_module, optimizer=optimizer, parameters=parameters,
-        identity={**model_identity(config.architecture, obs_shape, config.hidden, config.share_params),
-                  **({} if own_networks else {"given": True})},  # networks passed from Python: not rebuilt by name
+        identity=identity,
         parts={"actor": actor_critic.actor, "critic": actor_critic.critic, "optimizer": optimizer,
                "env": TeamKitchens(kitchen, index)},
         met=fingerprints(algorithm.met_conventions()),
@@ -204,28 +237,3 @@ class RestorePoint:
         with torch.no_grad():
             torch._foreach_copy_([parameter.data for parameter in self.team.parameters], self.weights)
         self.team.optimizer.load_state_dict(self.optimizer)
-
-
-def check_teams(configs: Sequence[TrainConfig]) -> list[TrainConfig]:
-    """Teams trained in one batch share every setting but the seed; each is checked as a run of its own. Returns
-    their configs with the algorithm's settings spelled out (`check_algorithm`)."""
-    configs = [check_algorithm(config.check()) for config in configs]
-    for config in configs:
-        config.check_run_location()
-        if config.runtime.teams != 1:
-            raise ConfigError(f"runtime.teams={config.runtime.teams}: a team's own config has runtime.teams=1 "
-                              "(see `team_configs`)")
-    for config in configs[1:]:
-        first = learning_keys(configs[0].to_dict())
-        differ = [key for key, value in learning_keys(config.to_dict()).items()
-                  if key != "seed" and value != first[key]]
-        if differ:
-            raise ConfigError(
-                f"teams trained together share every setting but the seed; seed {config.seed} differs from seed "
-                f"{configs[0].seed} in {', '.join(differ)}"
-            )
-    seeds = [config.seed for config in configs]
-    if len(set(seeds)) < len(seeds):
-        raise ConfigError(f"teams trained together need different seeds, got {seeds}")
-    return configs
-

@@ -13,9 +13,9 @@ from fastapi import WebSocketDisconnect  # noqa: E402
 from fastapi.testclient import TestClient  # noqa: E402
 
 from torch_kitchen.keys import OBSERVATION  # noqa: E402
-from torch_kitchen.models import make_actor_critic  # noqa: E402
+from torch_kitchen.models import make_actor_critic, model_identity  # noqa: E402
 from torch_kitchen.records import read_record  # noqa: E402
-from trainers.checkpoint import model_identity, save_checkpoint  # noqa: E402
+from trainers.checkpoint import save_checkpoint  # noqa: E402
 from trainers.config import TrainConfig  # noqa: E402
 from trainers.humans.behaviour_cloning import human_batch  # noqa: E402
 from trainers.humans.command import games_from_records  # noqa: E402

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import yaml
 
-from torch_kitchen.models import make_actor_critic
-from trainers.checkpoint import model_identity, save_checkpoint
+from torch_kitchen.models import make_actor_critic, model_identity
+from trainers.checkpoint import save_checkpoint
 from trainers.config import TrainConfig
 
 TOKEN = "study-token"
