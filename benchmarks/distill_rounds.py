@@ -1,6 +1,7 @@
 """Distillation's rounds as they are against as they were, in one run: seconds per round (the fitting apart from the
 rest: rollout, labels, value targets, checkpoint), the last round's agreement with the teacher, and the distilled
-team's self-play on held-out levels.
+team's self-play on held-out levels; with `--seeds N`, each distilled from seeds 0 .. N-1, and each fitting's agreement
+and held-out score against before's decided by a 95% stratified bootstrap interval over the seeds.
 
     before   the rollout by the kitchens' collector (the cook planning step by step on the host), minibatches of 4
              kitchens' whole sequences (`trainers.ppo.distill.minibatches` held to `sequences=True`), 8 passes over
@@ -14,25 +15,29 @@ in this process, after one untimed round per collector that compiles what they s
 team with itself on the first `--heldout` held-out levels. The goal: the rounds at least 3x faster than before, with
 the same agreement and held-out score.
 
-    python benchmarks/distill_rounds.py [--heldout 20] [--rollouts 4] [--also "k=v k=v"]... [--out FILE] [k=v ...]
+    python benchmarks/distill_rounds.py [--seeds 1] [--heldout 20] [--rollouts 4] [--also "k=v k=v"]... [--out FILE]
+        [k=v ...]
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import datetime
 import shutil
 import time
 from pathlib import Path
 from unittest import mock
 
+import numpy as np
 import torch
 
 import trainers.ppo.distill as distillation
 from trainers.config import DeviceConfig, EvalConfig
 from trainers.config.compose import load_config
 from trainers.evaluation import evaluate
+from trainers.evaluation.intervals import difference, verdict
 from trainers.machine import machine_name
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -79,27 +84,43 @@ def held_out_self_play(runs: dict[str, Path], heldout: int, rollouts: int, max_s
 
 
 def table(results: dict, scores: dict, configs: dict, args) -> str:
+    """The rounds' timings (the first seed's rounds, the mean over seeds in all), agreements and held-out scores
+    (means over seeds) of every fitting; with several seeds, each against before's with its interval."""
     config = configs["now"]
+    seeds = len(results["now"])
     lines = [f"Machine: {machine_name()}, torch {torch.get_num_threads()} threads, {datetime.date.today()}; "
              f"{' '.join([f'`{args.config.relative_to(ROOT)}`', *args.overrides])} ({config.distill.rounds} rounds "
-             f"of {config.distill.kitchens} kitchens x {config.rollout_steps} steps, seed {config.seed}); self-play on "
-             f"{args.heldout} held-out levels x "
-             f"{args.rollouts} episodes.", "",
+             f"of {config.distill.kitchens} kitchens x {config.rollout_steps} steps, "
+             f"{f'seeds 0-{seeds - 1}' if seeds > 1 else f'seed {config.seed}'}); self-play on "
+             f"{args.heldout} held-out levels x {args.rollouts} episodes.", "",
              "| fitting | rollout | passes | of | minibatch | seconds per round | of which fitting | in all | "
              "x before | last agreement | held-out SP |", "|---|---|---:|---|---|---|---|---:|---:|---:|---:|"]
-    for name, result in results.items():
-        settings = configs[name].distill
+    total = {name: np.mean([result["total"] for result in runs]) for name, runs in results.items()}
+    for name, runs in results.items():
+        settings, first = configs[name].distill, runs[0]
         minibatch = f"{settings.minibatch} kitchens' sequences" if name == "before" else \
             f"{settings.minibatch * config.rollout_steps} steps"
         of = "every round" if settings.replay == 0 or settings.replay >= settings.rounds - 1 else \
             f"the newest round and {settings.replay:g}x as many earlier kitchens"
         lines.append(f"| {name} | {configs[name].runtime.collector} | {settings.epochs} | {of} | {minibatch} | "
-                     f"{' '.join(f'{s:.1f}' for s in result['round'])} | "
-                     f"{' '.join(f'{s:.1f}' for s in result['fitting'])} | {result['total']:.1f} | "
-                     f"{results['before']['total'] / result['total']:.2f} | {result['agreement']:.3f} | "
-                     f"{scores[name]:.2f} |")
+                     f"{' '.join(f'{s:.1f}' for s in first['round'])} | "
+                     f"{' '.join(f'{s:.1f}' for s in first['fitting'])} | {total[name]:.1f} | "
+                     f"{total['before'] / total[name]:.2f} | "
+                     f"{np.mean([result['agreement'] for result in runs]):.3f} | {np.mean(scores[name]):.2f} |")
     lines += ["", f"x before: the rounds' time in all, before's over each (goal: {GOAL:g}x for the config's own, "
                   "\"now\", with the same agreement and held-out score)."]
+    if seeds > 1:
+        lines += ["", f"Against before over {seeds} seeds: the difference of the means with its 95% stratified "
+                      "bootstrap interval over the seeds; \"holds\" where the fitting is above before's, \"does not "
+                      "hold\" where below (the goal's \"same\" fails there), else \"inconclusive\".", "",
+                  "| fitting | agreement - before's | held-out SP - before's |", "|---|---|---|"]
+        agreement = {name: np.array([[result["agreement"]] for result in runs]) for name, runs in results.items()}
+        held_out = {name: np.array(values)[:, None] for name, values in scores.items()}
+        for name in results:
+            if name != "before":
+                cells = [difference(measure[name], measure["before"]) for measure in (agreement, held_out)]
+                lines.append(f"| {name} | " + " | ".join(f"{cell.value:+.3f} [{cell.low:+.3f}, {cell.high:+.3f}] "
+                                                         f"{verdict(cell)}" for cell in cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -112,6 +133,7 @@ def main(argv=None) -> None:
                         help="overrides of the fitting as it was, in one string")
     parser.add_argument("--also", action="append", default=[], metavar="OVERRIDES",
                         help="another fitting to time beside the config's, its overrides in one string (repeatable)")
+    parser.add_argument("--seeds", type=int, default=1, help="distil each fitting from seeds 0 .. N-1")
     parser.add_argument("--heldout", type=int, default=20)
     parser.add_argument("--rollouts", type=int, default=4)
     parser.add_argument("--runs", type=Path, default=ROOT / "runs" / "distill_rounds")
@@ -122,14 +144,21 @@ def main(argv=None) -> None:
     variants = {"before": args.before.split(), "now": [], **{also: also.split() for also in args.also}}
     configs = {name: load_config(args.config, ["progress=false", *args.overrides, *overrides])
                for name, overrides in variants.items()}
-    runs = {name: args.runs / f"variant{number}" for number, name in enumerate(variants)}
+    seeds = range(args.seeds) if args.seeds > 1 else [configs["now"].seed]
+    runs = {(name, seed): args.runs / f"variant{number}_seed{seed}" for number, name in enumerate(variants)
+            for seed in seeds}
     # One round first per collector, untimed: the kitchens' and the cook's programs compiled for every variant alike.
     for collector in sorted({config.runtime.collector for config in configs.values()}):
         timed_distillation(load_config(args.config, ["progress=false", *args.overrides, "distill.rounds=1",
                                                      f"runtime.collector={collector}"]),
                            args.runs / f"warm_up_{collector}", sequences=False)
-    results = {name: timed_distillation(configs[name], runs[name], sequences=name == "before") for name in variants}
-    scores = held_out_self_play(runs, args.heldout, args.rollouts, configs["now"].max_steps, args.runs / "eval")
+    results = {name: [] for name in variants}
+    for seed in seeds:  # seed by seed, so that a long run gives every fitting's first seed early
+        for name in variants:
+            results[name].append(timed_distillation(dataclasses.replace(configs[name], seed=seed), runs[name, seed],
+                                                    sequences=name == "before"))
+    played = held_out_self_play(runs, args.heldout, args.rollouts, configs["now"].max_steps, args.runs / "eval")
+    scores = {name: [played[name, seed] for seed in seeds] for name in variants}
     text = table(results, scores, configs, args)
     print(text)
     if args.out:
