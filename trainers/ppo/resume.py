@@ -1,7 +1,7 @@
 """How a run starts, stops and starts again: a fresh start's clean logs and its `init_from` weights, a resumed run's
-state, random streams and logs put back as they were at its latest checkpoint, its loggers (TorchRL's, by the names in
-`config.loggers`), the checkpoints after updates, the
-signals that stop a run after one, and the errors that end it."""
+state, random streams and logs put back as they were at its latest checkpoint, its loggers (TorchRL's, by the names
+in `config.loggers`), the checkpoints after updates, the signals that stop a run after one, and the errors that end
+it."""
 
 from __future__ import annotations
 
