@@ -107,8 +107,8 @@ def table(results: dict, scores: dict, configs: dict, args) -> str:
                      f"{' '.join(f'{s:.1f}' for s in first['fitting'])} | {total[name]:.1f} | "
                      f"{total['before'] / total[name]:.2f} | "
                      f"{np.mean([result['agreement'] for result in runs]):.3f} | {np.mean(scores[name]):.2f} |")
-    lines += ["", f"x before: the rounds' time in all, before's over each (goal: {GOAL:g}x for the config's own, "
-                  "\"now\", with the same agreement and held-out score)."]
+    lines += ["", f"x before: the rounds' time in all, before's over each (goal: {GOAL:g}x with the same agreement and "
+                  "held-out score as before's)."]
     if seeds > 1:
         lines += ["", f"Against before over {seeds} seeds: the difference of the means with its 95% stratified "
                       "bootstrap interval over the seeds; \"holds\" where the fitting is above before's, \"does not "
