@@ -34,7 +34,7 @@ LOOPS = {
                 {**CPU_KERNEL, **ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at torch_kitchen/rollout.py:advance": 0.25},
                 CPU_KERNEL_MADE),
     "torchrl": ("configs/ippo/mlp_ik.yaml", ["runtime.collector=torchrl"],
-                {**CPU_KERNEL, **ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at trainers/ppo/loop.py:train_teams": 0.25},
+                {**CPU_KERNEL, **ACTIONS_TO_JAX, **EPISODE_ENDS, "__bool__ at trainers/ppo/loop.py:train_loop": 0.25},
                 CPU_KERNEL_MADE),
     "gnn (xla)": ("configs/ippo/gnn_ik.yaml", ["runtime.collector=xla"], {}, {}),
     "an SK LSTM, a network per agent (xla)": ("configs/ippo/mlp_lstm_sk_cramped_room.yaml", ["runtime.collector=xla"],

@@ -2,11 +2,12 @@
 
 Read top to bottom: how an update starts (the learning rate, the training reward and its advantages, the minibatch
 orders), its PPO epochs over minibatches of whole kitchen sequences, how it ends (the divergence check and the
-metrics), then `train_teams()`: build the env and the teams, resume or start fresh, and for every batch of
+metrics), when the teams checkpoint, then `train_teams()`: check the configs, ready the run directories and the
+planner-guided starts, and `train_loop()`: build the env and the teams, resume or start fresh, and for every batch of
 `num_envs x rollout_steps` steps per team update, log and checkpoint. The algorithm (`trainers.algorithms`: IPPO,
 E3T, or one you register) changes the loop only through its named hooks; how the teams share the machine (threads,
-shards, compilation, stacking on a GPU) is `trainers.ppo.runtime`'s; a run's start, checkpoints, logs, stop and resume
-are `trainers.ppo.resume`'s; the command line is `trainers.train_command`'s.
+shards, compilation, stacking on a GPU) is `trainers.ppo.runtime`'s; a run's start, logs, stop and resume are
+`trainers.ppo.resume`'s; the command line is `trainers.train_command`'s.
 
     kitchen-train configs/ippo/mlp_ik.yaml seed=3 total_steps=1e6
     kitchen-train --resume runs/ippo_mlp_ik/seed3
@@ -14,6 +15,8 @@ are `trainers.ppo.resume`'s; the command line is `trainers.train_command`'s.
 
 from __future__ import annotations
 
+import math
+import signal
 import sys
 import time
 from collections import deque
@@ -36,10 +39,10 @@ from trainers.ppo.advantages import compute_advantages, shaping_weight_at
 from trainers.ppo.collection import make_collector
 from trainers.ppo.distill import distill_planner_starts
 from trainers.ppo.resume import (
+    RunStopped,
     StopRequest,
     TrainingDiverged,
     already_trained,
-    checkpoint_or_stop,
     close_logs,
     open_logs,
     restore_streams,
@@ -179,8 +182,6 @@ def finish_update(team: TrainingTeam, batch: TensorDictBase, stats: list[dict[st
         del metrics["losses/explained_variance"]
     if finished_count:
         metrics["charts/episode_deliveries"] = finished_sum / finished_count
-    metrics["charts/learning_rate"] = learning_rate_at(config, team.update)
-    metrics["charts/shaping_weight"] = shaping_weight_at(config, team.env_steps)
     return metrics
 
 
@@ -198,6 +199,29 @@ def log_update(teams: Sequence[TrainingTeam], learned: list[tuple[dict, float]],
             logger.log_metrics(metrics, step=team.env_steps)
         asked |= bool(on_update(team.update, metrics)) if on_update is not None else False
     return asked
+
+
+def snapshot_index(config: TrainConfig, update: int) -> int:
+    """k where `update` is the k-th of the run's `snapshots` (at k/snapshots of its updates, rounded up); else 0."""
+    points = [math.ceil(k * config.num_updates / config.snapshots) for k in range(1, config.snapshots + 1)]
+    return points.index(update) + 1 if update in points else 0
+
+
+def checkpoint_or_stop(teams: Sequence[TrainingTeam], asked: bool, signum: int | None, total_steps: int) -> bool:
+    """After an update: every team checkpointed every `checkpoint_every` updates and at the last (the run's, or
+    one `on_update` asked for); returns whether that was the last. RunStopped after a checkpoint where a signal
+    came (`signum`)."""
+    lead, update = teams[0].config, teams[0].update
+    last = update == lead.num_updates or asked or signum is not None
+    snapshot = snapshot_index(lead, update)
+    if last or update % lead.checkpoint_every == 0 or snapshot:
+        for team in teams:
+            team.checkpoint(snapshot)
+    if signum is not None:
+        steps = sum(team.env_steps for team in teams)
+        raise RunStopped(signum, f"stopped by {signal.Signals(signum).name} at update {update} "
+                                 f"({steps:,} of {total_steps:,} env steps), checkpoint written")
+    return last
 
 
 def train(
@@ -241,11 +265,19 @@ def train_teams(
     for a single team. Raises as `train` does.
     """
     configs = check_teams(configs)
-    lead, num_teams = configs[0], len(configs)
     runs = run_directories(configs, runs, resume, allow_unsolvable, actor_critic)
-    use_threads(lead)
+    use_threads(configs[0])
     if not resume:
         distill_planner_starts(configs, runs)
+    return train_loop(configs, runs, resume, on_update, actor_critic)
+
+
+def train_loop(configs: list[TrainConfig], runs: list[Path], resume: bool,
+               on_update: Callable[[int, dict], bool | None] | None, actor_critic: ActorCritic | None) -> list[Path]:
+    """PPO for the teams of `train_teams`, their configs checked and their run directories and starts ready: the
+    kitchens and the teams built, each resumed or started fresh, then an update per collected batch, logged and
+    checkpointed, until the budget, a signal or `on_update` stops them."""
+    lead, num_teams = configs[0], len(configs)
 
     # ---------------------------------------------------------------- environment and teams
     teams, env = build_teams(configs, runs, actor_critic)
@@ -292,13 +324,18 @@ def learn_from_batch(teams: list[TrainingTeam], batch: TensorDictBase, runner: U
     team's seconds of preparation."""
     num_envs = teams[0].config.num_envs
     batches = [batch[team_rows(index, num_envs)] for index in range(len(teams))]
-    orders, prepare_seconds = [], []
+    orders, prepare_seconds, schedules = [], [], []
     for team, team_batch in zip(teams, batches):
         preparing = time.perf_counter()
         with team.stream.active():
             orders.append(start_update(team, team_batch))
         prepare_seconds.append(time.perf_counter() - preparing)
-    return update_teams(teams, batches, orders, runner), prepare_seconds
+        schedules.append({"charts/learning_rate": learning_rate_at(team.config, team.update),
+                          "charts/shaping_weight": shaping_weight_at(team.config, team.env_steps)})
+    learned = update_teams(teams, batches, orders, runner)
+    for (metrics, _), schedule in zip(learned, schedules):
+        metrics.update(schedule)  # the schedules the update ran with, logged beside what it learned
+    return learned, prepare_seconds
 
 
 def check_teams(configs: Sequence[TrainConfig]) -> list[TrainConfig]:

@@ -1,11 +1,10 @@
 """How a run starts, stops and starts again: a fresh start's clean logs and its `init_from` weights, a resumed run's
 state, random streams and logs put back as they were at its latest checkpoint, its loggers (TorchRL's, by the names
-in `config.loggers`), the checkpoints after updates, the signals that stop a run after one, and the errors that end
+in `config.loggers`), the signals that stop a run after its next checkpoint (`StopRequest`), and the errors that end
 it."""
 
 from __future__ import annotations
 
-import math
 import shutil
 import signal
 from collections.abc import Sequence
@@ -189,30 +188,8 @@ def close_logs(teams: list[TrainingTeam]) -> None:
 def open_logs(teams: list[TrainingTeam], resume: bool) -> None:
     """Every team's loggers (a resumed run's logs cut at its checkpoint's step), with its hyperparameters once."""
     for team in teams:
+        hparams = hyperparameters(team.config)
         team.loggers = make_loggers(team.config, team.run, purge_step=team.env_steps + 1 if resume else None)
         if not resume:
             for logger in team.loggers:
-                logger.log_hparams(hyperparameters(team.config))
-
-
-def snapshot_index(config: TrainConfig, update: int) -> int:
-    """k where `update` is the k-th of the run's `snapshots` (at k/snapshots of its updates, rounded up); else 0."""
-    points = [math.ceil(k * config.num_updates / config.snapshots) for k in range(1, config.snapshots + 1)]
-    return points.index(update) + 1 if update in points else 0
-
-
-def checkpoint_or_stop(teams: Sequence[TrainingTeam], asked: bool, signum: int | None, total_steps: int) -> bool:
-    """After an update: every team checkpointed every `checkpoint_every` updates and at the last (the run's, or
-    one `on_update` asked for); returns whether that was the last. RunStopped after a checkpoint where a signal
-    came (`signum`)."""
-    lead, update = teams[0].config, teams[0].update
-    last = update == lead.num_updates or asked or signum is not None
-    snapshot = snapshot_index(lead, update)
-    if last or update % lead.checkpoint_every == 0 or snapshot:
-        for team in teams:
-            team.checkpoint(snapshot)
-    if signum is not None:
-        steps = sum(team.env_steps for team in teams)
-        raise RunStopped(signum, f"stopped by {signal.Signals(signum).name} at update {update} "
-                                 f"({steps:,} of {total_steps:,} env steps), checkpoint written")
-    return last
+                logger.log_hparams(hparams)

@@ -189,20 +189,18 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
             actor_critic = make_actor_critic(*recipe)
         place_networks(config, actor_critic, own_kernels=own_networks)
         algorithm = make_algorithm(config, actor_critic)
-        # The critic runs while acting: its values feed GAE.
-        policy = actor_critic.acting_policy(*algorithm.acting_modules())
         loss_module = make_loss(config, actor_critic, algorithm)
         parameters = [*loss_module.parameters(), *algorithm.parameters()]
         optimizer = make_optimizer(config, parameters)
-    team = TrainingTeam(
+        parts = {"actor": actor_critic.actor, "critic": actor_critic.critic, "optimizer": optimizer,
+                 "env": TeamKitchens(kitchen, index)}
+        # The critic runs while acting: its values feed GAE.
+        policy = actor_critic.acting_policy(*algorithm.acting_modules())
+    return TrainingTeam(
         config=config, run=run, stream=stream, actor_critic=actor_critic, algorithm=algorithm, policy=policy,
-        loss_module=loss_module, optimizer=optimizer, parameters=parameters,
-        identity=identity,
-        parts={"actor": actor_critic.actor, "critic": actor_critic.critic, "optimizer": optimizer,
-               "env": TeamKitchens(kitchen, index)},
+        loss_module=loss_module, optimizer=optimizer, parameters=parameters, identity=identity, parts=parts,
         met=fingerprints(algorithm.met_conventions()),
     )  # fmt: skip
-    return team
 
 
 def build_teams(configs: Sequence[TrainConfig], runs: Sequence[Path], actor_critic: ActorCritic | None = None
