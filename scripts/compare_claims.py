@@ -4,13 +4,14 @@
         --results results/a/RESULTS.md
     python scripts/reproduce.py configs/protocols/reduced.yaml --sections planner --jobs 4 seed=5 --out results/b \
         --results results/b/RESULTS.md
-    python scripts/compare_claims.py results/a/RESULTS.md results/b/RESULTS.md
+    python scripts/compare_claims.py results/a/RESULTS.md results/b/RESULTS.md [--section Planner]
 
 A claim is its family, learner and wording; its verdict the first words of its last cell ("holds", "does not hold",
 "inconclusive", or another reading such as "not comparable"). Between the two reports a verdict stays the same,
 softens (holds or does not hold, then inconclusive), firms (the other way) or flips (holds against does not hold): the
 intervals over seeds promise that no claim flips between two sets of seeds. Prints a table of every claim in both
-and exits 1 where one flipped.
+and exits 1 where one flipped. `--section TITLE` reads the claims of the section whose heading starts with TITLE
+(those the run of that section wrote) instead of the table that gathers every section's.
 """
 
 from __future__ import annotations
@@ -21,15 +22,28 @@ from pathlib import Path
 
 HOLDS, DOES_NOT_HOLD, INCONCLUSIVE = "holds", "does not hold", "inconclusive"
 CLAIMS_TITLE = "## The paper's claims, here"
+SECTION_CLAIMS = "<!-- claims -->"  # where a section's own claims table starts
 
 
-def read_claims(path: Path) -> dict[tuple[str, str, str], str]:
-    """(family, learner, claim) -> verdict, from a report's gathered claims table."""
+def claims_text(path: Path, section: str | None) -> str:
+    """The report's text from its gathered claims table on, or from the claims of the section headed `section`."""
     text = path.read_text()
-    if CLAIMS_TITLE not in text:
-        raise ValueError(f"{path} has no claims table ({CLAIMS_TITLE!r}): a RESULTS.md that reproduce.py wrote")
+    if section is None:
+        if CLAIMS_TITLE not in text:
+            raise ValueError(f"{path} has no claims table ({CLAIMS_TITLE!r}): a RESULTS.md that reproduce.py wrote")
+        return text[text.index(CLAIMS_TITLE):]
+    heading = f"\n## {section}"
+    if heading not in text or SECTION_CLAIMS not in text[text.index(heading):]:
+        raise ValueError(f"{path} has no section headed {section!r} with a claims table")
+    within = text[text.index(heading):]
+    return within[within.index(SECTION_CLAIMS):]
+
+
+def read_claims(path: Path, section: str | None = None) -> dict[tuple[str, str, str], str]:
+    """(family, learner, claim) -> verdict, from a report's gathered claims table, or from the claims of the section
+    headed `section`."""
     claims = {}
-    for line in text[text.index(CLAIMS_TITLE):].splitlines()[1:]:
+    for line in claims_text(path, section).splitlines()[1:]:
         if claims and not line.startswith("|"):
             break  # the end of the table
         cells = [cell.strip() for cell in line.strip().strip("|").split(" | ")]
@@ -66,9 +80,10 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("first", type=Path)
     parser.add_argument("second", type=Path)
+    parser.add_argument("--section", metavar="TITLE", help="the claims of the section whose heading starts so")
     args = parser.parse_args(argv)
     try:
-        first, second = read_claims(args.first), read_claims(args.second)
+        first, second = read_claims(args.first, args.section), read_claims(args.second, args.section)
     except (OSError, ValueError) as error:
         print(f"compare_claims: error: {error}", file=sys.stderr)
         return 2

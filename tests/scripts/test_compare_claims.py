@@ -11,7 +11,9 @@ HEADER = ["# Results", "", "## The paper's claims, here", "",
 
 def report(path, verdicts):
     rows = [f"| MLP | scratch | claim {i} | +0.10 [-0.2, +0.4] (5 v 5 seeds) | {v} |" for i, v in enumerate(verdicts)]
-    path.write_text("\n".join([*HEADER, *rows, "", "## A section", "", "| not | a | claim | row | here |"]))
+    section = ["## A section", "", "<!-- claims -->", *HEADER[-2:], rows[0].replace("MLP", "GNN"), "<!-- /claims -->",
+               "", "| not | a | claim | row | here |"]
+    path.write_text("\n".join([*HEADER, *rows, "", *section]))
     return path
 
 
@@ -29,3 +31,7 @@ def test_a_flip_is_found_softening_is_not_and_the_command_fails_on_a_flip(tmp_pa
     assert compare_claims.main([str(first), str(first)]) == 0
     assert compare_claims.main([str(first), str(tmp_path / "none.md")]) == 2
     assert capsys.readouterr().err.count("\n") == 1
+    assert compare_claims.read_claims(first, "A section") == {("GNN", "scratch", "claim 0"): "holds"}  # its own table
+    assert compare_claims.main([str(first), str(second), "--section", "A sect"]) == 0
+    assert "1 claims in both: 0 same, 1 softened" in capsys.readouterr().out
+    assert compare_claims.main([str(first), str(second), "--section", "Elsewhere"]) == 2
