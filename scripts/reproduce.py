@@ -49,6 +49,7 @@ import yaml
 
 from jax_env import EXPANDED_LAYOUTS, PADDED_LAYOUTS
 from torch_kitchen.partners.conventions import load_zoo
+from trainers.algorithms import check_algorithm
 from trainers.checkpoint import LATEST, CheckpointError, load_checkpoint
 from trainers.config import EVAL_COLLECTORS, PLANNER_START, ConfigError, DeviceConfig, EvalConfig, TrainConfig
 from trainers.config.compose import load_config
@@ -65,7 +66,7 @@ from trainers.humans.behaviour_cloning import ProxySettings
 from trainers.humans.command import fetch
 from trainers.humans.command import train as train_proxies
 from trainers.machine import code_version, machine_name
-from trainers.ppo.resume import RunStopped
+from trainers.ppo.resume import RunStopped, check_same_learning
 from trainers.ppo.team import team_configs
 from trainers.train_command import train_config_file
 
@@ -185,11 +186,22 @@ def select_conditions(protocol: dict, names: list[str] | None) -> tuple[dict, li
 
 
 def trained_before(name: str, path: str, overrides: list[str], teams: int, runs: Path) -> bool:
-    """Whether every team of a condition has a checkpoint at the end of its budget (an earlier run trained it)."""
-    configs = team_configs(load_config(path, condition_overrides(name, overrides, teams, runs)))
+    """Whether every team of a condition has a checkpoint at the end of its budget (an earlier run trained it).
+    ConfigError, naming the condition, where its teams' checkpoints hold other settings than the protocol's now
+    (they would not be resumed): asked of every condition before any trains, so that nothing trains for long and
+    then stops at a condition trained before."""
+    configs = [check_algorithm(config.check())
+               for config in team_configs(load_config(path, condition_overrides(name, overrides, teams, runs)))]
     paths = [config.run_path / "checkpoints" / LATEST for config in configs]
-    return all(path.is_file() and load_checkpoint(path)["env_steps"] >= config.planned_steps
-               for path, config in zip(paths, configs))
+    if not all(path.is_file() for path in paths):
+        return False  # none trained, or some: those start over together
+    states = [load_checkpoint(path) for path in paths]
+    try:
+        for config, state in zip(configs, states):
+            check_same_learning(config.run_path, config, state["config"])
+    except ConfigError as error:
+        raise ConfigError(f"{name}: {error}, or reproduce into another --out") from None
+    return all(state["env_steps"] >= config.planned_steps for state, config in zip(states, configs))
 
 
 def train_condition(name: str, path: str, overrides: list[str], teams: int, runs: Path) -> float:

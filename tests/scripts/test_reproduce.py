@@ -79,10 +79,14 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     assert "ik reused (trained by an earlier run), sk_cramped reused" in results.read_text()  # said, not timed
     assert {p: p.stat().st_mtime_ns for p in out.glob("runs/*/seed*/checkpoints/latest.pt")} == stamps
     monkeypatch.setattr(reproduce, "human_proxies", scripted_proxy)
-    # Run again with a setting changed: the runs trained with the old one are refused in one line, not reused.
+    # Run again with a setting changed: the runs trained with the old one are refused in one line, not reused,
+    # before any condition trains.
     capsys.readouterr()
-    assert reproduce.main([argv[0], "ppo.lr=0.1", *argv[1:]]) == 2
+    with monkeypatch.context() as patched:
+        patched.setattr(reproduce, "train_conditions", lambda *args: pytest.fail("trained before refusing"))
+        assert reproduce.main([argv[0], "ppo.lr=0.1", "--jobs", "2", *argv[1:]]) == 2
     error = capsys.readouterr().err
+    assert error.startswith("reproduce: error: guided_sk: ") and error.rstrip().endswith("or reproduce into another --out")
     assert "was trained with ppo.lr=0.00025, not ppo.lr=0.1: a resume keeps what the run learns" in error
     assert error.count("\n") == 1
 
