@@ -86,7 +86,8 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
         patched.setattr(reproduce, "train_conditions", lambda *args: pytest.fail("trained before refusing"))
         assert reproduce.main([argv[0], "ppo.lr=0.1", "--jobs", "2", *argv[1:]]) == 2
     error = capsys.readouterr().err
-    assert error.startswith("reproduce: error: guided_sk: ") and error.rstrip().endswith("or reproduce into another --out")
+    assert error.startswith("reproduce: error: guided_sk: ")  # the first condition refused names itself
+    assert error.rstrip().endswith("or reproduce into another --out")
     assert "was trained with ppo.lr=0.00025, not ppo.lr=0.1: a resume keeps what the run learns" in error
     assert error.count("\n") == 1
 
