@@ -62,7 +62,7 @@ def audit_training(setting: str, teams: int, device: str, steps: int = 8, stack:
             orders = []
             for team, team_batch in zip(built, team_batches):
                 with team.stream.active():
-                    orders.append(start_update(team, team_batch))
+                    orders.append(start_update(team, team_batch)[0])
             if stack:  # every team's minibatch as one step
                 step = Learner(lead, built).step
 

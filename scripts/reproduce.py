@@ -50,7 +50,7 @@ import yaml
 from jax_env import EXPANDED_LAYOUTS, PADDED_LAYOUTS
 from torch_kitchen.partners.conventions import load_zoo
 from trainers.algorithms import check_algorithm
-from trainers.checkpoint import LATEST, CheckpointError, load_checkpoint
+from trainers.checkpoint import CheckpointError, load_checkpoint
 from trainers.config import EVAL_COLLECTORS, PLANNER_START, ConfigError, DeviceConfig, EvalConfig, TrainConfig
 from trainers.config.compose import load_config
 from trainers.evaluation import HUMAN_PROXY_RUN, SCRIPTED_CONDITION, cross_condition, evaluate
@@ -68,7 +68,7 @@ from trainers.humans.command import train as train_proxies
 from trainers.machine import code_version, machine_name
 from trainers.ppo.resume import RunStopped, check_same_learning
 from trainers.ppo.team import team_configs
-from trainers.train_command import train_config_file
+from trainers.train_command import latest_checkpoints, train_config_file
 
 ROOT = Path(__file__).resolve().parents[1]
 MAIN_JOB = ROOT / "configs" / "main.yaml"  # the README's planner-guided team, whose budget a section is set beside
@@ -192,8 +192,8 @@ def trained_before(name: str, path: str, overrides: list[str], teams: int, runs:
     then stops at a condition trained before."""
     configs = [check_algorithm(config.check())
                for config in team_configs(load_config(path, condition_overrides(name, overrides, teams, runs)))]
-    paths = [config.run_path / "checkpoints" / LATEST for config in configs]
-    if not all(path.is_file() for path in paths):
+    paths = latest_checkpoints(configs)
+    if paths is None:
         return False  # none trained, or some: those start over together
     states = [load_checkpoint(path) for path in paths]
     try:

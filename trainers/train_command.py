@@ -32,12 +32,18 @@ def train_or_resume(configs: Sequence[TrainConfig]) -> list[Path]:
     """Trains the teams of `configs` together, or resumes them where every one has a checkpoint (teams already
     trained return at once), so running the same command again continues it. Teams of which only some have a
     checkpoint start over together: teams trained in one batch resume from one update."""
-    checkpointed = [(config.run_path / "checkpoints" / LATEST).exists() for config in configs]
-    if all(checkpointed):
+    if latest_checkpoints(configs) is not None:
         return train_teams(configs, resume=True)
     for config in configs:
         shutil.rmtree(config.run_path, ignore_errors=True)
     return train_teams(configs)
+
+
+def latest_checkpoints(configs: Sequence[TrainConfig]) -> list[Path] | None:
+    """Each team's latest checkpoint where every team has one (they resume together); None where some or all have
+    none: teams trained in one batch resume from one update, so those start over together."""
+    paths = [config.run_path / "checkpoints" / LATEST for config in configs]
+    return paths if all(path.is_file() for path in paths) else None
 
 
 def report_runs(config: TrainConfig, runs: Sequence[Path]) -> None:

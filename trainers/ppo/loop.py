@@ -91,19 +91,23 @@ def metric_name(key: str) -> str | None:
     return f"losses/{key.removeprefix('loss_')}" if key.startswith("loss_") else f"charts/{key}"
 
 
-def start_update(team: TrainingTeam, batch: TensorDictBase) -> list[tuple[torch.Tensor, ...]]:
+def start_update(team: TrainingTeam, batch: TensorDictBase) -> tuple[list[tuple[torch.Tensor, ...]], dict[str, float]]:
     """The first part of an update of `team` on its batch [num_envs, rollout_steps], run in the team's random
     stream, one team after another: the counters, the learning rate, the training reward and GAE, the
-    algorithm's batch hook, and the minibatch orders of every epoch (the update's only random draws)."""
+    algorithm's batch hook, and the minibatch orders of every epoch (the update's only random draws). Returns
+    the orders and the schedules the update runs with (its learning rate and shaping weight, as logged)."""
     config = team.config
     team.update += 1
     team.env_steps += batch.numel()
-    set_learning_rate(config, team.optimizer, learning_rate_at(config, team.update))
-    compute_advantages(batch, team.actor_critic.critic, config, shaping_weight_at(config, team.env_steps))
+    schedules = {"charts/learning_rate": learning_rate_at(config, team.update),
+                 "charts/shaping_weight": shaping_weight_at(config, team.env_steps)}
+    set_learning_rate(config, team.optimizer, schedules["charts/learning_rate"])
+    compute_advantages(batch, team.actor_critic.critic, config, schedules["charts/shaping_weight"])
     team.algorithm.process_batch(batch)
     # Drawn where the batch is: a GPU's minibatches then need nothing from the host.
-    return [torch.randperm(config.num_envs, device=config.runtime.device).chunk(config.ppo.minibatches)
-            for _ in range(config.ppo.epochs)]
+    orders = [torch.randperm(config.num_envs, device=config.runtime.device).chunk(config.ppo.minibatches)
+              for _ in range(config.ppo.epochs)]
+    return orders, schedules
 
 
 def update_teams(teams: Sequence[TrainingTeam], batches: Sequence[TensorDictBase], orders: Sequence[list],
@@ -328,10 +332,10 @@ def learn_from_batch(teams: list[TrainingTeam], batch: TensorDictBase, runner: U
     for team, team_batch in zip(teams, batches):
         preparing = time.perf_counter()
         with team.stream.active():
-            orders.append(start_update(team, team_batch))
+            team_orders, team_schedules = start_update(team, team_batch)
+        orders.append(team_orders)
+        schedules.append(team_schedules)
         prepare_seconds.append(time.perf_counter() - preparing)
-        schedules.append({"charts/learning_rate": learning_rate_at(team.config, team.update),
-                          "charts/shaping_weight": shaping_weight_at(team.config, team.env_steps)})
     learned = update_teams(teams, batches, orders, runner)
     for (metrics, _), schedule in zip(learned, schedules):
         metrics.update(schedule)  # the schedules the update ran with, logged beside what it learned
