@@ -49,7 +49,6 @@ import yaml
 
 from jax_env import EXPANDED_LAYOUTS, PADDED_LAYOUTS
 from torch_kitchen.partners.conventions import load_zoo
-from trainers.algorithms import check_algorithm
 from trainers.checkpoint import CheckpointError, load_checkpoint
 from trainers.config import EVAL_COLLECTORS, PLANNER_START, ConfigError, DeviceConfig, EvalConfig, TrainConfig
 from trainers.config.compose import load_config
@@ -66,6 +65,7 @@ from trainers.humans.behaviour_cloning import ProxySettings
 from trainers.humans.command import fetch
 from trainers.humans.command import train as train_proxies
 from trainers.machine import code_version, machine_name
+from trainers.ppo.loop import check_teams
 from trainers.ppo.resume import RunStopped, check_same_learning
 from trainers.ppo.team import team_configs
 from trainers.train_command import latest_checkpoints, train_config_file
@@ -187,11 +187,10 @@ def select_conditions(protocol: dict, names: list[str] | None) -> tuple[dict, li
 
 def trained_before(name: str, path: str, overrides: list[str], teams: int, runs: Path) -> bool:
     """Whether every team of a condition has a checkpoint at the end of its budget (an earlier run trained it).
-    ConfigError, naming the condition, where its teams' checkpoints hold other settings than the protocol's now
-    (they would not be resumed): asked of every condition before any trains, so that nothing trains for long and
-    then stops at a condition trained before."""
-    configs = [check_algorithm(config.check())
-               for config in team_configs(load_config(path, condition_overrides(name, overrides, teams, runs)))]
+    Its teams' configs are checked as training checks them (`check_teams`); ConfigError, naming the condition,
+    where their checkpoints hold other settings than the protocol's now (they would not be resumed): asked of every
+    condition before any trains, so that nothing trains for long and then stops at a condition trained before."""
+    configs = check_teams(team_configs(load_config(path, condition_overrides(name, overrides, teams, runs))))
     paths = latest_checkpoints(configs)
     if paths is None:
         return False  # none trained, or some: those start over together
