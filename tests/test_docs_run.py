@@ -53,7 +53,7 @@ SHRINK = {
                          "--table-heldout", "1", "--table-rollouts", "1", "--clash-heldout", "0", "--workers", "1",
                          "--max-steps", "16", "--out", "outputs/zoo"],
     "kitchen-zoo clash": ["--heldout", "0", "--max-steps", "2", "--out", "outputs/clash", "--conventions",
-                          "cook_0_228", "cook_0_189", "cook_0_202"],  # three of the shipped zoo's
+                          "cook_0_228", "cook_0_221", "cook_0_193"],  # three of the shipped zoo's
     "kitchen-study simulate": ["--participants", "2", "--parallel", "2", "--max-steps", "8"],
     "kitchen-study power": ["--studies", "4", "--sizes", "8", "16"],
     "scripts/reproduce.py": ["--teams", "1", "--rollouts", "1", "--heldout", "1", "--max-steps", "16", "--jobs", "1",

@@ -3,7 +3,7 @@
     kitchen-zoo draw --seed 0 --out configs/zoo          # draw, play, keep a diverse set, split, write
     kitchen-zoo draw --candidates 8 --keep 4 --strangers 2 --levels 8 --table-heldout 4 --out /tmp/zoo   # tiny
     kitchen-zoo show configs/zoo/zoo.yaml                # its conventions, one a line
-    kitchen-zoo save cook_0_136 --run-dir runs/zoo       # a cook as a run kitchen-eval and kitchen-play read
+    kitchen-zoo save cook_0_210 --run-dir runs/zoo       # a cook as a run kitchen-eval and kitchen-play read
     kitchen-zoo clash configs/zoo/zoo.yaml --heldout 20  # convention x convention cross-play: do they clash?
 
 `draw` draws `candidates` conventions from `seed` (`torch_kitchen.partners.conventions.draw_convention`), plays each

@@ -163,7 +163,7 @@ def test_runs_whose_distillations_are_the_same_share_one_start(tmp_path, monkeyp
     assert "name: zoo" in (starts["zoo"] / "config.yaml").read_text()
     assert len(list((tmp_path / distillation.SHARED_STARTS).glob("*/checkpoints"))) == 2
     assert not list((tmp_path / distillation.SHARED_STARTS).glob(f"*/{DATA}"))  # a finished start keeps no rounds
-    taught = tiny_config(tmp_path, *ROUNDS, "distill.teachers=[cook_0_202]", "zoo=configs/zoo/zoo.yaml")
+    taught = tiny_config(tmp_path, *ROUNDS, "distill.teachers=[cook_0_193]", "zoo=configs/zoo/zoo.yaml")
     assert distillation.start_key(taught) != distillation.start_key(
         dataclasses.replace(taught, zoo="elsewhere.yaml"))  # a teacher's zoo is part of the distillation
 
