@@ -148,9 +148,15 @@ def self_play(conventions: Sequence[Convention], grids: list, rollouts: int, see
     return outcomes.deliveries, outcomes.events.sum(2) / (2 * rollouts)
 
 
+# The roles the shipped zoo's conventions draw: a split of the work by seat, strict or not. Conventions that split it so
+# clash (a cook delivers less beside another convention than beside its own kind); drawn from every role, or with no
+# split, they do not (docs/evaluation.md).
+ZOO_ROLES = ("seat0_loads", "seat0_serves")
+
+
 def draw_zoo(seed: int = 0, candidates: int = 96, keep: int = 32, strangers: int = 8, levels: int = 64,
              kitchen_size: int = 7, min_cooked: float = 0.6, max_envs: int = 4096, workers: int = 1,
-             progress: bool = True, max_steps: int = 256, roles: Sequence[str] = ROLES) -> Zoo:
+             progress: bool = True, max_steps: int = 256, roles: Sequence[str] = ZOO_ROLES) -> Zoo:
     """Draws (each convention's role among `roles`), plays (`max_steps`-step episodes), filters and selects a zoo
     (see the module docstring). Deterministic for its arguments."""
     rng = random.Random(seed)
@@ -329,9 +335,9 @@ def zoo_parser() -> argparse.ArgumentParser:
     drawing.add_argument("--workers", type=int, default=1, help="processes that play at once")
     drawing.add_argument("--max-steps", type=int, default=256,
                       help="steps of an episode, in the draw, the table and the clash alike")
-    drawing.add_argument("--roles", nargs="+", choices=ROLES, default=list(ROLES),
-                         help="the roles a convention may draw (both loader server: the zoo as drawn before the work "
-                              "could be split by side)")
+    drawing.add_argument("--roles", nargs="+", choices=ROLES, default=list(ZOO_ROLES),
+                         help="the roles a convention may draw (default: the split by seat, the shipped zoo's; both "
+                              "loader server: no split)")
     drawing.add_argument("--out", default=str(Path(ZOO_FILE).parent), help="folder of zoo.yaml and zoo.md")
     clashes = verbs.add_parser("clash", help="convention x convention cross-play of a zoo: clash.md, .csv and heat map")
     clashes.add_argument("zoo", nargs="?", default=ZOO_FILE)
@@ -398,7 +404,7 @@ def draw(args: argparse.Namespace) -> None:
                                 f"{args.candidates} --keep {args.keep} --strangers {args.strangers} --levels "
                                 f"{args.levels} --clash-heldout {args.clash_heldout}"
                                 + (f" --max-steps {args.max_steps}" if args.max_steps != 256 else "")
-                                + (f" --roles {' '.join(args.roles)}" if list(args.roles) != list(ROLES) else "")
+                                + f" --roles {' '.join(args.roles)}"
                                 + "`\n\n" + table)
     print(table)
     print(f"wrote {out / 'zoo.md'}")

@@ -11,6 +11,7 @@ from tiny import TINY
 import trainers.ppo.distill as distillation
 from torch_kitchen.keys import VALUE_TARGET
 from torch_kitchen.models import make_actor_critic
+from torch_kitchen.partners.conventions import ZOO_FILE, load_zoo, save_zoo
 from torch_kitchen.partners.scripted_cook import ScriptedCook
 from trainers.checkpoint import load_checkpoint
 from trainers.ppo.distill import DATA, TEACHER_PROBS, distill, distill_start, fit, main, minibatches, replayed
@@ -163,9 +164,15 @@ def test_runs_whose_distillations_are_the_same_share_one_start(tmp_path, monkeyp
     assert "name: zoo" in (starts["zoo"] / "config.yaml").read_text()
     assert len(list((tmp_path / distillation.SHARED_STARTS).glob("*/checkpoints"))) == 2
     assert not list((tmp_path / distillation.SHARED_STARTS).glob(f"*/{DATA}"))  # a finished start keeps no rounds
-    taught = tiny_config(tmp_path, *ROUNDS, "distill.teachers=[cook_0_193]", "zoo=configs/zoo/zoo.yaml")
-    assert distillation.start_key(taught) != distillation.start_key(
-        dataclasses.replace(taught, zoo="elsewhere.yaml"))  # a teacher's zoo is part of the distillation
+    # A teacher counts by what it is: the same zoo in another file is the same start, a teacher redrawn another.
+    taught = tiny_config(tmp_path, *ROUNDS, "distill.teachers=[cook_0_193]", f"zoo={ZOO_FILE}")
+    zoo = load_zoo(ZOO_FILE)
+    moved, redrawn = save_zoo(zoo, tmp_path / "moved.yaml"), tmp_path / "redrawn.yaml"
+    members = [dataclasses.replace(m, convention=dataclasses.replace(m.convention, noise=0.5))
+               if m.name == "cook_0_193" else m for m in zoo.members]
+    save_zoo(dataclasses.replace(zoo, members=members), redrawn)
+    assert distillation.start_key(taught) == distillation.start_key(dataclasses.replace(taught, zoo=str(moved)))
+    assert distillation.start_key(taught) != distillation.start_key(dataclasses.replace(taught, zoo=str(redrawn)))
 
 
 @pytest.mark.parametrize("architecture", ["mlp_lstm", "gnn", "ego_mlp"])

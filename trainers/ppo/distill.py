@@ -319,11 +319,13 @@ NOT_DISTILLED = ("name", "run_dir", "algorithm", "algorithm_config", "total_step
 
 
 def start_key(config: TrainConfig) -> str:
-    """A name for the distillation `config` asks for: a hash of every setting but `NOT_DISTILLED` (and the zoo file
-    where no teacher of it is named), so two runs share a start only where their distillations are the same."""
+    """A name for the distillation `config` asks for: a hash of every setting but `NOT_DISTILLED`, with the zoo file
+    read for what it holds (its teachers' fingerprints, where a teacher is named), so two runs share a start
+    only where their distillations are the same, whichever file a teacher came from and however it was redrawn."""
     settings = {key: value for key, value in config.to_dict().items() if key not in NOT_DISTILLED}
-    if not config.distill.teachers:
-        settings.pop("zoo")
+    settings.pop("zoo")
+    if config.distill.teachers:
+        settings["teachers"] = sorted(fingerprints(config.distill_teacher(r) for r in range(config.distill.rounds)))
     return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
