@@ -2,6 +2,7 @@
 cooks (zoo_ippo) and distilled from several teachers, each resumed bit for bit."""
 
 import csv
+import dataclasses
 from pathlib import Path
 
 import jax
@@ -37,7 +38,7 @@ from torch_kitchen.partners.zoo_seats import LEARNER, ZOO_COOK, ZooPartners, Zoo
 from torch_kitchen.partners.zoo_seats import cook_actions as zoo_cook_actions
 from torch_kitchen.teams import RandomStream, TeamPolicy
 from trainers.algorithms import ZooIPPO, check_algorithm
-from trainers.checkpoint import load_checkpoint
+from trainers.checkpoint import LATEST, load_checkpoint
 from trainers.evaluation import load_team
 from trainers.evaluation import main as eval_main
 from trainers.ppo.collection import make_collector
@@ -210,12 +211,23 @@ def test_a_best_response_trains_beside_its_stranger_in_every_kitchen(tmp_path, z
     assert load_checkpoint(train(config))["config"]["algorithm_config"]["best_response_to"] == "stranger"
 
 
-def test_zoo_ippo_learns_beside_zoo_cooks_and_resumes_bit_for_bit(tmp_path, zoo_file):
+def test_zoo_ippo_learns_beside_zoo_cooks_and_resumes_bit_for_bit_beside_the_same_cooks(tmp_path, zoo_file, capsys):
     common = ("algorithm=zoo_ippo", f"zoo={zoo_file}", "algorithm_config.zoo_share=0.5", "checkpoint_every=1",
               "levels=infinite")
     whole = train(tiny_config(tmp_path / "whole", *common, updates=3))
     stopped_config = tiny_config(tmp_path / "stopped", *common, updates=3)
     train(stopped_config, on_update=lambda update, metrics: update == 2)
+    # The zoo file redrawn under the same name since: a resume would train beside other cooks, so it is refused.
+    zoo = load_zoo(zoo_file)
+    before = Path(zoo_file).read_text()
+    redrawn = [dataclasses.replace(m, convention=dataclasses.replace(m.convention, noise=0.5)) if m.name == "loader"
+               else m for m in zoo.members]
+    save_zoo(dataclasses.replace(zoo, members=redrawn), zoo_file)
+    checkpoint = (stopped_config.run_path / "checkpoints" / LATEST).read_bytes()
+    assert train_main(["--resume", str(stopped_config.run_path)]) == 2
+    assert "was not trained beside loader as" in capsys.readouterr().err.strip().splitlines()[-1]
+    assert (stopped_config.run_path / "checkpoints" / LATEST).read_bytes() == checkpoint  # nothing written
+    Path(zoo_file).write_text(before)
     assert train_main(["--resume", str(stopped_config.run_path)]) == 0
     final, straight = load_checkpoint(stopped_config.run_path), load_checkpoint(whole)
     assert final["algorithm"]["zoo_seats"]  # the seats' generator and draws travel with the checkpoint
