@@ -190,7 +190,10 @@ def trained_before(name: str, path: str, overrides: list[str], teams: int, runs:
     Its teams' configs are checked as training checks them (`check_teams`); ConfigError, naming the condition,
     where their checkpoints hold other settings than the protocol's now (they would not be resumed): asked of every
     condition before any trains, so that nothing trains for long and then stops at a condition trained before."""
-    configs = check_teams(team_configs(load_config(path, condition_overrides(name, overrides, teams, runs))))
+    try:
+        configs = check_teams(team_configs(load_config(path, condition_overrides(name, overrides, teams, runs))))
+    except ConfigError as error:
+        raise ConfigError(f"{name}: {error}") from None
     paths = latest_checkpoints(configs)
     if paths is None:
         return False  # none trained, or some: those start over together

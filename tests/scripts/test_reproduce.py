@@ -90,6 +90,13 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     assert error.rstrip().endswith("or reproduce into another --out")
     assert "was trained with ppo.lr=0.00025, not ppo.lr=0.1: a resume keeps what the run learns" in error
     assert error.count("\n") == 1
+    # A setting training itself refuses: refused as training would, naming the condition, before any trains.
+    with monkeypatch.context() as patched:
+        patched.setattr(reproduce, "train_conditions", lambda *args: pytest.fail("trained before refusing"))
+        assert reproduce.main([argv[0], "ppo.lr=-1", *argv[1:]]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("reproduce: error: ") and ": ppo.lr must be greater than 0, got -1.0" in error
+    assert error.split(": ")[2] in ("ik", "sk_cramped", "guided_sk") and error.count("\n") == 1
 
     # Part of the protocol: the conditions named, their family and the report saying what it left out.
     assert reproduce.main([*argv, "--conditions", "ik", "sk_cramped"]) == 0
