@@ -66,7 +66,7 @@ from trainers.humans.command import fetch
 from trainers.humans.command import train as train_proxies
 from trainers.machine import code_version, machine_name
 from trainers.ppo.loop import check_teams
-from trainers.ppo.resume import RunStopped, check_same_learning
+from trainers.ppo.resume import RunStopped, check_same_learning, check_same_partners
 from trainers.ppo.team import team_configs
 from trainers.train_command import latest_checkpoints, train_config_file
 
@@ -188,7 +188,8 @@ def select_conditions(protocol: dict, names: list[str] | None) -> tuple[dict, li
 def trained_before(name: str, path: str, overrides: list[str], teams: int, runs: Path) -> bool:
     """Whether every team of a condition has a checkpoint at the end of its budget (an earlier run trained it).
     Its teams' configs are checked as training checks them (`check_teams`); ConfigError, naming the condition,
-    where their checkpoints hold other settings than the protocol's now (they would not be resumed): asked of every
+    where their checkpoints hold other settings than the protocol's now, or met other scripted cooks than its zoo
+    file holds now (they would not be resumed): asked of every
     condition before any trains, so that nothing trains for long and then stops at a condition trained before."""
     try:
         configs = check_teams(team_configs(load_config(path, condition_overrides(name, overrides, teams, runs))))
@@ -201,6 +202,7 @@ def trained_before(name: str, path: str, overrides: list[str], teams: int, runs:
     try:
         for config, state in zip(configs, states):
             check_same_learning(config.run_path, config, state["config"])
+            check_same_partners(config.run_path, config, state.get("met"))
     except ConfigError as error:
         raise ConfigError(f"{name}: {error}, or reproduce into another --out") from None
     return all(state["env_steps"] >= config.planned_steps for state, config in zip(states, configs))

@@ -1,5 +1,6 @@
 """The reproduction command end to end at a tiny budget: it trains, evaluates, writes RESULTS.md, and resumes."""
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -7,7 +8,16 @@ import yaml
 from scripted_cook import save_scripted_team
 from tiny import script_module
 
-from torch_kitchen.partners.conventions import STRANGER, Convention, Zoo, ZooMember, generator_settings, save_zoo
+from torch_kitchen.partners.conventions import (
+    STRANGER,
+    TRAIN,
+    Convention,
+    Zoo,
+    ZooMember,
+    generator_settings,
+    save_zoo,
+)
+from trainers.config import ConfigError
 from trainers.config.compose import load_config
 from trainers.machine import code_version
 
@@ -105,6 +115,24 @@ def test_the_protocol_trains_every_condition_evaluates_and_writes_the_report(tmp
     assert f"| MLP | IPPO from scratch | {claim}" in report
     assert "| MLP guided | guided | IK beats SK" not in report  # its one SK condition left out: no SK claims
     assert report.count("guided_sk") == 1  # in the list of those left out only
+
+
+def test_a_condition_trained_beside_a_zoo_redrawn_since_is_refused_not_reused(tmp_path):
+    cooks = [Convention(name="loader", role="loader"), Convention(name="server", role="server")]
+    zoo = Zoo(0, 7, generator_settings(7), [ZooMember(cook, TRAIN, 1.0, 1.0, {}) for cook in cooks])
+    zoo_file, runs, config = tmp_path / "zoo.yaml", tmp_path / "runs", str(ROOT / "configs/ippo/mlp_ik.yaml")
+    save_zoo(zoo, zoo_file)
+    overrides = [*TINY, "algorithm=zoo_ippo", f"zoo={zoo_file}", "algorithm_config.zoo_share=1.0"]
+    reproduce.train_condition("beside_zoo", config, overrides, 1, runs)
+    assert reproduce.trained_before("beside_zoo", config, overrides, 1, runs)
+    # The same file drawn again with one cook changed: the team trained beside the old one is not reused as if
+    # trained beside the new.
+    redrawn = [dataclasses.replace(member, convention=dataclasses.replace(member.convention, noise=0.5))
+               if member.name == "server" else member for member in zoo.members]
+    save_zoo(dataclasses.replace(zoo, members=redrawn), zoo_file)
+    with pytest.raises(ConfigError, match=r"^beside_zoo: .*seed0 was not trained beside server as .*zoo\.yaml holds "
+                                          r"them now .*, or reproduce into another --out$"):
+        reproduce.trained_before("beside_zoo", config, overrides, 1, runs)
 
 
 def test_a_stopped_condition_ends_the_command_with_one_line_and_the_signals_code(tmp_path, monkeypatch, capsys):

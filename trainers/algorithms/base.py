@@ -14,7 +14,8 @@ this order (all but `process_minibatch`, which standardises the advantages, do n
                   loss_actor()            the actor that ClipPPOLoss differentiates
                   configure_loss(loss)    e.g. a loss mask
                   parameters()            trained by the optimizer beside the loss module's
-                  met_conventions()       the scripted conventions it trains beside or imitates (recorded)
+                  met_conventions(config) the scripted conventions it trains beside or imitates (recorded; a
+                                          classmethod, so a run's partners can be asked before it is built)
     every update  process_batch(batch)            after GAE, before the epochs
                   process_minibatch(minibatch)    before the PPO loss of each minibatch (and before it is split
                                                   into shards, `minibatch_shards`)
@@ -113,9 +114,11 @@ class Algorithm:
             )
 
     # ---------------------------------------------------------------- set-up
-    def met_conventions(self) -> list[Convention]:
-        """The scripted conventions the team trains beside or imitates: its run records their fingerprints, so that
-        no evaluation scores it beside one of them as a held-out stranger."""
+    @classmethod
+    def met_conventions(cls, config: TrainConfig) -> list[Convention]:
+        """The scripted conventions a team of `config` trains beside or imitates: its run records their
+        fingerprints, so that no evaluation scores it beside one of them as a held-out stranger and no resume
+        trains it beside others."""
         return []
 
     def check(self) -> None:

@@ -21,7 +21,7 @@ from torch_kitchen.partners.conventions import Convention
 from torch_kitchen.partners.scripted_cook import ScriptedCook
 from trainers.algorithms.anchored import action_log_probs
 from trainers.algorithms.ippo import IPPO
-from trainers.config import ConfigError, option
+from trainers.config import ConfigError, TrainConfig, option
 
 
 @dataclass
@@ -64,8 +64,9 @@ class KickstartedIPPO(IPPO):
         super().check()
         self.check_feed_forward("the cook")
 
-    def met_conventions(self) -> list[Convention]:
-        return [self.config.distill_teacher()]
+    @classmethod
+    def met_conventions(cls, config: TrainConfig) -> list[Convention]:
+        return [config.distill_teacher()]
 
     def process_batch(self, batch: TensorDictBase) -> None:
         self.weight.fill_(teacher_weight(self.settings, self.env_steps))

@@ -78,14 +78,15 @@ class ZooIPPO(Algorithm):
 
     def __init__(self, config: TrainConfig, actor_critic: ActorCritic):
         super().__init__(config, actor_critic)
-        self.conventions = training_conventions(config, self.settings)
+        self.conventions = self.met_conventions(config)
         self.seats = ZooSeats(len(self.conventions), self.settings.share, config.seed)
 
     def env_transforms(self) -> list[Transform]:
         return [self.seats]
 
-    def met_conventions(self) -> list[Convention]:
-        return list(self.conventions)
+    @classmethod
+    def met_conventions(cls, config: TrainConfig) -> list[Convention]:
+        return training_conventions(config, cls.settings_of(config))
 
     def acting_modules(self) -> list[TensorDictModuleBase]:
         return [ZooPartners(self.conventions).to(self.config.runtime.device)]

@@ -13,7 +13,9 @@ from pathlib import Path
 from torchrl.record.loggers import Logger, get_logger
 from tqdm import tqdm
 
+from torch_kitchen.partners.conventions import fingerprints
 from torch_kitchen.torchrl_internals import PurgingTensorboardLogger
+from trainers.algorithms import ALGORITHMS
 from trainers.checkpoint import check_identity, load_checkpoint, restore_rng_states
 from trainers.config import RESUMABLE, ConfigError, TrainConfig
 from trainers.config.compose import save_config
@@ -63,21 +65,21 @@ def load_to_resume(run: Path, checkpoint: Path, config: TrainConfig, identity: d
     return state
 
 
-def check_same_partners(team: TrainingTeam, met: dict[str, str] | None) -> None:
-    """Refuses, in one line, to resume `team` where a scripted convention its algorithm meets now is not among those
-    its checkpoint `met` (by fingerprint): the zoo file its config names was redrawn since, or names other
-    conventions, and a resume keeps a run's partners. A checkpoint that recorded none is not checked."""
-    if met is not None and (new := sorted(name for fingerprint, name in team.met.items() if fingerprint not in met)):
-        raise ConfigError(f"{team.run} was not trained beside {', '.join(new)} as {team.config.zoo} holds them now "
-                          "(a zoo redrawn since?): a resume keeps a run's partners; train under another name= or "
-                          "run_dir=")
+def check_same_partners(run: Path, config: TrainConfig, met: dict[str, str] | None) -> None:
+    """Refuses, in one line, to resume `run` (whose checkpoint recorded the conventions it `met`, by fingerprint)
+    with a `config` whose algorithm meets a scripted convention not among them: the zoo file it names was redrawn
+    since, or names others, and a resume keeps a run's partners. A checkpoint that recorded none is not checked."""
+    now = fingerprints(ALGORITHMS[config.algorithm].met_conventions(config))
+    if met is not None and (new := sorted(name for fingerprint, name in now.items() if fingerprint not in met)):
+        raise ConfigError(f"{run} was not trained beside {', '.join(new)} as {config.zoo} holds them now (a zoo "
+                          "redrawn since?): a resume keeps a run's partners; train under another name= or run_dir=")
 
 
 def restore(team: TrainingTeam) -> dict:
     """Loads `team`'s latest checkpoint into its parts (networks, optimizer, its kitchens) and its algorithm, and
     sets its counters; returns the checkpoint (for its RNG states)."""
     state = load_to_resume(team.run, team.checkpoint_path, team.config, team.identity)
-    check_same_partners(team, state.get("met"))
+    check_same_partners(team.run, team.config, state.get("met"))
     for name, part in team.parts.items():
         part.load_state_dict(state[name])
     team.algorithm.load_state_dict(state["algorithm"])

@@ -199,7 +199,7 @@ def build_team(config: TrainConfig, run: Path, kitchen: KitchenEnv, index: int,
     return TrainingTeam(
         config=config, run=run, stream=stream, actor_critic=actor_critic, algorithm=algorithm, policy=policy,
         loss_module=loss_module, optimizer=optimizer, parameters=parameters, identity=identity, parts=parts,
-        met=fingerprints(algorithm.met_conventions()),
+        met=fingerprints(algorithm.met_conventions(config)),
     )  # fmt: skip
 
 
