@@ -189,8 +189,8 @@ def trained_before(name: str, path: str, overrides: list[str], teams: int, runs:
     """Whether every team of a condition has a checkpoint at the end of its budget (an earlier run trained it).
     Its teams' configs are checked as training checks them (`check_teams`); ConfigError, naming the condition,
     where their checkpoints hold other settings than the protocol's now, or met other scripted cooks than its zoo
-    file holds now (they would not be resumed): asked of every
-    condition before any trains, so that nothing trains for long and then stops at a condition trained before."""
+    file holds now (they would not be resumed): asked of every condition before any trains, so that nothing trains
+    for long and then stops at a condition trained before."""
     try:
         configs = check_teams(team_configs(load_config(path, condition_overrides(name, overrides, teams, runs))))
     except ConfigError as error:
