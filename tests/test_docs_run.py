@@ -49,7 +49,8 @@ SHRINK = {
     "kitchen-eval": EVAL_SHRINK,
     "kitchen-demo": ["--steps", "8"],
     "kitchen-levels sample": ["--n", "4"],
-    "kitchen-zoo draw": ["--candidates", "4", "--keep", "2", "--strangers", "1", "--levels", "2", "--min-cooked", "0",
+    # 12 candidates: seed 0's first draws with a stranger by content among them (the 11th).
+    "kitchen-zoo draw": ["--candidates", "12", "--keep", "2", "--strangers", "1", "--levels", "2", "--min-cooked", "0",
                          "--table-heldout", "1", "--table-rollouts", "1", "--clash-heldout", "0", "--workers", "1",
                          "--max-steps", "16", "--out", "outputs/zoo"],
     "kitchen-zoo clash": ["--heldout", "0", "--max-steps", "2", "--out", "outputs/clash", "--conventions",
