@@ -1,9 +1,11 @@
 """What the tests share: the tiny training run, a few seconds per run (4 kitchens x 16 steps per update, 16-step
 episodes, narrow networks, no progress bar, no final evaluation, the kitchens' collector), and real observations for
-the models."""
+the models, and a zoo file drawn again with one cook changed."""
 
+import dataclasses
 import functools
 import sys
+from pathlib import Path
 
 TINY = [
     "num_envs=4",
@@ -72,3 +74,14 @@ def compiled_with_operator(layer, inputs, operator: str, grad_out):
     out = torch.compile(layer, fullgraph=True)(inputs)
     out.backward(grad_out)
     return out
+
+
+def redraw_zoo(source, name: str, out) -> Path:
+    """The zoo file `source` written to `out` with its convention `name` changed (noise 0.5) and every other member
+    as it was: a zoo redrawn under the same name, whose cook `name` is another by content."""
+    from torch_kitchen.partners.conventions import load_zoo, save_zoo
+
+    zoo = load_zoo(source)
+    members = [dataclasses.replace(member, convention=dataclasses.replace(member.convention, noise=0.5))
+               if member.name == name else member for member in zoo.members]
+    return save_zoo(dataclasses.replace(zoo, members=members), out)

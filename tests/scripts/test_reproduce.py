@@ -1,12 +1,11 @@
 """The reproduction command end to end at a tiny budget: it trains, evaluates, writes RESULTS.md, and resumes."""
 
-import dataclasses
 from pathlib import Path
 
 import pytest
 import yaml
 from scripted_cook import save_scripted_team
-from tiny import script_module
+from tiny import redraw_zoo, script_module
 
 from torch_kitchen.partners.conventions import (
     STRANGER,
@@ -127,9 +126,7 @@ def test_a_condition_trained_beside_a_zoo_redrawn_since_is_refused_not_reused(tm
     assert reproduce.trained_before("beside_zoo", config, overrides, 1, runs)
     # The same file drawn again with one cook changed: the team trained beside the old one is not reused as if
     # trained beside the new.
-    redrawn = [dataclasses.replace(member, convention=dataclasses.replace(member.convention, noise=0.5))
-               if member.name == "server" else member for member in zoo.members]
-    save_zoo(dataclasses.replace(zoo, members=redrawn), zoo_file)
+    redraw_zoo(zoo_file, "server", zoo_file)
     with pytest.raises(ConfigError, match=r"^beside_zoo: .*seed0 was not trained beside server as .*zoo\.yaml holds "
                                           r"them now .*, or reproduce into another --out$"):
         reproduce.trained_before("beside_zoo", config, overrides, 1, runs)

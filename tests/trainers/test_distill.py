@@ -6,7 +6,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 from test_ppo import MAIN_CONFIG, read_metrics, tiny_config
-from tiny import TINY
+from tiny import TINY, redraw_zoo
 
 import trainers.ppo.distill as distillation
 from torch_kitchen.keys import VALUE_TARGET
@@ -166,11 +166,8 @@ def test_runs_whose_distillations_are_the_same_share_one_start(tmp_path, monkeyp
     assert not list((tmp_path / distillation.SHARED_STARTS).glob(f"*/{DATA}"))  # a finished start keeps no rounds
     # A teacher counts by what it is: the same zoo in another file is the same start, a teacher redrawn another.
     taught = tiny_config(tmp_path, *ROUNDS, "distill.teachers=[cook_0_193]", f"zoo={ZOO_FILE}")
-    zoo = load_zoo(ZOO_FILE)
-    moved, redrawn = save_zoo(zoo, tmp_path / "moved.yaml"), tmp_path / "redrawn.yaml"
-    members = [dataclasses.replace(m, convention=dataclasses.replace(m.convention, noise=0.5))
-               if m.name == "cook_0_193" else m for m in zoo.members]
-    save_zoo(dataclasses.replace(zoo, members=members), redrawn)
+    moved = save_zoo(load_zoo(ZOO_FILE), tmp_path / "moved.yaml")
+    redrawn = redraw_zoo(ZOO_FILE, "cook_0_193", tmp_path / "redrawn.yaml")
     assert distillation.start_key(taught) == distillation.start_key(dataclasses.replace(taught, zoo=str(moved)))
     assert distillation.start_key(taught) != distillation.start_key(dataclasses.replace(taught, zoo=str(redrawn)))
 

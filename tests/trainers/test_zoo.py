@@ -2,7 +2,6 @@
 cooks (zoo_ippo) and distilled from several teachers, each resumed bit for bit."""
 
 import csv
-import dataclasses
 from pathlib import Path
 
 import jax
@@ -13,7 +12,7 @@ import torch
 from scripted_cook import TWO_BOOTHS
 from tensordict import TensorDict
 from test_ppo import tiny_config
-from tiny import infinite_observations
+from tiny import infinite_observations, redraw_zoo
 
 from jax_env import load_layout, save_layout
 from jax_env.cook import floor_tables, walkable_floor
@@ -218,11 +217,8 @@ def test_zoo_ippo_learns_beside_zoo_cooks_and_resumes_bit_for_bit_beside_the_sam
     stopped_config = tiny_config(tmp_path / "stopped", *common, updates=3)
     train(stopped_config, on_update=lambda update, metrics: update == 2)
     # The zoo file redrawn under the same name since: a resume would train beside other cooks, so it is refused.
-    zoo = load_zoo(zoo_file)
     before = Path(zoo_file).read_text()
-    redrawn = [dataclasses.replace(m, convention=dataclasses.replace(m.convention, noise=0.5)) if m.name == "loader"
-               else m for m in zoo.members]
-    save_zoo(dataclasses.replace(zoo, members=redrawn), zoo_file)
+    redraw_zoo(zoo_file, "loader", zoo_file)
     checkpoint = (stopped_config.run_path / "checkpoints" / LATEST).read_bytes()
     assert train_main(["--resume", str(stopped_config.run_path)]) == 2
     assert "was not trained beside loader as" in capsys.readouterr().err.strip().splitlines()[-1]
